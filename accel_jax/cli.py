@@ -1,0 +1,8 @@
+"""The `accel-jax` command (placeholder; subcommands arrive with the report)."""
+
+import click
+
+
+@click.group()
+def main():
+    """accel-jax: servo accelerometer design studies."""

@@ -1,0 +1,21 @@
+"""Shared test utilities."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8):
+    """True when two pytrees have the same structure and all leaves are close."""
+    same_structure = jax.tree_util.tree_structure(x) == jax.tree_util.tree_structure(y)
+    if not same_structure:
+        return False
+    leaves = zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y), strict=True)
+    return all(np.allclose(np.asarray(a), np.asarray(b), rtol=rtol, atol=atol) for a, b in leaves)
+
+
+def central_difference(f, x, rel_step=1e-6):
+    """Central finite difference of a scalar function of a scalar, in float64."""
+    x = jnp.asarray(x, dtype=jnp.float64)
+    h = rel_step * jnp.maximum(jnp.abs(x), 1e-300)
+    return (f(x + h) - f(x - h)) / (2 * h)
