@@ -27,4 +27,6 @@ from ._servo import (
     transfer_function_test_signal as transfer_function_test_signal,
 )
 
+from ._sweep import device_count as device_count, sweep as sweep
+
 __version__ = "0.1.0"

@@ -1,0 +1,101 @@
+"""Batch sweeps sharded across every device JAX sees.
+
+A study writes a function for one trajectory / one device and sweeps it with `sweep`:
+the batch axis is split across `jax.devices()` (several GPUs, several hosts after
+`jax.distributed.initialize()`, or simulated CPU devices via
+`XLA_FLAGS=--xla_force_host_platform_device_count=N`) with no change to the caller.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled(fn: Callable, in_axes: tuple) -> Callable:
+    # One compiled object per (function, batching pattern): calling a sweep repeatedly with
+    # new values of the same shapes never retraces.
+    return eqx.filter_jit(eqx.filter_vmap(fn, in_axes=in_axes))
+
+
+def _batch_size(args, in_axes) -> int:
+    sizes = set()
+    for arg, axis in zip(args, in_axes, strict=True):
+        if axis is None:
+            continue
+        for leaf in jax.tree_util.tree_leaves(eqx.filter(arg, eqx.is_array)):
+            if jnp.ndim(leaf) == 0:
+                raise ValueError(
+                    f"sweep: a batched argument has a scalar leaf {leaf!r}; every array leaf "
+                    "of a batched argument needs a leading batch axis (or use in_axes=None)."
+                )
+            sizes.add(int(jnp.shape(leaf)[0]))
+    if not sizes:
+        raise ValueError("sweep: no batched argument; give at least one in_axes entry 0.")
+    if len(sizes) > 1:
+        raise ValueError(f"sweep: batched arguments disagree on the batch size: {sorted(sizes)}.")
+    return sizes.pop()
+
+
+def sweep(
+    fn: Callable,
+    *args,
+    in_axes: Sequence[int | None] | None = None,
+    devices: Sequence[jax.Device] | None = None,
+):
+    """Map `fn` over a leading batch axis, sharded across devices, jit-compiled once.
+
+    **Arguments:**
+
+    - `fn`: a function of one element (one trajectory, one device, one seed).
+    - `*args`: its arguments; pytrees (e.g. a batched `ServoParams`) are fine.
+    - `in_axes`: one entry per argument, `0` (batched along the leading axis of every array
+      leaf) or `None` (shared). Default: all batched.
+    - `devices`: devices to shard over; default all of `jax.devices()`.
+
+    **Returns:** `fn`'s output with a leading batch axis, identical (to floating-point
+    reduction order, which vmap does not change) to a single-device `jax.vmap`. The batch is
+    padded to a multiple of the device count by repeating its last element, and the padding
+    is dropped from the output.
+    """
+    in_axes = tuple(0 for _ in args) if in_axes is None else tuple(in_axes)
+    if len(in_axes) != len(args):
+        raise ValueError(f"sweep: {len(args)} arguments but {len(in_axes)} in_axes entries.")
+    if any(axis not in (0, None) for axis in in_axes):
+        raise ValueError(f"sweep: in_axes entries must be 0 or None, got {in_axes}.")
+    size = _batch_size(args, in_axes)
+    devices = list(jax.devices() if devices is None else devices)
+    n_dev = len(devices)
+    padded = -(-size // n_dev) * n_dev
+    mesh = Mesh(np.asarray(devices), ("batch",))
+    sharded = NamedSharding(mesh, PartitionSpec("batch"))
+
+    def place(leaf):
+        if padded != size:
+            pad = jnp.repeat(leaf[-1:], padded - size, axis=0)
+            leaf = jnp.concatenate([leaf, pad], axis=0)
+        return jax.device_put(leaf, sharded) if n_dev > 1 else leaf
+
+    placed = []
+    for arg, axis in zip(args, in_axes, strict=True):
+        if axis is None:
+            placed.append(arg)
+        else:
+            dynamic, static = eqx.partition(arg, eqx.is_array)
+            placed.append(eqx.combine(jax.tree_util.tree_map(place, dynamic), static))
+    out = _compiled(fn, in_axes)(*placed)
+    if padded == size:
+        return out
+    return jax.tree_util.tree_map(lambda x: x[:size] if eqx.is_array(x) else x, out)
+
+
+def device_count() -> int:
+    """Number of devices a sweep shards over."""
+    return len(jax.devices())

@@ -1,0 +1,61 @@
+"""The sharded sweep: same numbers on 1 and on several (simulated) devices."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import accel_jax as aj
+
+
+def _one(params, gain):
+    return aj.scale_factor(params) * gain, aj.damping_ratio(params)
+
+
+def test_sweep_matches_vmap_single_device():
+    mus = jnp.linspace(1e-5, 2e-4, 13)
+    batch = eqx.filter_vmap(lambda mu: aj.ServoParams.reference(damping=mu))(mus)
+    out = aj.sweep(_one, batch, 2.0, in_axes=(0, None))
+    ref = eqx.filter_jit(eqx.filter_vmap(_one, in_axes=(0, None)))(batch, 2.0)
+    np.testing.assert_array_equal(out[0], ref[0])
+    np.testing.assert_array_equal(out[1], ref[1])
+
+
+def test_sweep_bad_input():
+    with pytest.raises(ValueError, match="disagree on the batch size"):
+        aj.sweep(lambda a, b: a + b, jnp.ones(3), jnp.ones(4))
+    with pytest.raises(ValueError, match="in_axes entries"):
+        aj.sweep(lambda a: a, jnp.ones(3), in_axes=(0, 0))
+
+
+def test_sweep_on_four_simulated_devices():
+    # A fresh interpreter: the device count is fixed when JAX starts.
+    code = textwrap.dedent(
+        """
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        import equinox as eqx, jax.numpy as jnp, numpy as np
+        import accel_jax as aj
+        assert jax.device_count() == 4, jax.devices()
+        mus = jnp.linspace(1e-5, 2e-4, 13)   # 13: not a multiple of 4, exercises padding
+        batch = eqx.filter_vmap(lambda mu: aj.ServoParams.reference(damping=mu))(mus)
+        f = lambda p: aj.scale_factor(p) * aj.damping_ratio(p)
+        out = aj.sweep(f, batch)
+        assert out.shape == (13,)
+        one = aj.sweep(f, batch, devices=jax.devices()[:1])
+        np.testing.assert_array_equal(np.asarray(out), np.asarray(one))
+        print("OK", len(out.sharding.device_set))
+        """
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    # The result lives on all four devices: the batch was really split.
+    assert proc.stdout.strip() == "OK 4", proc.stdout
