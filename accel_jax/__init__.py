@@ -27,6 +27,11 @@ from ._servo import (
     transfer_function_test_signal as transfer_function_test_signal,
 )
 
+from ._io import (
+    provenance as provenance,
+    save_figure_atomic as save_figure_atomic,
+    write_json_atomic as write_json_atomic,
+)
 from ._sweep import device_count as device_count, sweep as sweep
 
 __version__ = "0.1.0"

@@ -1,0 +1,79 @@
+"""Whole-or-nothing output files and result provenance."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, jax.Array | np.ndarray | np.generic):
+        array = np.asarray(value)
+        return array.item() if array.ndim == 0 else array.tolist()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None if np.isnan(value) else ("inf" if value > 0 else "-inf")
+    return value
+
+
+def write_json_atomic(path: str | os.PathLike, payload: dict) -> Path:
+    """Write `payload` as indented JSON: a temporary file, then a rename (never half a file).
+
+    JAX/NumPy scalars and arrays become numbers and lists; NaN becomes null.
+    """
+    path = Path(path)
+    text = json.dumps(_jsonable(payload), indent=2, sort_keys=False, allow_nan=False)
+    _atomic_write_bytes(path, (text + "\n").encode())
+    return path
+
+
+def save_figure_atomic(figure, path: str | os.PathLike, **kwargs) -> Path:
+    """Save a matplotlib figure as PNG via a temporary file and a rename."""
+    import io
+
+    path = Path(path)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", **{"dpi": 120, "bbox_inches": "tight", **kwargs})
+    _atomic_write_bytes(path, buffer.getvalue())
+    return path
+
+
+def provenance(*, seeds: dict | None = None, precision: str, extra: dict | None = None) -> dict:
+    """The provenance block every result file carries: package version, JAX and device,
+    precision, seeds and the date (UTC)."""
+    from . import __version__
+
+    block = {
+        "accel_jax_version": __version__,
+        "jax_version": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "precision": precision,
+        "seeds": seeds or {},
+        "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    if extra:
+        block.update(extra)
+    return block

@@ -1,0 +1,1 @@
+"""HTML report assembly from study results (private; the CLI's `report` uses it)."""

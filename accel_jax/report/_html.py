@@ -1,0 +1,100 @@
+"""Assemble a self-contained HTML report from studies' `result.json` files and figures.
+
+A study's result file may carry, beside its numbers:
+- `title`: a heading; `summary`: a list of rows `{"quantity", "ours", "paper", "note"}`;
+- `figures`: a list of `{"file": "name.png", "caption": "..."}` (PNG beside result.json);
+- `assumptions` and `provenance`: shown as tables.
+Figures are embedded as base64 so the single `index.html` can be mailed or archived.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+from .._io import _atomic_write_bytes
+
+_STYLE = """
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222;
+       line-height: 1.45; padding: 0 1em; }
+h1 { border-bottom: 2px solid #345; padding-bottom: .3em; }
+h2 { margin-top: 2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 0.92em; }
+th, td { border: 1px solid #bbb; padding: 4px 8px; text-align: left; vertical-align: top; }
+th { background: #eef2f6; }
+figure { margin: 1.5em 0; }
+figure img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { font-size: 0.9em; color: #444; margin-top: .4em; }
+details { margin: 1em 0; }
+pre { background: #f6f6f6; padding: .8em; overflow-x: auto; font-size: 0.8em; }
+"""
+
+
+def _fmt(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, dict | list):
+        return html.escape(json.dumps(value))
+    return html.escape(str(value))
+
+
+def _kv_table(mapping: dict) -> str:
+    rows = "".join(
+        f"<tr><th>{html.escape(str(k))}</th><td>{_fmt(v)}</td></tr>" for k, v in mapping.items()
+    )
+    return f"<table>{rows}</table>"
+
+
+def _study_section(study_dir: Path) -> str:
+    result = json.loads((study_dir / "result.json").read_text())
+    title = result.get("title", study_dir.name)
+    parts = [f'<h2 id="{html.escape(study_dir.name)}">{html.escape(title)}</h2>']
+    if result.get("description"):
+        parts.append(f"<p>{html.escape(result['description'])}</p>")
+    summary = result.get("summary", [])
+    if summary:
+        head = "<tr><th>quantity</th><th>accel_jax</th><th>paper</th><th>note</th></tr>"
+        rows = "".join(
+            "<tr>"
+            + "".join(f"<td>{_fmt(row.get(k, ''))}</td>" for k in ("quantity", "ours", "paper"))
+            + f"<td>{html.escape(str(row.get('note', '')))}</td></tr>"
+            for row in summary
+        )
+        parts.append(f"<table>{head}{rows}</table>")
+    for figure in result.get("figures", []):
+        png = study_dir / figure["file"]
+        if not png.exists():
+            parts.append(f"<p><em>missing figure {html.escape(figure['file'])}</em></p>")
+            continue
+        data = base64.b64encode(png.read_bytes()).decode()
+        parts.append(
+            f'<figure><img alt="{html.escape(figure["file"])}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{html.escape(figure.get('caption', ''))}</figcaption></figure>"
+        )
+    if result.get("assumptions"):
+        parts.append("<h3>Assumptions</h3>" + _kv_table(result["assumptions"]))
+    if result.get("provenance"):
+        parts.append("<h3>Provenance</h3>" + _kv_table(result["provenance"]))
+    parts.append(
+        "<details><summary>Full result.json</summary><pre>"
+        + html.escape(json.dumps(result, indent=2))
+        + "</pre></details>"
+    )
+    return "\n".join(parts)
+
+
+def build_report(study_dirs: list[Path], out_file: Path, *, title: str) -> Path:
+    """Write `out_file` (HTML) from the given study output folders, atomically."""
+    toc = "".join(
+        f'<li><a href="#{html.escape(d.name)}">{html.escape(d.name)}</a></li>' for d in study_dirs
+    )
+    body = "\n".join(_study_section(d) for d in study_dirs)
+    page = (
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+        f"<style>{_STYLE}</style></head><body><h1>{html.escape(title)}</h1>"
+        f"<ul>{toc}</ul>{body}</body></html>"
+    )
+    _atomic_write_bytes(out_file, page.encode())
+    return out_file
