@@ -73,7 +73,7 @@ class ServoParams(eqx.Module):
     k_y) produce U_amp = k_dp·k_y·l·θ; a magnetoelectric torquer (gain k_dm, electrical time
     constant T_dm) turns it into the feedback moment. The output U_out is U_amp passed
     through an output filter of time constant T_f (outside the loop) plus white noise of
-    standard deviation ε. The governing equations (SI units, see `accel_jax.simulate`):
+    standard deviation ε. The governing equations (SI units, see `accel_jax.simulate_linear`):
 
         J θ'' + μ θ' + c θ = m l a + M_v + M_dm
         T_dm M_dm' = k_dm (U_test − U_amp) − M_dm,       U_amp = k_dp k_y l θ

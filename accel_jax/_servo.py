@@ -24,7 +24,7 @@ def feedback_stiffness(params: ServoParams) -> Float[Array, ""]:
     return p.torquer_gain * p.pendulum_length * p.pickoff_gain * p.amplifier_gain
 
 
-def transfer_function(params: ServoParams) -> tuple[Float[Array, "2"], Float[Array, "4"]]:
+def transfer_function(params: ServoParams) -> tuple[Float[Array, 2], Float[Array, 4]]:
     """Coefficients of W(p) = U_out/a, SPEC.md eq. (1), highest power first.
 
     W(p) = m l² k_dp k_y (T_dm p + 1) / [(J p² + μ p + c)(T_dm p + 1) + k_dm l k_dp k_y]
@@ -50,7 +50,7 @@ def transfer_function(params: ServoParams) -> tuple[Float[Array, "2"], Float[Arr
 
 def transfer_function_test_signal(
     params: ServoParams,
-) -> tuple[Float[Array, "1"], Float[Array, "4"]]:
+) -> tuple[Float[Array, 1], Float[Array, 4]]:
     """Coefficients of W_test(p) = U_amp/U_test (before the output filter), highest power first.
 
     The test voltage drives an extra torquer winding, so its moment passes through the same

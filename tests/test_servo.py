@@ -13,7 +13,8 @@ REF = aj.REFERENCE_VALUES
 
 
 def test_reference_values_match_spec():
-    # SPEC.md §1: T ≈ 2.90e-4 s (≈ 549 Hz), ξ ≈ 0.52, K_test ≈ 0.996, γ ≈ 0.7493; aperiodic ξ ≈ 2.07.
+    # SPEC.md §1: T ≈ 2.90e-4 s (549 Hz), ξ ≈ 0.52, K_test ≈ 0.996, γ ≈ 0.7493;
+    # aperiodic ξ ≈ 2.07.
     p = aj.ServoParams.reference()
     assert float(aj.time_constant(p)) == pytest.approx(2.90e-4, rel=2e-3)
     assert float(1 / (2 * np.pi * aj.time_constant(p))) == pytest.approx(549, rel=2e-3)

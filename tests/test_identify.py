@@ -1,0 +1,483 @@
+"""Tests of accel_jax._identify: the paper's identification methods (SPEC.md §1, eqs.
+(7)-(16)) and the least-squares fit.
+
+Records are made here from closed forms (the second-order step response, the two-exponential
+aperiodic response, partial fractions of the third-order loop), independently of the
+library's simulator and of its own model functions. The tests run in float64 (conftest).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import central_difference
+
+from accel_jax._identify import (
+    IdentificationResult,
+    _third_order_step,
+    fit_step_response,
+    identify_aperiodic,
+    identify_oscillatory,
+    inflection_time_ratio,
+    pickoff_gain_from_stops,
+    scale_factor_from_fit,
+    second_order_step,
+)
+
+R = IdentificationResult
+# The reference device (SPEC.md §1): T ≈ 2.90e-4 s, ξ ≈ 0.52; aperiodic ξ ≈ 2.07.
+T_REF = 2.9e-4
+XI_OSC = 0.52
+XI_AP = 2.07
+PICKOFF_AMPLIFIER_GAIN = 2.5e5 * 8.5  # k_dp k_y [V/m]
+GAMMA = 2.9e-4 * 4.28e-3**2 / 7.09e-9  # m l²/J
+GAINS = dict(pickoff_amplifier_gain=PICKOFF_AMPLIFIER_GAIN, shape_factor=GAMMA)
+OSC_DURATION = 20e-3  # 9 periods; envelope e^{-ξ t/T} ≈ 3e-13 at the tail start
+AP_DURATION = 30e-3  # slow mode e^{-t/T3} ≈ 6e-10 at the tail start
+
+
+def oscillatory_record(ts, time_constant, damping_ratio, amplitude=1.0, initial=0.0, step=0.0):
+    """Closed-form step response of amplitude/(T²p² + 2ξTp + 1), ξ < 1, step at `step`."""
+    x = np.maximum(ts - step, 0.0) / time_constant
+    beta = np.sqrt(1 - damping_ratio**2)
+    response = 1 - np.exp(-damping_ratio * x) * (
+        np.cos(beta * x) + damping_ratio / beta * np.sin(beta * x)
+    )
+    return initial + amplitude * response
+
+
+def aperiodic_constants(time_constant, damping_ratio):
+    """(T1, T3, T4) of T²p² + 2ξTp + 1 = (T3 p + 1)(T4 p + 1), ξ ≥ 1."""
+    t1 = 2 * damping_ratio * time_constant
+    root = np.sqrt(t1**2 / 4 - time_constant**2)
+    return t1, t1 / 2 + root, t1 / 2 - root
+
+
+def aperiodic_record(ts, t3, t4, amplitude=1.0, initial=0.0, delay=0.0):
+    """Two-exponential step response of amplitude/((T3 p + 1)(T4 p + 1)), delayed."""
+    tau = np.maximum(ts - delay, 0.0)
+    response = 1 - (t3 * np.exp(-tau / t3) - t4 * np.exp(-tau / t4)) / (t3 - t4)
+    return initial + amplitude * response
+
+
+def grid(sample_rate, duration):
+    return np.arange(int(round(duration * sample_rate))) / sample_rate
+
+
+def relative_error(estimate, truth):
+    return np.abs(np.asarray(estimate) / truth - 1)
+
+
+# ---------------------------------------------------------------------------------------
+# Oscillatory method
+
+
+def test_oscillatory_recovery_and_convergence():
+    # Linear interpolation of a crossing errs by at most dt²|U''|/(8|U'|); at a zero of a
+    # damped sinusoid |U''/U'| = 2ξ/T, so δt ≤ dt² ξ/(4T): 4.5e-10 s at 1 MHz, i.e. 2e-7
+    # of the period per crossing. The sampled extrema err by ≈ (ω dt)²/8 relative, mostly
+    # cancelling in A1/A2. Both are O(dt²). The error depends on where the crossings fall
+    # between samples, so each rate is run with 8 step times spread over one sample.
+    rates = np.array([1e6, 3e6, 1e7])
+    worst_t, worst_xi = [], []
+    for rate in rates:
+        ts = grid(rate, OSC_DURATION)
+        steps = (np.arange(8) + 0.5) / 8 / rate
+        estimates = [
+            identify_oscillatory(
+                ts, oscillatory_record(ts, T_REF, XI_OSC, step=step), step_time=step, **GAINS
+            )
+            for step in steps
+        ]
+        estimate = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *estimates)
+        worst_t.append(np.max(relative_error(estimate.time_constant, T_REF)))
+        worst_xi.append(np.max(relative_error(estimate.damping_ratio, XI_OSC)))
+        # eq. (7): K̂_a = γ T̂² k_dp k_y exactly.
+        np.testing.assert_allclose(
+            estimate.scale_factor,
+            GAMMA * estimate.time_constant**2 * PICKOFF_AMPLIFIER_GAIN,
+            rtol=1e-14,
+        )
+        truth_k = GAMMA * T_REF**2 * PICKOFF_AMPLIFIER_GAIN
+        assert np.max(relative_error(estimate.scale_factor, truth_k)) < 2.5 * worst_t[-1]
+    worst_t, worst_xi = np.array(worst_t), np.array(worst_xi)
+    # Measured (worst of 8): T 5.7e-7 (1 MHz) … 4.7e-9 (10 MHz), ξ 4.8e-7 … 1.8e-9.
+    # Tolerances: the O(dt²) bound above (2 crossings + 0.37 × the ξ error, since
+    # dT/T = −ξ²/(1−ξ²) dξ/ξ), rounded up.
+    assert worst_t[0] < 2e-6 and worst_xi[0] < 2e-6
+    assert worst_t[-1] < 2e-8 and worst_xi[-1] < 2e-8
+    order = -np.polyfit(np.log(rates), np.log(worst_t), 1)[0]
+    assert 1.7 < order < 2.4, (order, worst_t)
+
+
+def test_oscillatory_variants_and_step_direction():
+    ts = grid(1e6, OSC_DURATION)
+    u = oscillatory_record(ts, T_REF, XI_OSC)
+    linear = identify_oscillatory(ts, u, **GAINS)
+    nearest = identify_oscillatory(ts, u, crossing="nearest", **GAINS)
+    parabolic = identify_oscillatory(ts, u, extremum="parabolic", **GAINS)
+    # Nearest-sample crossings err by up to dt/2 each (O(dt)), linear ones by O(dt²).
+    assert relative_error(nearest.time_constant, T_REF) > 20 * relative_error(
+        linear.time_constant, T_REF
+    )
+    assert relative_error(nearest.period, linear.period) < 1e-6 / linear.period
+    # The parabolic vertex removes the O(dt²) bias of the largest sample.
+    assert relative_error(parabolic.damping_ratio, XI_OSC) < 0.1 * relative_error(
+        linear.damping_ratio, XI_OSC
+    )
+    # A step down from an offset gives the same estimate.
+    down = identify_oscillatory(ts, 3.0 - 0.8 * u, **GAINS)
+    np.testing.assert_allclose(down.time_constant, linear.time_constant, rtol=1e-9)
+    np.testing.assert_allclose(down.damping_ratio, linear.damping_ratio, rtol=1e-9)
+    np.testing.assert_allclose(down.steady_state, 2.2, rtol=1e-12)
+    # A1 ≈ e^{-πξ/√(1−ξ²)}, A2 ≈ A1² for a unit step.
+    overshoot = np.exp(-np.pi * XI_OSC / np.sqrt(1 - XI_OSC**2))
+    np.testing.assert_allclose(parabolic.overshoot, overshoot, rtol=1e-8)
+    np.testing.assert_allclose(parabolic.undershoot, overshoot**2, rtol=1e-8)
+
+
+def test_oscillatory_ignores_noise_chatter():
+    ts = grid(1e6, OSC_DURATION)
+    clean = oscillatory_record(ts, T_REF, XI_OSC)
+    sigma = 1e-4  # V, on a 1 V step
+    noisy = clean + sigma * np.random.default_rng(0).standard_normal(ts.size)
+    # The raw deviation changes sign thousands of times (noise around the settled level).
+    raw_crossings = np.sum(np.diff(np.sign(noisy - clean[-1])) != 0)
+    assert raw_crossings > 1000
+    estimate = identify_oscillatory(ts, noisy, **GAINS)
+    assert estimate.result == R.successful
+    # Crossing jitter σ/|U'| ≈ 2e-7 s; ξ from noisy A1/A2 (σ/A2 ≈ 5e-3): errors of a few
+    # 1e-3 are expected, an extra crossing would give errors of order 1.
+    assert relative_error(estimate.time_constant, T_REF) < 5e-3
+    assert relative_error(estimate.damping_ratio, XI_OSC) < 2e-2
+    assert relative_error(estimate.period, 2 * np.pi * T_REF / np.sqrt(1 - XI_OSC**2)) < 1e-3
+
+
+# ---------------------------------------------------------------------------------------
+# Aperiodic method
+
+
+def test_aperiodic_recovery_and_refinement():
+    t1, t3, t4 = aperiodic_constants(T_REF, XI_AP)
+    errors = {}
+    for rate in (1e6, 4e6):
+        ts = grid(rate, AP_DURATION)
+        estimate = identify_aperiodic(ts, aperiodic_record(ts, t3, t4), **GAINS)
+        assert estimate.result == R.successful
+        errors[rate] = (
+            relative_error(estimate.t1, t1),
+            relative_error(estimate.t2, T_REF),
+            relative_error(estimate.t2_initial, T_REF),
+        )
+        # Step 8 is solved: the closed-form inflection time at (T1, T2) is T0.
+        residual = inflection_time_ratio(2 * estimate.t2 / estimate.t1) * estimate.t1
+        assert abs(float(residual - estimate.inflection_time)) < 1e-12 * t1
+        assert abs(float(estimate.root_residual)) < 1e-12 * t1
+        np.testing.assert_allclose(estimate.t3 + estimate.t4, estimate.t1, rtol=1e-12)
+        np.testing.assert_allclose(estimate.t3 * estimate.t4, estimate.t2**2, rtol=1e-12)
+        np.testing.assert_allclose(estimate.damping_ratio, XI_AP, rtol=1e-3)
+        np.testing.assert_allclose(
+            estimate.scale_factor, GAMMA * estimate.t2**2 * PICKOFF_AMPLIFIER_GAIN, rtol=1e-14
+        )
+    # T0 = T3 T4 ln(T3/T4)/(T3 − T4) at 1 MHz to O(dt²).
+    t0 = t3 * t4 * np.log(t3 / t4) / (t3 - t4)
+    np.testing.assert_allclose(estimate.inflection_time, t0, rtol=1e-5)
+    # Measured at 1 MHz: T1 2.0e-6, refined T2 1.4e-5, tangent T2 (15) 0.154; all O(dt²):
+    # T1 = (U_ss − U0)/tg α is exact for this model, and the errors come from locating the
+    # derivative peak (parabolic vertex, O(dt²)) and the central difference (O(dt²/T4²)).
+    t1_error, t2_error, t2_initial_error = errors[1e6]
+    assert t1_error < 1e-5
+    assert t2_error < 5e-5
+    assert t2_initial_error > 0.1  # the tangent construction (15) alone is 15 % off
+    assert t2_error < 1e-3 * t2_initial_error  # the refinement helps by > 1000×
+    for before, after in zip(errors[1e6][:2], errors[4e6][:2], strict=True):
+        assert after < before / 10  # 16× for O(dt²)
+
+
+def test_aperiodic_lag_correction_and_direction():
+    t1, t3, t4 = aperiodic_constants(T_REF, XI_AP)
+    ts = grid(1e6, AP_DURATION)
+    lag = 2e-5  # T_f + T_dm of the reference device
+    delayed = aperiodic_record(ts, t3, t4, delay=lag)
+    corrected = identify_aperiodic(ts, delayed, lag_correction=lag, **GAINS)
+    uncorrected = identify_aperiodic(ts, delayed, **GAINS)
+    assert relative_error(corrected.t2, T_REF) < 5e-5
+    assert relative_error(uncorrected.t2, T_REF) > 100 * relative_error(corrected.t2, T_REF)
+    np.testing.assert_allclose(
+        corrected.inflection_time_measured - corrected.inflection_time, lag, rtol=1e-12
+    )
+    # A step down from an offset (and a step time inside the record) gives the same T2.
+    start = 1e-3
+    down = 5.0 - 2.0 * aperiodic_record(ts, t3, t4, delay=start)
+    estimate = identify_aperiodic(ts, down, step_time=start, **GAINS)
+    assert relative_error(estimate.t2, T_REF) < 5e-5
+    assert float(estimate.max_slope) < 0
+
+
+def test_aperiodic_critical_damping():
+    # ξ = 1: T1 = 2 T2 and T0 = T2 (the paper's special case); U = 1 − (1 + t/T) e^{−t/T}.
+    ts = grid(1e6, AP_DURATION)
+    x = ts / T_REF
+    estimate = identify_aperiodic(ts, 1 - (1 + x) * np.exp(-x), **GAINS)
+    assert estimate.result == R.successful
+    assert relative_error(estimate.t2, T_REF) < 1e-4
+    assert relative_error(estimate.t1, 2 * T_REF) < 1e-5
+
+
+def test_inflection_time_ratio():
+    # Against T3 T4 ln(T3/T4)/(T3 − T4) / T1 computed directly.
+    ratio = np.array([1e-3, 0.1, 0.5, 0.9, 0.999999, 1.0])
+    t1 = 1.0
+    t3 = t1 / 2 * (1 + np.sqrt(1 - ratio**2))
+    t4 = t1 / 2 * (1 - np.sqrt(1 - ratio**2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        direct = t3 * t4 * np.log(t3 / t4) / (t3 - t4)
+    direct[-1] = 0.5  # the ξ = 1 limit t_inflection = T2 = T1/2
+    ratio_fn = jax.jit(inflection_time_ratio)
+    np.testing.assert_allclose(ratio_fn(jnp.asarray(ratio)), direct, rtol=1e-9)
+    assert np.all(np.diff(np.asarray(ratio_fn(jnp.linspace(0, 1, 1001)))) > 0)
+
+
+# ---------------------------------------------------------------------------------------
+# Stops, eq. (11)
+
+
+def test_pickoff_gain_from_stops():
+    gain, h = PICKOFF_AMPLIFIER_GAIN, 1.9e-6
+    offset = 0.013
+    # Symmetric stops: the offset cancels exactly.
+    estimate = pickoff_gain_from_stops(gain * h + offset, -gain * h + offset, h, h)
+    np.testing.assert_allclose(estimate, gain, rtol=1e-14)
+    # Asymmetric stops, no offset: exact.
+    estimate = pickoff_gain_from_stops(gain * 2e-6, -gain * 1.5e-6, 2e-6, 1.5e-6)
+    np.testing.assert_allclose(estimate, gain, rtol=1e-14)
+    with pytest.raises(ValueError, match="h_minus"):
+        pickoff_gain_from_stops(4.0, -4.0, h, -h)
+    with pytest.raises(ValueError, match="u_minus"):
+        pickoff_gain_from_stops(4.0, 4.0, h, h)
+    with pytest.raises(ValueError, match="u_plus"):
+        pickoff_gain_from_stops(-4.0, -5.0, h, h)
+    # Traced values are not checked and pass through.
+    traced = jax.jit(pickoff_gain_from_stops)(4.0, -4.0, h, h)
+    np.testing.assert_allclose(traced, 4.0 / h, rtol=1e-14)
+
+
+# ---------------------------------------------------------------------------------------
+# Least-squares fit
+
+
+def test_second_order_step_is_smooth_through_critical_damping():
+    tau = jnp.asarray(grid(1e6, 3e-3))
+    x = np.asarray(tau) / T_REF
+    step = jax.jit(second_order_step)
+    for xi in (0.3, XI_OSC, 0.9999):
+        np.testing.assert_allclose(
+            step(tau, T_REF, xi), oscillatory_record(np.asarray(tau), T_REF, xi), atol=1e-13
+        )
+    np.testing.assert_allclose(step(tau, T_REF, 1.0), 1 - (1 + x) * np.exp(-x), atol=1e-13)
+    for xi in (1.0001, 1.5, XI_AP, 10.0):
+        _, t3, t4 = aperiodic_constants(T_REF, xi)
+        np.testing.assert_allclose(
+            step(tau, T_REF, xi), aperiodic_record(np.asarray(tau), t3, t4), atol=1e-12
+        )
+
+    @jax.jit
+    def total(xi):
+        return jnp.sum(second_order_step(tau, T_REF, xi))
+
+    grad = jax.jit(jax.grad(total))
+    for xi in (1 - 1e-7, 1.0, 1 + 1e-7, 0.99, 1.01):
+        assert np.isfinite(grad(xi))
+        np.testing.assert_allclose(grad(xi), central_difference(total, xi, 1e-5), rtol=1e-6)
+    # The derivative is continuous across ξ = 1.
+    np.testing.assert_allclose(grad(1 - 1e-7), grad(1 + 1e-7), rtol=1e-6)
+
+
+def third_order_record(ts, time_constant, damping_ratio, torquer, feedback, step=0.0):
+    """Step response of K/[(T²p² + 2ξTp + 1 − K)(T_dm p + 1) + K] by partial fractions."""
+    denominator = np.polymul(
+        [time_constant**2, 2 * damping_ratio * time_constant, 1 - feedback], [torquer, 1.0]
+    )
+    denominator = np.polyadd(denominator, [feedback])
+    poles = np.roots(denominator)
+    slope = np.polyder(denominator)
+    tau = np.maximum(ts - step, 0.0)
+    # Y(s) = K/(s D(s)), D(0) = 1: residue K at 0, K/(p D'(p)) at each pole p.
+    response = feedback + sum(
+        feedback / (p * np.polyval(slope, p)) * np.exp(p * tau) for p in poles
+    )
+    return np.where(ts > step, response.real, 0.0)
+
+
+def test_third_order_model_matches_partial_fractions():
+    ts = jnp.asarray(grid(1e6, 3e-3))
+    step = 2.5e-7 + 1e-4  # between samples
+    model = jax.jit(_third_order_step)(ts, step, T_REF, XI_OSC, 1e-5, 0.996)
+    expected = third_order_record(np.asarray(ts), T_REF, XI_OSC, 1e-5, 0.996, step)
+    # The library's response is normalised to unit DC gain.
+    np.testing.assert_allclose(0.996 * model, expected, atol=1e-12)
+
+
+def test_fit_second_order_uncertainty_is_calibrated():
+    ts = grid(1e6, 5e-3)
+    step = 1e-4
+    sigma = 2e-3
+    clean = oscillatory_record(ts, T_REF, XI_OSC, amplitude=0.996, initial=0.01, step=step)
+    noise = np.random.default_rng(1).standard_normal((20, ts.size))
+    records = jnp.asarray(clean + sigma * noise)
+    fit = jax.vmap(lambda u: fit_step_response(ts, u, step_time=step))(records)
+    assert np.all(fit.result == R.successful)
+    z_t = (fit.time_constant - T_REF) / fit.time_constant_std
+    z_xi = (fit.damping_ratio - XI_OSC) / fit.damping_ratio_std
+    assert abs(float(z_t[0])) < 3 and abs(float(z_xi[0])) < 3
+    # The covariance σ̂²(JᵀJ)⁻¹ predicts the scatter over seeds.
+    assert 0.5 < np.std(z_t) < 1.6 and 0.5 < np.std(z_xi) < 1.6
+    np.testing.assert_allclose(fit.residual_rms, sigma, rtol=0.05)
+    np.testing.assert_allclose(fit.gain, 0.996, rtol=1e-3)
+    np.testing.assert_allclose(fit.offset, 0.01, atol=1e-3)
+    np.testing.assert_allclose(fit.torquer_time_constant, 0.0)
+    assert fit.covariance.shape == (20, 4, 4)
+    # K̂_a = γ T² k_dp k_y with relative std 2 σ_T/T.
+    k, k_std = scale_factor_from_fit(fit, PICKOFF_AMPLIFIER_GAIN, GAMMA)
+    np.testing.assert_allclose(k_std / k, 2 * fit.time_constant_std / fit.time_constant)
+    truth = GAMMA * T_REF**2 * PICKOFF_AMPLIFIER_GAIN
+    assert 0.5 < np.std((k - truth) / k_std) < 1.6
+
+
+def test_fit_second_order_aperiodic_and_third_order_lag():
+    # The batched order-2 fit (compiled once for 20 records of 5000 samples) serves both.
+    ts = grid(1e6, 5e-3)
+    step = 1e-4
+    sigma = 1e-4
+    rng = np.random.default_rng(2)
+
+    def fit_batch(times, records):
+        return jax.vmap(lambda u: fit_step_response(times, u, step_time=step))(jnp.asarray(records))
+
+    # One closed form covers ξ > 1: aperiodic records are fitted like oscillatory ones.
+    _, t3, t4 = aperiodic_constants(T_REF, XI_AP)
+    ts_ap = grid(2.5e5, 20e-3)  # 5000 samples
+    aperiodic = aperiodic_record(ts_ap, t3, t4, delay=step)
+    fit = fit_batch(ts_ap, aperiodic + sigma * rng.standard_normal((20, ts.size)))
+    assert np.all(fit.result == R.successful)
+    z_t = (fit.time_constant - T_REF) / fit.time_constant_std
+    z_xi = (fit.damping_ratio - XI_AP) / fit.damping_ratio_std
+    assert abs(float(z_t[0])) < 3 and abs(float(z_xi[0])) < 3
+    assert 0.5 < np.std(z_t) < 1.6 and 0.5 < np.std(z_xi) < 1.6
+
+    # Order 3 recovers the torquer lag T_dm that the second-order model neglects.
+    torquer, feedback = 1e-5, 0.996
+    clean = third_order_record(ts, T_REF, XI_OSC, torquer, feedback, step)
+    record = clean + sigma * rng.standard_normal(ts.size)
+    fit3 = fit_step_response(ts, record, order=3, step_time=step, feedback_fraction=feedback)
+    assert fit3.result == R.successful
+    torquer_std = float(np.sqrt(fit3.covariance[2, 2]))
+    assert abs(float(fit3.torquer_time_constant) - torquer) < 3 * torquer_std
+    assert torquer_std < 0.2 * torquer
+    assert abs(float((fit3.time_constant - T_REF) / fit3.time_constant_std)) < 3
+    assert abs(float((fit3.damping_ratio - XI_OSC) / fit3.damping_ratio_std)) < 3
+    np.testing.assert_allclose(fit3.gain, feedback, rtol=1e-3)
+    # Without a lag the fit converges to the boundary T_dm ≈ 0 (within its uncertainty).
+    no_lag = oscillatory_record(ts, T_REF, XI_OSC, amplitude=feedback, step=step)
+    no_lag = no_lag + 10 * sigma * np.random.default_rng(5).standard_normal(ts.size)
+    fit0 = fit_step_response(ts, no_lag, order=3, step_time=step, feedback_fraction=feedback)
+    assert float(fit0.torquer_time_constant) < 3 * float(np.sqrt(fit0.covariance[2, 2]))
+    assert abs(float((fit0.time_constant - T_REF) / fit0.time_constant_std)) < 3
+    # Second-order fits of such records are biased by many standard deviations.
+    fit2 = fit_batch(ts, clean + sigma * rng.standard_normal((20, ts.size)))
+    assert np.all(np.abs((fit2.damping_ratio - XI_OSC) / fit2.damping_ratio_std) > 10)
+
+
+# ---------------------------------------------------------------------------------------
+# Transforms
+
+
+def test_vmap_matches_loop_and_no_retrace():
+    ts = grid(1e6, OSC_DURATION)
+    records = np.stack([oscillatory_record(ts, T_REF, xi) for xi in (0.3, XI_OSC, 0.7)])
+    batched = jax.vmap(lambda u: identify_oscillatory(ts, u, **GAINS))(jnp.asarray(records))
+    for i, record in enumerate(records):
+        single = identify_oscillatory(ts, record, **GAINS)
+        for name in ("time_constant", "damping_ratio", "t1", "t2", "scale_factor"):
+            np.testing.assert_allclose(getattr(batched, name)[i], getattr(single, name), rtol=1e-12)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def scale_factor(u, gain):
+        return identify_oscillatory(
+            ts, u, pickoff_amplifier_gain=gain, shape_factor=GAMMA
+        ).scale_factor
+
+    first = scale_factor(jnp.asarray(records[0]), jnp.asarray(1.0))
+    second = scale_factor(jnp.asarray(records[1]), jnp.asarray(2.0))
+    assert float(first) != float(second)
+
+
+# ---------------------------------------------------------------------------------------
+# Bad input
+
+
+def test_bad_records_give_result_codes_and_clear_errors():
+    ts = grid(1e6, OSC_DURATION)
+    oscillatory = oscillatory_record(ts, T_REF, XI_OSC)
+
+    def code(u, ts=ts, **kwargs):
+        return identify_oscillatory(ts, u, throw=False, **GAINS, **kwargs)
+
+    # Aperiodic data to the oscillatory method.
+    _, t3, t4 = aperiodic_constants(T_REF, XI_AP)
+    aperiodic = aperiodic_record(ts, t3, t4)
+    estimate = code(aperiodic)
+    assert estimate.result == R.not_oscillatory
+    assert all(np.isfinite(leaf) for leaf in jax.tree_util.tree_leaves(estimate))
+    with pytest.raises(Exception, match="use identify_aperiodic"):
+        identify_oscillatory(ts, aperiodic, **GAINS)
+
+    # Clipped (saturated) output: a flat top at the overshoot.
+    clipped = np.minimum(oscillatory, 1.1)
+    assert code(clipped).result == R.saturated
+    noisy_clipped = clipped + 1e-5 * np.random.default_rng(3).standard_normal(ts.size)
+    assert code(noisy_clipped, saturation_level=1.1).result == R.saturated
+
+    # NaN: a clear error, or with throw=False a code and finite numbers.
+    broken = oscillatory.copy()
+    broken[100] = np.nan
+    with pytest.raises(Exception, match="NaN"):
+        identify_oscillatory(ts, broken, **GAINS)
+    estimate = code(broken)
+    assert estimate.result == R.non_finite
+    assert all(np.isfinite(leaf) for leaf in jax.tree_util.tree_leaves(estimate))
+
+    # A record that stops before settling.
+    # A record that stops before settling (2 ms at 10 MHz: the same 20000 samples).
+    short_ts = grid(1e7, 2e-3)
+    assert code(oscillatory_record(short_ts, T_REF, XI_OSC), ts=short_ts).result == R.too_short
+
+    # Structure errors at call time.
+    with pytest.raises(ValueError, match="same length"):
+        identify_oscillatory(ts, oscillatory[:-1], **GAINS)
+    with pytest.raises(ValueError, match="same length"):
+        identify_aperiodic(ts[:-1], oscillatory, **GAINS)
+    with pytest.raises(ValueError, match="vmap"):
+        identify_oscillatory(ts, np.stack([oscillatory, oscillatory]), **GAINS)
+    with pytest.raises(ValueError, match="crossing"):
+        identify_oscillatory(ts, oscillatory, crossing="cubic", **GAINS)
+    with pytest.raises(ValueError, match="uniform"):
+        fit_step_response(np.r_[ts[:10], ts[10:] * 1.01], oscillatory, order=3)
+
+
+def test_aperiodic_method_rejects_oscillatory_and_rootless_records():
+    ts = grid(1e6, AP_DURATION)
+    oscillatory = oscillatory_record(ts, T_REF, XI_OSC)
+    estimate = identify_aperiodic(ts, oscillatory, throw=False, **GAINS)
+    assert estimate.result == R.not_aperiodic
+    with pytest.raises(Exception, match="use identify_oscillatory"):
+        identify_aperiodic(ts, oscillatory, **GAINS)
+    # A lag correction larger than the inflection time leaves step 8 without a root.
+    _, t3, t4 = aperiodic_constants(T_REF, XI_AP)
+    estimate = identify_aperiodic(
+        ts, aperiodic_record(ts, t3, t4), lag_correction=1e-3, throw=False, **GAINS
+    )
+    assert estimate.result == R.no_root
+    assert all(np.isfinite(leaf) for leaf in jax.tree_util.tree_leaves(estimate))
