@@ -19,8 +19,7 @@ def test_import_does_not_change_jax_config():
         "assert jax.config.read('jax_enable_x64') == before == False;"
         "print(aj.ServoParams.reference().damping.dtype)"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     # Without x64 the library computes in float32: it does not upgrade precision silently.
     assert proc.stdout.strip() == "float32"
@@ -40,8 +39,9 @@ def test_cli_unknown_command_is_a_clear_error():
 
 
 def test_write_json_atomic(tmp_path):
-    path = aj.write_json_atomic(tmp_path / "a" / "r.json",
-                                {"x": np.float64(1.5), "v": np.arange(3), "n": float("nan")})
+    path = aj.write_json_atomic(
+        tmp_path / "a" / "r.json", {"x": np.float64(1.5), "v": np.arange(3), "n": float("nan")}
+    )
     assert json.loads(path.read_text()) == {"x": 1.5, "v": [0, 1, 2], "n": None}
     assert [p.name for p in path.parent.iterdir()] == ["r.json"]  # no temporary left behind
 

@@ -28,8 +28,10 @@ def test_reference_values_match_spec():
 
 def test_closed_forms_by_hand():
     # Evaluate eqs. (2), (4)-(7) directly in NumPy from the raw numbers.
-    m, l, J, mu, c = (REF[k] for k in ("pendulum_mass", "pendulum_length", "moment_of_inertia",
-                                        "damping", "stiffness"))
+    m, l, J, mu, c = (
+        REF[k]
+        for k in ("pendulum_mass", "pendulum_length", "moment_of_inertia", "damping", "stiffness")
+    )
     kdp, ky, kdm = REF["pickoff_gain"], REF["amplifier_gain"], REF["torquer_gain"]
     k = kdm * l * kdp * ky
     p = aj.ServoParams.reference()
@@ -106,8 +108,9 @@ def test_vmap_over_params():
     dampings = jnp.linspace(1e-5, 2e-4, 7)
     batch = eqx.filter_vmap(lambda mu: aj.ServoParams.reference(damping=mu))(dampings)
     xi = jax.vmap(aj.damping_ratio)(batch)
-    one_by_one = [float(aj.damping_ratio(aj.ServoParams.reference(damping=float(m))))
-                  for m in dampings]
+    one_by_one = [
+        float(aj.damping_ratio(aj.ServoParams.reference(damping=float(m)))) for m in dampings
+    ]
     np.testing.assert_allclose(xi, one_by_one, rtol=1e-14)
 
 
