@@ -154,6 +154,67 @@ def test_oscillatory_ignores_noise_chatter():
     assert relative_error(estimate.period, 2 * np.pi * T_REF / np.sqrt(1 - XI_OSC**2)) < 1e-3
 
 
+def test_oscillatory_gradient_matches_finite_differences():
+    # Records with the reference damped frequency, T(ξ) = T_REF √((1 − ξ²)/(1 − XI²)), so
+    # dT/dξ = −Tξ/(1 − ξ²) is O(T) and a relative tolerance means something. The estimate
+    # is piecewise smooth in ξ: kinks where a sample crosses the steady-state line (the
+    # interpolating pair changes) or a new sample becomes the largest; a step of 1e-6 in ξ
+    # moves a crossing by ~1e-9 s, far less than the 1e-6 s between samples.
+    ts = jnp.asarray(grid(1e6, OSC_DURATION))
+
+    def time_constant(xi):
+        return T_REF * jnp.sqrt((1 - xi**2) / (1 - XI_OSC**2))
+
+    def record(xi, times=ts):
+        x = times / time_constant(xi)
+        beta = jnp.sqrt(1 - xi**2)
+        return 1 - jnp.exp(-xi * x) * (jnp.cos(beta * x) + xi / beta * jnp.sin(beta * x))
+
+    def estimates(extremum):
+        def estimate(xi):
+            return identify_oscillatory(ts, record(xi), extremum=extremum, **GAINS)
+
+        return [
+            jax.jit(lambda xi: estimate(xi).time_constant),
+            jax.jit(lambda xi: estimate(xi).damping_ratio),
+        ]
+
+    def check(functions, xi, step):
+        for function in functions:
+            expected = (function(xi + step) - function(xi - step)) / (2 * step)
+            np.testing.assert_allclose(jax.grad(function)(xi), expected, rtol=1e-4)
+
+    parabolic, sample = estimates("parabolic"), estimates("sample")
+    for xi in (0.4, XI_OSC, 0.6):
+        check(parabolic, xi, 1e-6)
+    check(sample, XI_OSC, 1e-6)
+    # dT̂/dξ is the true dT/dξ up to the O(dt²) discretisation error.
+    np.testing.assert_allclose(
+        jax.grad(parabolic[0])(XI_OSC), -T_REF * XI_OSC / (1 - XI_OSC**2), rtol=1e-3
+    )
+
+    # A sample next to the first crossing, inside the noise band (1e-6 of the step here):
+    # the crossing time is still the interpolation between the bracketing pair, so moving
+    # the sample across the band edge changes nothing discretely. (A least-squares line
+    # through all in-band samples jumped there by O(dt² U''/U') ≈ 1e-9 s.)
+    sample_index = 722  # t1 = 0.719 ms at ξ = 0.52, 0.727 ms at 0.54
+
+    def deviation(xi):  # of that sample from the steady state, in the record's units
+        return float(record(xi, jnp.asarray(ts[sample_index]))) - 1.0
+
+    def solve(target, low=0.52, high=0.54):
+        # t1 grows with ξ, so the deviation at a fixed time falls through zero (bisection).
+        for _ in range(60):
+            middle = 0.5 * (low + high)
+            low, high = (middle, high) if deviation(middle) > target else (low, middle)
+        return 0.5 * (low + high)
+
+    on_line = solve(0.0)
+    band_edge = solve(1e-6)
+    assert abs(band_edge - on_line) > 1e-7
+    check(parabolic, band_edge, 0.5 * abs(band_edge - on_line))
+
+
 # ---------------------------------------------------------------------------------------
 # Aperiodic method
 
