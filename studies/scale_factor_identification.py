@@ -587,18 +587,25 @@ def gradient_checks(ref, gain, gamma) -> dict:
 
     out = {}
     for name, f, x0, h in (
-        ("d_dKa_d_damping_ratio_percent", by_xi, float(aj.damping_ratio(ref)), 1e-3),
+        ("d_dKa_d_damping_ratio_percent", by_xi, float(aj.damping_ratio(ref)), 1e-6),
         (
             "d_dKa_d_torquer_time_constant_percent_per_s",
             by_tdm,
             float(ref.torquer_time_constant),
-            1e-7,
+            1e-9,
         ),
     ):
         grad = float(jax.jit(jax.grad(f))(jnp.float64(x0)))
         fj = jax.jit(f)
         fd = float((fj(x0 + h) - fj(x0 - h)) / (2 * h))
         out[name] = {"at": x0, "autodiff": grad, "central_difference": fd, "step": h}
+    out["note"] = (
+        "Local derivatives of the identification on one sampled record. δK_a(ξ) is continuous "
+        "but has kinks wherever a sample crosses the steady-state line (every ~3e-4 in ξ at "
+        "1 MHz), so the local slope swings around the smooth trend; finite differences agree "
+        "only with steps that do not straddle a kink. The smooth design trend is the "
+        "dominant-pole prediction in the sweeps."
+    )
     return out
 
 
