@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from ._params import ServoParams
+from ._params import ServoParams, _concrete
 from ._servo import feedback_stiffness, loop_stiffness, time_constant
 
 _STATE_NAMES = ("θ [rad]", "θ' [rad/s]", "M_dm [N·m]", "U_f [V]")
@@ -266,16 +266,6 @@ def equilibrium_state(
 # --------------------------------------------------------------------------------------
 # Shared input handling
 # --------------------------------------------------------------------------------------
-
-
-def _concrete(value) -> np.ndarray | None:
-    """The value as a NumPy array, or None while it is traced (under jit)."""
-    if isinstance(value, jax.core.Tracer):
-        return None
-    try:
-        return np.asarray(value)
-    except Exception:  # abstract values
-        return None
 
 
 def _check_uniform_grid(ts: Array) -> None:
