@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.signal
 from helpers import central_difference
 
 from accel_jax._identify import (
@@ -154,6 +155,33 @@ def test_oscillatory_ignores_noise_chatter():
     assert relative_error(estimate.period, 2 * np.pi * T_REF / np.sqrt(1 - XI_OSC**2)) < 1e-3
 
 
+def test_oscillatory_high_damping_with_noise():
+    # ξ = 0.8: the overshoot after t2 is 3.5e-6 of the step, below the noise σ = 1e-5, so
+    # the hysteresis rule for t2 must not require it; and t2 itself is shallow, so the
+    # half-period variant (two steep crossings) is far less noisy than t2 − t1.
+    xi = 0.8
+    ts = grid(1e6, 20e-3)
+    clean = oscillatory_record(ts, T_REF, xi)
+    period = 2 * np.pi * T_REF / np.sqrt(1 - xi**2)
+    for variant in ("full", "half"):
+        estimate = identify_oscillatory(ts, clean, period=variant, **GAINS)
+        assert relative_error(estimate.period, period) < 1e-6
+        assert relative_error(estimate.time_constant, T_REF) < 1e-6
+    keys = jax.random.split(jax.random.key(5), 32)
+    noisy = clean + 1e-5 * jax.vmap(lambda k: jax.random.normal(k, ts.shape))(keys)
+    errors = {}
+    for variant in ("full", "half"):
+        estimate = jax.vmap(
+            lambda u, v=variant: identify_oscillatory(ts, u, period=v, throw=False, **GAINS)
+        )(noisy)
+        assert bool(jnp.all(estimate.result == R.successful))
+        errors[variant] = np.asarray(estimate.period) / period - 1
+    assert np.std(errors["half"]) < np.std(errors["full"]) / 5
+    assert abs(np.mean(errors["half"])) < 2e-3
+    with pytest.raises(ValueError, match="'full' or 'half'"):
+        identify_oscillatory(ts, clean, period="quarter", **GAINS)
+
+
 def test_oscillatory_gradient_matches_finite_differences():
     # Records with the reference damped frequency, T(ξ) = T_REF √((1 − ξ²)/(1 − XI²)), so
     # dT/dξ = −Tξ/(1 − ξ²) is O(T) and a relative tolerance means something. The estimate
@@ -284,6 +312,60 @@ def test_aperiodic_critical_damping():
     assert estimate.result == R.successful
     assert relative_error(estimate.t2, T_REF) < 1e-4
     assert relative_error(estimate.t1, 2 * T_REF) < 1e-5
+
+
+def test_savgol_weights_match_scipy():
+    from accel_jax._identify import _savgol_kernels
+
+    for window in (5, 9, 31):
+        value_w, slope_w = _savgol_kernels(window)
+        # scipy's coefficients are convolution weights (reversed); ours are per offset.
+        np.testing.assert_allclose(
+            value_w, scipy.signal.savgol_coeffs(window, 3, use="dot"), atol=1e-13
+        )
+        np.testing.assert_allclose(
+            slope_w, scipy.signal.savgol_coeffs(window, 3, deriv=1, use="dot"), atol=1e-13
+        )
+
+
+def test_aperiodic_savgol_exact_and_noisy():
+    t1, t3, t4 = aperiodic_constants(T_REF, XI_AP)
+    ts = grid(1e6, AP_DURATION)
+    clean = aperiodic_record(ts, t3, t4)
+    central = identify_aperiodic(ts, clean, **GAINS)
+    savgol = identify_aperiodic(ts, clean, derivative="savgol", smoothing_window=31, **GAINS)
+    averaged = identify_aperiodic(ts, clean, smoothing_window=31, **GAINS)
+    # Noise-free: the local cubic leaves the slope peak (a quadratic in t) unbiased, while a
+    # moving average of the same width flattens it.
+    assert relative_error(savgol.t2, T_REF) < 1e-4
+    assert relative_error(savgol.t2, T_REF) < 3 * relative_error(central.t2, T_REF) + 1e-6
+    assert relative_error(averaged.t2, T_REF) > 10 * relative_error(savgol.t2, T_REF)
+    # With noise (σ = 1e-5 of a unit step): the local cubic scatters far less than the raw
+    # central difference.
+    keys = jax.random.split(jax.random.key(3), 32)
+    noisy = clean + 1e-5 * jax.vmap(lambda k: jax.random.normal(k, ts.shape))(keys)
+
+    def t2_of(record, **kw):
+        return identify_aperiodic(ts, record, **GAINS, **kw).t2
+
+    raw = jax.vmap(t2_of)(noisy) / T_REF - 1
+    fitted = jax.vmap(lambda r: t2_of(r, derivative="savgol", smoothing_window=61))(noisy)
+    fitted = fitted / T_REF - 1
+    assert float(jnp.std(fitted)) < float(jnp.std(raw)) / 4
+    assert abs(float(jnp.mean(fitted))) < 3 * float(jnp.std(fitted)) / np.sqrt(32) + 1e-4
+
+
+def test_aperiodic_savgol_bad_input():
+    t1, t3, t4 = aperiodic_constants(T_REF, XI_AP)
+    ts = grid(1e6, AP_DURATION)
+    record = aperiodic_record(ts, t3, t4)
+    with pytest.raises(ValueError, match="at least 5 samples"):
+        identify_aperiodic(ts, record, derivative="savgol", smoothing_window=3, **GAINS)
+    with pytest.raises(ValueError, match="'central' or 'savgol'"):
+        identify_aperiodic(ts, record, derivative="spline", **GAINS)
+    warped = np.asarray(ts) + 0.3e-6 * np.sin(np.arange(ts.shape[0]))
+    with pytest.raises(ValueError, match="uniform time grid"):
+        identify_aperiodic(warped, record, derivative="savgol", smoothing_window=9, **GAINS)
 
 
 def test_inflection_time_ratio():
@@ -448,6 +530,49 @@ def test_fit_second_order_aperiodic_and_third_order_lag():
     # Second-order fits of such records are biased by many standard deviations.
     fit2 = fit_batch(ts, clean + sigma * rng.standard_normal((20, ts.size)))
     assert np.all(np.abs((fit2.damping_ratio - XI_OSC) / fit2.damping_ratio_std) > 10)
+
+
+def test_fit_third_order_with_known_output_filter():
+    # Data from the library's closed-loop simulator (an independent model: the physical
+    # state space with T_dm in the loop and T_f on the output), noise-free.
+    import accel_jax as aj
+
+    ref = aj.ServoParams.reference()
+    ts = grid(1e6, 10e-3)
+    record = aj.simulate_linear(ref, jnp.asarray(ts), 1.0)
+    feedback = float(aj.closed_loop_test_gain(ref))
+    gain, gamma = float(ref.pickoff_gain * ref.amplifier_gain), float(aj.shape_factor(ref))
+
+    def error_percent(fit):
+        estimate, _ = scale_factor_from_fit(fit, gain, gamma)
+        return float(aj.relative_error_percent(estimate, aj.scale_factor(ref)))
+
+    known = fit_step_response(
+        ts,
+        record,
+        order=3,
+        feedback_fraction=feedback,
+        filter_time_constant=float(ref.filter_time_constant),
+    )
+    # The model is then exact: residuals at rounding level, T_dm and K_a recovered.
+    assert float(known.residual_rms) < 1e-10
+    np.testing.assert_allclose(known.torquer_time_constant, ref.torquer_time_constant, rtol=1e-6)
+    assert abs(error_percent(known)) < 1e-5
+    # Ignoring the filter, the fit folds T_f into T_dm and biases K_a by about −0.43 %.
+    ignored = fit_step_response(ts, record, order=3, feedback_fraction=feedback)
+    np.testing.assert_allclose(
+        ignored.torquer_time_constant,
+        ref.torquer_time_constant + ref.filter_time_constant,
+        rtol=0.05,
+    )
+    assert error_percent(ignored) < -0.2
+    with pytest.raises(ValueError, match="T_f >= 0"):
+        fit_step_response(ts, record, order=3, filter_time_constant=-1e-5)
+    with pytest.raises(ValueError, match="needs order=3"):
+        fit_step_response(ts, record, order=2, filter_time_constant=1e-5)
+    warped = ts + 0.3e-6 * np.sin(np.arange(ts.size))
+    with pytest.raises(ValueError, match="order=3. needs a uniform time grid"):
+        fit_step_response(warped, record, order=3)
 
 
 # ---------------------------------------------------------------------------------------
