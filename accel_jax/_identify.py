@@ -33,6 +33,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
+from ._checks import check_uniform_grid
 from ._params import _concrete
 
 # Shape aliases, defined once: jaxtyping's shape strings inside annotations read as broken
@@ -143,25 +144,6 @@ def _validate_record(name: str, ts, u_out, tail_fraction: float) -> int:
         if not np.all(np.diff(concrete_ts) > 0):
             raise ValueError(f"{name}: ts must be strictly increasing.")
     return max(4, int(round(tail_fraction * n)))
-
-
-def _check_uniform_grid(ts, name: str, hint: str = "") -> None:
-    """Raise unless the (concrete, finite) sample times are uniformly spaced.
-
-    Spacing differences up to the rounding of the stored times themselves (8 ulp of the
-    largest time: float32 clocks) or 1e-6 of the mean spacing are accepted.
-    """
-    concrete_ts = _concrete(ts)
-    if concrete_ts is None or not np.all(np.isfinite(concrete_ts)):
-        return
-    clock = concrete_ts.dtype if concrete_ts.dtype.kind == "f" else np.dtype(np.float64)
-    steps = np.diff(concrete_ts.astype(np.float64))
-    rounding = 8 * np.finfo(clock).eps * np.max(np.abs(concrete_ts))
-    if np.max(np.abs(steps - steps.mean())) > 1e-6 * steps.mean() + rounding:
-        raise ValueError(
-            f"{name} needs a uniform time grid; the sample intervals of ts range from "
-            f"{steps.min():.6g} s to {steps.max():.6g} s. Resample the record{hint}."
-        )
 
 
 def _as_dtype(value, dtype):
@@ -880,7 +862,7 @@ def identify_aperiodic(
                 f"derivative='savgol' fits a local cubic: smoothing_window must be at least "
                 f"{_SAVGOL_ORDER + 2} samples, got {smoothing_window}."
             )
-        _check_uniform_grid(ts, "identify_aperiodic(derivative='savgol')")
+        check_uniform_grid(ts, "identify_aperiodic(derivative='savgol')")
     if smoothing_window > jnp.shape(ts)[0] // 4:
         raise ValueError(
             f"smoothing_window={smoothing_window} is too wide for a record of "
@@ -1344,7 +1326,7 @@ def fit_step_response(
             "filter_time_constant needs order=3 (the order-2 model has no lag); got order=2."
         )
     if order == 3:
-        _check_uniform_grid(ts, "fit_step_response(order=3)", hint=" or use order=2")
+        check_uniform_grid(ts, "fit_step_response(order=3)", "Resample the record or use order=2.")
     dtype = _record_dtype(ts, u_out)
     if initial is not None:
         initial = tuple(jnp.asarray(value, dtype) for value in initial)

@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from ._params import ServoParams, _concrete
+from ._checks import check_uniform_grid
+from ._params import ServoParams
 from ._servo import feedback_stiffness, loop_stiffness, time_constant
 
 _STATE_NAMES = ("θ [rad]", "θ' [rad/s]", "M_dm [N·m]", "U_f [V]")
@@ -268,30 +269,6 @@ def equilibrium_state(
 # --------------------------------------------------------------------------------------
 
 
-def _check_uniform_grid(ts: Array) -> None:
-    concrete = _concrete(ts)
-    if concrete is None:
-        return  # under jit: assumed uniform
-    spacings = np.diff(concrete)
-    step = (concrete[-1] - concrete[0]) / (len(concrete) - 1)
-    if not step > 0:
-        raise ValueError(
-            f"ts must be strictly increasing; got ts[0] = {concrete[0]!r} s and "
-            f"ts[-1] = {concrete[-1]!r} s."
-        )
-    # Rounding of t = i·dt in the grid's own precision is not a non-uniformity.
-    eps = np.finfo(concrete.dtype).eps if np.issubdtype(concrete.dtype, np.floating) else 0.0
-    tolerance = 1e-6 * step + 8 * eps * np.max(np.abs(concrete))
-    deviation = np.abs(spacings - step)
-    worst = int(np.argmax(deviation))
-    if deviation[worst] > tolerance:
-        raise ValueError(
-            "ts must be a uniform time grid (the simulators hold each input sample for one "
-            f"step); got spacing ts[{worst + 1}] − ts[{worst}] = {spacings[worst]!r} s, "
-            f"but the mean spacing is {step!r} s. Resample the inputs onto a uniform grid."
-        )
-
-
 def _common_dtype(params: ServoParams, *values):
     leaves = [leaf for leaf in jax.tree_util.tree_leaves(params) if eqx.is_array_like(leaf)]
     # `float` is weakly typed: it only promotes integers (to JAX's default float).
@@ -312,7 +289,11 @@ def _prepare(params, ts, test_voltage, acceleration, external_moment, initial_st
     n = ts.shape[0]
     dtype = _common_dtype(params, ts, test_voltage, acceleration, external_moment)
     ts = ts.astype(dtype)
-    _check_uniform_grid(ts)
+    check_uniform_grid(
+        ts,
+        "the simulators (each input sample is held for one step)",
+        "Resample the inputs onto a uniform grid.",
+    )
 
     def sequence(value, name, unit):
         value = jnp.asarray(value, dtype=dtype)

@@ -46,6 +46,18 @@ def test_write_json_atomic(tmp_path):
     assert [p.name for p in path.parent.iterdir()] == ["r.json"]  # no temporary left behind
 
 
+def test_atomic_writes_get_the_usual_permissions(tmp_path):
+    # The temporary file comes from mkstemp (0600); the result must look like open()'s.
+    import os
+
+    old = os.umask(0o022)
+    try:
+        path = aj.write_json_atomic(tmp_path / "r.json", {"x": 1})
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == 0o644
+
+
 def test_write_json_atomic_keeps_old_file_on_failure(tmp_path):
     path = aj.write_json_atomic(tmp_path / "r.json", {"x": 1})
     with pytest.raises(TypeError):
