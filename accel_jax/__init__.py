@@ -59,6 +59,7 @@ from ._params import (
 from ._params import (
     ServoParams as ServoParams,
 )
+from ._progress import show_progress as show_progress
 from ._servo import (
     aperiodic_time_constants as aperiodic_time_constants,
 )

@@ -183,4 +183,3 @@ APERIODIC_DAMPING = 1.01e-4
 
 PAPER_GAMMA = 0.75
 """The paper's rounded pendulum shape factor γ = 3/4 in K_a ≈ γ T² k_dp k_y (eq. 7)."""
-

@@ -17,6 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._progress import bar, progress_enabled
+
+# With progress bars on and no chunk size given, a batch is cut into about this many
+# chunks so the bar moves; each chunk has the same (padded) shape, so one compilation.
+_PROGRESS_CHUNKS = 16
+
 
 @functools.lru_cache(maxsize=64)
 def _compiled(fn: Callable, in_axes: tuple) -> Callable:
@@ -49,6 +55,8 @@ def sweep(
     *args,
     in_axes: Sequence[int | None] | None = None,
     devices: Sequence[jax.Device] | None = None,
+    chunk_size: int | None = None,
+    desc: str = "sweep",
 ):
     """Map `fn` over a leading batch axis, sharded across devices, jit-compiled once.
 
@@ -59,38 +67,75 @@ def sweep(
     - `in_axes`: one entry per argument, `0` (batched along the leading axis of every array
       leaf) or `None` (shared). Default: all batched.
     - `devices`: devices to shard over; default all of `jax.devices()`.
+    - `chunk_size`: evaluate the batch in chunks of this many elements (rounded up to a
+        multiple of the device count), to bound memory or to show progress; every chunk has
+        the same padded shape, so it compiles once. Default: the whole batch at once, or
+        about 16 chunks when progress bars are on (`accel_jax.show_progress`).
+    - `desc`: the progress bar's label.
 
     **Returns:** `fn`'s output with a leading batch axis, identical (to floating-point
-    reduction order, which vmap does not change) to a single-device `jax.vmap`. The batch is
-    padded to a multiple of the device count by repeating its last element, and the padding
-    is dropped from the output.
+    reduction order, which vmap does not change) to a single-device `jax.vmap`, whatever
+    the chunking. The batch is padded to a multiple of the device count (and of the chunk)
+    by repeating its last element, and the padding is dropped from the output.
     """
     in_axes = tuple(0 for _ in args) if in_axes is None else tuple(in_axes)
     if len(in_axes) != len(args):
         raise ValueError(f"sweep: {len(args)} arguments but {len(in_axes)} in_axes entries.")
     if any(axis not in (0, None) for axis in in_axes):
         raise ValueError(f"sweep: in_axes entries must be 0 or None, got {in_axes}.")
+    if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
+        raise ValueError(f"sweep: chunk_size must be a positive int, got {chunk_size!r}.")
     size = _batch_size(args, in_axes)
     devices = list(jax.devices() if devices is None else devices)
     n_dev = len(devices)
-    padded = -(-size // n_dev) * n_dev
+    if chunk_size is None:
+        chunk_size = -(-size // _PROGRESS_CHUNKS) if progress_enabled() else size
+    chunk = -(-min(chunk_size, size) // n_dev) * n_dev
+    n_chunks = -(-size // chunk)
+    padded = n_chunks * chunk
     mesh = Mesh(np.asarray(devices), ("batch",))
     sharded = NamedSharding(mesh, PartitionSpec("batch"))
 
+    def pad(leaf):
+        if padded == size:
+            return leaf
+        return jnp.concatenate([leaf, jnp.repeat(leaf[-1:], padded - size, axis=0)], axis=0)
+
     def place(leaf):
-        if padded != size:
-            pad = jnp.repeat(leaf[-1:], padded - size, axis=0)
-            leaf = jnp.concatenate([leaf, pad], axis=0)
         return jax.device_put(leaf, sharded) if n_dev > 1 else leaf
 
-    placed = []
+    def split(arg, axis, start):
+        if axis is None:
+            return arg
+        dynamic, static = eqx.partition(arg, eqx.is_array)
+        piece = jax.tree_util.tree_map(lambda x: place(x[start : start + chunk]), dynamic)
+        return eqx.combine(piece, static)
+
+    padded_args = []
     for arg, axis in zip(args, in_axes, strict=True):
         if axis is None:
-            placed.append(arg)
+            padded_args.append(arg)
         else:
             dynamic, static = eqx.partition(arg, eqx.is_array)
-            placed.append(eqx.combine(jax.tree_util.tree_map(place, dynamic), static))
-    out = _compiled(fn, in_axes)(*placed)
+            padded_args.append(eqx.combine(jax.tree_util.tree_map(pad, dynamic), static))
+    compiled = _compiled(fn, in_axes)
+    outs = []
+    with bar(padded, desc, unit="el") as progress:
+        for start in range(0, padded, chunk):
+            pieces = [split(a, ax, start) for a, ax in zip(padded_args, in_axes, strict=True)]
+            out = compiled(*pieces)
+            if n_chunks > 1:
+                jax.block_until_ready(out)
+            outs.append(out)
+            progress.update(chunk)
+    if n_chunks == 1:
+        out = outs[0]
+    else:
+        dynamic = [eqx.filter(o, eqx.is_array) for o in outs]
+        static = eqx.filter(outs[0], eqx.is_array, inverse=True)
+        out = eqx.combine(
+            jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *dynamic), static
+        )
     if padded == size:
         return out
     return jax.tree_util.tree_map(lambda x: x[:size] if eqx.is_array(x) else x, out)

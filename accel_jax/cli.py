@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -14,16 +13,6 @@ STUDIES = ("scale_factor_identification",)
 def _studies_dir() -> Path:
     # Studies are scripts in the repository's studies/ folder, next to the package.
     return Path(__file__).resolve().parent.parent / "studies"
-
-
-def _load_study(name: str, folder: Path):
-    path = folder / f"{name}.py"
-    if not path.exists():
-        raise click.ClickException(f"study script not found: {path}")
-    spec = importlib.util.spec_from_file_location(f"accel_jax_study_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -46,26 +35,45 @@ def main():
     help="Folder for index.html; each study writes its own folder beside it.",
 )
 @click.option("--quick", is_flag=True, help="Smaller sweeps (a smoke run, minutes not tens).")
-def report(out_dir: Path, quick: bool):
-    """Run every study and write a self-contained HTML report (OUT/index.html)."""
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Replace earlier results in the output folders (by default finished studies are "
+    "reused and folders from a different run are left alone).",
+)
+@click.option("--no-progress", is_flag=True, help="No progress bars (e.g. in logs).")
+def report(out_dir: Path, quick: bool, force: bool, no_progress: bool):
+    """Run every study and write a self-contained HTML report (OUT/index.html).
+
+    Interrupted runs resume: a study that finished with the same options and code is not
+    redone. Nothing is deleted unless --force.
+    """
     import jax
 
     # Studies measure effects below float32 resolution (δK_a at 0.1 %): run them in float64.
     jax.config.update("jax_enable_x64", True)
-    from .report._html import build_report
+    from .report._run import ReportError, run_report
 
-    root = out_dir.parent
-    study_dirs = []
-    for name in STUDIES:
-        module = _load_study(name, _studies_dir())
-        study_out = root / name
-        click.echo(f"[{name}] running{' (quick)' if quick else ''} ...")
-        try:
-            module.run(study_out, quick=quick)
-        except ValueError as error:
-            raise click.ClickException(f"{name}: {error}") from error
-        study_dirs.append(study_out)
-    index = build_report(study_dirs, out_dir / "index.html", title="accel_jax design-study report")
+    try:
+        index = run_report(
+            out_dir,
+            studies=STUDIES,
+            studies_dir=_studies_dir(),
+            quick=quick,
+            force=force,
+            progress=not no_progress,
+            echo=click.echo,
+        )
+    except ReportError as error:
+        raise click.ClickException(str(error)) from error
+    except ValueError as error:
+        raise click.ClickException(f"a study rejected its input: {error}") from error
+    except KeyboardInterrupt:
+        click.echo(
+            "\ninterrupted: finished studies are kept; run the same command again to resume.",
+            err=True,
+        )
+        sys.exit(130)
     click.echo(f"report written: {index}")
 
 
@@ -87,6 +95,61 @@ def info():
         click.echo(f"  damping ratio ξ       = {float(aj.damping_ratio(params)):.6g}")
         click.echo(f"  test gain K_test      = {float(aj.closed_loop_test_gain(params)):.6g}")
         click.echo(f"  shape factor γ=ml²/J  = {float(aj.shape_factor(params)):.6g}")
+
+
+@main.command()
+@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--kind",
+    type=click.Choice(["step", "vibration", "noise"]),
+    default=None,
+    help="Force the kind of record (default: inferred from the CSV columns).",
+)
+@click.option(
+    "--params",
+    "params_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); "
+    "default the SPEC.md reference device with J, μ, c, k_dm known to ±5 %.",
+)
+@click.option(
+    "--json",
+    "json_out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write the diagnosis as JSON here.",
+)
+@click.option(
+    "--plot",
+    "plot_out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
+)
+def diagnose(file: Path, kind, params_file, json_out, plot_out):
+    """Diagnose the sim-to-real gap of one experiment (CSV, SI units, header row)."""
+    import jax
+
+    # Evidence compares log-likelihoods of ~1e4 to within ~1: float64.
+    jax.config.update("jax_enable_x64", True)
+    from ._data import DataError, NominalDevice, read_csv, read_params_toml
+    from .diagnose import diagnose as run_diagnosis
+    from .diagnose.report import save_plot, write_json
+
+    try:
+        data = read_csv(file, kind=kind)
+        nominal = read_params_toml(params_file) if params_file else NominalDevice.reference()
+        result = run_diagnosis(data, nominal)
+    except DataError as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(result.summary())
+    if json_out is not None:
+        write_json(result, json_out, source=file)
+        click.echo(f"json written: {json_out}")
+    if plot_out is not None:
+        save_plot(result, plot_out)
+        click.echo(f"plot written: {plot_out}")
 
 
 if __name__ == "__main__":  # pragma: no cover

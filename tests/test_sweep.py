@@ -26,6 +26,24 @@ def test_sweep_matches_vmap_single_device():
     np.testing.assert_array_equal(out[1], ref[1])
 
 
+def test_sweep_chunks_and_progress_give_the_same_numbers(capsys):
+    mus = jnp.linspace(1e-5, 2e-4, 13)
+    batch = eqx.filter_vmap(lambda mu: aj.ServoParams.reference(damping=mu))(mus)
+    whole = aj.sweep(_one, batch, 2.0, in_axes=(0, None))
+    for chunk in (1, 4, 13, 100):
+        out = aj.sweep(_one, batch, 2.0, in_axes=(0, None), chunk_size=chunk)
+        assert out[0].shape == (13,)
+        np.testing.assert_array_equal(out[0], whole[0])
+        np.testing.assert_array_equal(out[1], whole[1])
+    assert "demo sweep" not in capsys.readouterr().err  # silent unless asked
+    with aj.show_progress(label="test"):
+        out = aj.sweep(_one, batch, 2.0, in_axes=(0, None), desc="demo sweep")
+    np.testing.assert_array_equal(out[0], whole[0])
+    assert "test: demo sweep" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="chunk_size"):
+        aj.sweep(_one, batch, 2.0, in_axes=(0, None), chunk_size=0)
+
+
 def test_sweep_bad_input():
     with pytest.raises(ValueError, match="disagree on the batch size"):
         aj.sweep(lambda a, b: a + b, jnp.ones(3), jnp.ones(4))
@@ -49,6 +67,8 @@ def test_sweep_on_four_simulated_devices():
         assert out.shape == (13,)
         one = aj.sweep(f, batch, devices=jax.devices()[:1])
         np.testing.assert_array_equal(np.asarray(out), np.asarray(one))
+        chunked = aj.sweep(f, batch, chunk_size=5)   # chunks of 8 on 4 devices, padded
+        np.testing.assert_array_equal(np.asarray(chunked), np.asarray(one))
         print("OK", len(out.sharding.device_set))
         """
     )

@@ -16,6 +16,9 @@ from pathlib import Path
 
 from .._io import _atomic_write_bytes
 
+# Written into every index.html, so a later run knows the file is ours to replace.
+REPORT_MARKER = "<!-- written by accel-jax report -->"
+
 _STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222;
        line-height: 1.45; padding: 0 1em; }
@@ -92,7 +95,8 @@ def build_report(study_dirs: list[Path], out_file: Path, *, title: str) -> Path:
     )
     body = "\n".join(_study_section(d) for d in study_dirs)
     page = (
-        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+        f"<!doctype html>{REPORT_MARKER}<html><head><meta charset='utf-8'>"
+        f"<title>{html.escape(title)}</title>"
         f"<style>{_STYLE}</style></head><body><h1>{html.escape(title)}</h1>"
         f"<ul>{toc}</ul>{body}</body></html>"
     )

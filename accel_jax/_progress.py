@@ -1,0 +1,52 @@
+"""Progress bars for long work, off unless the caller asks (the CLI does).
+
+Library code reports progress through `bar`; nothing is printed unless a caller has
+entered `show_progress()`, so tests and user scripts stay quiet. Bars come from tqdm
+(written to stderr, with rate and estimated time left).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from collections.abc import Iterator
+
+from tqdm.auto import tqdm
+
+_ENABLED = contextvars.ContextVar("accel_jax_progress", default=False)
+_LABEL = contextvars.ContextVar("accel_jax_progress_label", default="")
+
+
+@contextlib.contextmanager
+def show_progress(enabled: bool = True, label: str = "") -> Iterator[None]:
+    """Within this block, sweeps and studies draw progress bars on stderr.
+
+    **Arguments:**
+
+    - `enabled`: draw bars (default) or silence them inside an enabled block.
+    - `label`: a prefix for the bars' descriptions (e.g. the study's name).
+    """
+    tokens = (_ENABLED.set(enabled), _LABEL.set(label))
+    try:
+        yield
+    finally:
+        _LABEL.reset(tokens[1])
+        _ENABLED.reset(tokens[0])
+
+
+def progress_enabled() -> bool:
+    """Whether the caller asked for progress bars (see `show_progress`)."""
+    return _ENABLED.get()
+
+
+def bar(total: int, desc: str, unit: str = "it"):
+    """A tqdm bar when progress is enabled, else a silent one with the same methods."""
+    label = _LABEL.get()
+    return tqdm(
+        total=total,
+        desc=f"{label}: {desc}" if label else desc,
+        unit=unit,
+        disable=not progress_enabled(),
+        leave=False,
+        dynamic_ncols=True,
+    )

@@ -1,0 +1,97 @@
+"""The report runner: caching/resume by inputs and code, and never deleting unasked."""
+
+import json
+import textwrap
+
+import pytest
+
+from accel_jax.report._html import REPORT_MARKER
+from accel_jax.report._run import MARKER, ReportError, run_report
+
+FAKE_STUDY = textwrap.dedent(
+    """
+    import json
+    from pathlib import Path
+
+    import accel_jax as aj
+
+    def run(out_dir, *, quick=False):
+        out_dir = Path(out_dir)
+        runs = out_dir.parent / "runs.log"          # counts how often the study really ran
+        runs.write_text(runs.read_text() + "x" if runs.exists() else "x")
+        if (out_dir.parent / "interrupt").exists():
+            (out_dir / "partial.txt").write_text("half")
+            raise KeyboardInterrupt
+        aj.write_json_atomic(out_dir / "result.json", {"title": "fake", "quick": quick})
+        return {}
+    """
+)
+
+
+@pytest.fixture
+def setup(tmp_path):
+    studies = tmp_path / "studies"
+    studies.mkdir()
+    (studies / "fake.py").write_text(FAKE_STUDY)
+    out = tmp_path / "out" / "report"
+
+    def run(**kw):
+        return run_report(
+            out, studies=("fake",), studies_dir=studies, progress=False, echo=lambda s: None, **kw
+        )
+
+    return tmp_path / "out", out, run
+
+
+def runs(root):
+    return len((root / "runs.log").read_text())
+
+
+def test_second_run_is_cached_and_index_is_ours(setup):
+    root, out, run = setup
+    index = run()
+    assert REPORT_MARKER in index.read_text()
+    assert json.loads((root / "fake" / MARKER).read_text())["complete"] is True
+    run()
+    assert runs(root) == 1  # the second run reused the result
+    run(force=True)
+    assert runs(root) == 2
+
+
+def test_other_options_are_not_overwritten_without_force(setup):
+    root, out, run = setup
+    run()
+    before = (root / "fake" / "result.json").read_text()
+    with pytest.raises(ReportError, match="different run.*--force"):
+        run(quick=True)
+    assert (root / "fake" / "result.json").read_text() == before  # nothing touched
+    run(quick=True, force=True)
+    assert json.loads((root / "fake" / "result.json").read_text())["quick"] is True
+
+
+def test_interrupted_study_is_redone_on_resume(setup):
+    root, out, run = setup
+    (root).mkdir(parents=True, exist_ok=True)
+    (root / "interrupt").write_text("")
+    with pytest.raises(KeyboardInterrupt):
+        run()
+    assert json.loads((root / "fake" / MARKER).read_text())["complete"] is False
+    (root / "interrupt").unlink()
+    run()
+    assert runs(root) == 2
+    assert (root / "fake" / "result.json").exists()
+
+
+def test_foreign_folders_and_files_are_left_alone(setup):
+    root, out, run = setup
+    (root / "fake").mkdir(parents=True)
+    (root / "fake" / "mine.txt").write_text("user data")
+    with pytest.raises(ReportError, match="not written by accel-jax"):
+        run()
+    assert (root / "fake" / "mine.txt").read_text() == "user data"
+    (root / "fake" / "mine.txt").unlink()
+    out.mkdir(parents=True)
+    (out / "index.html").write_text("<html>someone else's page</html>")
+    with pytest.raises(ReportError, match="index.html exists"):
+        run()
+    assert "someone else" in (out / "index.html").read_text()
