@@ -1,0 +1,418 @@
+"""Reading and validating the data a user brings (SPEC.md §5): CSV records and TOML devices.
+
+One experiment per CSV file, a header row, SI units (accelerations in g). The kind of
+experiment is inferred from the columns:
+
+- `step`: a closed-loop test-signal record — `t` [s], `u_test` [V], `u_out` [V]; uniform
+  sampling, the test voltage held constant between samples;
+- `vibration`: one row per shaker/tumble test condition — `a_in` [g], `vib_amp` [g],
+  `vib_freq` [Hz], `vib_rms` [g], `a_out` [g];
+- `noise`: a static record — `t` [s], `a_out` [g].
+
+Every problem with the input raises one error type, `DataError` (a `ValueError`), whose
+message is one line naming the file, the row or column and the value found.
+
+A device file (TOML) gives the nominal `ServoParams` and the relative uncertainty of each
+value. Each key is a `ServoParams` field; its value is a number (the value, with the default
+uncertainty) or a table `{ value = ..., uncertainty = ... }` (uncertainty relative, e.g.
+0.05 for ±5 %). Unknown keys are an error.
+
+All arrays are NumPy float64: this layer runs on the host before any JAX computation.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from pathlib import Path
+
+import equinox as eqx
+import numpy as np
+
+from ._io import _atomic_write_bytes
+from ._params import REFERENCE_VALUES, ServoParams
+
+COLUMNS: dict[str, tuple[str, ...]] = {
+    "step": ("t", "u_test", "u_out"),
+    "vibration": ("a_in", "vib_amp", "vib_freq", "vib_rms", "a_out"),
+    "noise": ("t", "a_out"),
+}
+"""The columns of each kind of record, in the order written by `write_csv`."""
+
+UNITS: dict[str, str] = {
+    "t": "s",
+    "u_test": "V",
+    "u_out": "V",
+    "a_in": "g",
+    "vib_amp": "g",
+    "vib_freq": "Hz",
+    "vib_rms": "g",
+    "a_out": "g",
+}
+
+MIN_SAMPLES: dict[str, int] = {"step": 200, "vibration": 8, "noise": 256}
+"""The fewest samples (rows) each kind needs: a step record several input changes long, a
+vibration table with more rows than the largest effect has parameters, a noise record long
+enough for an autocorrelation out to a few correlation times."""
+
+UNCERTAIN_BY_DEFAULT: dict[str, float] = {
+    "moment_of_inertia": 0.05,
+    "damping": 0.05,
+    "stiffness": 0.05,
+    "torquer_gain": 0.05,
+}
+"""Relative (1σ) uncertainty of the reference device's values (SPEC.md §5): J, μ, c and k_dm
+are known to ±5 %; the other values are taken as exact."""
+
+# Relative uncertainty above which a log-normal prior of that width is meaningless here.
+_MAX_UNCERTAINTY = 1.0
+# Relative deviation of the sample spacing from the mean that counts as non-uniform.
+_UNIFORM_TOLERANCE = 1e-6
+
+
+class DataError(ValueError):
+    """Bad user input: a CSV record or a device file that cannot be used as it is.
+
+    The message is one line that names the file, the place and the value found.
+    """
+
+
+def _where(path) -> str:
+    return str(path) if path is not None else "<data>"
+
+
+class StepData(eqx.Module):
+    """A closed-loop test-signal record.
+
+    **Fields:**
+
+    - `t`: sample times [s], shape (n,), uniform.
+    - `u_test`: test voltage U_test [V], shape (n,), held constant from each sample to the next.
+    - `u_out`: output voltage U_out [V], shape (n,).
+    """
+
+    t: np.ndarray
+    u_test: np.ndarray
+    u_out: np.ndarray
+    kind = "step"
+
+    @property
+    def sample_period(self) -> float:
+        """The (uniform) sample spacing [s]."""
+        return float((self.t[-1] - self.t[0]) / (len(self.t) - 1))
+
+
+class VibrationData(eqx.Module):
+    """A table of vibration (shaker or tumble) tests, one row per test condition.
+
+    **Fields:** `a_in` [g] applied along the input axis, `vib_amp` [g] sinusoidal amplitude,
+    `vib_freq` [Hz], `vib_rms` [g] random part, `a_out` [g] mean indicated acceleration; each
+    shape (rows,).
+    """
+
+    a_in: np.ndarray
+    vib_amp: np.ndarray
+    vib_freq: np.ndarray
+    vib_rms: np.ndarray
+    a_out: np.ndarray
+    kind = "vibration"
+
+
+class NoiseData(eqx.Module):
+    """A static record: sample times `t` [s] (uniform) and the indicated acceleration
+    `a_out` [g], each shape (n,)."""
+
+    t: np.ndarray
+    a_out: np.ndarray
+    kind = "noise"
+
+    @property
+    def sample_period(self) -> float:
+        """The (uniform) sample spacing [s]."""
+        return float((self.t[-1] - self.t[0]) / (len(self.t) - 1))
+
+
+Dataset = StepData | VibrationData | NoiseData
+_CLASSES = {"step": StepData, "vibration": VibrationData, "noise": NoiseData}
+
+
+def infer_kind(columns, *, path=None) -> str:
+    """The kind of record whose columns are exactly `columns` (any order).
+
+    Raises `DataError` for unknown columns, duplicates, or a set that matches no kind (the
+    message names the closest kind and what it misses).
+    """
+    columns = [str(c) for c in columns]
+    where = _where(path)
+    known = set().union(*COLUMNS.values())
+    unknown = [c for c in columns if c not in known]
+    if unknown:
+        raise DataError(
+            f"{where}: unknown column(s) {unknown}; the known columns are "
+            + "; ".join(f"{k}: {', '.join(v)}" for k, v in COLUMNS.items())
+            + "."
+        )
+    duplicated = sorted({c for c in columns if columns.count(c) > 1})
+    if duplicated:
+        raise DataError(f"{where}: duplicated column(s) {duplicated}.")
+    given = set(columns)
+    for kind, expected in COLUMNS.items():
+        if given == set(expected):
+            return kind
+    # The closest kind: the one sharing most columns (ties broken by fewest extra columns).
+    kind = max(COLUMNS, key=lambda k: (len(given & set(COLUMNS[k])), -len(given - set(COLUMNS[k]))))
+    missing = [c for c in COLUMNS[kind] if c not in given]
+    extra = [c for c in columns if c not in COLUMNS[kind]]
+    detail = f"missing column(s) {missing}" if missing else ""
+    if extra:
+        detail += ("; " if detail else "") + f"column(s) {extra} do not belong to it"
+    raise DataError(
+        f"{where}: the columns {columns} match no kind of record; closest is {kind!r} "
+        f"({', '.join(COLUMNS[kind])}): {detail}."
+    )
+
+
+def _check_time(t: np.ndarray, where: str) -> None:
+    spacing = np.diff(t)
+    bad = np.flatnonzero(spacing <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise DataError(
+            f"{where}: time must increase strictly; row {i + 3} has "
+            f"t = {float(t[i + 1])!r} s after t = {float(t[i])!r} s."
+        )
+    mean = (t[-1] - t[0]) / (len(t) - 1)
+    deviation = np.abs(spacing - mean)
+    worst = int(np.argmax(deviation))
+    tolerance = _UNIFORM_TOLERANCE * mean + 8 * np.finfo(np.float64).eps * np.max(np.abs(t))
+    if deviation[worst] > tolerance:
+        raise DataError(
+            f"{where}: sampling must be uniform; the spacing between rows {worst + 2} and "
+            f"{worst + 3} is {float(spacing[worst])!r} s but the mean spacing is {float(mean)!r} s "
+            "(resample the record onto a uniform grid)."
+        )
+
+
+def validate(data: Dataset, *, path=None) -> Dataset:
+    """Check a dataset's values (finite, enough samples, uniform increasing time, non-negative
+    vibration amplitudes and frequencies) and return it; raise `DataError` otherwise."""
+    where = _where(path)
+    kind = data.kind
+    columns = COLUMNS[kind]
+    arrays = {c: np.asarray(getattr(data, c), dtype=np.float64) for c in columns}
+    lengths = {c: a.shape for c, a in arrays.items()}
+    n = len(arrays[columns[0]])
+    if any(a.ndim != 1 or len(a) != n for a in arrays.values()):
+        raise DataError(f"{where}: columns must be 1-D and of one length, got shapes {lengths}.")
+    minimum = MIN_SAMPLES[kind]
+    if n < minimum:
+        what = "rows" if kind == "vibration" else "samples"
+        raise DataError(f"{where}: a {kind!r} record needs at least {minimum} {what}, got {n}.")
+    for column, values in arrays.items():
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            i = int(bad[0])
+            raise DataError(
+                f"{where}: column {column!r} row {i + 2} is {float(values[i])!r} {UNITS[column]}; "
+                "every value must be a finite number."
+            )
+    if "t" in arrays:
+        _check_time(arrays["t"], where)
+    if kind == "vibration":
+        for column in ("vib_amp", "vib_freq", "vib_rms"):
+            bad = np.flatnonzero(arrays[column] < 0)
+            if bad.size:
+                i = int(bad[0])
+                raise DataError(
+                    f"{where}: column {column!r} row {i + 2} is {float(arrays[column][i])!r} "
+                    f"{UNITS[column]}; it must be non-negative."
+                )
+    if kind == "step" and np.ptp(arrays["u_test"]) == 0:
+        raise DataError(
+            f"{where}: u_test is constant ({float(arrays['u_test'][0])!r} V); a step record "
+            "needs at least one change of the test voltage."
+        )
+    return _CLASSES[kind](**arrays)
+
+
+def parse_csv(text: str, *, kind: str | None = None, path=None) -> Dataset:
+    """Parse CSV text (a header row, then numbers) into a validated dataset.
+
+    **Arguments:**
+
+    - `text`: the file's contents.
+    - `kind`: `"step"`, `"vibration"` or `"noise"` to force the kind (the columns must then
+        be exactly that kind's); `None` infers it from the columns.
+    - `path`: the file name, for messages only.
+
+    **Returns:** a `StepData`, `VibrationData` or `NoiseData` (float64 NumPy arrays).
+
+    Raises `DataError` (one line) for an empty file, missing, unknown or duplicated columns,
+    rows of the wrong length, non-numeric text, NaN/inf, too few samples, and non-monotonic
+    or non-uniform time.
+    """
+    where = _where(path)
+    if kind is not None and kind not in COLUMNS:
+        raise DataError(f"unknown kind {kind!r}; choose one of {sorted(COLUMNS)}.")
+    lines = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
+    if not lines:
+        raise DataError(f"{where}: the file is empty; expected a header row and data rows.")
+    rows = list(csv.reader(lines))
+    header = [name.strip() for name in rows[0]]
+    if kind is None:
+        kind = infer_kind(header, path=path)
+    else:
+        missing = [c for c in COLUMNS[kind] if c not in header]
+        extra = [c for c in header if c not in COLUMNS[kind]]
+        if missing or extra:
+            raise DataError(
+                f"{where}: a {kind!r} record has the columns {list(COLUMNS[kind])}; "
+                f"missing {missing}, unexpected {extra}."
+            )
+        infer_kind(header, path=path)  # duplicates
+    body = rows[1:]
+    if not body:
+        raise DataError(f"{where}: only a header row; no data rows.")
+    values = np.empty((len(body), len(header)), dtype=np.float64)
+    for i, row in enumerate(body):
+        if len(row) != len(header):
+            raise DataError(
+                f"{where}: row {i + 2} has {len(row)} field(s), the header has {len(header)}."
+            )
+        for j, field in enumerate(row):
+            try:
+                values[i, j] = float(field)
+            except ValueError:
+                raise DataError(
+                    f"{where}: column {header[j]!r} row {i + 2} is {field.strip()!r}, not a number."
+                ) from None
+    arrays = {name: values[:, j] for j, name in enumerate(header)}
+    return validate(_CLASSES[kind](**{c: arrays[c] for c in COLUMNS[kind]}), path=path)
+
+
+def read_csv(path: str | os.PathLike, *, kind: str | None = None) -> Dataset:
+    """Read and validate one experiment from a CSV file (see `parse_csv`)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file.") from None
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not a text (UTF-8) CSV file.") from None
+    except OSError as error:
+        raise DataError(f"{path}: cannot be read ({error.strerror}).") from None
+    return parse_csv(text, kind=kind, path=path)
+
+
+def write_csv(path: str | os.PathLike, data: Dataset) -> Path:
+    """Write a dataset as CSV (header + rows, full float64 precision), atomically."""
+    columns = COLUMNS[data.kind]
+    stacked = np.stack([np.asarray(getattr(data, c), dtype=np.float64) for c in columns], 1)
+    buffer = io.StringIO()
+    buffer.write(",".join(columns) + "\n")
+    for row in stacked:
+        buffer.write(",".join(repr(float(v)) for v in row) + "\n")
+    path = Path(path)
+    _atomic_write_bytes(path, buffer.getvalue().encode())
+    return path
+
+
+# --------------------------------------------------------------------------------------
+# Device files
+# --------------------------------------------------------------------------------------
+
+
+class NominalDevice(eqx.Module):
+    """A nominal device: its `ServoParams` and the relative (1σ) uncertainty of each value.
+
+    **Fields:**
+
+    - `params`: the nominal `ServoParams` (SI units).
+    - `uncertainty`: a dict field name → relative 1σ uncertainty (e.g. 0.05); fields not
+        listed are taken as exact. A diagnosis treats these as a log-normal prior.
+    """
+
+    params: ServoParams
+    uncertainty: dict = eqx.field(static=True)
+
+    @classmethod
+    def reference(cls) -> NominalDevice:
+        """The SPEC.md reference device with J, μ, c, k_dm known to ±5 %."""
+        return cls(ServoParams.reference(), dict(UNCERTAIN_BY_DEFAULT))
+
+
+def _load_toml(text: str):
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    return tomllib.loads(text)
+
+
+def parse_params_toml(text: str, *, path=None) -> NominalDevice:
+    """Parse a device file (see the module docstring) into a `NominalDevice`.
+
+    Values not given are the reference device's; uncertainties not given are
+    `UNCERTAIN_BY_DEFAULT`'s. Raises `DataError` for invalid TOML, unknown keys, non-numeric
+    or non-finite values, a negative or > 100 % uncertainty, and values `ServoParams` rejects.
+    """
+    where = _where(path)
+    try:
+        table = _load_toml(text)
+    except Exception as error:  # tomllib.TOMLDecodeError
+        raise DataError(f"{where}: not valid TOML ({error}).") from None
+    unknown = sorted(set(table) - set(REFERENCE_VALUES))
+    if unknown:
+        raise DataError(
+            f"{where}: unknown key(s) {unknown}; valid keys are the ServoParams fields "
+            f"{sorted(REFERENCE_VALUES)}."
+        )
+    values = dict(REFERENCE_VALUES)
+    uncertainty = dict(UNCERTAIN_BY_DEFAULT)
+    for name, entry in table.items():
+        if isinstance(entry, dict):
+            extra = sorted(set(entry) - {"value", "uncertainty"})
+            if extra:
+                raise DataError(
+                    f"{where}: unknown key(s) {extra} in {name!r}; use value and uncertainty."
+                )
+            if "value" in entry:
+                values[name] = _number(entry["value"], f"{name}.value", where)
+            if "uncertainty" in entry:
+                u = _number(entry["uncertainty"], f"{name}.uncertainty", where)
+                if not 0 <= u <= _MAX_UNCERTAINTY:
+                    raise DataError(
+                        f"{where}: {name}.uncertainty = {u!r} (relative); it must lie in "
+                        f"[0, {_MAX_UNCERTAINTY}]."
+                    )
+                uncertainty[name] = u
+        else:
+            values[name] = _number(entry, name, where)
+    uncertainty = {k: v for k, v in uncertainty.items() if v > 0}
+    try:
+        params = ServoParams(**{k: np.float64(v) for k, v in values.items()})
+    except ValueError as error:
+        raise DataError(f"{where}: {error}") from None
+    return NominalDevice(params, uncertainty)
+
+
+def _number(value, name, where) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise DataError(f"{where}: {name} = {value!r} is not a number.")
+    if not math.isfinite(value):
+        raise DataError(f"{where}: {name} = {value!r} is not finite.")
+    return float(value)
+
+
+def read_params_toml(path: str | os.PathLike) -> NominalDevice:
+    """Read a device file (see `parse_params_toml`)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file.") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise DataError(f"{path}: cannot be read ({error}).") from None
+    return parse_params_toml(text, path=path)

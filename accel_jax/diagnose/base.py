@@ -1,0 +1,341 @@
+"""The effect interface and the kind-independent logic of a sim-to-real diagnosis.
+
+A diagnosis (SPEC.md §5) compares a measured record with the nominal model of its kind:
+
+1. it refits the nominal parameters under their prior (a gap that this closes is a
+   parameter error, not missing physics);
+2. it localises the remaining residual (`where`);
+3. it fits every candidate unmodelled effect of the kind's library (each an extension of
+   the nominal model that is exactly the nominal model when its parameters are zero) on a
+   training part of the record and ranks them by evidence (`rank_candidates`);
+4. it measures the gap before and after the chosen effect on held-out data (`held_out_gap`).
+
+What is kind-specific (the nominal model, the effects, the localisation) lives in one
+module per kind (`step.py`; `vibration` and `noise` follow the same pattern); this module
+holds the interface they implement and the ranking, verdict and held-out logic they share.
+
+Adding an effect is one small class: subclass the kind's effect base (e.g. `StepEffect`),
+set `name`, `parameter_names`, `units`, implement `initial_guess`, `physical` and the one
+hook it changes, and decorate it with `register_effect`.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import Any, ClassVar
+
+import equinox as eqx
+import numpy as np
+
+SIGNIFICANCE = 10.0
+"""Evidence (2 ln Bayes factor, on the BIC scale) an effect needs over the nominal model to
+be named: 10 is "very strong" on Kass & Raftery's scale (odds ≈ 150 : 1)."""
+
+INDISTINCT = 6.0
+"""Evidence difference below which the two best effects are not told apart (`cannot_tell`):
+6 on the 2 ln B scale is odds of 20 : 1."""
+
+_EFFECTS: dict[str, dict[str, type]] = {}
+
+
+class AbstractEffect(eqx.Module):
+    """A candidate unmodelled effect: an extension of a kind's nominal model.
+
+    The effect has `len(parameter_names)` scaled parameters z (dimensionless, O(1) for a
+    typical magnitude); at z = 0 the extended model is exactly the nominal model. A kind's
+    model calls the hooks of every registered effect (its own effect base class lists
+    them), so an effect changes the model only through the hook it overrides.
+
+    **Class attributes:**
+
+    - `name`: the effect's name in reports (e.g. `"torquer_lag"`).
+    - `kind`: the kind of record it applies to (`"step"`, `"vibration"`, `"noise"`).
+    - `parameter_names`: names of its physical parameters, in the order of z.
+    - `description`: one line for reports.
+    """
+
+    name: ClassVar[str]
+    kind: ClassVar[str]
+    parameter_names: ClassVar[tuple[str, ...]]
+    description: ClassVar[str] = ""
+
+    @property
+    def n_params(self) -> int:
+        """The number of scaled parameters z."""
+        return len(self.parameter_names)
+
+    @abc.abstractmethod
+    def initial_guess(self, context) -> np.ndarray:
+        """A starting point for z (shape (n_params,)) from the kind's fit context (host side,
+        NumPy). It must be a point where the fit's gradient is informative."""
+
+    @abc.abstractmethod
+    def physical(self, z, context) -> dict[str, float]:
+        """The physical values (unit in each key's name) of the scaled parameters z."""
+
+
+def register_effect(cls: type) -> type:
+    """Class decorator: add an effect to its kind's library (by `cls.kind`, `cls.name`)."""
+    library = _EFFECTS.setdefault(cls.kind, {})
+    if cls.name in library and library[cls.name] is not cls:
+        raise ValueError(f"an effect named {cls.name!r} is already registered for {cls.kind!r}.")
+    library[cls.name] = cls
+    return cls
+
+
+def effect_library(kind: str) -> dict[str, type]:
+    """The registered effects of a kind, name → class, in registration order."""
+    return dict(_EFFECTS.get(kind, {}))
+
+
+# --------------------------------------------------------------------------------------
+# Evidence and verdict
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class CandidateFit:
+    """One fitted model of a kind (the nominal model or nominal + one effect).
+
+    **Fields:**
+
+    - `effect`: the effect's name, or `"nominal"`.
+    - `n_effect_params`: k, its number of effect parameters (0 for the nominal model).
+    - `log_likelihood`: ln L on the training data at the fit, with the noise variance
+        profiled out and the log-prior of the nominal parameters added.
+    - `n_train`: the number of training samples (rows).
+    - `held_out_ms`: mean square of the held-out prediction errors [unit²].
+    - `held_out_errors`: the held-out prediction errors [unit], shape (n_test,).
+    - `train_ms`: mean square of the training prediction errors [unit²] (the noise floor
+        this model leaves).
+    - `params`: the effect's fitted physical values.
+    - `converged`: whether the fit converged.
+    """
+
+    effect: str
+    n_effect_params: int
+    log_likelihood: float
+    n_train: int
+    held_out_ms: float
+    held_out_errors: np.ndarray
+    train_ms: float
+    params: dict
+    converged: bool = True
+
+    @property
+    def log_evidence(self) -> float:
+        """ln L − (k/2) ln n: the Schwarz (BIC) approximation of the log marginal likelihood
+        (the nominal parameters are common to every model and carry their prior in ln L)."""
+        return self.log_likelihood - 0.5 * self.n_effect_params * np.log(self.n_train)
+
+
+def rank_candidates(
+    nominal: CandidateFit,
+    candidates: list[CandidateFit],
+    *,
+    significance: float = SIGNIFICANCE,
+    indistinct: float = INDISTINCT,
+) -> tuple[str, list[dict], list[str]]:
+    """Rank the effects by evidence and give the verdict.
+
+    The evidence of an effect is 2 (ln E_effect − ln E_nominal) (`CandidateFit.log_evidence`;
+    positive favours the effect). An effect is significant when its evidence is at least
+    `significance` and it also predicts the held-out data better than the nominal model (a
+    training-only gain is over-fitting, not physics). The verdict is:
+
+    - `"none"` when no effect is significant;
+    - `"cannot_tell"` when the runner-up is also significant and within `indistinct` of the
+      best (both named in the returned `tied` list);
+    - otherwise the best effect's name.
+
+    **Returns:** `(verdict, ranking, tied)`: the ranking is a list of dicts (effect,
+    evidence, significant, held_out_ms, params, converged), best first.
+    """
+    ranking = []
+    for fit in candidates:
+        evidence = 2.0 * (fit.log_evidence - nominal.log_evidence)
+        if not np.isfinite(evidence) or not fit.converged:
+            evidence = -np.inf if not np.isfinite(evidence) else evidence
+        improves = fit.held_out_ms < nominal.held_out_ms
+        ranking.append(
+            {
+                "effect": fit.effect,
+                "evidence": float(evidence),
+                "significant": bool(evidence >= significance and improves and fit.converged),
+                "held_out_ms": float(fit.held_out_ms),
+                "params": dict(fit.params),
+                "converged": bool(fit.converged),
+            }
+        )
+    ranking.sort(key=lambda r: (r["significant"], r["evidence"]), reverse=True)
+    significant = [r for r in ranking if r["significant"]]
+    if not significant:
+        return "none", ranking, []
+    if (
+        len(significant) > 1
+        and significant[0]["evidence"] - significant[1]["evidence"] < indistinct
+    ):
+        return "cannot_tell", ranking, [significant[0]["effect"], significant[1]["effect"]]
+    return significant[0]["effect"], ranking, []
+
+
+# --------------------------------------------------------------------------------------
+# Held-out gap
+# --------------------------------------------------------------------------------------
+
+
+def _excess_rms(mean_square, floor):
+    return np.sqrt(np.maximum(mean_square - floor, 0.0))
+
+
+def held_out_gap(
+    before: np.ndarray,
+    after: np.ndarray,
+    noise_floor: float,
+    *,
+    n_boot: int = 200,
+    block: int | None = None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The sim-to-real gap on held-out data before and after adding an effect.
+
+    The gap is the RMS prediction error in excess of the noise floor,
+    gap = sqrt(max(mean(e²) − σ², 0)) (σ² = `noise_floor`, the white-noise variance the
+    best model leaves on the training data), so that an effect that explains everything
+    systematic shrinks it to ≈ 0; the shrink is 1 − after/before. Its uncertainty is a
+    moving-block bootstrap over the held-out samples (the same blocks for both models;
+    blocks keep the residual's correlation), with σ² held fixed.
+
+    **Arguments:**
+
+    - `before`, `after`: held-out prediction errors of the nominal refit and of the model
+        with the effect [unit], same shape (n_test,).
+    - `noise_floor`: σ² [unit²].
+    - `n_boot`: bootstrap resamples; `block`: block length in samples (default
+        max(10, n_test // 20)); `seed`: NumPy seed of the resampling (reproducible).
+
+    **Returns:** a dict with `metric`, `before`, `after` [unit], `shrink`, `shrink_std`,
+    `shrink_p16`, `shrink_p84`, `rms_before`, `rms_after` (the raw held-out RMS errors),
+    `noise_floor_rms`, `n_held_out`.
+    """
+    before = np.asarray(before, dtype=np.float64)
+    after = np.asarray(after, dtype=np.float64)
+    n = before.shape[0]
+    gap_before = float(_excess_rms(np.mean(before**2), noise_floor))
+    gap_after = float(_excess_rms(np.mean(after**2), noise_floor))
+    shrink = 1.0 - gap_after / gap_before if gap_before > 0 else 0.0
+    block = max(10, n // 20) if block is None else block
+    block = min(block, n)
+    rng = np.random.default_rng(seed)
+    n_blocks = -(-n // block)
+    starts = rng.integers(0, n - block + 1, size=(n_boot, n_blocks))
+    index = (starts[:, :, None] + np.arange(block)[None, None, :]).reshape(n_boot, -1)[:, :n]
+    boot_before = _excess_rms(np.mean(before[index] ** 2, axis=1), noise_floor)
+    boot_after = _excess_rms(np.mean(after[index] ** 2, axis=1), noise_floor)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        boot_shrink = np.where(boot_before > 0, 1.0 - boot_after / boot_before, 0.0)
+    return {
+        "metric": "held-out RMS prediction error in excess of the noise floor",
+        "before": gap_before,
+        "after": gap_after,
+        "shrink": float(shrink),
+        "shrink_std": float(np.std(boot_shrink)),
+        "shrink_p16": float(np.percentile(boot_shrink, 16)),
+        "shrink_p84": float(np.percentile(boot_shrink, 84)),
+        "rms_before": float(np.sqrt(np.mean(before**2))),
+        "rms_after": float(np.sqrt(np.mean(after**2))),
+        "noise_floor_rms": float(np.sqrt(noise_floor)),
+        "n_held_out": int(n),
+    }
+
+
+def ljung_box(residual: np.ndarray, lags: int = 20) -> dict[str, float]:
+    """Ljung–Box whiteness test of a residual: Q = n(n+2) Σ_{k=1..h} ρ_k²/(n−k), which is
+    χ²_h for white noise. Returns the statistic, the lags and the p-value (float64)."""
+    from jax.scipy.special import gammaincc
+
+    x = np.asarray(residual, dtype=np.float64)
+    x = x - x.mean()
+    n = x.shape[0]
+    lags = int(min(lags, n // 4))
+    denominator = np.dot(x, x)
+    if denominator == 0:
+        return {"statistic": 0.0, "lags": lags, "p_value": 1.0}
+    rho = np.array([np.dot(x[k:], x[:-k]) / denominator for k in range(1, lags + 1)])
+    q = float(n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, lags + 1))))
+    p_value = float(gammaincc(lags / 2.0, q / 2.0))
+    return {"statistic": q, "lags": lags, "p_value": p_value, "autocorrelation": rho.tolist()}
+
+
+# --------------------------------------------------------------------------------------
+# The result
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class DiagnosisResult:
+    """The outcome of a diagnosis.
+
+    **Fields:**
+
+    - `kind`: the kind of record.
+    - `verdict`: the named effect, `"none"` or `"cannot_tell"`.
+    - `tied`: with `cannot_tell`, the two effects that fit equally well; else empty.
+    - `ranking`: one dict per effect, best first (effect, evidence, gap_shrink, params…).
+    - `gap`: the held-out gap before/after the chosen effect (`held_out_gap`).
+    - `where`: the localisation of the nominal residual.
+    - `refit`: the refitted nominal parameters and their shifts.
+    - `traces`: arrays for plots (time or row axis, measured, nominal and best predictions,
+        residuals, held-out mask), NumPy float64; not part of `to_dict`.
+    """
+
+    kind: str
+    verdict: str
+    tied: list
+    ranking: list
+    gap: dict
+    where: dict
+    refit: dict
+    traces: dict = dataclasses.field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict:
+        """The JSON document of SPEC.md §5's CLI contract (plain numbers and strings)."""
+        return {
+            "kind": self.kind,
+            "verdict": self.verdict,
+            "tied": list(self.tied),
+            "ranking": self.ranking,
+            "gap": self.gap,
+            "where": self.where,
+            "refit": self.refit,
+        }
+
+    def summary(self) -> str:
+        """A few lines for a terminal."""
+        lines = [f"kind: {self.kind}"]
+        if self.verdict == "cannot_tell":
+            lines.append(f"verdict: cannot_tell — {self.tied[0]} or {self.tied[1]}")
+        else:
+            lines.append(f"verdict: {self.verdict}")
+        shifts = self.refit.get("parameters", {})
+        moved = [
+            f"{k} {v['shift_relative']:+.2%} ({v['shift_sigma']:+.1f}σ)" for k, v in shifts.items()
+        ]
+        if moved:
+            lines.append("refit: " + ", ".join(moved))
+        if self.refit.get("parameter_error"):
+            lines.append("the refit closes the gap: a parameter error, not missing physics")
+        gap = self.gap
+        lines.append(
+            f"held-out gap ({gap['unit']} above the noise floor): {gap['before']:.3g} → "
+            f"{gap['after']:.3g}, shrink {gap['shrink']:.2f} ± {gap['shrink_std']:.2f}"
+        )
+        lines.append("ranking (evidence = 2 ln B vs nominal):")
+        for r in self.ranking:
+            mark = "*" if r.get("significant") else " "
+            lines.append(
+                f" {mark} {r['effect']:<18} evidence {r['evidence']:>10.1f}  "
+                f"shrink {r['gap_shrink']:+.2f}"
+            )
+        return "\n".join(lines)
