@@ -438,7 +438,7 @@ class CompensatedEstimate(eqx.Module):
     estimate: MLEstimate
 
 
-def compensate(
+def compensate_linearisation(
     ts: SeriesLike,
     samples: SeriesLike,
     *,

@@ -514,7 +514,7 @@ class CompensationSteps(eqx.Module):
     after_random: Array
 
 
-def compensate(
+def compensate_in_flight(
     passport: StaticTransferFunction,
     indicated: ArrayLike,
     env_estimate: VibrationEnvironment,

@@ -40,12 +40,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax._kalman import (  # noqa: E402
+from accel_jax import (  # noqa: E402
     INSChannel,
     ins_consistency_trial,
     scale_noise_coefficients,
 )
-from accel_jax._noise import (  # noqa: E402
+from accel_jax import (  # noqa: E402
     ExponentialCosine,
     GaussMarkov,
     NoiseFitResult,

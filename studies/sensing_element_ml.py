@@ -36,16 +36,16 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax._ml_estimate import (  # noqa: E402
+from accel_jax import (  # noqa: E402
     GaussMarkovDisturbance,
-    compensate,
+    compensate_linearisation,
     error_covariance,
     fit_sensing_element,
     linearisation_error,
     ml_estimate,
     state_basis,
 )
-from accel_jax._pendulum import (  # noqa: E402
+from accel_jax import (  # noqa: E402
     SensingElement,
     record_mask,
     sample_sensing_element,
@@ -106,7 +106,7 @@ def _element_errors(
     covariance = error_covariance(ts, PICKOFF_STD, disturbance)
     mask = record_mask(n_samples, record_length)
     omega = element.damped_frequency  # the estimator's a-priori frequency ω_zm
-    comp = compensate(
+    comp = compensate_linearisation(
         ts, samples, angular_frequency=omega, element=element, covariance=covariance, mask=mask
     )
     predicted = linearisation_error(

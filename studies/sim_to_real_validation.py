@@ -39,7 +39,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax._data import StepData, write_csv  # noqa: E402
+from accel_jax import StepData, write_csv  # noqa: E402
 
 STUDY = "sim_to_real_validation"
 
@@ -201,7 +201,7 @@ _DIAGNOSE_CODE = """
 import json, sys, pathlib
 import jax
 jax.config.update("jax_enable_x64", True)
-from accel_jax._data import read_csv
+from accel_jax import read_csv
 from accel_jax.diagnose import diagnose_many
 folder, out = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
 files = sorted(folder.glob("*.csv"))

@@ -31,13 +31,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax._static import (  # noqa: E402
+from accel_jax import (  # noqa: E402
     PPM,
     StaticTransferFunction,
     basic_error,
     indicated_acceleration,
 )
-from accel_jax._tolerance import (  # noqa: E402
+from accel_jax import (  # noqa: E402
     AKS05_RANGES_PPM,
     TOLERANCED,
     cyclone4,
@@ -49,9 +49,9 @@ from accel_jax._tolerance import (  # noqa: E402
     tactical_missile,
     unit_vibration_error,
 )
-from accel_jax._vibration import (  # noqa: E402
+from accel_jax import (  # noqa: E402
     VibrationEnvironment,
-    compensate,
+    compensate_in_flight,
     mean_abs_input,
     paper_deterministic_error,
     paper_vibration_error,
@@ -355,7 +355,7 @@ def asymmetry_curve() -> dict:
 # --- Table 5: compensation ---------------------------------------------------------------
 
 
-_compensate = eqx.filter_jit(compensate)
+_compensate = eqx.filter_jit(compensate_in_flight)
 
 
 def table5() -> dict:
@@ -752,13 +752,13 @@ def _greedy_plan(target_se: np.ndarray, max_rows: int = 30) -> tuple[dict, list]
 
 
 def aj_design(plan):
-    from accel_jax._vibration import design_matrix
+    from accel_jax import design_matrix
 
     return design_matrix(plan)
 
 
 def coefficient_fitting(key, quick: bool) -> dict:
-    from accel_jax._vibration import fit_coefficients, identifiability, predict_table
+    from accel_jax import fit_coefficients, identifiability, predict_table
 
     A, B = np.meshgrid([-1.0, 1.0], [0.0, 2.0, 4.0])
     tilt = np.cos(np.linspace(0, np.pi, 12))

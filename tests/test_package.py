@@ -64,3 +64,17 @@ def test_write_json_atomic_keeps_old_file_on_failure(tmp_path):
         aj.write_json_atomic(path, {"x": object()})
     assert json.loads(path.read_text()) == {"x": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+def test_studies_and_notebooks_use_only_the_public_api():
+    # STYLE.md: studies and notebooks import `accel_jax` (and its subpackages such as
+    # `accel_jax.diagnose`), never the private modules `accel_jax._*`.
+    import pathlib
+    import re
+
+    root = pathlib.Path(__file__).resolve().parent.parent
+    scripts = sorted((root / "studies").glob("*.py")) + sorted((root / "notebooks").glob("*.py"))
+    assert scripts
+    private = re.compile(r"^\s*(from|import)\s+accel_jax\._", re.MULTILINE)
+    offenders = [p.name for p in scripts if private.search(p.read_text())]
+    assert offenders == []
