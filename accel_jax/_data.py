@@ -6,7 +6,9 @@ experiment is inferred from the columns:
 - `step`: a closed-loop test-signal record — `t` [s], `u_test` [V], `u_out` [V]; uniform
   sampling, the test voltage held constant between samples;
 - `vibration`: one row per shaker/tumble test condition — `a_in` [g], `vib_amp` [g],
-  `vib_freq` [Hz], `vib_rms` [g], `a_out` [g];
+  `vib_freq` [Hz], `vib_rms` [g], `a_out` [g]; optionally `vib_amp_oa`, `vib_amp_pa` [g],
+  sinusoidal vibration on the output and pendulum axes in phase with `vib_amp` (they make
+  the cross-coupling m31, m32 observable);
 - `noise`: a static record — `t` [s], `a_out` [g].
 
 Every problem with the input raises one error type, `DataError` (a `ValueError`), whose
@@ -41,6 +43,15 @@ COLUMNS: dict[str, tuple[str, ...]] = {
 }
 """The columns of each kind of record, in the order written by `write_csv`."""
 
+OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {
+    "step": (),
+    "vibration": ("vib_amp_oa", "vib_amp_pa"),
+    "noise": (),
+}
+"""Columns a record of each kind may have in addition (written after `COLUMNS` when
+present): for `vibration`, the in-phase sinusoidal amplitudes on the output (OA) and pendulum
+(PA) axes [g], which `accel_jax._vibration` uses for the cross-coupling terms m31, m32."""
+
 UNITS: dict[str, str] = {
     "t": "s",
     "u_test": "V",
@@ -50,6 +61,8 @@ UNITS: dict[str, str] = {
     "vib_freq": "Hz",
     "vib_rms": "g",
     "a_out": "g",
+    "vib_amp_oa": "g",
+    "vib_amp_pa": "g",
 }
 
 MIN_SAMPLES: dict[str, int] = {"step": 200, "vibration": 8, "noise": 256}
@@ -109,7 +122,9 @@ class VibrationData(eqx.Module):
 
     **Fields:** `a_in` [g] applied along the input axis, `vib_amp` [g] sinusoidal amplitude,
     `vib_freq` [Hz], `vib_rms` [g] random part, `a_out` [g] mean indicated acceleration; each
-    shape (rows,).
+    shape (rows,). Optional (None when the table has no such column): `vib_amp_oa`,
+    `vib_amp_pa` [g], sinusoidal amplitudes on the output and pendulum axes, in phase with
+    `vib_amp`.
     """
 
     a_in: np.ndarray
@@ -117,7 +132,15 @@ class VibrationData(eqx.Module):
     vib_freq: np.ndarray
     vib_rms: np.ndarray
     a_out: np.ndarray
+    vib_amp_oa: np.ndarray | None = None
+    vib_amp_pa: np.ndarray | None = None
     kind = "vibration"
+
+    def table(self) -> dict[str, np.ndarray]:
+        """The columns as a dict (the optional ones only when present), as
+        `accel_jax._vibration`'s table functions take them."""
+        names = COLUMNS["vibration"] + OPTIONAL_COLUMNS["vibration"]
+        return {c: getattr(self, c) for c in names if getattr(self, c) is not None}
 
 
 class NoiseData(eqx.Module):
@@ -146,7 +169,7 @@ def infer_kind(columns, *, path=None) -> str:
     """
     columns = [str(c) for c in columns]
     where = _where(path)
-    known = set().union(*COLUMNS.values())
+    known = set().union(*COLUMNS.values(), *OPTIONAL_COLUMNS.values())
     unknown = [c for c in columns if c not in known]
     if unknown:
         raise DataError(
@@ -159,12 +182,12 @@ def infer_kind(columns, *, path=None) -> str:
         raise DataError(f"{where}: duplicated column(s) {duplicated}.")
     given = set(columns)
     for kind, expected in COLUMNS.items():
-        if given == set(expected):
+        if set(expected) <= given <= set(expected) | set(OPTIONAL_COLUMNS[kind]):
             return kind
     # The closest kind: the one sharing most columns (ties broken by fewest extra columns).
     kind = max(COLUMNS, key=lambda k: (len(given & set(COLUMNS[k])), -len(given - set(COLUMNS[k]))))
     missing = [c for c in COLUMNS[kind] if c not in given]
-    extra = [c for c in columns if c not in COLUMNS[kind]]
+    extra = [c for c in columns if c not in COLUMNS[kind] + OPTIONAL_COLUMNS[kind]]
     detail = f"missing column(s) {missing}" if missing else ""
     if extra:
         detail += ("; " if detail else "") + f"column(s) {extra} do not belong to it"
@@ -200,7 +223,9 @@ def validate(data: Dataset, *, path=None) -> Dataset:
     vibration amplitudes and frequencies) and return it; raise `DataError` otherwise."""
     where = _where(path)
     kind = data.kind
-    columns = COLUMNS[kind]
+    columns = COLUMNS[kind] + tuple(
+        c for c in OPTIONAL_COLUMNS[kind] if getattr(data, c, None) is not None
+    )
     arrays = {c: np.asarray(getattr(data, c), dtype=np.float64) for c in columns}
     lengths = {c: a.shape for c, a in arrays.items()}
     n = len(arrays[columns[0]])
@@ -221,7 +246,9 @@ def validate(data: Dataset, *, path=None) -> Dataset:
     if "t" in arrays:
         _check_time(arrays["t"], where)
     if kind == "vibration":
-        for column in ("vib_amp", "vib_freq", "vib_rms"):
+        for column in ("vib_amp", "vib_freq", "vib_rms") + OPTIONAL_COLUMNS[kind]:
+            if column not in arrays:
+                continue
             bad = np.flatnonzero(arrays[column] < 0)
             if bad.size:
                 i = int(bad[0])
@@ -265,7 +292,7 @@ def parse_csv(text: str, *, kind: str | None = None, path=None) -> Dataset:
         kind = infer_kind(header, path=path)
     else:
         missing = [c for c in COLUMNS[kind] if c not in header]
-        extra = [c for c in header if c not in COLUMNS[kind]]
+        extra = [c for c in header if c not in COLUMNS[kind] + OPTIONAL_COLUMNS[kind]]
         if missing or extra:
             raise DataError(
                 f"{where}: a {kind!r} record has the columns {list(COLUMNS[kind])}; "
@@ -289,7 +316,8 @@ def parse_csv(text: str, *, kind: str | None = None, path=None) -> Dataset:
                     f"{where}: column {header[j]!r} row {i + 2} is {field.strip()!r}, not a number."
                 ) from None
     arrays = {name: values[:, j] for j, name in enumerate(header)}
-    return validate(_CLASSES[kind](**{c: arrays[c] for c in COLUMNS[kind]}), path=path)
+    names = COLUMNS[kind] + tuple(c for c in OPTIONAL_COLUMNS[kind] if c in arrays)
+    return validate(_CLASSES[kind](**{c: arrays[c] for c in names}), path=path)
 
 
 def read_csv(path: str | os.PathLike, *, kind: str | None = None) -> Dataset:
@@ -308,7 +336,9 @@ def read_csv(path: str | os.PathLike, *, kind: str | None = None) -> Dataset:
 
 def write_csv(path: str | os.PathLike, data: Dataset) -> Path:
     """Write a dataset as CSV (header + rows, full float64 precision), atomically."""
-    columns = COLUMNS[data.kind]
+    columns = COLUMNS[data.kind] + tuple(
+        c for c in OPTIONAL_COLUMNS[data.kind] if getattr(data, c, None) is not None
+    )
     stacked = np.stack([np.asarray(getattr(data, c), dtype=np.float64) for c in columns], 1)
     buffer = io.StringIO()
     buffer.write(",".join(columns) + "\n")
