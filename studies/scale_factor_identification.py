@@ -736,20 +736,31 @@ def _panel(ax, s, xlabel, *, logx=False, symlogy=False, ref_key, ref_label, labe
     ax.errorbar(
         s["x"], mean, yerr=std, fmt=style, ms=3, capsize=2, label=label or "Monte Carlo mean ± std"
     )
+    unusable = []
     for x, m, frac in zip(s["x"], mean, s["usable_fraction"], strict=True):
-        if frac < 1:
-            # Where nothing was usable there is no mean: label the bottom of the axes.
-            where = ((x, m), "data") if np.isfinite(m) else ((x, 0.04), ("data", "axes fraction"))
+        if frac < 1 and np.isfinite(m):
             ax.annotate(
                 f"{frac:.0%} usable",
-                where[0],
-                xycoords=where[1],
+                (x, m),
                 textcoords="offset points",
                 xytext=(0, 8),
                 fontsize=7,
                 ha="center",
                 color="tab:red",
             )
+        elif not np.isfinite(m):
+            unusable.append(x)
+    if unusable:
+        # Where nothing was usable there is no mean: one label at the bottom for the run
+        # of such points (one label each would overlap).
+        ax.annotate(
+            f"no usable record from {min(unusable):.3g} on",
+            (min(unusable), 0.04),
+            xycoords=("data", "axes fraction"),
+            fontsize=7,
+            ha="right",
+            color="tab:red",
+        )
     ax.set_xlabel(xlabel)
     ax.set_ylabel("δK_a [%]")
     if logx:

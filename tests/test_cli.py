@@ -1,0 +1,86 @@
+"""The `accel-jax identify` subcommand: a user's own step record, end to end."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import accel_jax as aj
+from accel_jax.cli import main
+
+PRE = 200  # samples at rest before the test step
+
+
+@pytest.fixture(scope="module")
+def step_csv(tmp_path_factory):
+    # The reference device (T_dm, T_f in the loop, noise 1e-5 V), 1 MHz, 10 ms after a 1 V
+    # step, with 200 settled samples before it: the format a test stand would write.
+    params = aj.ServoParams.reference()
+    ts, u = aj.step_response(
+        params, duration=10e-3, sample_rate=1e6, test_voltage=1.0, key=jax.random.key(3)
+    )
+    ts, u = np.asarray(ts), np.asarray(u)
+    dt = ts[1] - ts[0]
+    # The settled level is the noise-free first sample (u[0] itself carries a noise draw).
+    level = float(aj.step_response(params, duration=10e-3, sample_rate=1e6)[1][0])
+    rest = level + 1e-5 * np.random.default_rng(0).standard_normal(PRE)
+    data = aj.StepData(
+        np.concatenate([np.arange(PRE) * dt, ts + PRE * dt]),
+        np.concatenate([np.zeros(PRE), np.ones(len(ts))]),
+        np.concatenate([rest, u]),
+    )
+    path = tmp_path_factory.mktemp("identify") / "step.csv"
+    aj.write_csv(path, data)
+    return path, float(aj.scale_factor(params))
+
+
+def test_identify_recovers_the_scale_factor(step_csv, tmp_path):
+    path, truth = step_csv
+    out = tmp_path / "id.json"
+    result = CliRunner().invoke(main, ["identify", str(path), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(out.read_text())
+    assert doc["segment"]["step_time_s"] == pytest.approx(PRE * 1e-6)
+    assert doc["graph"]["method"].startswith("oscillatory")
+    # The graph method carries the T_dm bias of the reference device (0.12-0.14 %, SPEC.md
+    # §1 and the scale-factor study) plus noise scatter (±0.02 %).
+    assert 0.05 < doc["graph"]["dKa_percent"] < 0.25
+    # The order-3 fit with the known T_f is unbiased: within 4σ of the true K_a.
+    fit = doc["fit"]
+    assert abs(fit["scale_factor"] - truth) < 4 * fit["scale_factor_std"]
+    assert fit["torquer_time_constant_s"] == pytest.approx(1e-5, rel=0.05)
+    assert "δK_a" in result.output
+    # An existing output is not replaced unless asked.
+    again = CliRunner().invoke(main, ["identify", str(path), "--json", str(out)])
+    assert again.exit_code == 1 and "already exists" in again.output
+    forced = CliRunner().invoke(main, ["identify", str(path), "--json", str(out), "--force"])
+    assert forced.exit_code == 0, forced.output
+
+
+def test_identify_bad_input(step_csv, tmp_path):
+    path, _ = step_csv
+    runner = CliRunner()
+
+    def run(*args):
+        return runner.invoke(main, ["identify", *map(str, args)])
+
+    missing = run(tmp_path / "nope.csv")
+    assert missing.exit_code == 1 and "no such file" in missing.output
+    wrong = tmp_path / "wrong.csv"
+    wrong.write_text("t,a_out\n" + "\n".join(f"{i * 1e-3},{0.0}" for i in range(300)))
+    result = run(wrong)
+    assert result.exit_code == 1 and "Error:" in result.output and "Traceback" not in result.output
+    flat = tmp_path / "flat.csv"
+    t = np.arange(400) * 1e-6
+    aj.write_csv(flat, aj.StepData(t, np.zeros_like(t), np.zeros_like(t)))
+    result = run(flat)
+    assert result.exit_code == 1 and "u_test is constant" in result.output
+    result = run(path, "--gamma", "foo")
+    assert result.exit_code == 2 and "--gamma" in result.output
+    result = run(path, "--gamma", "-1")
+    assert result.exit_code == 1 and "positive" in result.output
+    # The oscillatory record is refused by the aperiodic method with the paper's reason.
+    result = run(path, "--method", "aperiodic")
+    assert result.exit_code == 1 and "overshoots" in result.output
