@@ -42,7 +42,15 @@ def main():
     "reused and folders from a different run are left alone).",
 )
 @click.option("--no-progress", is_flag=True, help="No progress bars (e.g. in logs).")
-def report(out_dir: Path, quick: bool, force: bool, no_progress: bool):
+@click.option(
+    "--params",
+    "params_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Your device (TOML: ServoParams fields, value or {value, uncertainty}) for the "
+    "studies of the closed loop; default the SPEC.md reference device.",
+)
+def report(out_dir: Path, quick: bool, force: bool, no_progress: bool, params_file):
     """Run every study and write a self-contained HTML report (OUT/index.html).
 
     Interrupted runs resume: a study that finished with the same options and code is not
@@ -52,8 +60,15 @@ def report(out_dir: Path, quick: bool, force: bool, no_progress: bool):
 
     # Studies measure effects below float32 resolution (δK_a at 0.1 %): run them in float64.
     jax.config.update("jax_enable_x64", True)
+    from ._data import DataError, read_params_toml
     from .report._run import ReportError, run_report
 
+    params = None
+    if params_file is not None:
+        try:
+            params = read_params_toml(params_file).params
+        except DataError as error:
+            raise click.ClickException(str(error)) from None
     try:
         index = run_report(
             out_dir,
@@ -63,6 +78,8 @@ def report(out_dir: Path, quick: bool, force: bool, no_progress: bool):
             force=force,
             progress=not no_progress,
             echo=click.echo,
+            params=params,
+            params_label=str(params_file) if params_file else None,
         )
     except ReportError as error:
         raise click.ClickException(str(error)) from error

@@ -179,16 +179,40 @@ def _damping_for_ratio(base: aj.ServoParams, ratios: np.ndarray) -> np.ndarray:
 # --- the study -------------------------------------------------------------------------
 
 
-def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
-    """Run the study; write OUT/result.json and figures; return the result dict."""
+def _devices(params: aj.ServoParams | None) -> tuple[aj.ServoParams, aj.ServoParams, str]:
+    """The oscillatory and aperiodic devices: the SPEC.md pair, or a user's device and its
+    twin with the damping μ changed to the reference pair's other damping ratio."""
+    if params is None:
+        return aj.ServoParams.reference(), aj.ServoParams.reference_aperiodic(), "SPEC.md reference"
+    xi = float(aj.damping_ratio(params))
+    other = {True: float(aj.damping_ratio(aj.ServoParams.reference_aperiodic())),
+             False: float(aj.damping_ratio(aj.ServoParams.reference()))}[xi < 1]
+    twin = eqx.tree_at(
+        lambda p: p.damping, params, jnp.asarray(_damping_for_ratio(params, other), jnp.float64)
+    )
+    label = f"user's device (ξ = {xi:.3g}; its twin with ξ = {other:.3g} for the other method)"
+    return (params, twin, label) if xi < 1 else (twin, params, label)
+
+
+def run(
+    out_dir: Path,
+    *,
+    quick: bool = False,
+    seed: int = 20261122,
+    params: aj.ServoParams | None = None,
+) -> dict:
+    """Run the study; write OUT/result.json and figures; return the result dict.
+
+    `params`: a device to study instead of the SPEC.md reference pair (its twin with the
+    other damping regime is made by changing μ); the published numbers belong to the
+    reference device only."""
     out_dir = Path(out_dir)
     started = time.perf_counter()
     seeds = 16 if quick else 64
     key = jax.random.key(seed)
     k_stop, k_head, k_osc, k_ap, k_fit = jax.random.split(key, 5)
 
-    ref = aj.ServoParams.reference()
-    ref_ap = aj.ServoParams.reference_aperiodic()
+    ref, ref_ap, device_label = _devices(params)
     gain_true = float(ref.pickoff_gain * ref.amplifier_gain)
     gain_stops = float(identify_pickoff_gain(ref, key=k_stop))
     gamma_exact = float(aj.shape_factor(ref))
@@ -271,11 +295,12 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             "monte_carlo_seeds_per_point": seeds,
             "precision": "float64",
             "dKa_definition": "100·(K̂_a − K_a)/K̂_a",
+            "device": device_label,
         },
         "provenance": aj.provenance(
             seeds={"root": seed},
             precision="float64",
-            extra={"params": ref.as_dict(), "wall_time_s": time.perf_counter() - started},
+            extra={"params": ref.as_dict(), "params_aperiodic": ref_ap.as_dict(), "wall_time_s": time.perf_counter() - started},
         ),
     }
     result["summary"] = _summary_rows(result)
@@ -691,7 +716,7 @@ def compare_fit(ref, gain, gamma, seeds, key, ts) -> dict:
 def _summary_rows(result: dict) -> list[dict]:
     head = result["headline"]
     fit = result["least_squares_fit"]["fit_order_3_known_filter"]
-    return [
+    rows = [
         {
             "quantity": "δK_a oscillatory, γ = 3/4 [%]",
             "ours": f"{head['oscillatory_gamma_3_4']['mean']:.4f} ± "
@@ -725,6 +750,13 @@ def _summary_rows(result: dict) -> list[dict]:
             "note": "beyond the paper: all samples, γ exact, true k_dp k_y, same noisy records",
         },
     ]
+    if result["assumptions"]["device"] != "SPEC.md reference":
+        # The paper's numbers belong to its device; do not set them beside another one's.
+        for row in rows:
+            if row["paper"] != "—":
+                row["note"] = f"paper value {row['paper']} is for the SPEC.md device; " + row["note"]
+                row["paper"] = "—"
+    return rows
 
 
 def _panel(ax, s, xlabel, *, logx=False, symlogy=False, ref_key, ref_label, label=None, style="o-"):
@@ -881,8 +913,10 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--params", type=Path, default=None, help="device TOML (default: SPEC.md)")
     args = parser.parse_args(argv)
-    result = run(args.out, quick=args.quick)
+    params = aj.read_params_toml(args.params).params if args.params else None
+    result = run(args.out, quick=args.quick, params=params)
     for row in result["summary"]:
         print(f"{row['quantity']}: {row['ours']} (paper {row['paper']})")
     print(f"written: {args.out / 'result.json'}")

@@ -95,3 +95,59 @@ def test_foreign_folders_and_files_are_left_alone(setup):
     with pytest.raises(ReportError, match="index.html exists"):
         run()
     assert "someone else" in (out / "index.html").read_text()
+
+
+PARAMS_STUDY = textwrap.dedent(
+    """
+    from pathlib import Path
+
+    import accel_jax as aj
+
+    def run(out_dir, *, quick=False, params=None):
+        damping = None if params is None else float(params.damping)
+        aj.write_json_atomic(Path(out_dir) / "result.json", {"title": "p", "damping": damping})
+        return {}
+    """
+)
+
+
+def test_user_device_reaches_studies_that_take_it_and_keys_the_cache(setup, tmp_path):
+    import accel_jax as aj
+
+    root, out, run = setup
+    (tmp_path / "studies" / "withparams.py").write_text(PARAMS_STUDY)
+
+    def run_both(**kw):
+        return run_report(
+            out,
+            studies=("fake", "withparams"),
+            studies_dir=tmp_path / "studies",
+            progress=False,
+            echo=lambda s: None,
+            **kw,
+        )
+
+    run_both()
+    assert json.loads((root / "withparams" / "result.json").read_text())["damping"] is None
+    device = aj.ServoParams.reference(damping=3e-5)
+    # Another device is another run: its results do not silently replace the reference's.
+    with pytest.raises(ReportError, match="different run"):
+        run_both(params=device)
+    run_both(params=device, force=True)
+    assert json.loads((root / "withparams" / "result.json").read_text())["damping"] == 3e-5
+    assert runs(root) == 2  # the study without a params argument ran again, unchanged
+
+
+def test_cli_report_rejects_a_bad_params_file(tmp_path):
+    from click.testing import CliRunner
+
+    from accel_jax.cli import main
+
+    bad = tmp_path / "device.toml"
+    bad.write_text("wobble = 3\n")
+    result = CliRunner().invoke(
+        main, ["report", "--out", str(tmp_path / "r"), "--params", str(bad), "--no-progress"]
+    )
+    assert result.exit_code == 1
+    assert "unknown key" in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "r").exists()

@@ -136,3 +136,22 @@ def test_report_refuses_bad_option():
     result = CliRunner().invoke(main, ["report", "--quick", "--out"])
     assert result.exit_code == 2
     assert "requires an argument" in result.output
+
+
+def test_user_device_and_its_twin():
+    module = _load_study_module()
+    ref, ref_ap, label = module._devices(None)
+    assert label == "SPEC.md reference"
+    device = aj.ServoParams.reference(damping=3.5e-5, stiffness=3.1e-4)
+    osc, ape, label = module._devices(device)
+    assert osc is device and "user's device" in label
+    # The twin differs from the device only in μ, and has the reference aperiodic ξ.
+    assert float(aj.damping_ratio(ape)) == pytest.approx(
+        float(aj.damping_ratio(aj.ServoParams.reference_aperiodic())), rel=1e-12
+    )
+    assert float(ape.stiffness) == float(device.stiffness)
+    heavy = aj.ServoParams.reference(damping=2e-4)
+    osc, ape, _ = module._devices(heavy)
+    assert ape is heavy and float(aj.damping_ratio(osc)) == pytest.approx(
+        float(aj.damping_ratio(aj.ServoParams.reference())), rel=1e-12
+    )

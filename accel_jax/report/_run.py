@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import inspect
 import json
 import shutil
 import sys
@@ -117,8 +118,14 @@ def run_report(
     force: bool = False,
     progress: bool = True,
     echo: Callable[[str], None] = print,
+    params=None,
+    params_label: str | None = None,
 ) -> Path:
     """Run `studies` (skipping those cached), then write `out_dir/index.html`.
+
+    `params` (a `ServoParams`) is passed to the studies whose `run` takes a `params`
+    argument (the others use their papers' devices); `params_label` names it in the cache
+    key and the report.
 
     Raises `ReportError` (nothing deleted, nothing half-written) when an existing folder
     would have to be replaced and `force` is false; a study's own `ValueError` propagates.
@@ -134,6 +141,8 @@ def run_report(
             "replace it, or choose another --out."
         )
     options = {"quick": bool(quick)}
+    if params is not None:
+        options["params"] = {k: float(v) for k, v in params.as_dict().items()}
     plans = {}
     for name in studies:
         key = cache_key(name, Path(studies_dir) / f"{name}.py", options)
@@ -155,8 +164,12 @@ def run_report(
             started = time.perf_counter()
             folder.mkdir(parents=True, exist_ok=True)
             _write_marker(folder, key, complete=False)
+            extra = {}
+            if params is not None and "params" in inspect.signature(module.run).parameters:
+                extra["params"] = params
+                echo(f"[{name}] on {params_label or 'the given device'}")
             with show_progress(progress, label=name):
-                module.run(folder, quick=quick)
+                module.run(folder, quick=quick, **extra)
             _write_marker(folder, key, complete=True)
             echo(f"[{name}] done in {time.perf_counter() - started:.0f} s")
             overall.update(1)
