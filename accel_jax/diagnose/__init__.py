@@ -50,8 +50,12 @@ from .base import (
 from .step import StepEffect as StepEffect
 from .step import diagnose_step as diagnose_step
 from .step import simulate_step as simulate_step
+from .noise import NoiseEffect as NoiseEffect
+from .noise import diagnose_noise as diagnose_noise
+from .vibration import VibrationEffect as VibrationEffect
+from .vibration import diagnose_vibration as diagnose_vibration
 
-_KINDS = {"step": diagnose_step}
+_KINDS = {"step": diagnose_step, "vibration": diagnose_vibration, "noise": diagnose_noise}
 
 EFFECT_NAMES: dict[str, tuple[str, ...]] = {
     "step": (

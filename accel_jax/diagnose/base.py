@@ -36,6 +36,10 @@ INDISTINCT = 6.0
 """Evidence difference below which the two best effects are not told apart (`cannot_tell`):
 6 on the 2 ln B scale is odds of 20 : 1."""
 
+NESTED_LEVEL = 0.01
+"""Significance level of the likelihood-ratio test that resolves a tie between an effect and
+an effect nested in it (see `rank_candidates`)."""
+
 _EFFECTS: dict[str, dict[str, type]] = {}
 
 
@@ -136,6 +140,8 @@ def rank_candidates(
     *,
     significance: float = SIGNIFICANCE,
     indistinct: float = INDISTINCT,
+    nested: dict[str, str] | None = None,
+    nested_level: float = NESTED_LEVEL,
 ) -> tuple[str, list[dict], list[str]]:
     """Rank the effects by evidence and give the verdict.
 
@@ -148,6 +154,14 @@ def rank_candidates(
     - `"cannot_tell"` when the runner-up is also significant and within `indistinct` of the
       best (both named in the returned `tied` list);
     - otherwise the best effect's name.
+
+    Nested effects: `nested` maps an effect to a simpler one that it contains as a special
+    case or limit of its extra parameters (e.g. an exponential-cosine noise at β = 0 is a
+    Gauss–Markov noise). Two such effects always fit about equally well when the simpler
+    one is true, so a `cannot_tell` between them is resolved for the simpler one unless the
+    likelihood ratio of the larger, 2 (ln L_large − ln L_simple), is significant at
+    `nested_level` for χ² with the difference of their parameter counts (Occam: the data do
+    not need the extra parameters). The relation is followed transitively.
 
     **Returns:** `(verdict, ranking, tied)`: the ranking is a list of dicts (effect,
     evidence, significant, held_out_ms, params, converged), best first.
@@ -176,8 +190,40 @@ def rank_candidates(
         len(significant) > 1
         and significant[0]["evidence"] - significant[1]["evidence"] < indistinct
     ):
-        return "cannot_tell", ranking, [significant[0]["effect"], significant[1]["effect"]]
+        first, second = significant[0]["effect"], significant[1]["effect"]
+        simpler = _resolve_nested(first, second, candidates, nested or {}, nested_level)
+        if simpler is not None:
+            return simpler, ranking, []
+        return "cannot_tell", ranking, [first, second]
     return significant[0]["effect"], ranking, []
+
+
+def _contains(large: str, small: str, nested: dict[str, str]) -> bool:
+    seen = set()
+    while large in nested and large not in seen:
+        seen.add(large)
+        large = nested[large]
+        if large == small:
+            return True
+    return False
+
+
+def _resolve_nested(first, second, candidates, nested, level) -> str | None:
+    """The simpler of two tied effects when one nests the other and the larger's
+    likelihood ratio is not significant at `level`; None otherwise."""
+    from jax.scipy.special import gammaincc
+
+    fits = {fit.effect: fit for fit in candidates}
+    for large, small in ((first, second), (second, first)):
+        if not _contains(large, small, nested):
+            continue
+        dof = fits[large].n_effect_params - fits[small].n_effect_params
+        ratio = 2.0 * (fits[large].log_likelihood - fits[small].log_likelihood)
+        if dof <= 0:
+            return None
+        p_value = float(gammaincc(dof / 2.0, max(ratio, 0.0) / 2.0))
+        return small if p_value > level else None
+    return None
 
 
 # --------------------------------------------------------------------------------------
@@ -288,6 +334,8 @@ class DiagnosisResult:
     - `refit`: the refitted nominal parameters and their shifts.
     - `traces`: arrays for plots (time or row axis, measured, nominal and best predictions,
         residuals, held-out mask), NumPy float64; not part of `to_dict`.
+    - `notes`: plain-language caveats of this diagnosis (e.g. an effect left out of the
+        candidates because the data cannot show it).
     """
 
     kind: str
@@ -298,6 +346,7 @@ class DiagnosisResult:
     where: dict
     refit: dict
     traces: dict = dataclasses.field(default_factory=dict, repr=False)
+    notes: list = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The JSON document of SPEC.md §5's CLI contract (plain numbers and strings)."""
@@ -309,6 +358,7 @@ class DiagnosisResult:
             "gap": self.gap,
             "where": self.where,
             "refit": self.refit,
+            "notes": list(self.notes),
         }
 
     def summary(self) -> str:
@@ -324,6 +374,8 @@ class DiagnosisResult:
         ]
         if moved:
             lines.append("refit: " + ", ".join(moved))
+        if self.refit.get("description"):
+            lines.append("refit: " + self.refit["description"])
         if self.refit.get("parameter_error"):
             lines.append("the refit closes the gap: a parameter error, not missing physics")
         gap = self.gap
@@ -338,4 +390,5 @@ class DiagnosisResult:
                 f" {mark} {r['effect']:<18} evidence {r['evidence']:>10.1f}  "
                 f"shrink {r['gap_shrink']:+.2f}"
             )
+        lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)

@@ -1,0 +1,570 @@
+"""The `vibration` kind: a table of shaker/tumble tests, its nominal model and its effects.
+
+**Nominal model** (the idealised transfer function the paper's shaker method assumes,
+SPEC.md §3): a linear transfer function, bias and scale factor only,
+
+    a_out = a0 + (1 + δ) a_in                                                        [g],
+
+fitted freely to the rows (there is no prior: `NominalDevice` describes the servo loop and
+does not enter this kind). With a single input level a_in the scale factor cannot be told
+from the bias; δ is then held at 0 and the bias absorbs both (a note says so).
+
+**Effects** (each adds coefficients of the static transfer function, SPEC.md §3 eq. (1),
+and is exactly the nominal model when they are zero):
+
+- `k2`, `k3`, `k4`, `k5`: the nonlinearity k_n a3ⁿ, whose time average under vibration
+  rectifies (k2 b²/2, 1.5 k3 a b², …);
+- `asymmetry`: the scale-factor asymmetry ½ A1 |a3|, which rectifies when the vibration
+  crosses zero;
+- `cross_coupling`: m31 a3 a1 + m32 a3 a2, which rectifies as ½ m3i b3 bi for in-phase
+  sinusoids on the input and a cross axis. Only a table with cross-axis vibration columns
+  (`vib_amp_oa`, `vib_amp_pa`, see `accel_jax._data.OPTIONAL_COLUMNS`) can show it: without
+  them (or with them all zero) the effect is left out of the candidates and a note says so.
+
+The mean output of every row is the exact expectation of `accel_jax._vibration`
+(`design_matrix`: quadrature over the sine phase and the Gaussian random part, exact for the
+polynomial terms and for |a3| with a sinusoid). The model is linear in the coefficients, so
+that Jacobian is the whole model: a_out = a_in + J θ (θ in ppm). Every candidate and every
+cross-validation fold is solved by optimistix Levenberg–Marquardt on that design, all of a
+table's fits in one vmapped call (`fit_coefficients` fits one table per call and compiles
+per table size; the tests check the two agree).
+
+**Held out**: K-fold cross-validation over rows with a deterministic interleaved split
+(row i in fold i mod K, K = `FOLDS`): each row is predicted by the fit that did not see it.
+The evidence (2 ln B, BIC scale, noise variance profiled out) is from the fit to all rows.
+
+Float64 throughout (ppm-level differences of O(1 g) numbers).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._data import DataError, NominalDevice, VibrationData
+from .._vibration import design_matrix
+from .base import (
+    AbstractEffect,
+    CandidateFit,
+    DiagnosisResult,
+    effect_library,
+    held_out_gap,
+    ljung_box,
+    rank_candidates,
+    register_effect,
+)
+
+NOMINAL_COEFFICIENTS = ("bias", "scale_factor_error")
+"""The nominal model's coefficients (a0 [g], δ [1])."""
+
+COEFFICIENTS = (
+    "bias",
+    "scale_factor_error",
+    "asymmetry",
+    "k2",
+    "k3",
+    "k4",
+    "k5",
+    "m31",
+    "m32",
+)
+"""Every coefficient a candidate may free, in the column order of the design matrix."""
+
+FOLDS = 5
+"""Cross-validation folds (row i is held out in fold i mod FOLDS)."""
+
+N_PHASE = 256
+"""Phase quadrature points of the exact expectation (exact for the polynomial terms)."""
+
+IDENTIFIABLE = 1e-6
+"""A coefficient whose design column keeps less than this fraction of its norm after
+projection on the nominal columns cannot be seen in the table (e.g. k3 with no vibration
+and a_in = ±1 g only, where a³ = a)."""
+
+PPM = 1e-6
+
+FIT_TOLERANCE = 1e-10
+"""rtol = atol of the Levenberg–Marquardt fits (ppm-scaled coefficients and residuals)."""
+
+_UNITS = {
+    "bias": "µg",
+    "scale_factor_error": "ppm",
+    "asymmetry": "ppm",
+    "k2": "ppm/g",
+    "k3": "ppm/g²",
+    "k4": "ppm/g³",
+    "k5": "ppm/g⁴",
+    "m31": "ppm/g",
+    "m32": "ppm/g",
+}
+
+
+class VibrationEffect(AbstractEffect):
+    """An effect on a vibration table: it frees the transfer-function coefficients
+    `coefficients` (fields of `StaticTransferFunction`), whose scaled parameters z are
+    those coefficients in ppm units (z = 0: the nominal model, exactly). Override
+    `unavailable` when the effect needs columns a table may lack."""
+
+    kind = "vibration"
+    coefficients: ClassVar[tuple[str, ...]]
+
+    def unavailable(self, data: VibrationData) -> str | None:
+        """Why this table cannot show the effect at all (None: it can)."""
+        return None
+
+    def initial_guess(self, context) -> np.ndarray:
+        return np.zeros(self.n_params)
+
+    def physical(self, z, context) -> dict[str, float]:
+        se = context.get("standard_errors", {}).get(self.name, np.full(self.n_params, np.nan))
+        out = {}
+        for name, value, error in zip(self.parameter_names, z, se, strict=True):
+            out[name] = float(value)
+            out[name + "_se"] = float(error)
+        return out
+
+
+@register_effect
+class K2(VibrationEffect):
+    """Quadratic nonlinearity k2 a3²: rectifies as k2 (b²/2 + σ²)."""
+
+    name = "k2"
+    coefficients = ("k2",)
+    parameter_names = ("k2_ppm_per_g",)
+    description = "quadratic nonlinearity k2 a3²"
+
+
+@register_effect
+class K3(VibrationEffect):
+    """Cubic nonlinearity k3 a3³: rectifies as k3 (1.5 a b² + 3 a σ²)."""
+
+    name = "k3"
+    coefficients = ("k3",)
+    parameter_names = ("k3_ppm_per_g2",)
+    description = "cubic nonlinearity k3 a3³"
+
+
+@register_effect
+class K4(VibrationEffect):
+    """Quartic nonlinearity k4 a3⁴: rectifies as k4 (3 a² b² + 0.375 b⁴ + …)."""
+
+    name = "k4"
+    coefficients = ("k4",)
+    parameter_names = ("k4_ppm_per_g3",)
+    description = "quartic nonlinearity k4 a3⁴"
+
+
+@register_effect
+class K5(VibrationEffect):
+    """Quintic nonlinearity k5 a3⁵: rectifies as k5 (5 a³ b² + 1.875 a b⁴ + …)."""
+
+    name = "k5"
+    coefficients = ("k5",)
+    parameter_names = ("k5_ppm_per_g4",)
+    description = "quintic nonlinearity k5 a3⁵"
+
+
+@register_effect
+class Asymmetry(VibrationEffect):
+    """Scale-factor asymmetry ½ A1 |a3|: rectifies when the vibration crosses zero."""
+
+    name = "asymmetry"
+    coefficients = ("asymmetry",)
+    parameter_names = ("A1_ppm",)
+    description = "scale-factor asymmetry ½ A1 |a3|"
+
+
+@register_effect
+class CrossCoupling(VibrationEffect):
+    """Cross-coupling m31 a3 a1 + m32 a3 a2: rectifies as ½ m3i b3 bi (in-phase sinusoids).
+    Needs the cross-axis vibration columns."""
+
+    name = "cross_coupling"
+    coefficients = ("m31", "m32")
+    parameter_names = ("m31_ppm_per_g", "m32_ppm_per_g")
+    description = "cross-coupling m31 a3 a1 + m32 a3 a2"
+
+    def unavailable(self, data):
+        columns = [c for c in ("vib_amp_oa", "vib_amp_pa") if getattr(data, c) is not None]
+        if not columns:
+            return (
+                "cross_coupling left out: the table has no cross-axis vibration columns "
+                "(vib_amp_oa, vib_amp_pa); m31, m32 act only through the products a3·a1, "
+                "a3·a2 and cannot be seen without vibration on a cross axis."
+            )
+        if not any(np.any(np.asarray(getattr(data, c)) > 0) for c in columns):
+            return (
+                "cross_coupling left out: the cross-axis vibration columns are zero in every "
+                "row, so m31, m32 cannot be seen."
+            )
+        return None
+
+
+# --------------------------------------------------------------------------------------
+# Fits
+# --------------------------------------------------------------------------------------
+
+
+def _effects() -> list[VibrationEffect]:
+    return [cls() for cls in effect_library("vibration").values()]
+
+
+def _fit_table(design, target, masks, weights):
+    """Least squares of every candidate (rows of `masks`: 1 where a coefficient is free)
+    on every row subset (rows of `weights`: 1 where a row is fitted), vmapped. Coefficients
+    that are not free are pinned at 0 by extra residuals; a_out − a_in = J θ (ppm)."""
+
+    def fit_one(mask, weight):
+        def residuals(theta, _):
+            data = weight * (design @ (mask * theta) - target)
+            return jnp.concatenate([data, (1 - mask) * theta])
+
+        solver = optx.LevenbergMarquardt(rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE)
+        solution = optx.least_squares(
+            residuals, solver, jnp.zeros(design.shape[1]), max_steps=64, throw=False
+        )
+        theta = mask * solution.value
+        return theta, solution.result == optx.RESULTS.successful
+
+    per_fold = jax.vmap(fit_one, in_axes=(None, 0))
+    return jax.vmap(per_fold, in_axes=(0, None))(masks, weights)
+
+
+_fit_tables = eqx.filter_jit(jax.vmap(_fit_table))
+
+
+def _unexplained(columns: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Per column of `columns`, |residual after projection on `basis`| / |column|."""
+    if basis.shape[1] == 0:
+        return np.ones(columns.shape[1])
+    coef, *_ = np.linalg.lstsq(basis, columns, rcond=None)
+    residual = columns - basis @ coef
+    norms = np.linalg.norm(columns, axis=0)
+    return np.where(norms > 0, np.linalg.norm(residual, axis=0) / np.maximum(norms, 1e-300), 0.0)
+
+
+def _prepare(data: VibrationData, effects) -> dict:
+    """Host side: the design matrix, the free coefficients of each candidate, the folds."""
+    table = data.table()
+    try:
+        design = np.asarray(design_matrix(table, COEFFICIENTS, n_phase=N_PHASE)) / PPM
+    except ValueError as error:
+        raise DataError(f"vibration table: {error}") from None
+    n = design.shape[0]
+    target = (np.asarray(data.a_out) - np.asarray(data.a_in)) / PPM
+    index = {c: j for j, c in enumerate(COEFFICIENTS)}
+    notes = []
+    nominal = [index["bias"]]
+    if _unexplained(design[:, [index["scale_factor_error"]]], design[:, nominal])[0] > IDENTIFIABLE:
+        nominal.append(index["scale_factor_error"])
+    else:
+        notes.append(
+            "one input level only: the scale factor cannot be told from the bias (δ held at 0, "
+            "the bias absorbs a0 + δ·a_in)."
+        )
+    masks = []
+    free = {}
+    unavailable = {}
+    for effect in effects:
+        reason = effect.unavailable(data)
+        columns = []
+        if reason is None:
+            basis = list(nominal)
+            for coefficient in effect.coefficients:
+                j = index[coefficient]
+                if _unexplained(design[:, [j]], design[:, basis])[0] > IDENTIFIABLE:
+                    columns.append(j)
+                    basis.append(j)
+            if not columns:
+                reason = (
+                    f"{effect.name} left out: with this table its term "
+                    f"({', '.join(effect.coefficients)}) is a combination of the bias and "
+                    "scale-factor terms (extend the plan: more input levels or vibration)."
+                )
+        if reason is not None:
+            unavailable[effect.name] = reason
+            notes.append(reason)
+            continue
+        free[effect.name] = columns
+    candidates = ["nominal"] + list(free)
+    for name in candidates:
+        mask = np.zeros(len(COEFFICIENTS))
+        mask[nominal] = 1
+        mask[free.get(name, [])] = 1
+        masks.append(mask)
+    folds = min(FOLDS, n)
+    fold_of_row = np.arange(n) % folds
+    weights = np.ones((1 + folds, n))
+    for k in range(folds):
+        weights[1 + k, fold_of_row == k] = 0.0
+    return {
+        "design": design,
+        "target": target,
+        "masks": np.stack(masks),
+        "weights": weights,
+        "candidates": candidates,
+        "free": free,
+        "nominal_columns": nominal,
+        "fold_of_row": fold_of_row,
+        "unavailable": unavailable,
+        "notes": notes,
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Host side: evidence, localisation, result
+# --------------------------------------------------------------------------------------
+
+
+def _rss_floor(target: np.ndarray) -> float:
+    # Rounding floor of the residual sum of squares (ppm²): keeps ln(RSS) finite on exact data.
+    return target.size * (1e-9 * max(float(np.max(np.abs(target))), 1.0)) ** 2
+
+
+def _group(keys: np.ndarray, residual: np.ndarray, label: str, unit: str) -> list[dict]:
+    out = []
+    for value in np.unique(keys):
+        rows = keys == value
+        out.append(
+            {
+                label: float(value),
+                "rows": int(np.sum(rows)),
+                f"mean_residual_{unit}": float(np.mean(residual[rows])),
+                f"rms_residual_{unit}": float(np.sqrt(np.mean(residual[rows] ** 2))),
+            }
+        )
+    return out
+
+
+def _localise(data: VibrationData, residual: np.ndarray, sigma: float, prep: dict) -> dict:
+    """Where the nominal refit's residual lies: per row, by input level, by vibration level
+    (mean square of the input-axis vibration, b²/2 + σ²), by cross-axis vibration and by
+    frequency; and its whiteness across rows (in table order and sorted by condition)."""
+    a_in = np.asarray(data.a_in)
+    power = np.asarray(data.vib_amp) ** 2 / 2 + np.asarray(data.vib_rms) ** 2
+    freq = np.asarray(data.vib_freq)
+    n = residual.size
+    standardised = residual / sigma if sigma > 0 else np.zeros_like(residual)
+    rows = [
+        {
+            "row": i,
+            "a_in_g": float(a_in[i]),
+            "vib_amp_g": float(data.vib_amp[i]),
+            "vib_rms_g": float(data.vib_rms[i]),
+            "vib_freq_Hz": float(freq[i]),
+            "residual_g": float(residual[i]),
+            "standardised": float(standardised[i]),
+        }
+        for i in range(n)
+    ]
+    where = {
+        "conditions": rows,
+        "by_input_level": _group(np.round(a_in, 9), residual, "a_in_g", "g"),
+        "by_vibration_level": _group(np.round(power, 9), residual, "vibration_mean_square_g2", "g"),
+    }
+    for column, axis in (("vib_amp_oa", "OA"), ("vib_amp_pa", "PA")):
+        values = getattr(data, column)
+        if values is not None:
+            where[f"by_cross_axis_{axis}"] = _group(
+                np.round(np.asarray(values), 9), residual, f"{column}_g", "g"
+            )
+    vibrating = np.asarray(data.vib_amp) > 0
+    if np.unique(freq[vibrating]).size > 1:
+        # Frequency should not matter to a static transfer function (δ(ω) is linear and
+        # averages out): a residual that follows it points at dynamics outside the model.
+        terciles = np.quantile(freq[vibrating], [1 / 3, 2 / 3])
+        band = np.digitize(freq, terciles)
+        where["by_vibration_frequency"] = [
+            {
+                "band": int(b),
+                "frequency_range_Hz": [float(freq[vibrating & (band == b)].min()),
+                                       float(freq[vibrating & (band == b)].max())],
+                "rows": int(np.sum(vibrating & (band == b))),
+                "rms_residual_g": float(np.sqrt(np.mean(residual[vibrating & (band == b)] ** 2))),
+            }
+            for b in range(3)
+            if np.any(vibrating & (band == b))
+        ]
+    order = np.lexsort((power, a_in))
+    lags = max(1, min(10, n // 4))
+    where["whiteness"] = ljung_box(residual, lags=lags)
+    where["whiteness_sorted_by_condition"] = ljung_box(residual[order], lags=lags)
+    where["largest_standardised_residual"] = {
+        "row": int(np.argmax(np.abs(standardised))),
+        "value": float(standardised[np.argmax(np.abs(standardised))]),
+    }
+    where["noise_sigma_g"] = sigma
+    where["not_identifiable"] = dict(prep["unavailable"])
+    return where
+
+
+def _postprocess(data: VibrationData, prep: dict, effects, thetas, converged) -> DiagnosisResult:
+    design, target = prep["design"], prep["target"]
+    n = target.size
+    fold_of_row = prep["fold_of_row"]
+    by_effect = {e.name: e for e in effects}
+    floor_rss = _rss_floor(target)
+    fits, full_predictions, cv_errors = [], {}, {}
+    standard_errors = {}
+    for c, name in enumerate(prep["candidates"]):
+        theta_full = thetas[c, 0]
+        prediction = design @ theta_full
+        rss = max(float(np.sum((prediction - target) ** 2)), floor_rss)
+        free = np.flatnonzero(prep["masks"][c])
+        p = free.size
+        fold_predictions = design @ thetas[c, 1:].T  # (n, folds)
+        cv = (fold_predictions[np.arange(n), fold_of_row] - target) * PPM  # g
+        sigma2 = rss / max(n - p, 1)
+        covariance = sigma2 * np.linalg.pinv(design[:, free].T @ design[:, free])
+        se_all = np.full(len(COEFFICIENTS), np.nan)
+        se_all[free] = np.sqrt(np.clip(np.diag(covariance), 0, None))
+        params = {}
+        k = 0
+        if name != "nominal":
+            effect = by_effect[name]
+            columns = [COEFFICIENTS.index(c_) for c_ in effect.coefficients]
+            standard_errors[name] = se_all[columns]
+            params = effect.physical(theta_full[columns], {"standard_errors": standard_errors})
+            k = len(prep["free"][name])
+        full_predictions[name] = prediction
+        cv_errors[name] = cv
+        fits.append(
+            CandidateFit(
+                effect=name,
+                n_effect_params=k,
+                log_likelihood=float(-0.5 * n * np.log(rss / n)),
+                n_train=n,
+                held_out_ms=float(np.mean(cv**2)),
+                held_out_errors=cv,
+                train_ms=sigma2 * PPM**2,
+                params=params,
+                converged=bool(np.all(converged[c])),
+            )
+        )
+        if name == "nominal":
+            nominal_se = se_all
+    verdict, ranking, tied = rank_candidates(fits[0], fits[1:])
+    floor = min(f.train_ms for f in fits)
+    by_name = {f.effect: f for f in fits}
+    for entry in ranking:
+        g = held_out_gap(fits[0].held_out_errors, by_name[entry["effect"]].held_out_errors, floor,
+                         block=1)
+        entry["gap_shrink"] = g["shrink"]
+    chosen = verdict if verdict in by_name else (tied[0] if tied else "nominal")
+    after = by_name[chosen].held_out_errors if verdict != "none" else fits[0].held_out_errors
+    gap = held_out_gap(fits[0].held_out_errors, after, floor, block=1)
+    gap["unit"] = "g"
+    gap["model_after"] = chosen if verdict != "none" else "nominal"
+    gap["held_out"] = f"{len(prep['weights']) - 1}-fold cross-validation over rows (row i in fold i mod K)"
+
+    # The refit: bias and scale factor of the nominal transfer function, fitted freely.
+    theta_nominal = thetas[0, 0]
+    residual_ideal = np.asarray(data.a_out) - np.asarray(data.a_in)
+    residual_nominal = (full_predictions["nominal"] - target) * -PPM  # measured − model [g]
+    rms_before = float(np.sqrt(np.mean(residual_ideal**2)))
+    rms_after = float(np.sqrt(np.mean(residual_nominal**2)))
+    sigma = float(np.sqrt(floor))
+    ib, isf = COEFFICIENTS.index("bias"), COEFFICIENTS.index("scale_factor_error")
+    bias_g = float(theta_nominal[ib] * PPM)
+    delta = float(theta_nominal[isf] * PPM)
+    refit = {
+        "parameters": {},
+        "nominal_fit": {
+            "bias_g": bias_g,
+            "bias_se_g": float(nominal_se[ib] * PPM),
+            "scale_factor_error": delta,
+            "scale_factor_error_se": float(nominal_se[isf] * PPM) if isf in prep["nominal_columns"] else None,
+        },
+        "model": "a_out = a0 + (1 + δ) a_in (no prior; the servo device file does not enter)",
+        "rms_before_refit_g": rms_before,
+        "rms_after_refit_g": rms_after,
+        "gap_closed_by_refit": 1 - rms_after / rms_before if rms_before > 0 else 0.0,
+        "converged": bool(np.all(converged[0])),
+    }
+    refit["parameter_error"] = bool(
+        verdict == "none" and rms_before > 3 * sigma and rms_after < 1.5 * sigma
+    )
+    scale_text = (
+        f"δ = {delta / PPM:.4g} ± {nominal_se[isf]:.2g} ppm"
+        if isf in prep["nominal_columns"]
+        else "δ held at 0 (one input level)"
+    )
+    refit["description"] = (
+        f"a0 = {bias_g * 1e3:.4g} ± {nominal_se[ib] * PPM * 1e3:.2g} mg, {scale_text}; "
+        f"RMS residual to a_out = a_in {rms_before:.3g} g → {rms_after:.3g} g after the refit"
+    )
+    where = _localise(data, residual_nominal, sigma, prep)
+    best = full_predictions[chosen]
+    traces = {
+        "row": np.arange(n),
+        "a_in": np.asarray(data.a_in),
+        "vibration_mean_square": np.asarray(data.vib_amp) ** 2 / 2 + np.asarray(data.vib_rms) ** 2,
+        "measured": np.asarray(data.a_out),
+        "nominal": np.asarray(data.a_in) + full_predictions["nominal"] * PPM,
+        "best": np.asarray(data.a_in) + best * PPM,
+        "best_name": chosen,
+        "residual_before": residual_nominal,
+        "residual_after": (target - best) * PPM if verdict != "none" else residual_nominal,
+        "held_out_before": fits[0].held_out_errors,
+        "held_out_after": after,
+    }
+    return DiagnosisResult(
+        kind="vibration",
+        verdict=verdict,
+        tied=tied,
+        ranking=ranking,
+        gap=gap,
+        where=where,
+        refit=refit,
+        traces=traces,
+        notes=list(prep["notes"]),
+    )
+
+
+def diagnose_vibration(
+    datasets: list[VibrationData], nominal: NominalDevice | None = None
+) -> list[DiagnosisResult]:
+    """Diagnose vibration tables (SPEC.md §5, `vibration` kind).
+
+    For each table: the exact-expectation design matrix (`accel_jax._vibration`), then the
+    nominal model and each available effect fitted to all rows and to every
+    cross-validation fold (one vmapped optimistix call for every table with the same
+    number of rows), the ranking by evidence (`rank_candidates`), the held-out gap on the
+    cross-validated rows, and the localisation of the nominal residual across conditions.
+
+    **Arguments:**
+
+    - `datasets`: validated `VibrationData` tables (e.g. from `read_csv`).
+    - `nominal`: ignored (the servo device has no parameter in this kind's nominal model);
+        accepted for the common `diagnose` interface.
+
+    **Returns:** one `DiagnosisResult` per table, in order. Float64 (needs x64 enabled;
+    a `ValueError` otherwise).
+    """
+    if not jax.config.jax_enable_x64:
+        raise ValueError(
+            "diagnose needs float64: call jax.config.update('jax_enable_x64', True) first "
+            "(vibration errors are ppm-level differences of O(1 g) outputs)."
+        )
+    del nominal
+    effects = _effects()
+    preps = [_prepare(data, effects) for data in datasets]
+    results: list[DiagnosisResult | None] = [None] * len(datasets)
+    groups: dict[tuple, list[int]] = {}
+    for i, prep in enumerate(preps):
+        key = (prep["design"].shape[0], tuple(prep["candidates"]))
+        groups.setdefault(key, []).append(i)
+    for indices in groups.values():
+        stack = lambda name: jnp.asarray(np.stack([preps[i][name] for i in indices]))  # noqa: E731
+        thetas, converged = _fit_tables(
+            stack("design"), stack("target"), stack("masks"), stack("weights")
+        )
+        thetas, converged = np.asarray(thetas), np.asarray(converged)
+        for j, i in enumerate(indices):
+            results[i] = _postprocess(datasets[i], preps[i], effects, thetas[j], converged[j])
+    return results
