@@ -21,16 +21,25 @@ def write_json(result: DiagnosisResult, path: str | os.PathLike, *, source=None)
 
 def figure(result: DiagnosisResult):
     """A 4-panel matplotlib figure: measured vs simulated, the residual before and after the
-    chosen effect (held-out part shaded), the residual spectrum against the noise floor, and
-    the ranking by evidence."""
+    chosen effect (held-out part shaded, or cross-validated rows for a vibration table),
+    where the residual lies (its spectrum against the noise floor; for a vibration table,
+    across vibration levels), and the ranking by evidence."""
     import matplotlib
 
     if matplotlib.get_backend().lower() not in ("agg", "pdf", "svg", "cairo"):
         matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    tr = result.traces
     fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    drawers = {"step": _step_panels, "vibration": _vibration_panels, "noise": _noise_panels}
+    drawers[result.kind](result, axes)
+    _ranking_panel(result, axes[1, 1])
+    fig.tight_layout()
+    return fig
+
+
+def _step_panels(result: DiagnosisResult, axes) -> None:
+    tr = result.traces
     t_ms = np.asarray(tr["t"]) * 1e3
     split_ms = t_ms[tr["split"]] if tr["split"] < len(t_ms) else t_ms[-1]
 
@@ -71,7 +80,86 @@ def figure(result: DiagnosisResult):
     ax.set_ylabel("PSD [V²/Hz]")
     ax.set_title("residual spectrum")
 
-    ax = axes[1, 1]
+
+def _vibration_panels(result: DiagnosisResult, axes) -> None:
+    tr = result.traces
+    rows = tr["row"]
+    ax = axes[0, 0]
+    ppm = 1e6
+    ax.plot(rows, (tr["measured"] - tr["a_in"]) * ppm, "o", ms=4, color="0.4", label="measured")
+    ax.plot(rows, (tr["nominal"] - tr["a_in"]) * ppm, "_", ms=10, color="C0", label="nominal refit")
+    if tr["best_name"] != "nominal":
+        ax.plot(rows, (tr["best"] - tr["a_in"]) * ppm, "x", color="C2", label=f"+ {tr['best_name']}")
+    ax.set_xlabel("table row")
+    ax.set_ylabel("a_out − a_in [µg]")
+    ax.set_title("measured vs model, per test condition")
+    ax.legend(fontsize=8)
+
+    ax = axes[0, 1]
+    ax.plot(rows, tr["held_out_before"] * ppm, "o", ms=4, color="C0", label="nominal (held out)")
+    label = f"with {tr['best_name']}" if tr["best_name"] != "nominal" else "(no effect chosen)"
+    ax.plot(rows, tr["held_out_after"] * ppm, "s", ms=4, color="C2", label=label)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("table row")
+    ax.set_ylabel("cross-validated residual [µg]")
+    ax.set_title(
+        f"held-out gap {result.gap['before'] * ppm:.3g} → {result.gap['after'] * ppm:.3g} µg "
+        f"(shrink {result.gap['shrink']:.2f})"
+    )
+    ax.legend(fontsize=8)
+
+    ax = axes[1, 0]
+    scatter = ax.scatter(
+        tr["vibration_mean_square"], tr["residual_before"] * ppm, c=tr["a_in"], cmap="coolwarm"
+    )
+    ax.axhline(0, color="k", lw=0.5)
+    sigma = result.where.get("noise_sigma_g", 0.0) * ppm
+    ax.axhspan(-2 * sigma, 2 * sigma, color="0.9", zorder=-1, label="±2σ noise")
+    ax.set_xlabel("input-axis vibration mean square b²/2 + σ² [g²]")
+    ax.set_ylabel("nominal residual [µg]")
+    ax.set_title("where: residual across vibration levels (colour: a_in [g])")
+    ax.figure.colorbar(scatter, ax=ax, fraction=0.046)
+    ax.legend(fontsize=8)
+
+
+def _noise_panels(result: DiagnosisResult, axes) -> None:
+    tr = result.traces
+    t = np.asarray(tr["t"])
+    split_t = t[tr["split"]] if tr["split"] < len(t) else t[-1]
+    ax = axes[0, 0]
+    ax.plot(t, (np.asarray(tr["measured"]) - tr["level"]) * 1e6, lw=0.5, color="0.4")
+    ax.axvspan(split_t, t[-1], color="0.9", zorder=-1, label="held out")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("a_out − level [µg]")
+    ax.set_title("static record about its level")
+    ax.legend(fontsize=8)
+
+    ax = axes[0, 1]
+    ax.plot(t, tr["innovations_before"] * 1e6, lw=0.5, color="C0", label="white (nominal)")
+    label = f"with {tr['best_name']}" if tr["best_name"] != "nominal" else "(no effect chosen)"
+    ax.plot(t, tr["innovations_after"] * 1e6, lw=0.5, color="C2", label=label)
+    ax.axvspan(split_t, t[-1], color="0.9", zorder=-1)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("one-step prediction error [µg]")
+    ax.set_title(
+        f"held-out gap {result.gap['before'] * 1e6:.3g} → {result.gap['after'] * 1e6:.3g} µg "
+        f"(shrink {result.gap['shrink']:.2f})"
+    )
+    ax.legend(fontsize=8)
+
+    ax = axes[1, 0]
+    spectrum = result.where["frequency"]
+    f = np.asarray(spectrum["frequency_Hz"])[1:]
+    psd = np.asarray(spectrum["psd_g2_per_Hz"])[1:]
+    ax.loglog(f, psd, color="C0", label="record about its level")
+    ax.axhline(spectrum["noise_floor_g2_per_Hz"], color="k", ls="--", label="white floor 2σ²Δ")
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("PSD [g²/Hz]")
+    ax.set_title("residual spectrum vs the white-noise floor")
+    ax.legend(fontsize=8)
+
+
+def _ranking_panel(result: DiagnosisResult, ax) -> None:
     names = [r["effect"] for r in result.ranking]
     evidence = np.array([r["evidence"] for r in result.ranking], dtype=float)
     shown = np.sign(evidence) * np.log10(1 + np.abs(evidence))
@@ -84,8 +172,6 @@ def figure(result: DiagnosisResult):
         verdict += f" ({' / '.join(result.tied)})"
     ax.set_title(f"ranking — verdict: {verdict}")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    return fig
 
 
 def save_plot(result: DiagnosisResult, path: str | os.PathLike) -> Path:
