@@ -158,6 +158,7 @@ from ._vibration import ASYMMETRY_SINE_FACTOR as ASYMMETRY_SINE_FACTOR
 from ._vibration import ASYMMETRY_RANDOM_FACTOR as ASYMMETRY_RANDOM_FACTOR
 from ._vibration import VibrationEnvironment as VibrationEnvironment
 from ._vibration import random_rms as random_rms
+from ._vibration import BandSpectrum as BandSpectrum
 from ._vibration import mean_abs_sine as mean_abs_sine
 from ._vibration import mean_abs_gauss as mean_abs_gauss
 from ._vibration import mean_abs_input as mean_abs_input
@@ -191,6 +192,7 @@ from ._tolerance import cyclone4 as cyclone4
 from ._tolerance import tactical_missile as tactical_missile
 from ._tolerance import paper_limits as paper_limits
 from ._tolerance import sensitivities as sensitivities
+from ._tolerance import error_contributions as error_contributions
 from ._tolerance import gradient_limits as gradient_limits
 from ._tolerance import sensitivity_profile as sensitivity_profile
 from ._tolerance import within_rms_region as within_rms_region

@@ -9,6 +9,7 @@ float32; the Monte Carlo yield evaluates ppm-level vibration errors: float64 adv
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -186,7 +187,7 @@ def sensitivities(
 
     **Returns:** a `StaticTransferFunction` pytree whose fields are the sensitivities.
     """
-    a3 = jnp.asarray(a3)
+    a3 = _as_float(a3)
     flat = _sensitivities_flat(environment, a3.reshape(-1), n_phase)
     return jax.tree_util.tree_map(lambda x: x.reshape(a3.shape), flat)
 
@@ -199,6 +200,25 @@ def _sensitivities_flat(environment, a3, n_phase):
         return jax.grad(lambda tf: vibration_error(tf, environment, a, n_phase=n_phase))(zero)
 
     return jax.vmap(one)(a3)
+
+
+def error_contributions(
+    tf: StaticTransferFunction,
+    environment: VibrationEnvironment,
+    a3: ArrayLike,
+    *,
+    n_phase: int = 512,
+) -> dict[str, Array]:
+    """Each coefficient's part of a unit's vibration error, s_k·k [g], at the steady input
+    a3 [g] (shape of a3). δ_V is linear in the coefficients, so the parts add up to
+    `vibration_error(tf, environment, a3)` exactly; the largest |part| is the coefficient
+    that dominates the unit's error in this environment.
+
+    **Returns:** {coefficient name: s_k·k} for every field of `StaticTransferFunction`
+    (a0, δ, m1, m2 give 0: zero-mean vibration does not change linear terms).
+    """
+    sens = sensitivities(environment, a3, n_phase=n_phase)
+    return {name: getattr(sens, name) * getattr(tf, name) for name in COEFFICIENTS}
 
 
 def gradient_limits(
@@ -283,15 +303,23 @@ def sample_batch(
                 f"sample_batch: range for {name!r} must be a known coefficient with "
                 f"0 ≤ low ≤ high, got ({low!r}, {high!r}) ppm."
             )
-    dtype = dtype or jnp.result_type(float)
-    keys = jax.random.split(key, len(ranges_ppm))
+    dtype = jnp.dtype(dtype or jnp.result_type(float))
+    names = list(ranges_ppm)
+    low, high = (jnp.asarray([ranges_ppm[k][i] for k in names], dtype) for i in (0, 1))
+    values = _sample_moduli(key, low, high, n=n, dtype=dtype)
     fields = {name: jnp.zeros(n, dtype) for name in COEFFICIENTS}
-    for k, (name, (low, high)) in zip(keys, ranges_ppm.items(), strict=True):
-        k_mag, k_sign = jax.random.split(k)
-        mag = jax.random.uniform(k_mag, (n,), dtype, low, high)
-        sign = jnp.where(jax.random.bernoulli(k_sign, 0.5, (n,)), 1.0, -1.0)
-        fields[name] = mag * sign * 1e-6
+    fields.update(zip(names, values, strict=True))
     return StaticTransferFunction(**fields)
+
+
+@functools.partial(jax.jit, static_argnames=("n", "dtype"))
+def _sample_moduli(key, low, high, *, n, dtype):
+    # One compiled draw for all coefficients (rows) and units (columns), in g-units.
+    k_mag, k_sign = jax.random.split(key)
+    shape = (low.shape[0], n)
+    mag = low[:, None] + (high - low)[:, None] * jax.random.uniform(k_mag, shape, dtype)
+    sign = jnp.where(jax.random.bernoulli(k_sign, 0.5, shape), 1.0, -1.0).astype(dtype)
+    return mag * sign * 1e-6
 
 
 def unit_vibration_error(

@@ -160,6 +160,103 @@ def random_rms(psd: ArrayLike, band_width: ArrayLike, eta: ArrayLike = 1.0, *, p
     return jnp.sqrt(total / power.size) if paper else jnp.sqrt(total)
 
 
+def _vec(value) -> Array:
+    return jnp.atleast_1d(_as_float(value))
+
+
+class BandSpectrum(eqx.Module):
+    """Random vibration along one axis given by its power spectral density in frequency
+    bands, with the mounting/sensor response factors η of the paper's Table 1:
+
+        σ² = Σ_j η_j S_j Δf_j  (variance-additive),   σ_paper = sqrt((1/n) Σ_j η_j S_j Δf_j).
+
+    Bands are [f_low_j, f_high_j], in ascending order and non-overlapping (adjacent bands
+    may share an edge), so that every frequency is counted once.
+
+    **Fields:**
+
+    - `f_low`, `f_high`: band edges [Hz], shape (n,), 0 ≤ f_low_j < f_high_j ≤ f_low_{j+1}.
+    - `psd`: S_j [g²/Hz] ≥ 0, the (mean) PSD in each band.
+    - `eta`: η_j [1] ≥ 0 (default 1: no mount/sensor response weighting).
+    """
+
+    f_low: Float[Array, " n"] = eqx.field(converter=_vec)
+    f_high: Float[Array, " n"] = eqx.field(converter=_vec)
+    psd: Float[Array, " n"] = eqx.field(converter=_vec)
+    eta: Float[Array, " n"] = eqx.field(converter=_vec, default=1.0)
+
+    def __check_init__(self):
+        values = {n: _concrete(getattr(self, n)) for n in ("f_low", "f_high", "psd", "eta")}
+        if any(v is None for v in values.values()):
+            return
+        lo, hi, psd, eta = (values[n] for n in ("f_low", "f_high", "psd", "eta"))
+        n = lo.shape[-1]
+        for name, v in values.items():
+            if v.ndim != 1 or v.shape[0] not in ((n, 1) if name == "eta" else (n,)):
+                raise ValueError(
+                    f"BandSpectrum.{name} must be 1-D with one entry per band ({n} bands from "
+                    f"f_low), got shape {v.shape}: {v!r}."
+                )
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"BandSpectrum.{name} must be finite, got {v!r}.")
+        for name, v, unit in (("psd", psd, "g²/Hz"), ("eta", eta, ""), ("f_low", lo, "Hz")):
+            if np.any(v < 0):
+                raise ValueError(f"BandSpectrum.{name} must be non-negative, got {v!r} {unit}.")
+        bad = np.flatnonzero(~(hi > lo))
+        if bad.size:
+            j = int(bad[0])
+            raise ValueError(
+                f"BandSpectrum: band {j} is empty or reversed, [{float(lo[j])!r}, "
+                f"{float(hi[j])!r}] Hz; each band needs f_low < f_high."
+            )
+        unordered = np.flatnonzero(np.diff(lo) <= 0)
+        if unordered.size:
+            j = int(unordered[0])
+            raise ValueError(
+                f"BandSpectrum: bands are not in ascending order (band {j + 1} starts at "
+                f"{float(lo[j + 1])!r} Hz, band {j} at {float(lo[j])!r} Hz); sort the bands by "
+                "frequency."
+            )
+        overlap = np.flatnonzero(lo[1:] < hi[:-1])
+        if overlap.size:
+            j = int(overlap[0])
+            raise ValueError(
+                f"BandSpectrum: bands {j} [{float(lo[j])!r}, {float(hi[j])!r}] Hz and {j + 1} "
+                f"[{float(lo[j + 1])!r}, {float(hi[j + 1])!r}] Hz overlap; split the spectrum so "
+                "that every frequency belongs to one band."
+            )
+
+    @property
+    def band_width(self) -> Array:
+        """Δf_j = f_high_j − f_low_j [Hz]."""
+        return self.f_high - self.f_low
+
+    @property
+    def band(self) -> Array:
+        """(lowest, highest) frequency covered [Hz] (for `VibrationEnvironment.random_band`)."""
+        return jnp.stack([self.f_low[0], self.f_high[-1]])
+
+    def rms(self, *, paper: bool = True) -> Array:
+        """σ [g]: the paper's sqrt((1/n) Σ η S Δf) (`paper=True`) or the variance-additive
+        sqrt(Σ η S Δf) (`paper=False`); see `random_rms`."""
+        eta = jnp.broadcast_to(self.eta, self.psd.shape)
+        return random_rms(self.psd, self.band_width, eta, paper=paper)
+
+    @classmethod
+    def cyclone4(cls) -> BandSpectrum:
+        """The paper's Table 1 (Cyclone-4 random vibration along IA): octave bands 20-640 Hz,
+        PSD at the midpoint of each printed range (0.0165, 0.0185, 0.045, 0.095, 0.12 g²/Hz),
+        η = 1.6, 1.8, 0.4, 0.1, 0.05. `rms()` gives 1.16 g (1.18 g from the table's printed
+        per-band column); the paper prints σ_V3 = 1.4, which is the mean square
+        (1/n) Σ η S Δf ≈ 1.35-1.40 g² itself (see the tolerance-limits study)."""
+        return cls(
+            f_low=(20.0, 40.0, 80.0, 160.0, 320.0),
+            f_high=(40.0, 80.0, 160.0, 320.0, 640.0),
+            psd=(0.0165, 0.0185, 0.045, 0.095, 0.12),
+            eta=(1.6, 1.8, 0.4, 0.1, 0.05),
+        )
+
+
 # --- exact expectation ------------------------------------------------------------------
 
 
@@ -646,7 +743,8 @@ def _row_environment(row: dict) -> VibrationEnvironment:
 def predict_table(tf: StaticTransferFunction, table: dict, *, n_phase: int = 256) -> Array:
     """Mean indicated acceleration [g] for each row of a test table (exact expectation;
     the frequency column does not enter: δ(ω) is linear and averages out)."""
-    return _predict_rows(tf, _rows(table), n_phase)
+    rows, n = _padded_rows(table)
+    return _predict_rows(tf, rows, n_phase)[:n]
 
 
 @eqx.filter_jit
@@ -689,11 +787,27 @@ def design_matrix(table: dict, parameters=None, *, n_phase: int = 256) -> Array:
     cols = validate_vibration_table(table)
     names = _fit_names(cols, parameters)
     theta0 = jnp.zeros(len(names))
-    return _design(names, n_phase)(theta0, _rows(cols), StaticTransferFunction())
+    rows, n = _padded_rows(cols)
+    return _design(names, n_phase)(theta0, rows, StaticTransferFunction())[:n]
 
 
 def _rows(cols: dict) -> dict:
     return {c: jnp.asarray(v) for c, v in cols.items() if c != "a_out"}
+
+
+_MIN_ROWS = 16
+
+
+def _padded_rows(cols: dict) -> tuple[dict, int]:
+    # Tables are padded to a power-of-two number of rows (at least 16) by repeating the last
+    # row, so that tables of different lengths share one compiled model and solver (a study
+    # compares many test plans); callers drop (or mask) the padding.
+    rows = _rows(cols)
+    n = int(jnp.shape(rows["a_in"])[0])
+    size = max(_MIN_ROWS, 1 << max(n - 1, 0).bit_length())
+    if size > n:
+        rows = {c: jnp.concatenate([v, jnp.repeat(v[-1:], size - n)]) for c, v in rows.items()}
+    return rows, n
 
 
 @functools.lru_cache(maxsize=32)
@@ -701,8 +815,9 @@ def _residual_fn(names: tuple[str, ...], n_phase: int):
     # One function object per (coefficients, quadrature): optimistix's and jit's caches
     # then reuse the compiled solver for every table of the same shape.
     def residual(theta, args):
-        rows, y, base = args
-        return (predict_table(_tf_from(names, theta, base), rows, n_phase=n_phase) - y) / 1e-6
+        rows, y, mask, base = args  # padded rows (`_padded_rows`); mask = 0 on the padding
+        prediction = _predict_rows(_tf_from(names, theta, base), rows, n_phase)
+        return mask * (prediction - y) / 1e-6
 
     return residual
 
@@ -711,9 +826,9 @@ def _residual_fn(names: tuple[str, ...], n_phase: int):
 def _design(names: tuple[str, ...], n_phase: int):
     @eqx.filter_jit
     def design(theta, rows, base):
-        return jax.jacfwd(
-            lambda th: predict_table(_tf_from(names, th, base), rows, n_phase=n_phase)
-        )(theta)
+        return jax.jacfwd(lambda th: _predict_rows(_tf_from(names, th, base), rows, n_phase))(
+            theta
+        )
 
     return design
 
@@ -834,13 +949,17 @@ def fit_coefficients(
         )
     base = StaticTransferFunction() if initial is None else initial
     theta0 = jnp.asarray([float(getattr(base, nm)) / PPM_SCALE for nm in names])
-    args = (_rows(cols), jnp.asarray(cols["a_out"]), base)
+    rows, _ = _padded_rows(cols)
+    size = int(jnp.shape(rows["a_in"])[0])
+    y = jnp.zeros(size).at[:n].set(jnp.asarray(cols["a_out"]))
+    mask = (jnp.arange(size) < n).astype(y.dtype)
+    args = (rows, y, mask, base)
     residual = _residual_fn(names, n_phase)
     solver = optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12)
     sol = optx.least_squares(residual, solver, theta0, args, max_steps=256, throw=throw)
     theta = sol.value
-    r = residual(theta, args) * 1e-6
-    J = _design(names, n_phase)(theta, args[0], base)  # g per ppm (the model is linear)
+    r = residual(theta, args)[:n] * 1e-6
+    J = _design(names, n_phase)(theta, rows, base)[:n]  # g per ppm (the model is linear)
     sigma2 = noise**2 if noise is not None else jnp.sum(r**2) / max(n - p, 1)
     cov = sigma2 * jnp.linalg.inv(J.T @ J)
     se = jnp.sqrt(jnp.diag(cov))
