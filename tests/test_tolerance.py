@@ -156,6 +156,9 @@ def test_bad_scenario_raises():
     for budget in (-1.0, 0.0, float("nan")):
         with pytest.raises(ValueError, match="admissible_error must be positive"):
             type(sc)(budget, 2.0, sc.environment, sc.profile_time, sc.profile_acceleration)
+    sens = sensitivities(sc.environment, 2.0)
+    with pytest.raises(ValueError, match="δ\\* must be positive"):
+        within_rms_region(StaticTransferFunction(), sens, 0.0)
     with pytest.raises(ValueError, match="mean_acceleration must be finite and non-zero"):
         type(sc)(5e-4, 0.0, sc.environment, sc.profile_time, sc.profile_acceleration)
     with pytest.raises(ValueError, match="flight must be"):

@@ -409,6 +409,33 @@ def test_fit_cross_axis_coefficients_when_table_has_them():
     assert est["m31"] == pytest.approx(4, abs=1e-6) and est["m32"] == pytest.approx(-2, abs=1e-6)
 
 
+def test_vibration_csv_format_is_the_data_layers(tmp_path):
+    # The fit reads the sim-to-real `vibration` CSV format: a table written by the data
+    # layer (`accel_jax.write_csv`) is read by `read_vibration_table` and vice versa, and the
+    # fit of either gives the same coefficients.
+    import accel_jax as aj
+
+    truth = StaticTransferFunction.from_ppm(bias_mg=0.5, asymmetry=15, k2=2, k3=7, k5=0.3, m31=4)
+    A, B = np.meshgrid([-1, -0.5, 0, 0.5, 1], [0, 2, 4])
+    plan = _plan(A, B)
+    plan["vib_amp_oa"] = np.tile([0.0, 1.0, 2.0, 1.0, 0.0], 3)
+    plan["a_out"] = np.asarray(predict_table(truth, plan))
+    data = aj.VibrationData(**plan)
+    aj.write_csv(tmp_path / "data_layer.csv", data)
+    write_vibration_table(tmp_path / "fit_layer.csv", plan)
+    from_data_layer = read_vibration_table(tmp_path / "data_layer.csv")
+    from_fit_layer = aj.read_csv(tmp_path / "fit_layer.csv")
+    assert isinstance(from_fit_layer, aj.VibrationData)
+    for column, values in plan.items():
+        np.testing.assert_array_equal(from_data_layer[column], values)
+        np.testing.assert_array_equal(from_fit_layer.table()[column], values)
+    fit_a = fit_coefficients(from_data_layer, noise=1e-6)
+    fit_b = fit_coefficients(from_fit_layer.table(), noise=1e-6)
+    assert fit_a.names[-1] == "m31"
+    np.testing.assert_allclose(fit_a.estimate_ppm, fit_b.estimate_ppm, rtol=0, atol=1e-9)
+    assert float(fit_a.estimate_ppm[-1]) == pytest.approx(4.0, abs=1e-6)
+
+
 def test_table_padding_is_invisible():
     # Tables are padded to a power-of-two row count inside the library (one compiled model
     # for many plan sizes); the results for a short table must be those of its rows alone.
