@@ -207,6 +207,9 @@ def test_tolerance_limits_study_quick(tmp_path):
     # The profile reaches 5 g: the worst instant is tighter for k3..k5.
     for name in ("k3", "k4", "k5"):
         assert cyc["gradient_worst_over_profile"][name] < cyc["gradient"][name]
+    # The short flight's k4, k5 reproduce only with the random level before the mount's η.
+    for name in ("k4", "k5"):
+        assert r["tactical"]["reproduced_by_reading"][name] == ["σ = 5 g (before η)"]
     assert r["tactical"]["paper"]["A1"] == pytest.approx(35.6, abs=0.05)
     assert r["tactical"]["table2"]["k5"] == 0.001
     assert r["tactical"]["long_range"]["table2"]["k5"] == 0.0004
