@@ -1,19 +1,27 @@
-"""Study: blind validation of the sim-to-real diagnosis on step records (SPEC.md §5).
+"""Study: blind validation of the sim-to-real diagnosis (SPEC.md §5) on step records,
+vibration tables and static noise records.
 
-A truth simulator makes step records in which one unmodelled effect (or none) is drawn at
-random with a random magnitude, on a device whose J, μ, c, k_dm are drawn from their ±5 %
-prior and whose constant external moment is random. The records are written as CSV files
-(the user's format: t, u_test, u_out); the diagnosis then runs on the files in a separate
-process that is given only the folder (never the effects, magnitudes or devices), and
-writes its verdicts. Only afterwards does this script compare them with the truth, which it
-kept in memory (and writes to truth.json after the diagnosis has finished).
+For each kind a truth simulator makes datasets in which one unmodelled effect of the kind's
+library (or none) is drawn at random with a random realistic magnitude, on a device whose
+nominal values are themselves drawn within their uncertainty. The datasets are written as
+CSV files (the user's formats); the diagnosis then runs on the files in a separate process
+that is given only the folders (never the effects, magnitudes or devices), and writes its
+verdicts. Only afterwards does this script compare them with the truth, which it kept in
+memory (and writes to truth.json after the diagnosis has finished).
 
-Truth simulators: `simulate_linear` (exact ZOH) for the lags, the drift and the noise;
-`simulate_nonlinear` (diffrax, stiff inelastic stop contact) for the stops — a different
-model from the diagnosis's own stop surrogate.
+Truth simulators (none of them the diagnosis's own model code):
+- step: `simulate_linear` (exact ZOH) for the lags, the drift and the noise;
+  `simulate_nonlinear` (diffrax, stiff inelastic stop contact) for the stops.
+- vibration: the time average of the static transfer function (`indicated_acceleration`)
+  over a simulated record per test row — the sinusoid sampled over whole periods, the
+  random vibration as independent Gaussian samples (centred) — plus the row's measurement
+  noise; the diagnosis uses the exact expectation by quadrature instead.
+- noise: `simulate_noise` (exact discrete-time sampling of white + Gauss–Markov /
+  exponential-cosine / random-walk processes); the diagnosis uses its own filter.
 
-Writes OUT/result.json and PNG figures. Run: `python studies/sim_to_real_validation.py
-[--out DIR] [--quick]` (float64).
+Writes OUT/result.json, OUT/truth.json, the datasets and PNG figures. Run:
+`python studies/sim_to_real_validation.py [--out DIR] [--quick] [--kinds step,vibration,noise]`
+(float64).
 """
 
 from __future__ import annotations
@@ -39,11 +47,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax import StepData, write_csv  # noqa: E402
+from accel_jax import NoiseData, StepData, VibrationData, write_csv  # noqa: E402
 
 STUDY = "sim_to_real_validation"
 
-# --- assumptions (recorded in the output) ------------------------------------------------
+KINDS = ("step", "vibration", "noise")
+
+# --- step: assumptions (recorded in the output) --------------------------------------------
 SAMPLE_RATE = 100e3  # Hz
 SEGMENT = 200  # samples per constant test voltage (2 ms ≈ 7 T: the transient has decayed to ~3 %)
 STEP_VOLTAGE = 2.0  # V
@@ -197,38 +207,277 @@ def generate(truths: list[dict], seed: int) -> list[StepData]:
     return records
 
 
+# --- vibration: assumptions (recorded in the output) ---------------------------------------
+VIB_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)  # g along the input axis (dividing head on the shaker)
+VIB_SINE = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)  # g, sinusoid along the input axis
+VIB_RANDOM = (2.0, 5.0)  # g RMS, Gaussian random vibration along the input axis
+VIB_INCLINED = 4.0  # g, in-phase sinusoid on the input axis and on one cross axis (OA or PA)
+VIB_FREQ_RANGE = (20.0, 200.0)  # Hz, uniform per row (a static transfer function ignores it)
+VIB_ROW_NOISE = (1e-6, 1e-5)  # g, repeatability of a row's mean output, log-uniform
+VIB_BIAS_RANGE = (-1.5e-3, 1.5e-3)  # g, a0 of the device, uniform
+VIB_SCALE_SD = 100e-6  # δ of the device, normal
+VIB_RECORD = 16384  # samples per row record of the truth (sinusoid over VIB_CYCLES periods)
+VIB_CYCLES = 64
+# Effect magnitudes, log-uniform with a random sign, in the paper's units (Tables 2 and 4:
+# AKS-05 actual ranges to AL-1M passport values): A1 [ppm], k_n [ppm/g^(n−1)], m3i [ppm/g].
+VIB_MAGNITUDES = {
+    "asymmetry": (3.0, 50.0),
+    "k2": (0.3, 30.0),
+    "k3": (0.3, 30.0),
+    "k4": (0.01, 1.0),
+    "k5": (0.003, 0.3),
+    "cross_coupling": (1.0, 50.0),
+}
+VIB_COEFFICIENTS = {
+    "asymmetry": ("asymmetry",),
+    "k2": ("k2",),
+    "k3": ("k3",),
+    "k4": ("k4",),
+    "k5": ("k5",),
+    "cross_coupling": ("m31", "m32"),
+}
+VIB_EFFECTS = ("none", "k2", "k3", "k4", "k5", "asymmetry", "cross_coupling")
+
+# --- noise: assumptions (recorded in the output) -------------------------------------------
+NOISE_DT = 0.01  # s (100 Hz)
+NOISE_SAMPLES = 4000  # 40 s static record; the last third is held out
+NOISE_WHITE = (5e-6, 5e-5)  # g, white σ_w, log-uniform
+NOISE_LEVEL = (-1e-3, 1e-3)  # g, bias about 1 g (input axis vertical), uniform
+GM_STD_RATIO = (0.3, 2.0)  # σ_GM / σ_w, log-uniform
+GM_TIME = (0.03, 0.3)  # s, τ_c (3–30 samples), log-uniform
+EC_STD_RATIO = (0.3, 2.0)  # σ_EC / σ_w, log-uniform
+EC_PERIOD = (0.05, 0.5)  # s, 2π/β (5–50 samples), log-uniform
+EC_QUALITY = (1.5, 6.0)  # β/α (the oscillation is visible), log-uniform
+RW_WALK = (0.5, 5.0)  # √(q T_record) / σ_w, log-uniform
+NOISE_EFFECTS = ("none", "gauss_markov", "exp_cosine", "random_walk")
+
+CLASSES = {"step": EFFECTS, "vibration": VIB_EFFECTS, "noise": NOISE_EFFECTS}
+
+# Datasets per class. The step records cost ~1 s of CPU each to diagnose, so the full run
+# keeps 20 per class (120 records) to stay within the report's time budget; vibration and
+# noise carry more no-effect datasets, which set the false-alarm rate.
+PER_CLASS_FULL = {
+    "step": {c: 20 for c in EFFECTS},
+    "vibration": {c: (40 if c == "none" else 25) for c in VIB_EFFECTS},
+    "noise": {c: (40 if c == "none" else 30) for c in NOISE_EFFECTS},
+}
+PER_CLASS_QUICK = {"step": 3, "vibration": 2, "noise": 2}
+
+
+# --------------------------------------------------------------------------------------
+# Vibration truth
+# --------------------------------------------------------------------------------------
+
+
+def _vib_plan() -> dict:
+    """The test plan: at every input level, the sinusoids, the random levels and the two
+    inclined rows (IA + OA, IA + PA)."""
+    rows = []
+    for a in VIB_LEVELS:
+        rows += [(a, b, 0.0, 0.0, 0.0) for b in VIB_SINE]
+        rows += [(a, 0.0, s, 0.0, 0.0) for s in VIB_RANDOM]
+        rows += [(a, VIB_INCLINED, 0.0, VIB_INCLINED, 0.0), (a, VIB_INCLINED, 0.0, 0.0, VIB_INCLINED)]
+    r = np.asarray(rows)
+    return {"a_in": r[:, 0], "vib_amp": r[:, 1], "vib_rms": r[:, 2], "vib_amp_oa": r[:, 3],
+            "vib_amp_pa": r[:, 4]}
+
+
+def _vib_draw(rng: np.random.Generator, effect: str) -> dict:
+    truth = {
+        "effect": effect,
+        "bias_g": rng.uniform(*VIB_BIAS_RANGE),
+        "scale_factor_error": rng.normal() * VIB_SCALE_SD,
+        "row_noise_g": _log_uniform(rng, VIB_ROW_NOISE),
+        "coefficients_ppm": {},
+    }
+    if effect != "none":
+        for name in VIB_COEFFICIENTS[effect]:
+            value = _log_uniform(rng, VIB_MAGNITUDES[effect]) * rng.choice([-1.0, 1.0])
+            truth["coefficients_ppm"][name] = float(value)
+    truth["bias_g"], truth["scale_factor_error"] = float(truth["bias_g"]), float(truth["scale_factor_error"])
+    truth["row_noise_g"] = float(truth["row_noise_g"])
+    return truth
+
+
+def _vib_device(truth: dict) -> aj.StaticTransferFunction:
+    return aj.StaticTransferFunction(
+        bias=truth["bias_g"],
+        scale_factor_error=truth["scale_factor_error"],
+        **{k: v * aj.PPM for k, v in truth["coefficients_ppm"].items()},
+    )
+
+
+@eqx.filter_jit
+def _vib_record_means(tf, a_in, b3, b1, b2, sigma, key):
+    """Time average of a_F over one simulated record per row: the in-phase sinusoids over
+    VIB_CYCLES whole periods (random start phase), the random vibration as independent
+    Gaussian samples with their sample mean removed (zero-mean vibration over the record)."""
+
+    def one(a, b3_, b1_, b2_, s, k):
+        k_phase, k_noise = jax.random.split(k)
+        phase = jax.random.uniform(k_phase, (), a.dtype) * 2 * jnp.pi
+        theta = 2 * jnp.pi * VIB_CYCLES * jnp.arange(VIB_RECORD, dtype=a.dtype) / VIB_RECORD
+        sine = jnp.sin(theta + phase)
+        z = jax.random.normal(k_noise, (VIB_RECORD,), a.dtype)
+        a3 = a + b3_ * sine + s * (z - jnp.mean(z))
+        return jnp.mean(aj.indicated_acceleration(tf, a3, b1_ * sine, b2_ * sine))
+
+    keys = jax.random.split(key, a_in.shape[0])
+    return jax.vmap(one)(a_in, b3, b1, b2, sigma, keys)
+
+
+def generate_vibration(truths: list[dict], seed: int) -> list[VibrationData]:
+    plan = _vib_plan()
+    rng = np.random.default_rng(seed + 2)
+    keys = jax.random.split(jax.random.key(seed + 2), len(truths))
+    args = [jnp.asarray(plan[c]) for c in ("a_in", "vib_amp", "vib_amp_oa", "vib_amp_pa", "vib_rms")]
+    records = []
+    for truth, key in zip(truths, keys, strict=True):
+        means = np.asarray(_vib_record_means(_vib_device(truth), *args, key))
+        a_out = means + truth["row_noise_g"] * rng.normal(size=means.size)
+        freq = rng.uniform(*VIB_FREQ_RANGE, size=means.size)
+        records.append(
+            VibrationData(
+                a_in=plan["a_in"], vib_amp=plan["vib_amp"], vib_freq=freq,
+                vib_rms=plan["vib_rms"], a_out=a_out, vib_amp_oa=plan["vib_amp_oa"],
+                vib_amp_pa=plan["vib_amp_pa"],
+            )
+        )
+    return records
+
+
+_VIB_DESIGN_NAMES = ("bias", "scale_factor_error", "asymmetry", "k2", "k3", "k4", "k5", "m31", "m32")
+
+
+def _vib_snr(truths: list[dict]) -> list[float]:
+    """The effect's signal-to-noise ratio in each table: the norm (over rows) of its
+    contribution to the mean output, after removing what bias and scale factor can absorb,
+    over the row noise. Harness-side bookkeeping (the diagnosing process never sees it)."""
+    plan = _vib_plan()
+    table = {**plan, "vib_freq": np.full(plan["a_in"].size, 50.0), "a_out": np.zeros(plan["a_in"].size)}
+    design = np.asarray(aj.design_matrix(table, _VIB_DESIGN_NAMES))  # g per ppm
+    nominal = design[:, :2]
+    out = []
+    for truth in truths:
+        theta = np.zeros(len(_VIB_DESIGN_NAMES))
+        for name, value in truth["coefficients_ppm"].items():
+            theta[_VIB_DESIGN_NAMES.index(name)] = value
+        signal = design @ theta
+        coef, *_ = np.linalg.lstsq(nominal, signal, rcond=None)
+        out.append(float(np.linalg.norm(signal - nominal @ coef) / truth["row_noise_g"]))
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Noise truth
+# --------------------------------------------------------------------------------------
+
+
+def _noise_draw(rng: np.random.Generator, effect: str) -> dict:
+    white = _log_uniform(rng, NOISE_WHITE)
+    truth = {"effect": effect, "white_std_g": white, "level_g": 1.0 + rng.uniform(*NOISE_LEVEL)}
+    duration = NOISE_SAMPLES * NOISE_DT
+    if effect == "gauss_markov":
+        truth["gm_std_g"] = white * _log_uniform(rng, GM_STD_RATIO)
+        truth["gm_time_s"] = _log_uniform(rng, GM_TIME)
+        truth["variance_ratio"] = (truth["gm_std_g"] / white) ** 2
+    elif effect == "exp_cosine":
+        truth["ec_std_g"] = white * _log_uniform(rng, EC_STD_RATIO)
+        beta = 2 * np.pi / _log_uniform(rng, EC_PERIOD)
+        truth["ec_angular_frequency_rad_s"] = beta
+        truth["ec_decay_rate_per_s"] = beta / _log_uniform(rng, EC_QUALITY)
+        truth["variance_ratio"] = (truth["ec_std_g"] / white) ** 2
+    elif effect == "random_walk":
+        walk = white * _log_uniform(rng, RW_WALK)
+        truth["rw_intensity_g2_per_s"] = walk**2 / duration
+        truth["variance_ratio"] = (walk / white) ** 2
+    else:
+        truth["variance_ratio"] = 0.0
+    return {k: (float(v) if not isinstance(v, str) else v) for k, v in truth.items()}
+
+
+def _noise_model(truth: dict):
+    white = aj.WhiteNoise(truth["white_std_g"])
+    effect = truth["effect"]
+    if effect == "gauss_markov":
+        return aj.NoiseSum((white, aj.GaussMarkov(truth["gm_std_g"], truth["gm_time_s"])))
+    if effect == "exp_cosine":
+        ec = aj.ExponentialCosine(
+            truth["ec_std_g"], truth["ec_decay_rate_per_s"], truth["ec_angular_frequency_rad_s"]
+        )
+        return aj.NoiseSum((white, ec))
+    if effect == "random_walk":
+        return aj.NoiseSum((white, aj.RandomWalk(truth["rw_intensity_g2_per_s"])))
+    return white
+
+
+@eqx.filter_jit
+def _noise_record(model, key):
+    return aj.simulate_noise(model, NOISE_DT, NOISE_SAMPLES, key=key)
+
+
+def generate_noise(truths: list[dict], seed: int) -> list[NoiseData]:
+    keys = jax.random.split(jax.random.key(seed + 3), len(truths))
+    t = np.arange(NOISE_SAMPLES) * NOISE_DT
+    records = []
+    for truth, key in zip(truths, keys, strict=True):
+        x = np.asarray(_noise_record(_noise_model(truth), key)) + truth["level_g"]
+        records.append(NoiseData(t, x))
+    return records
+
+
+# --------------------------------------------------------------------------------------
+# The blind diagnosis and the scoring
+# --------------------------------------------------------------------------------------
+
 _DIAGNOSE_CODE = """
 import json, sys, pathlib
 import jax
 jax.config.update("jax_enable_x64", True)
 from accel_jax import read_csv
 from accel_jax.diagnose import diagnose_many
-folder, out = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
-files = sorted(folder.glob("*.csv"))
-results = diagnose_many([read_csv(f) for f in files])
-rows = [{"file": f.name, "verdict": r.verdict, "tied": r.tied, "gap": r.gap,
+out = pathlib.Path(sys.argv[1])
+answer = {}
+for folder in map(pathlib.Path, sys.argv[2:]):
+    files = sorted(folder.glob("*.csv"))
+    results = diagnose_many([read_csv(f) for f in files])
+    answer[folder.name] = [
+        {"file": f.name, "verdict": r.verdict, "tied": r.tied, "gap": r.gap,
          "ranking": [{k: e[k] for k in ("effect", "evidence", "significant", "gap_shrink", "params")}
                      for e in r.ranking],
-         "refit": r.refit} for f, r in zip(files, results)]
-out.write_text(json.dumps(rows, default=float))
+         "refit": r.refit}
+        for f, r in zip(files, results)]
+out.write_text(json.dumps(answer, default=float))
 """
 
 
-def diagnose_blind(folder: Path) -> list[dict]:
-    """Run the diagnosis on every CSV of `folder` in a fresh Python process (it sees only
-    the files), and return its verdicts."""
+def diagnose_blind(folders: list[Path]) -> dict[str, list[dict]]:
+    """Run the diagnosis on every CSV of each folder in one fresh Python process (it sees
+    only the files), and return its verdicts by folder name."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "verdicts.json"
         subprocess.run(
-            [sys.executable, "-c", _DIAGNOSE_CODE, str(folder), str(out)],
+            [sys.executable, "-c", _DIAGNOSE_CODE, str(out), *map(str, folders)],
             check=True,
             cwd=Path(__file__).resolve().parent.parent,
         )
         return json.loads(out.read_text())
 
 
-def score(truths: list[dict], verdicts: list[dict]) -> dict:
-    confusion = {t: {v: 0 for v in VERDICTS} for t in EFFECTS}
+def _wilson(successes: int, n: int, z: float = 1.96) -> list[float] | None:
+    """Wilson 95 % interval of a proportion (the rates here rest on tens of datasets)."""
+    if n == 0:
+        return None
+    p = successes / n
+    centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
+    half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / (1 + z**2 / n)
+    return [float(max(centre - half, 0.0)), float(min(centre + half, 1.0))]
+
+
+def score(truths: list[dict], verdicts: list[dict], classes=EFFECTS) -> dict:
+    """Confusion matrix, correct-naming rate, false-alarm rate and held-out shrink."""
+    verdict_names = tuple(classes[1:]) + ("none", "cannot_tell")
+    confusion = {t: {v: 0 for v in verdict_names} for t in classes}
     strict, lenient, shrinks, false_alarms, n_none, n_effect = 0, 0, [], 0, 0, 0
     per_class = {}
     for truth, verdict in zip(truths, verdicts, strict=True):
@@ -255,16 +504,36 @@ def score(truths: list[dict], verdicts: list[dict]) -> dict:
     return {
         "confusion": confusion,
         "accuracy": strict / max(n_effect, 1),
+        "accuracy_95ci": _wilson(strict, n_effect),
         "accuracy_incl_cannot_tell_naming_truth": lenient / max(n_effect, 1),
         "false_alarm_rate": false_alarms / max(n_none, 1),
+        "false_alarm_rate_95ci": _wilson(false_alarms, n_none),
+        "false_alarms": false_alarms,
         "median_gap_shrink": float(np.median(shrinks)) if shrinks else float("nan"),
         "gap_shrink_p10_p90": [float(np.percentile(shrinks, 10)), float(np.percentile(shrinks, 90))]
         if shrinks
         else None,
         "n_datasets": len(truths),
-        "n_per_class": {t: per_class.get(t, {}).get("n", 0) for t in EFFECTS},
+        "n_per_class": {t: per_class.get(t, {}).get("n", 0) for t in classes},
         "per_class": per_class,
     }
+
+
+def _by_snr(truths, verdicts, snr, edges) -> list[dict]:
+    """Correct-naming rate of the effect datasets in bins of their signal-to-noise ratio."""
+    rows = []
+    effect = [(s, v["verdict"] == t["effect"], v["verdict"]) for t, v, s in
+              zip(truths, verdicts, snr, strict=True) if t["effect"] != "none"]
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        inside = [(ok, v) for s, ok, v in effect if lo <= s < hi]
+        rows.append({
+            "snr_range": [lo, hi],
+            "n": len(inside),
+            "correct": sum(ok for ok, _ in inside),
+            "cannot_tell": sum(v == "cannot_tell" for _, v in inside),
+            "none": sum(v == "none" for _, v in inside),
+        })
+    return rows
 
 
 def _lag_breakdown(truths, verdicts):
@@ -347,126 +616,314 @@ def _figures(out_dir, result, lag_rows):
     return figures
 
 
-def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
-    """Run the study; write OUT/result.json and figures; return the result dict."""
-    out_dir = Path(out_dir)
-    started = time.perf_counter()
-    per_class = 3 if quick else 100
-    rng = np.random.default_rng(seed)
-    truths = [_draw(rng, effect) for effect in EFFECTS for _ in range(per_class)]
-    order = rng.permutation(len(truths))  # file names carry no hint of the class
-    truths = [truths[i] for i in order]
-    records = generate(truths, seed)
-    data_dir = out_dir / "datasets"
-    data_dir.mkdir(parents=True, exist_ok=True)
-    for old in data_dir.glob("*.csv"):
-        old.unlink()
-    for i, record in enumerate(records):
-        write_csv(data_dir / f"step_{i:04d}.csv", record)
-    generated = time.perf_counter()
-    verdicts = diagnose_blind(data_dir)
-    diagnosed = time.perf_counter()
-    names = [f"step_{i:04d}.csv" for i in range(len(records))]
-    if [v["file"] for v in verdicts] != names:
-        raise RuntimeError("the diagnosis returned verdicts for other files than were written")
-    aj.write_json_atomic(
-        out_dir / "truth.json", {"datasets": dict(zip(names, truths, strict=True))}
+def _kind_figure(out_dir, kind, section, snr_label):
+    """Confusion matrix, held-out shrink and naming rate against the SNR of one kind."""
+    classes = CLASSES[kind]
+    verdict_names = tuple(classes[1:]) + ("none", "cannot_tell")
+    conf = section["confusion"]
+    matrix = np.array([[conf[t][v] for v in verdict_names] for t in classes], dtype=float)
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    ax = axes[0]
+    shown = matrix / np.maximum(matrix.sum(1, keepdims=True), 1)
+    im = ax.imshow(shown, cmap="Blues", vmin=0, vmax=1)
+    ax.set_xticks(range(len(verdict_names)), verdict_names, rotation=40, ha="right", fontsize=8)
+    ax.set_yticks(range(len(classes)), classes, fontsize=8)
+    for i in range(len(classes)):
+        for j in range(len(verdict_names)):
+            if matrix[i, j]:
+                ax.text(j, i, int(matrix[i, j]), ha="center", va="center", fontsize=8)
+    ax.set_xlabel("verdict (blind)")
+    ax.set_ylabel("true effect")
+    ax.set_title(f"{kind}: confusion matrix (counts; colour = row fraction)")
+    fig.colorbar(im, ax=ax, fraction=0.046, label="fraction of the true class")
+    ax = axes[1]
+    shrinks = section["_shrinks"]
+    ax.hist(shrinks, bins=20, range=(min(0.0, min(shrinks, default=0)), 1.0), color="C2")
+    ax.axvline(0.5, color="k", ls=":", label="target median 0.5")
+    if shrinks:
+        ax.axvline(section["median_gap_shrink"], color="C3", label="median")
+    ax.set_xlabel("held-out gap shrink 1 − after/before [–]")
+    ax.set_ylabel("datasets (effect named correctly)")
+    ax.set_title(f"{kind}: held-out gap shrink")
+    ax.legend(fontsize=8)
+    ax = axes[2]
+    snr = np.asarray(section["_snr"])
+    ok = np.asarray(section["_named"], dtype=float)
+    ax.semilogx(snr, ok + np.random.default_rng(0).uniform(-0.05, 0.05, ok.size), "o", ms=3,
+                color="0.4", alpha=0.6)
+    bins = section["correct_by_snr"]
+    centres = [np.sqrt(b["snr_range"][0] * b["snr_range"][1]) for b in bins if b["n"]]
+    rate = [b["correct"] / b["n"] for b in bins if b["n"]]
+    ax.semilogx(centres, rate, "s-", color="C0", label="named correctly (bin fraction)")
+    ax.axhline(0.9, color="k", ls=":", label="target 0.9")
+    ax.set_ylim(-0.1, 1.1)
+    ax.set_xlabel(snr_label)
+    ax.set_ylabel("named correctly (1) or not (0)")
+    ax.set_title(f"{kind}: naming vs signal-to-noise")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    name = f"validation_{kind}.png"
+    aj.save_figure_atomic(fig, out_dir / name)
+    plt.close(fig)
+    return name
+
+
+def _kind_truths(kind, rng, counts):
+    draw = {"step": _draw, "vibration": _vib_draw, "noise": _noise_draw}[kind]
+    return [draw(rng, effect) for effect in CLASSES[kind] for _ in range(counts[effect])]
+
+
+def _generate(kind, truths, seed):
+    return {"step": generate, "vibration": generate_vibration, "noise": generate_noise}[kind](
+        truths, seed
     )
 
-    step = score(truths, verdicts)
-    shrinks = [
-        v["gap"]["shrink"]
-        for t, v in zip(truths, verdicts, strict=True)
-        if v["verdict"] == t["effect"] != "none"
-    ]
-    lag_rows = _lag_breakdown(truths, verdicts)
-    result = {
-        "title": "Blind validation of the sim-to-real diagnosis — step records (SPEC.md §5)",
-        "step": step,
-    }
-    result["step"]["_shrinks"] = shrinks
-    figures = _figures(out_dir, result, lag_rows)
-    del result["step"]["_shrinks"]
-    target_note = "SPEC.md §5 / issue 6 target"
-    result.update(
-        {
-            "summary": [
-                {
-                    "quantity": "effects named correctly (strict: verdict = true effect)",
-                    "ours": step["accuracy"],
-                    "paper": 0.90,
-                    "note": f"{target_note} ≥ 0.90. cannot_tell counts as wrong here.",
-                },
-                {
-                    "quantity": "effects named correctly or cannot_tell naming the true effect",
-                    "ours": step["accuracy_incl_cannot_tell_naming_truth"],
-                    "paper": 0.90,
-                    "note": "torquer_lag and output_filter are exactly degenerate on a "
-                    "test-winding step up to a damping shift Δμ = k_dm k_dp k_y l·T (the loop "
-                    "polynomials coincide to O(T²)); only the ±5 % prior on μ separates them, "
-                    "so small lags are honestly cannot_tell.",
-                },
-                {
-                    "quantity": "false-alarm rate on no-effect records",
-                    "ours": step["false_alarm_rate"],
-                    "paper": 0.05,
-                    "note": f"{target_note} ≤ 0.05.",
-                },
-                {
-                    "quantity": "median held-out gap shrink (effect named)",
-                    "ours": step["median_gap_shrink"],
-                    "paper": 0.5,
-                    "note": f"{target_note} ≥ 0.5; gap = held-out RMS error above the noise floor.",
-                },
-            ],
-            "lag_breakdown": lag_rows,
-            "datasets": [
-                {
-                    "file": name,
-                    "truth": truth["effect"],
-                    "verdict": verdict["verdict"],
-                    "tied": verdict["tied"],
-                    "gap_shrink": verdict["gap"]["shrink"],
-                    "gap_shrink_std": verdict["gap"]["shrink_std"],
-                }
-                for name, truth, verdict in zip(names, truths, verdicts, strict=True)
-            ],
-            "figures": figures,
-            "assumptions": {
-                "sample_rate_Hz": SAMPLE_RATE,
-                "segments_V": [p * STEP_VOLTAGE for p in PATTERN],
-                "segment_s": SEGMENT / SAMPLE_RATE,
-                "held_out": "the last ~1/3 of each record (from the input change nearest 2/3)",
-                "noise_std_V_log_uniform": list(NOISE_RANGE),
-                "device_prior": "J, μ, c, k_dm log-normal 5 % (truncated at 2σ) about the reference",
-                "external_moment_Nm_uniform": list(MOMENT_RANGE),
-                "lag_s_log_uniform": list(LAG_RANGE),
-                "stop_output_over_U_uniform": list(STOP_RANGE),
-                "drift_V_over_record_log_uniform": list(DRIFT_RANGE),
-                "gauss_markov_time_s_log_uniform": list(GM_TIME_RANGE),
-                "gauss_markov_std_over_white_uniform": list(GM_RATIO_RANGE),
-                "per_class": per_class,
-                "truth_simulators": "simulate_linear (lags, drift, noise); simulate_nonlinear with stops",
-                "blindness": "diagnosis in a separate process given only the CSV folder",
-                "precision": "float64",
-            },
-            "timing_s": {
-                "generate": generated - started,
-                "diagnose": diagnosed - generated,
-                "total": time.perf_counter() - started,
-            },
-            "provenance": aj.provenance(seeds={"study": seed}, precision="float64"),
+
+def _assumptions(kind) -> dict:
+    if kind == "step":
+        return {
+            "sample_rate_Hz": SAMPLE_RATE,
+            "segments_V": [p * STEP_VOLTAGE for p in PATTERN],
+            "segment_s": SEGMENT / SAMPLE_RATE,
+            "held_out": "the last ~1/3 of each record (from the input change nearest 2/3)",
+            "noise_std_V_log_uniform": list(NOISE_RANGE),
+            "device_prior": "J, μ, c, k_dm log-normal 5 % (truncated at 2σ) about the reference",
+            "external_moment_Nm_uniform": list(MOMENT_RANGE),
+            "lag_s_log_uniform": list(LAG_RANGE),
+            "stop_output_over_U_uniform": list(STOP_RANGE),
+            "drift_V_over_record_log_uniform": list(DRIFT_RANGE),
+            "gauss_markov_time_s_log_uniform": list(GM_TIME_RANGE),
+            "gauss_markov_std_over_white_uniform": list(GM_RATIO_RANGE),
+            "truth_simulators": "simulate_linear (lags, drift, noise); simulate_nonlinear with stops",
         }
+    if kind == "vibration":
+        plan = _vib_plan()
+        return {
+            "rows_per_table": int(plan["a_in"].size),
+            "input_levels_g": list(VIB_LEVELS),
+            "sine_amplitudes_g": list(VIB_SINE),
+            "random_rms_g": list(VIB_RANDOM),
+            "inclined_rows": f"{VIB_INCLINED} g in phase on IA and OA; {VIB_INCLINED} g on IA and PA",
+            "frequency_Hz_uniform": list(VIB_FREQ_RANGE),
+            "row_noise_g_log_uniform": list(VIB_ROW_NOISE),
+            "device": f"a0 uniform {list(VIB_BIAS_RANGE)} g, δ normal sd {VIB_SCALE_SD}",
+            "magnitudes_log_uniform_random_sign": {
+                k: {"range": list(v), "unit": {"asymmetry": "ppm", "k2": "ppm/g", "k3": "ppm/g²",
+                    "k4": "ppm/g³", "k5": "ppm/g⁴", "cross_coupling": "ppm/g (m31 and m32 each)"}[k]}
+                for k, v in VIB_MAGNITUDES.items()
+            },
+            "snr_definition": "‖effect's mean-output contribution over the rows, minus its "
+            "projection on the bias and scale-factor columns‖ / row noise σ",
+            "truth_simulator": f"time average of indicated_acceleration over a {VIB_RECORD}-sample "
+            f"record per row ({VIB_CYCLES} whole sine periods, random start phase; random "
+            "vibration as centred independent Gaussian samples) + row noise",
+            "held_out": "leave-one-out cross-validation over rows",
+        }
+    return {
+        "sample_interval_s": NOISE_DT,
+        "samples": NOISE_SAMPLES,
+        "held_out": "the last third of the record",
+        "white_std_g_log_uniform": list(NOISE_WHITE),
+        "level_g": f"1 + uniform {list(NOISE_LEVEL)}",
+        "gauss_markov": {"std_over_white_log_uniform": list(GM_STD_RATIO),
+                         "correlation_time_s_log_uniform": list(GM_TIME)},
+        "exp_cosine": {"std_over_white_log_uniform": list(EC_STD_RATIO),
+                       "period_s_log_uniform": list(EC_PERIOD),
+                       "beta_over_alpha_log_uniform": list(EC_QUALITY)},
+        "random_walk": {"walk_over_record_over_white_log_uniform": list(RW_WALK)},
+        "snr_definition": "effect variance / white variance (random walk: q·T_record/σ_w²)",
+        "truth_simulator": "simulate_noise (exact discrete-time sampling)",
+    }
+
+
+def _snr(kind, truths) -> list[float]:
+    if kind == "vibration":
+        return _vib_snr(truths)
+    if kind == "noise":
+        return [t["variance_ratio"] for t in truths]
+    return [float("nan")] * len(truths)
+
+
+SNR_EDGES = {
+    "vibration": [0.0, 3.0, 5.0, 10.0, 20.0, 50.0, 1e9],
+    "noise": [0.0, 0.2, 0.5, 1.0, 2.0, 5.0, 1e9],
+}
+SNR_LABEL = {
+    "vibration": "SNR: ‖effect beyond bias & scale factor‖ / row noise",
+    "noise": "effect variance / white variance (RW: qT/σ_w²)",
+}
+
+
+def run(
+    out_dir: Path, *, quick: bool = False, seed: int = 20261122, kinds=KINDS, per_class=None
+) -> dict:
+    """Run the study; write OUT/result.json and figures; return the result dict.
+
+    `kinds`: which kinds to validate; `per_class`: datasets per class (overrides the
+    defaults, e.g. for a larger run)."""
+    out_dir = Path(out_dir)
+    started = time.perf_counter()
+    timing = {}
+    rng = np.random.default_rng(seed)
+    truths, names, folders = {}, {}, []
+    data_root = out_dir / "datasets"
+    for kind in kinds:
+        if per_class is not None:
+            counts = {c: per_class for c in CLASSES[kind]}
+        elif quick:
+            counts = {c: PER_CLASS_QUICK[kind] for c in CLASSES[kind]}
+        else:
+            counts = PER_CLASS_FULL[kind]
+        kind_truths = _kind_truths(kind, rng, counts)
+        order = rng.permutation(len(kind_truths))  # file names carry no hint of the class
+        kind_truths = [kind_truths[i] for i in order]
+        t0 = time.perf_counter()
+        records = _generate(kind, kind_truths, seed)
+        folder = data_root / kind
+        folder.mkdir(parents=True, exist_ok=True)
+        for old in folder.glob("*.csv"):
+            old.unlink()
+        kind_names = [f"{kind}_{i:04d}.csv" for i in range(len(records))]
+        for name, record in zip(kind_names, records, strict=True):
+            write_csv(folder / name, record)
+        timing[f"generate_{kind}"] = time.perf_counter() - t0
+        truths[kind], names[kind] = kind_truths, kind_names
+        folders.append(folder)
+    t0 = time.perf_counter()
+    answers = diagnose_blind(folders)
+    timing["diagnose_all_kinds_one_process"] = time.perf_counter() - t0
+    for kind in kinds:
+        if [v["file"] for v in answers[kind]] != names[kind]:
+            raise RuntimeError(f"the diagnosis returned verdicts for other {kind} files than were written")
+    aj.write_json_atomic(
+        out_dir / "truth.json",
+        {kind: dict(zip(names[kind], truths[kind], strict=True)) for kind in kinds},
     )
+
+    result = {
+        "title": "Blind validation of the sim-to-real diagnosis — step, vibration, noise (SPEC.md §5)",
+    }
+    figures, summary, datasets, assumptions = [], [], {}, {}
+    target = "SPEC.md §5 / issue 6 target"
+    for kind in kinds:
+        verdicts = answers[kind]
+        section = score(truths[kind], verdicts, CLASSES[kind])
+        snr = _snr(kind, truths[kind])
+        section["_shrinks"] = [
+            v["gap"]["shrink"]
+            for t, v in zip(truths[kind], verdicts, strict=True)
+            if v["verdict"] == t["effect"] != "none"
+        ]
+        if kind in SNR_EDGES:
+            effect_rows = [(s, v["verdict"] == t["effect"]) for t, v, s in
+                           zip(truths[kind], verdicts, snr, strict=True) if t["effect"] != "none"]
+            section["_snr"] = [s for s, _ in effect_rows]
+            section["_named"] = [ok for _, ok in effect_rows]
+            section["correct_by_snr"] = _by_snr(truths[kind], verdicts, snr, SNR_EDGES[kind])
+            effect_snr = np.asarray(section["_snr"])
+            section["snr_percentiles_p10_p50_p90"] = (
+                [float(np.percentile(effect_snr, q)) for q in (10, 50, 90)] if effect_snr.size else None
+            )
+            result[kind] = section
+            figures.append({
+                "file": _kind_figure(out_dir, kind, section, SNR_LABEL[kind]),
+                "caption": (
+                    f"Blind validation of the {kind} diagnosis. Left: confusion matrix of true "
+                    "effect vs blind verdict. Middle: held-out gap shrink where the effect was "
+                    "named correctly. Right: naming against the effect's signal-to-noise ratio "
+                    f"({SNR_LABEL[kind]}); squares: fraction per bin. Magnitudes and noise as in "
+                    "the assumptions block."
+                ),
+            })
+        else:
+            result[kind] = section
+            figures += _figures(out_dir, result, _lag_breakdown(truths[kind], verdicts))
+            result["lag_breakdown"] = _lag_breakdown(truths[kind], verdicts)
+        for key in ("_shrinks", "_snr", "_named"):
+            section.pop(key, None)
+        summary += [
+            {"quantity": f"{kind}: effects named correctly (strict: verdict = true effect)",
+             "ours": section["accuracy"], "paper": 0.90,
+             "note": f"{target} ≥ 0.90. cannot_tell counts as wrong here. 95 % interval "
+                     f"{_fmt_ci(section['accuracy_95ci'])} over {sum(section['n_per_class'].values()) - section['n_per_class']['none']} effect datasets."},
+            {"quantity": f"{kind}: effects named correctly or cannot_tell naming the true effect",
+             "ours": section["accuracy_incl_cannot_tell_naming_truth"], "paper": 0.90,
+             "note": _LENIENT_NOTE[kind]},
+            {"quantity": f"{kind}: false-alarm rate on no-effect datasets",
+             "ours": section["false_alarm_rate"], "paper": 0.05,
+             "note": f"{target} ≤ 0.05 ({section['false_alarms']} of "
+                     f"{section['n_per_class']['none']}; 95 % interval "
+                     f"{_fmt_ci(section['false_alarm_rate_95ci'])})."},
+            {"quantity": f"{kind}: median held-out gap shrink (effect named)",
+             "ours": section["median_gap_shrink"], "paper": 0.5,
+             "note": f"{target} ≥ 0.5; {_GAP_NOTE[kind]}"},
+        ]
+        datasets[kind] = [
+            {"file": name, "truth": truth["effect"], "verdict": verdict["verdict"],
+             "tied": verdict["tied"], "gap_shrink": verdict["gap"]["shrink"],
+             "gap_shrink_std": verdict["gap"]["shrink_std"], "snr": s}
+            for name, truth, verdict, s in
+            zip(names[kind], truths[kind], verdicts, _snr(kind, truths[kind]), strict=True)
+        ]
+        assumptions[kind] = _assumptions(kind)
+    timing["total"] = time.perf_counter() - started
+    result.update({
+        "summary": summary,
+        "datasets": datasets,
+        "figures": figures,
+        "assumptions": {
+            **assumptions,
+            "per_class": {k: (per_class if per_class is not None else
+                              (PER_CLASS_QUICK[k] if quick else PER_CLASS_FULL[k])) for k in kinds},
+            "blindness": "diagnosis in a separate process given only the CSV folders",
+            "precision": "float64",
+        },
+        "timing_s": timing,
+        "provenance": aj.provenance(seeds={"study": seed}, precision="float64"),
+    })
     aj.write_json_atomic(out_dir / "result.json", result)
     return result
 
 
-if __name__ == "__main__":
+def _fmt_ci(interval) -> str:
+    return "n/a" if interval is None else f"[{interval[0]:.2f}, {interval[1]:.2f}]"
+
+
+_LENIENT_NOTE = {
+    "step": "torquer_lag and output_filter are exactly degenerate on a test-winding step up to a "
+    "damping shift Δμ = k_dm k_dp k_y l·T (the loop polynomials coincide to O(T²)); only the ±5 % "
+    "prior on μ separates them, so small lags are honestly cannot_tell.",
+    "vibration": "the rectified terms of A1, k2, k4 (and of k3, k5) are nearly collinear over a "
+    "shaker plan (cosines 0.94–0.96 after removing bias and scale factor): at moderate SNR the "
+    "data honestly cannot tell them apart.",
+    "noise": "a Gauss–Markov noise is the β = 0 case of the exponential-cosine noise and tends to "
+    "a random walk as τ_c outgrows the record; ties between nested models are resolved by a "
+    "likelihood-ratio test, others stay cannot_tell.",
+}
+_GAP_NOTE = {
+    "step": "gap = held-out RMS error above the noise floor (last third of the record).",
+    "vibration": "gap = leave-one-out RMS residual above the noise floor, over the rows.",
+    "noise": "gap = held-out RMS one-step prediction error above the chosen model's predicted "
+    "innovation variance (last third of the record).",
+}
+
+
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
     parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args()
-    res = run(args.out, quick=args.quick)
+    parser.add_argument("--kinds", default=",".join(KINDS), help="comma-separated subset of kinds")
+    parser.add_argument("--per-class", type=int, default=None, help="datasets per class")
+    args = parser.parse_args(argv)
+    kinds = tuple(k for k in args.kinds.split(",") if k)
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        parser.error(f"unknown kind(s) {unknown}; choose from {list(KINDS)}")
+    res = run(args.out, quick=args.quick, kinds=kinds, per_class=args.per_class)
     print(json.dumps({k: res[k] for k in ("summary", "timing_s")}, indent=1, default=float))
-    print(json.dumps(res["step"]["confusion"], indent=1))
+    for kind in kinds:
+        print(kind, json.dumps(res[kind]["confusion"], indent=1))
+
+
+if __name__ == "__main__":
+    main()
