@@ -89,7 +89,8 @@ def _vibration_panels(result: DiagnosisResult, axes) -> None:
     ax.plot(rows, (tr["measured"] - tr["a_in"]) * ppm, "o", ms=4, color="0.4", label="measured")
     ax.plot(rows, (tr["nominal"] - tr["a_in"]) * ppm, "_", ms=10, color="C0", label="nominal refit")
     if tr["best_name"] != "nominal":
-        ax.plot(rows, (tr["best"] - tr["a_in"]) * ppm, "x", color="C2", label=f"+ {tr['best_name']}")
+        label = f"+ {tr['best_name']}"
+        ax.plot(rows, (tr["best"] - tr["a_in"]) * ppm, "x", color="C2", label=label)
     ax.set_xlabel("table row")
     ax.set_ylabel("a_out − a_in [µg]")
     ax.set_title("measured vs model, per test condition")
