@@ -256,6 +256,11 @@ def diagnose(file: Path, kind, params_file, json_out, plot_out):
     except DataError as error:
         raise click.ClickException(str(error)) from None
     click.echo(result.summary())
+    if params_file is not None and data.kind != "step":
+        click.echo(
+            f"note: --params is not used by the {data.kind} diagnosis (its nominal model "
+            "has no servo-loop parameters)"
+        )
     if json_out is not None:
         write_json(result, json_out, source=file)
         click.echo(f"json written: {json_out}")

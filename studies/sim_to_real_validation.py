@@ -36,7 +36,8 @@ from pathlib import Path
 
 import jax
 
-jax.config.update("jax_enable_x64", True)  # a study script's own choice, see docstring
+if __name__ == "__main__":
+    jax.config.update("jax_enable_x64", True)  # a study script's own choice, see docstring
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -761,6 +762,7 @@ def run(
 
     `kinds`: which kinds to validate; `per_class`: datasets per class (overrides the
     defaults, e.g. for a larger run)."""
+    jax.config.update("jax_enable_x64", True)  # the truth simulators work in float64
     out_dir = Path(out_dir)
     started = time.perf_counter()
     timing = {}

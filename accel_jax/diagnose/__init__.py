@@ -8,10 +8,9 @@ effect is added.
     result = diagnose(data)                      # the reference device, ±5 % prior
     print(result.summary()); result.to_dict()
 
-Kinds: `step` (available); `vibration` and `noise` (their records are read and validated
-by `accel_jax._data`; their effect libraries plug into the interface of `base.py`: a kind
+Kinds: `step` (`step.py`), `vibration` (`vibration.py`) and `noise` (`noise.py`). A kind
 module provides its nominal model, an effect base class with hooks, the effects registered
-with `register_effect`, and a `diagnose_<kind>(datasets, nominal)` added to `_KINDS`).
+with `register_effect`, and a `diagnose_<kind>(datasets, nominal)` listed in `_KINDS`.
 """
 
 from __future__ import annotations
@@ -94,17 +93,18 @@ def diagnose_many(
 def diagnose(data: Dataset, nominal: NominalDevice | None = None) -> DiagnosisResult:
     """Diagnose the sim-to-real gap of one record.
 
-    1. Refits the nominal parameters under their prior; 2. localises the residual; 3. fits
-    each effect of the kind's library on the training part (the first ~2/3 of the record)
-    and ranks them by evidence (2 ln B against the nominal model, BIC approximation, with
-    the parameter prior); 4. reports the held-out gap before and after the chosen effect
-    with a block-bootstrap uncertainty.
+    1. Refits the nominal parameters (under their prior where the kind has one); 2.
+    localises the residual; 3. fits each effect of the kind's library and ranks them by
+    evidence (2 ln B against the nominal model, BIC approximation); 4. reports the held-out
+    gap before and after the chosen effect with a bootstrap uncertainty. Held out: the last
+    ~1/3 of a step or noise record; for a vibration table, each row by cross-validation.
 
     **Arguments:**
 
     - `data`: a validated record (`accel_jax._data.read_csv` / `parse_csv`).
     - `nominal`: the nominal device and the relative uncertainty of its values; default the
-        SPEC.md reference device with J, μ, c, k_dm known to ±5 %.
+        SPEC.md reference device with J, μ, c, k_dm known to ±5 %. Only the `step` kind
+        uses it (the vibration and noise nominal models have no servo parameters).
 
     **Returns:** a `DiagnosisResult` (`.verdict`, `.ranking`, `.gap`, `.where`, `.refit`,
     `.to_dict()`, `.summary()`). Computed in float64 (x64 must be enabled).
