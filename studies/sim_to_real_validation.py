@@ -527,8 +527,10 @@ def _by_snr(truths, verdicts, snr, edges) -> list[dict]:
               zip(truths, verdicts, snr, strict=True) if t["effect"] != "none"]
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         inside = [(ok, v) for s, ok, v in effect if lo <= s < hi]
+        values = [s for s, _, _ in effect if lo <= s < hi]
         rows.append({
             "snr_range": [lo, hi],
+            "median_snr": float(np.median(values)) if values else None,
             "n": len(inside),
             "correct": sum(ok for ok, _ in inside),
             "cannot_tell": sum(v == "cannot_tell" for _, v in inside),
@@ -653,7 +655,7 @@ def _kind_figure(out_dir, kind, section, snr_label):
     ax.semilogx(snr, ok + np.random.default_rng(0).uniform(-0.05, 0.05, ok.size), "o", ms=3,
                 color="0.4", alpha=0.6)
     bins = section["correct_by_snr"]
-    centres = [np.sqrt(b["snr_range"][0] * b["snr_range"][1]) for b in bins if b["n"]]
+    centres = [b["median_snr"] for b in bins if b["n"]]
     rate = [b["correct"] / b["n"] for b in bins if b["n"]]
     ax.semilogx(centres, rate, "s-", color="C0", label="named correctly (bin fraction)")
     ax.axhline(0.9, color="k", ls=":", label="target 0.9")
