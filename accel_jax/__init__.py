@@ -251,5 +251,6 @@ from ._data import parse_params_toml as parse_params_toml
 from ._data import read_params_toml as read_params_toml
 from ._fast import fast_step_response as fast_step_response
 from ._fast import monte_carlo_oscillatory as monte_carlo_oscillatory
+from ._xla import apply_cpu_workarounds as apply_cpu_workarounds
 
 __version__ = "0.1.0"

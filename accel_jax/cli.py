@@ -23,6 +23,9 @@ def main():
     Run `accel-jax report` for the full design-study report, or `accel-jax info` for the
     closed-form characteristics of the reference device.
     """
+    from ._xla import apply_cpu_workarounds
+
+    apply_cpu_workarounds()  # before any subcommand starts JAX's backend
 
 
 @main.command()
