@@ -7,7 +7,15 @@ from pathlib import Path
 
 import click
 
-STUDIES = ("scale_factor_identification",)
+STUDIES = (
+    "scale_factor_identification",
+    "sensing_element_ml",
+    "vibration_compensation",
+    "tolerance_limits",
+    "noise_identification",
+    "sim_to_real_validation",
+    "table5_gap",
+)
 
 
 def _studies_dir() -> Path:

@@ -82,7 +82,10 @@ for name, table in plans.items():
     cells = ", ".join(
         f"{n}: {'ok' if ok else 'NOT'} ({f:.2g})"
         for n, ok, f in zip(
-            ident.names, np.asarray(ident.identifiable), np.asarray(ident.unexplained_fraction)
+            ident.names,
+            np.asarray(ident.identifiable),
+            np.asarray(ident.unexplained_fraction),
+            strict=True,
         )
     )
     print(f"{name:>32}: {cells}")
@@ -98,7 +101,7 @@ fit = aj.fit_coefficients(table, noise=NOISE_G)
 print(f"{'coefficient':>20} {'true':>10} {'fitted':>10} {'std err':>9} {'z':>6}   [ppm units]")
 z_scores = []
 for name, est, se in zip(
-    fit.names, np.asarray(fit.estimate_ppm), np.asarray(fit.standard_error_ppm)
+    fit.names, np.asarray(fit.estimate_ppm), np.asarray(fit.standard_error_ppm), strict=True
 ):
     true = float(getattr(truth, name)) / aj.PPM
     z_scores.append((est - true) / se)

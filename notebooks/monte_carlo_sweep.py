@@ -72,7 +72,9 @@ def delta_ka(batch, size):
     err = jnp.where(ok, aj.relative_error_percent(est.scale_factor, truth), jnp.nan)
     # Why records could not be used: the most frequent failure code at each point.
     counts = {
-        name: np.asarray(est.result == getattr(aj.IdentificationResult, name)).reshape(size, SEEDS).sum(1)
+        name: np.asarray(est.result == getattr(aj.IdentificationResult, name))
+        .reshape(size, SEEDS)
+        .sum(1)
         for name in FAILURES
     }
     reasons = [
@@ -118,19 +120,20 @@ for ax, x, err, label, logx in (
         ax.set_xlim(x[0] - pad, x[-1] + pad)  # keep points without a usable record in view
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    for xi, frac in zip(x, np.mean(np.isfinite(err), axis=1)):
+    for xi, frac in zip(x, np.mean(np.isfinite(err), axis=1), strict=True):
         if frac < 1:
             ax.annotate(f"{frac:.0%} usable", (xi, 0.05), xycoords=("data", "axes fraction"),
                         fontsize=7, color="tab:red", ha="center")
 fig.suptitle("Oscillatory identification, 1 MHz, 10 ms records, γ exact, float64")
 fig.tight_layout()
 fig.savefig("monte_carlo_sweep.png", dpi=110)
-for x, err, why in zip(xis, err_xi, why_xi):
+for x, err, why in zip(xis, err_xi, why_xi, strict=True):
     if np.isfinite(err).any():
         line = f"δK_a = {np.nanmean(err):+.3f} ± {np.nanstd(err):.3f} %"
     else:
         line = "no usable record"
-    print(f"ξ = {x:.2f}: {line} ({np.mean(np.isfinite(err)):.0%} usable){' — ' + why if why else ''}")
+    usable = f"{np.mean(np.isfinite(err)):.0%} usable"
+    print(f"ξ = {x:.2f}: {line} ({usable}){' — ' + why if why else ''}")
 # %% [markdown]
 # At small ξ the oscillation has not decayed within the 10 ms record, so the steady state
 # taken from its tail is wrong and the method refuses the record (`too_short`): record for

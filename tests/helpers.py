@@ -19,3 +19,13 @@ def central_difference(f, x, rel_step=1e-6):
     x = jnp.asarray(x, dtype=jnp.float64)
     h = rel_step * jnp.maximum(jnp.abs(x), 1e-300)
     return (f(x + h) - f(x - h)) / (2 * h)
+
+
+def study_result(report_dir, study: str):
+    """(folder, parsed result.json) of one study of the shared quick report (the
+    `quick_report` fixture of conftest.py)."""
+    import json
+    from pathlib import Path
+
+    folder = Path(report_dir).parent / study
+    return folder, json.loads((folder / "result.json").read_text())

@@ -2,9 +2,7 @@
 blind-validation study, checked by simulate-then-diagnose-then-recover against truth
 simulators that are not the diagnosis's own model (`simulate_linear`, `simulate_nonlinear`)."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -27,7 +25,6 @@ from accel_jax.diagnose import (
 )
 from accel_jax.diagnose.step import simulate_step
 
-ROOT = Path(__file__).resolve().parent.parent
 RATE = 100e3  # Hz
 SEGMENT = 200
 U = 2.0  # V
@@ -368,14 +365,10 @@ def test_cli_bad_input_one_line_nonzero_exit(tmp_path):
 
 
 @pytest.mark.slow
-def test_validation_study_quick(tmp_path):
-    spec = importlib.util.spec_from_file_location(
-        "s2r", ROOT / "studies" / "sim_to_real_validation.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    result = module.run(tmp_path, quick=True, kinds=("step",))
-    saved = json.loads((tmp_path / "result.json").read_text())
+def test_validation_study_quick(quick_report):
+    from helpers import study_result
+
+    tmp_path, saved = study_result(quick_report, "sim_to_real_validation")
     assert set(saved) >= {"title", "summary", "figures", "assumptions", "provenance", "step"}
     step = saved["step"]
     assert step["n_datasets"] == 18 and sum(step["n_per_class"].values()) == 18
@@ -384,4 +377,3 @@ def test_validation_study_quick(tmp_path):
     assert step["median_gap_shrink"] > 0.5
     for figure in saved["figures"]:
         assert (tmp_path / figure["file"]).exists() and figure["caption"]
-    assert result["step"]["confusion"] == step["confusion"]

@@ -2,10 +2,6 @@
 (SPEC.md §2), checked against NumPy brute force, Cramer's rule, Monte Carlo and
 simulate-then-fit-then-recover on the exact sine motion."""
 
-import importlib.util
-import json
-from pathlib import Path
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -34,7 +30,6 @@ from accel_jax._pendulum import (
     sample_times,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
 OMEGA0 = 2 * np.pi
 TS = sample_times(0.02, 128)  # 2.56 s: 2.56 periods
 
@@ -272,14 +267,11 @@ def test_bad_input_raises():
     assert isinstance(ml_estimate(TS, jnp.zeros(128), OMEGA0, jnp.ones(128)), MLEstimate)
 
 
-def test_study_quick(tmp_path):
-    spec = importlib.util.spec_from_file_location(
-        "sensing_element_ml", ROOT / "studies" / "sensing_element_ml.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    result = module.run(tmp_path, quick=True)
-    saved = json.loads((tmp_path / "result.json").read_text())
+@pytest.mark.slow
+def test_study_quick(quick_report):
+    from helpers import study_result
+
+    tmp_path, saved = study_result(quick_report, "sensing_element_ml")
     for key in ("title", "summary", "figures", "assumptions", "provenance", "error_rms_rad"):
         assert key in saved
     table = saved["error_rms_rad"]
@@ -296,4 +288,3 @@ def test_study_quick(tmp_path):
     assert 6 < growth < 10
     for figure in saved["figures"]:
         assert (tmp_path / figure["file"]).exists()
-    assert result["error_rms_rad"]["0.033"]["linear"] == table["0.033"]["linear"]

@@ -3,9 +3,7 @@ estimator by simulate-then-fit-recover, the exact likelihood against a dense Gau
 density, structure selection, the Allan deviation against brute force (and allantools),
 and bad input."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -35,7 +33,6 @@ from accel_jax._noise import (
     simulate_noise,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
 DT = 0.5
 
 
@@ -236,16 +233,10 @@ def test_model_validation():
 
 
 @pytest.mark.slow
-def test_study_quick(tmp_path):
-    # ~50 s of CPU, nearly all XLA compilation of the distinct fits (sizes are already
-    # small: 6 records of 1200 samples, 2 structures, 2 one-hour INS runs).
-    spec = importlib.util.spec_from_file_location(
-        "noise_study", ROOT / "studies" / "noise_identification.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    result = module.run(tmp_path, quick=True)
-    saved = json.loads((tmp_path / "result.json").read_text())
+def test_study_quick(quick_report):
+    from helpers import study_result
+
+    tmp_path, saved = study_result(quick_report, "noise_identification")
     for key in ("title", "summary", "figures", "assumptions", "provenance"):
         assert key in saved
     gm, ec = saved["gauss_markov"], saved["exp_cosine"]
@@ -260,4 +251,3 @@ def test_study_quick(tmp_path):
     assert kal["identified"]["fraction_outside_3sigma"] < 0.02
     for figure in saved["figures"]:
         assert (tmp_path / figure["file"]).exists() and figure["caption"]
-    assert result["kalman"] == saved["kalman"]

@@ -16,11 +16,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
-def report_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("report") / "report"
-    result = CliRunner().invoke(main, ["report", "--quick", "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    return out
+def report_dir(quick_report):
+    return quick_report
 
 
 @pytest.fixture(scope="module")
@@ -40,13 +37,22 @@ def _load_study_module():
 
 
 @pytest.mark.slow
-def test_report_has_every_figure(report_dir, study):
+def test_report_has_every_study_and_figure(report_dir, study):
+    from accel_jax.cli import STUDIES
+
     index = (report_dir / "index.html").read_text()
     assert len(study["figures"]) >= 3
-    for figure in study["figures"]:
-        assert figure["caption"]
-        assert (report_dir.parent / "scale_factor_identification" / figure["file"]).exists()
-    assert index.count("data:image/png;base64,") == len(study["figures"])
+    embedded = 0
+    for name in STUDIES:
+        result = json.loads((report_dir.parent / name / "result.json").read_text())
+        assert f'id="{name}"' in index
+        assert result["figures"], name
+        for figure in result["figures"]:
+            assert figure["caption"], (name, figure["file"])
+            assert (report_dir.parent / name / figure["file"]).exists()
+        embedded += len(result["figures"])
+        assert result.get("provenance", {}).get("accel_jax_version"), name
+    assert index.count("data:image/png;base64,") == embedded
     assert "missing figure" not in index
 
 

@@ -167,21 +167,12 @@ def test_bad_scenario_raises():
 
 # --- the study, quick mode ---------------------------------------------------------------
 
-ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
-
 
 @pytest.mark.slow
-def test_tolerance_limits_study_quick(tmp_path):
-    import importlib.util
-    import json
+def test_tolerance_limits_study_quick(quick_report):
+    from helpers import study_result
 
-    spec = importlib.util.spec_from_file_location(
-        "tolerance_limits", ROOT / "studies" / "tolerance_limits.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.run(tmp_path, quick=True)
-    r = json.loads((tmp_path / "result.json").read_text())
+    tmp_path, r = study_result(quick_report, "tolerance_limits")
     limits = ["A1", "k2", "k3", "k4", "k5", "m"]
     for example in (r["cyclone4"], r["tactical"], r["tactical"]["long_range"]):
         for block in ("paper", "gradient", "table2"):

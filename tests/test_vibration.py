@@ -488,19 +488,10 @@ def test_per_axis_shape_error_is_clear():
 
 
 @pytest.mark.slow
-def test_vibration_compensation_study_quick(tmp_path):
-    import importlib.util
-    import json
-    from pathlib import Path
+def test_vibration_compensation_study_quick(quick_report):
+    from helpers import study_result
 
-    root = Path(__file__).resolve().parent.parent
-    spec = importlib.util.spec_from_file_location(
-        "vibration_compensation", root / "studies" / "vibration_compensation.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.run(tmp_path, quick=True)
-    r = json.loads((tmp_path / "result.json").read_text())
+    tmp_path, r = study_result(quick_report, "vibration_compensation")
     # Hand values: basic error (2) at 1 g without a0, 0.5·A1 + k2 + k3 + k4 + k5 [ppm];
     # the paper's (19) at a = 1, b = 2: A1(0.673·2 − 0.5) + 2k2 + 6k3 + 18k4 + 50k5.
     hand = {"AKS-05": (15, 2, 7, 0.02, 0.3), "AL-1M": (25, 105, 87, 10, 0.9)}
