@@ -41,13 +41,9 @@ import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
 from accel_jax import (  # noqa: E402
-    INSChannel,
-    ins_consistency_trial,
-    scale_noise_coefficients,
-)
-from accel_jax import (  # noqa: E402
     ExponentialCosine,
     GaussMarkov,
+    INSChannel,
     NoiseFitResult,
     NoiseSum,
     RandomWalk,
@@ -60,6 +56,8 @@ from accel_jax import (  # noqa: E402
     fit_exp_cosine_paper,
     fit_gauss_markov_paper,
     fit_maximum_likelihood,
+    ins_consistency_trial,
+    scale_noise_coefficients,
     select_noise_model,
     simulate_noise,
 )

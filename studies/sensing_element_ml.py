@@ -25,7 +25,6 @@ import functools
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib
@@ -38,18 +37,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 import accel_jax as aj  # noqa: E402
 from accel_jax import (  # noqa: E402
     GaussMarkovDisturbance,
+    SensingElement,
     compensate_linearisation,
     error_covariance,
     fit_sensing_element,
     linearisation_error,
     ml_estimate,
-    state_basis,
-)
-from accel_jax import (  # noqa: E402
-    SensingElement,
     record_mask,
     sample_sensing_element,
     sample_times,
+    state_basis,
 )
 
 STUDY = "sensing_element_ml"

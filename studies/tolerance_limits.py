@@ -350,7 +350,7 @@ def joint_region(key, name, sc, arrays, quick: bool) -> dict:
     k = u * corner
     d = float(sc.admissible_error)
     rms_mean = np.sqrt(np.sum((k * sm) ** 2, axis=1))
-    rms_prof = np.sqrt(((k**2) @ (sp**2)))  # (n, time)
+    rms_prof = np.sqrt((k**2) @ (sp**2))  # (n, time)
     # The library's region test agrees with the NumPy one (a cross-check of `within_rms_region`).
     sens = sensitivities(sc.environment, sc.mean_acceleration)
     batch = aj.StaticTransferFunction(

@@ -46,11 +46,11 @@ from .base import (
 from .base import (
     register_effect as register_effect,
 )
+from .noise import NoiseEffect as NoiseEffect
+from .noise import diagnose_noise as diagnose_noise
 from .step import StepEffect as StepEffect
 from .step import diagnose_step as diagnose_step
 from .step import simulate_step as simulate_step
-from .noise import NoiseEffect as NoiseEffect
-from .noise import diagnose_noise as diagnose_noise
 from .vibration import VibrationEffect as VibrationEffect
 from .vibration import diagnose_vibration as diagnose_vibration
 
