@@ -151,3 +151,43 @@ def test_cli_report_rejects_a_bad_params_file(tmp_path):
     assert result.exit_code == 1
     assert "unknown key" in result.output and "Traceback" not in result.output
     assert not (tmp_path / "r").exists()
+
+
+def test_overview_collects_published_numbers_tolerances_and_validation(tmp_path):
+    import accel_jax as aj
+    from accel_jax.report._html import build_report
+
+    def study(name, payload):
+        folder = tmp_path / name
+        aj.write_json_atomic(folder / "result.json", {"title": name, **payload})
+        return folder
+
+    limits = {k: 1.0 for k in ("A1", "k2", "k3", "k4", "k5", "m")}
+    dirs = [
+        study(
+            "scale_factor_identification",
+            {
+                "summary": [
+                    {"quantity": "δK_a oscillatory", "ours": "0.136", "paper": "0.141"},
+                    {"quantity": "beyond the paper", "ours": "0.0", "paper": "—"},
+                ]
+            },
+        ),
+        study(
+            "tolerance_limits",
+            {
+                "cyclone4": {"paper": limits, "gradient": limits, "table2": {"A1": 445}},
+                "tactical": {"paper": limits, "gradient": limits, "table2": limits},
+            },
+        ),
+        study(
+            "sim_to_real_validation",
+            {"noise": {"n_datasets": 130, "accuracy": 0.967, "false_alarm_rate": 0.0}},
+        ),
+    ]
+    page = build_report(dirs, tmp_path / "report" / "index.html", title="t").read_text()
+    overview = page.split('id="overview"')[1].split('id="scale_factor_identification"')[0]
+    assert "δK_a oscillatory" in overview and "0.141" in overview
+    assert "beyond the paper" not in overview  # rows without a published value stay below
+    assert "Cyclone-4" in overview and "445" in overview and "tactical, short range" in overview
+    assert "0.967" in overview and "130" in overview

@@ -88,12 +88,126 @@ def _study_section(study_dir: Path) -> str:
     return "\n".join(parts)
 
 
+def _has_paper_value(value) -> bool:
+    return value is not None and str(value).strip() not in ("", "—", "-")
+
+
+def _published_table(results: dict[str, dict]) -> str:
+    """Every summary row that has a published value, beside ours, study by study."""
+    rows = []
+    for name, result in results.items():
+        for row in result.get("summary", []):
+            if _has_paper_value(row.get("paper")):
+                rows.append(
+                    f'<tr><td><a href="#{html.escape(name)}">{html.escape(name)}</a></td>'
+                    + "".join(f"<td>{_fmt(row.get(k, ''))}</td>" for k in ("quantity", "ours"))
+                    + f"<td>{_fmt(row.get('paper'))}</td>"
+                    + f"<td>{html.escape(str(row.get('note', '')))}</td></tr>"
+                )
+    if not rows:
+        return ""
+    head = "<tr><th>study</th><th>quantity</th><th>accel_jax</th><th>paper / target</th>"
+    head += "<th>note</th></tr>"
+    return (
+        "<h3>Published numbers and targets beside ours</h3>"
+        "<p>Each study's own section gives the assumptions behind its numbers.</p>"
+        f"<table>{head}{''.join(rows)}</table>"
+    )
+
+
+_LIMITS = ("A1", "k2", "k3", "k4", "k5", "m")
+_LIMIT_UNITS = ("ppm", "ppm/g", "ppm/g²", "ppm/g³", "ppm/g⁴", "ppm/g")
+
+
+def _tolerance_table(result: dict) -> str:
+    """Table 2 of SPEC.md §3: the paper's limits, ours by its method, ours by gradients."""
+    cases = [("Cyclone-4", result.get("cyclone4"))]
+    tactical = result.get("tactical")
+    if tactical:
+        cases.append(("tactical, short range", tactical))
+        if tactical.get("long_range"):
+            cases.append(("tactical, long range", tactical["long_range"]))
+    head = "<tr><th>example</th><th>method</th>" + "".join(
+        f"<th>{k} [{u}]</th>" for k, u in zip(_LIMITS, _LIMIT_UNITS, strict=True)
+    )
+    rows = []
+    for label, case in cases:
+        if not case:
+            continue
+        for method, key in (
+            ("paper, Table 2", "table2"),
+            ("paper's method (ours)", "paper"),
+            ("gradient (ours)", "gradient"),
+        ):
+            values = case.get(key, {})
+            rows.append(
+                f"<tr><td>{html.escape(label)}</td><td>{html.escape(method)}</td>"
+                + "".join(f"<td>{_fmt(values.get(k, ''))}</td>" for k in _LIMITS)
+                + "</tr>"
+            )
+    if not rows:
+        return ""
+    return (
+        "<h3>Tolerance limits on the transfer-function coefficients (admissible |k|)</h3>"
+        '<p>See <a href="#tolerance_limits">tolerance_limits</a> for which Table 2 entries '
+        "reproduce and why the others do not.</p>"
+        f"<table>{head}</tr>{''.join(rows)}</table>"
+    )
+
+
+def _sim_to_real_table(result: dict) -> str:
+    """The blind validation of the gap diagnosis, one row per kind of record."""
+    rows = []
+    for kind in ("step", "vibration", "noise"):
+        section = result.get(kind)
+        if not isinstance(section, dict) or "n_datasets" not in section:
+            continue
+        cells = [
+            kind,
+            section.get("n_datasets"),
+            section.get("accuracy"),
+            section.get("accuracy_incl_cannot_tell_naming_truth"),
+            section.get("false_alarm_rate"),
+            section.get("median_gap_shrink"),
+        ]
+        rows.append("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in cells) + "</tr>")
+    if not rows:
+        return ""
+    head = (
+        "<tr><th>kind</th><th>blind datasets</th><th>named correctly</th>"
+        "<th>… or cannot_tell naming the truth</th><th>false alarms</th>"
+        "<th>median held-out gap shrink</th></tr>"
+    )
+    return (
+        "<h3>Sim-to-real diagnosis, checked blind</h3>"
+        "<p>Targets (issue 6): ≥ 0.90 named, ≤ 0.05 false alarms, median shrink ≥ 0.5. "
+        'Details in <a href="#sim_to_real_validation">sim_to_real_validation</a>.</p>'
+        f"<table>{head}{''.join(rows)}</table>"
+    )
+
+
+def _overview(study_dirs: list[Path]) -> str:
+    results = {}
+    for d in study_dirs:
+        try:
+            results[d.name] = json.loads((d / "result.json").read_text())
+        except (OSError, ValueError):
+            continue
+    parts = [_published_table(results)]
+    if "tolerance_limits" in results:
+        parts.append(_tolerance_table(results["tolerance_limits"]))
+    if "sim_to_real_validation" in results:
+        parts.append(_sim_to_real_table(results["sim_to_real_validation"]))
+    body = "".join(p for p in parts if p)
+    return f'<h2 id="overview">At a glance</h2>{body}' if body else ""
+
+
 def build_report(study_dirs: list[Path], out_file: Path, *, title: str) -> Path:
     """Write `out_file` (HTML) from the given study output folders, atomically."""
-    toc = "".join(
+    toc = '<li><a href="#overview">At a glance</a></li>' + "".join(
         f'<li><a href="#{html.escape(d.name)}">{html.escape(d.name)}</a></li>' for d in study_dirs
     )
-    body = "\n".join(_study_section(d) for d in study_dirs)
+    body = _overview(study_dirs) + "\n".join(_study_section(d) for d in study_dirs)
     page = (
         f"<!doctype html>{REPORT_MARKER}<html><head><meta charset='utf-8'>"
         f"<title>{html.escape(title)}</title>"
