@@ -133,6 +133,208 @@ def _writable(path: Path | None, force: bool, option: str) -> None:
         )
 
 
+_PPM_UNITS = {
+    "asymmetry": "ppm",
+    "k2": "ppm/g",
+    "k3": "ppm/g²",
+    "k4": "ppm/g³",
+    "k5": "ppm/g⁴",
+    "m31": "ppm/g",
+    "m32": "ppm/g",
+}
+
+
+def _read_psd(path: Path):
+    """A band-PSD CSV (header f_low,f_high,psd[,eta]; Hz, Hz, g²/Hz, 1) as a BandSpectrum."""
+    import csv
+
+    from ._vibration import BandSpectrum
+
+    try:
+        with open(path, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+    except FileNotFoundError:
+        raise click.ClickException(f"{path}: no such file.") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise click.ClickException(f"{path}: cannot be read ({error}).") from None
+    if not rows:
+        raise click.ClickException(f"{path}: no bands (a header f_low,f_high,psd[,eta] and rows).")
+    missing = {"f_low", "f_high", "psd"} - set(rows[0])
+    if missing:
+        raise click.ClickException(
+            f"{path}: missing column(s) {sorted(missing)}; expected f_low,f_high,psd[,eta] "
+            "(Hz, Hz, g²/Hz, 1)."
+        )
+    columns = {}
+    for name in ("f_low", "f_high", "psd", "eta"):
+        if name not in rows[0]:
+            continue
+        try:
+            columns[name] = [float(row[name]) for row in rows]
+        except (TypeError, ValueError):
+            raise click.ClickException(
+                f"{path}: column {name!r} has a non-numeric value."
+            ) from None
+    try:
+        return BandSpectrum(**columns)
+    except ValueError as error:
+        raise click.ClickException(f"{path}: {error}") from None
+
+
+@main.command()
+@click.option("--budget", type=float, required=True, help="Admissible vibration error δ* [g].")
+@click.option(
+    "--mean-accel",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Mean acceleration a3 along the input axis during flight [g].",
+)
+@click.option(
+    "--sine",
+    "sine",
+    type=(float, float, float),
+    default=(0.0, 0.0, 0.0),
+    show_default=True,
+    metavar="OA PA IA",
+    help="Sinusoidal vibration amplitudes on the output, pendulum and input axes [g] (in phase).",
+)
+@click.option("--sine-freq", type=float, default=30.0, show_default=True, help="[Hz].")
+@click.option(
+    "--rms",
+    type=float,
+    default=None,
+    help="RMS of the random vibration on every axis [g] (fully correlated, as the paper's "
+    "cross-coupling limit assumes). Or give --psd.",
+)
+@click.option(
+    "--psd",
+    "psd_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Random vibration as band PSDs: CSV with f_low,f_high,psd[,eta] (Hz, Hz, g²/Hz, 1); "
+    "σ by the paper's formula sqrt((1/n) Σ η S Δf) (SPEC.md §3).",
+)
+@click.option(
+    "--unit",
+    type=click.Choice(["none", "aks05", "al1m"]),
+    default="none",
+    show_default=True,
+    help="Check a unit's passport coefficients (Table 4) against the limits.",
+)
+@click.option(
+    "--json",
+    "json_out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write the limits as JSON here.",
+)
+@click.option("--force", is_flag=True, help="Replace an existing --json file.")
+def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out, force):
+    """Admissible nonlinearity coefficients A1, k2..k5, m for a vibration environment.
+
+    Limits by the paper's fixed budget shares (SPEC.md §3, eqs. 7-15) and by exact
+    sensitivities (jax.grad of the vibration error, same shares), in ppm units. Example
+    (the paper's Cyclone-4): --budget 5e-4 --mean-accel 2 --sine 1.2 1.2 0.5 --rms 1.4
+    """
+    import math
+
+    import jax
+
+    # Limits are ratios of O(1e-4 g) budgets to exact sensitivities: float64 for ppm.
+    jax.config.update("jax_enable_x64", True)
+    from ._io import write_json_atomic
+    from ._static import StaticTransferFunction
+    from ._tolerance import TOLERANCED, ToleranceScenario, gradient_limits, paper_limits
+    from ._vibration import VibrationEnvironment
+
+    _writable(json_out, force, "--json")
+    if rms is not None and psd_file is not None:
+        raise click.UsageError("give the random vibration by --rms or by --psd, not both.")
+    if not (math.isfinite(budget) and budget > 0):
+        raise click.BadParameter(
+            f"{budget!r} g; the budget must be positive.", param_hint="--budget"
+        )
+    if not (math.isfinite(mean_accel) and mean_accel != 0):
+        raise click.BadParameter(
+            f"{mean_accel!r} g; it must be finite and non-zero (the multiplicative limits "
+            "divide by it).",
+            param_hint="--mean-accel",
+        )
+    source = "none"
+    sigma = 0.0
+    if psd_file is not None:
+        spectrum = _read_psd(psd_file)
+        sigma = float(spectrum.rms(paper=True))
+        source = f"{psd_file} ({len(spectrum.psd)} bands, paper's σ formula)"
+    elif rms is not None:
+        sigma, source = rms, "--rms"
+    try:
+        env = VibrationEnvironment(
+            sine_amplitude=sine,
+            sine_frequency=sine_freq,
+            random_std=sigma,
+            random_correlation=1.0,
+        )
+        scenario = ToleranceScenario(budget, mean_accel, env, [0.0], [mean_accel])
+    except ValueError as error:
+        raise click.ClickException(str(error)) from None
+    paper = paper_limits(scenario)
+    grad = gradient_limits(scenario)
+    passport = {"aks05": StaticTransferFunction.aks05, "al1m": StaticTransferFunction.al1m}
+    unit_ppm = passport[unit]().as_ppm() if unit != "none" else {}
+    rows = {}
+    for name in TOLERANCED:
+        row = {
+            "unit": _PPM_UNITS[name],
+            "paper_method": float(paper[name]) * 1e6,
+            "gradient_paper_shares": float(grad["paper_shares"][name]) * 1e6,
+            "gradient_full_budget": float(grad["full_budget"][name]) * 1e6,
+            "sensitivity_g_per_ppm": float(grad["sensitivity"][name]) * 1e-6,
+        }
+        if unit_ppm:
+            value = abs(unit_ppm.get(name, 0.0))
+            row["passport"] = value
+            row["within"] = bool(value <= row["gradient_paper_shares"])
+        rows[name] = row
+    click.echo(
+        f"δ* = {budget:g} g, a3 = {mean_accel:g} g, sine (OA, PA, IA) = {sine} g at "
+        f"{sine_freq:g} Hz, random σ = {sigma:.4g} g ({source})"
+    )
+    header = f"{'coefficient':<11} {'paper method':>13} {'gradient':>12} {'full budget':>12}"
+    click.echo(header + (f" {unit + ' passport':>16}" if unit_ppm else "") + "  unit")
+    for name, row in rows.items():
+        line = (
+            f"{name:<11} {row['paper_method']:>13.4g} {row['gradient_paper_shares']:>12.4g} "
+            f"{row['gradient_full_budget']:>12.4g}"
+        )
+        if unit_ppm:
+            mark = "ok" if row["within"] else "EXCEEDS"
+            line += f" {row['passport']:>9.4g} {mark:>7}"
+        click.echo(f"{line}  {row['unit']}")
+    if json_out is not None:
+        write_json_atomic(
+            json_out,
+            {
+                "budget_g": budget,
+                "mean_acceleration_g": mean_accel,
+                "sine_amplitude_g": list(sine),
+                "sine_frequency_Hz": sine_freq,
+                "random_rms_g": sigma,
+                "random_source": source,
+                "limits_ppm": rows,
+                "assumptions": {
+                    "paper_method": "fixed budget shares, eqs. (13), (15) (SPEC.md §3)",
+                    "gradient": "exact sensitivities by jax.grad of the vibration error at "
+                    "the mean a3, the paper's share per coefficient",
+                    "random_vibration": "Gaussian, same σ on every axis, fully correlated",
+                    "precision": "float64",
+                },
+            },
+        )
+        click.echo(f"json written: {json_out}")
+
+
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(

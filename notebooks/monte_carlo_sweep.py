@@ -84,8 +84,15 @@ def delta_ka(batch, size):
     return np.asarray(err).reshape(size, SEEDS), reasons
 
 
-FAILURES = ("too_short", "too_few_crossings", "not_oscillatory", "not_decaying", "saturated",
-            "no_step", "non_finite")
+FAILURES = (
+    "too_short",
+    "too_few_crossings",
+    "not_oscillatory",
+    "not_decaying",
+    "saturated",
+    "no_step",
+    "non_finite",
+)
 
 
 # %% [markdown]
@@ -122,8 +129,14 @@ for ax, x, err, label, logx in (
     ax.legend(fontsize=8)
     for xi, frac in zip(x, np.mean(np.isfinite(err), axis=1), strict=True):
         if frac < 1:
-            ax.annotate(f"{frac:.0%} usable", (xi, 0.05), xycoords=("data", "axes fraction"),
-                        fontsize=7, color="tab:red", ha="center")
+            ax.annotate(
+                f"{frac:.0%} usable",
+                (xi, 0.05),
+                xycoords=("data", "axes fraction"),
+                fontsize=7,
+                color="tab:red",
+                ha="center",
+            )
 fig.suptitle("Oscillatory identification, 1 MHz, 10 ms records, γ exact, float64")
 fig.tight_layout()
 fig.savefig("monte_carlo_sweep.png", dpi=110)

@@ -84,3 +84,58 @@ def test_identify_bad_input(step_csv, tmp_path):
     # The oscillatory record is refused by the aperiodic method with the paper's reason.
     result = run(path, "--method", "aperiodic")
     assert result.exit_code == 1 and "overshoots" in result.output
+
+
+CYCLONE4 = ["--budget", "5e-4", "--mean-accel", "2", "--sine", "1.2", "1.2", "0.5"]
+
+
+def test_tolerance_reproduces_the_paper_method_and_checks_a_unit(tmp_path):
+    out = tmp_path / "limits.json"
+    result = CliRunner().invoke(
+        main, ["tolerance", *CYCLONE4, "--rms", "1.4", "--unit", "aks05", "--json", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    limits = json.loads(out.read_text())["limits_ppm"]
+    # SPEC.md §3's reconstruction: A1 ≤ 0.44δ*/(0.673 b3 + 0.125 σ3) ≈ 430 ppm; m ≈ 48.7 ppm/g.
+    assert limits["asymmetry"]["paper_method"] == pytest.approx(
+        0.44 * 5e-4 / (0.673 * 0.5 + 0.125 * 1.4) * 1e6
+    )
+    assert limits["m31"]["paper_method"] == pytest.approx(
+        0.22 * 5e-4 / (0.5 * 0.5 * 1.2 + 1.4 * 1.4) * 1e6
+    )
+    # Where the exact sensitivity is the paper's denominator (k2), both methods agree.
+    assert limits["k2"]["gradient_paper_shares"] == pytest.approx(
+        limits["k2"]["paper_method"], rel=1e-9
+    )
+    assert limits["k3"]["passport"] == 7 and limits["k3"]["within"] is True
+    assert "EXCEEDS" not in result.output
+
+
+def test_tolerance_from_a_psd_file_and_bad_input(tmp_path):
+    runner = CliRunner()
+    psd = tmp_path / "psd.csv"
+    psd.write_text(
+        "f_low,f_high,psd,eta\n20,40,0.0165,1.6\n40,80,0.0185,1.8\n80,160,0.045,0.4\n"
+        "160,320,0.095,0.1\n320,640,0.12,0.05\n"
+    )
+    result = runner.invoke(main, ["tolerance", *CYCLONE4, "--psd", str(psd)])
+    assert result.exit_code == 0, result.output
+    # σ = sqrt((1/n) Σ η S Δf) of the paper's Table 1 (midpoint PSDs): 1.16 g.
+    assert "random σ = 1.16" in result.output
+    overlapping = tmp_path / "overlap.csv"
+    overlapping.write_text("f_low,f_high,psd\n20,50,0.01\n40,80,0.02\n")
+    bad = {
+        ("--budget", "0"): "budget must be positive",
+        ("--psd", str(overlapping)): "overlap",
+        ("--psd", str(tmp_path / "none.csv")): "no such file",
+        ("--rms", "1", "--psd", str(psd)): "not both",
+        ("--rms", "-1"): "non-negative",
+    }
+    for extra, message in bad.items():
+        args = ["tolerance", *CYCLONE4, *extra]
+        if extra[0] == "--budget":
+            args = ["tolerance", "--budget", "0", "--mean-accel", "2"]
+        result = runner.invoke(main, args)
+        assert result.exit_code in (1, 2), (extra, result.output)
+        assert message in result.output, (extra, result.output)
+        assert "Traceback" not in result.output
