@@ -187,6 +187,20 @@ def fast_step_response(
     return record
 
 
+# Trajectories per vmapped chunk. CPU: 16 records (16 × 5001 float64 = 640 kB) stay in a
+# core's L2 cache. GPU/TPU: the chunks run one after another (`lax.map`), so small chunks
+# leave the device idle between tiny kernels; on an H100 chunks of 16 plateaued at
+# ~1.4e4 trajectories/s whatever N (the per-trajectory kernel time is ~3 µs).
+_CHUNK_CPU = 16
+_CHUNK_ACCELERATOR = 4096
+
+
+def default_chunk_size() -> int:
+    """The chunk size `monte_carlo_oscillatory` uses when given none, for the default
+    backend: 16 on CPU (cache-sized), 4096 on a GPU or TPU (occupancy)."""
+    return _CHUNK_CPU if jax.default_backend() == "cpu" else _CHUNK_ACCELERATOR
+
+
 def _batch_size(params: ServoParams, keys) -> int:
     sizes = {
         int(jnp.shape(leaf)[0]) for leaf in jax.tree_util.tree_leaves(params) if jnp.ndim(leaf) > 0
@@ -245,7 +259,7 @@ def monte_carlo_oscillatory(
     crossing: Literal["linear", "nearest"] = "linear",
     extremum: Literal["sample", "parabolic"] = "sample",
     period: Literal["full", "half"] = "full",
-    chunk_size: int = 16,
+    chunk_size: int | None = None,
 ) -> OscillatoryEstimate:
     """Simulate and identify N noisy step responses in one compiled, chunked kernel.
 
@@ -275,8 +289,10 @@ def monte_carlo_oscillatory(
     - `shape_factor`: γ, a scalar or shape (N,).
     - `test_voltage`: U_test [V], a Python float.
     - `tail_fraction`, `crossing`, `extremum`, `period`: as in `identify_oscillatory`.
-    - `chunk_size`: trajectories per vmapped chunk (a positive int). The default 16 keeps
-        a chunk's records (16 × n float64, 640 kB at n = 5001) in a core's L2 cache.
+    - `chunk_size`: trajectories per vmapped chunk (a positive int), or `None` for
+        `default_chunk_size()`: 16 on CPU, which keeps a chunk's records (16 × n float64,
+        640 kB at n = 5001) in a core's L2 cache; 4096 on a GPU or TPU, where small chunks
+        leave the device idle.
 
     **Returns:**
 
@@ -285,6 +301,8 @@ def monte_carlo_oscillatory(
     """
     if not isinstance(params, ServoParams):
         raise ValueError(f"params must be a batched ServoParams, got {type(params).__name__}.")
+    if chunk_size is None:
+        chunk_size = default_chunk_size()
     if not (isinstance(chunk_size, int) and chunk_size > 0):
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}.")
     concrete_voltage = _concrete(test_voltage)

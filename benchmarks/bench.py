@@ -42,7 +42,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import baselines  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax._fast import fast_step_response, monte_carlo_oscillatory  # noqa: E402
+from accel_jax._fast import (  # noqa: E402
+    default_chunk_size,
+    fast_step_response,
+    monte_carlo_oscillatory,
+)
 
 SAMPLE_RATE = 1e6  # Hz
 DURATION = 5e-3  # s (the workload; δK_a is biased by the short tail, see notes)
@@ -170,7 +174,7 @@ def bench_monte_carlo(quick: bool):
     baseline_cap = 200 if quick else 1000  # the loop's rate is per trajectory: timed on ≤ cap
     slow_count = 3 if quick else 20
     repeats = 3
-    chunk = 16
+    chunk = default_chunk_size()  # 16 on CPU, 4096 on an accelerator
     out = {
         "work": f"{ts.shape[0]} samples (5 ms at 1 MHz) per trajectory, "
         f"6 parameters drawn ±{SPREAD:.0%} (1σ)",
