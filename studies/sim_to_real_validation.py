@@ -458,7 +458,9 @@ def diagnose_blind(folders: list[Path]) -> dict[str, list[dict]]:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "verdicts.json"
         subprocess.run(
-            [sys.executable, "-c", _DIAGNOSE_CODE, str(out), *map(str, folders)],
+            # Absolute paths: the child runs in the repository root, which need not be the
+            # caller's working folder (e.g. `accel-jax report --out` from elsewhere).
+            [sys.executable, "-c", _DIAGNOSE_CODE, str(out), *(str(Path(f).resolve()) for f in folders)],
             check=True,
             cwd=Path(__file__).resolve().parent.parent,
         )

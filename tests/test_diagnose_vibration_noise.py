@@ -457,3 +457,19 @@ def test_validation_study_vibration_and_noise_quick(quick_report):
     assert set(truth) == {"step", "vibration", "noise"}
     files = {f["file"] for f in saved["figures"]}
     assert {"validation_vibration.png", "validation_noise.png"} <= files
+
+
+@pytest.mark.slow
+def test_blind_diagnosis_finds_relative_folders_from_any_working_folder(tmp_path, monkeypatch):
+    # The blind child process runs in the repository root; a relative dataset folder given
+    # from elsewhere (`accel-jax report --out out/...` run outside the repository) must still
+    # be found.
+    module = _load("sim_to_real_validation")
+    folder = tmp_path / "datasets" / "noise"
+    folder.mkdir(parents=True)
+    x = np.random.default_rng(0).standard_normal(400) * 1e-4
+    aj.write_csv(folder / "noise_0000.csv", aj.NoiseData(np.arange(400) * 0.01, x))
+    monkeypatch.chdir(tmp_path)
+    answers = module.diagnose_blind([Path("datasets") / "noise"])
+    assert [a["file"] for a in answers["noise"]] == ["noise_0000.csv"]
+    assert answers["noise"][0]["verdict"] == "none"
