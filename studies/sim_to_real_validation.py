@@ -277,10 +277,18 @@ def _vib_plan() -> dict:
     for a in VIB_LEVELS:
         rows += [(a, b, 0.0, 0.0, 0.0) for b in VIB_SINE]
         rows += [(a, 0.0, s, 0.0, 0.0) for s in VIB_RANDOM]
-        rows += [(a, VIB_INCLINED, 0.0, VIB_INCLINED, 0.0), (a, VIB_INCLINED, 0.0, 0.0, VIB_INCLINED)]
+        rows += [
+            (a, VIB_INCLINED, 0.0, VIB_INCLINED, 0.0),
+            (a, VIB_INCLINED, 0.0, 0.0, VIB_INCLINED),
+        ]
     r = np.asarray(rows)
-    return {"a_in": r[:, 0], "vib_amp": r[:, 1], "vib_rms": r[:, 2], "vib_amp_oa": r[:, 3],
-            "vib_amp_pa": r[:, 4]}
+    return {
+        "a_in": r[:, 0],
+        "vib_amp": r[:, 1],
+        "vib_rms": r[:, 2],
+        "vib_amp_oa": r[:, 3],
+        "vib_amp_pa": r[:, 4],
+    }
 
 
 def _vib_draw(rng: np.random.Generator, effect: str) -> dict:
@@ -295,7 +303,10 @@ def _vib_draw(rng: np.random.Generator, effect: str) -> dict:
         for name in VIB_COEFFICIENTS[effect]:
             value = _log_uniform(rng, VIB_MAGNITUDES[effect]) * rng.choice([-1.0, 1.0])
             truth["coefficients_ppm"][name] = float(value)
-    truth["bias_g"], truth["scale_factor_error"] = float(truth["bias_g"]), float(truth["scale_factor_error"])
+    truth["bias_g"], truth["scale_factor_error"] = (
+        float(truth["bias_g"]),
+        float(truth["scale_factor_error"]),
+    )
     truth["row_noise_g"] = float(truth["row_noise_g"])
     return truth
 
@@ -331,7 +342,9 @@ def generate_vibration(truths: list[dict], seed: int) -> list[VibrationData]:
     plan = _vib_plan()
     rng = np.random.default_rng(seed + 2)
     keys = jax.random.split(jax.random.key(seed + 2), len(truths))
-    args = [jnp.asarray(plan[c]) for c in ("a_in", "vib_amp", "vib_amp_oa", "vib_amp_pa", "vib_rms")]
+    args = [
+        jnp.asarray(plan[c]) for c in ("a_in", "vib_amp", "vib_amp_oa", "vib_amp_pa", "vib_rms")
+    ]
     records = []
     for truth, key in zip(truths, keys, strict=True):
         means = np.asarray(_vib_record_means(_vib_device(truth), *args, key))
@@ -339,15 +352,29 @@ def generate_vibration(truths: list[dict], seed: int) -> list[VibrationData]:
         freq = rng.uniform(*VIB_FREQ_RANGE, size=means.size)
         records.append(
             VibrationData(
-                a_in=plan["a_in"], vib_amp=plan["vib_amp"], vib_freq=freq,
-                vib_rms=plan["vib_rms"], a_out=a_out, vib_amp_oa=plan["vib_amp_oa"],
+                a_in=plan["a_in"],
+                vib_amp=plan["vib_amp"],
+                vib_freq=freq,
+                vib_rms=plan["vib_rms"],
+                a_out=a_out,
+                vib_amp_oa=plan["vib_amp_oa"],
                 vib_amp_pa=plan["vib_amp_pa"],
             )
         )
     return records
 
 
-_VIB_DESIGN_NAMES = ("bias", "scale_factor_error", "asymmetry", "k2", "k3", "k4", "k5", "m31", "m32")
+_VIB_DESIGN_NAMES = (
+    "bias",
+    "scale_factor_error",
+    "asymmetry",
+    "k2",
+    "k3",
+    "k4",
+    "k5",
+    "m31",
+    "m32",
+)
 
 
 def _vib_snr(truths: list[dict]) -> list[float]:
@@ -355,7 +382,11 @@ def _vib_snr(truths: list[dict]) -> list[float]:
     contribution to the mean output, after removing what bias and scale factor can absorb,
     over the row noise. Harness-side bookkeeping (the diagnosing process never sees it)."""
     plan = _vib_plan()
-    table = {**plan, "vib_freq": np.full(plan["a_in"].size, 50.0), "a_out": np.zeros(plan["a_in"].size)}
+    table = {
+        **plan,
+        "vib_freq": np.full(plan["a_in"].size, 50.0),
+        "a_out": np.zeros(plan["a_in"].size),
+    }
     design = np.asarray(aj.design_matrix(table, _VIB_DESIGN_NAMES))  # g per ppm
     nominal = design[:, :2]
     out = []
@@ -460,7 +491,13 @@ def diagnose_blind(folders: list[Path]) -> dict[str, list[dict]]:
         subprocess.run(
             # Absolute paths: the child runs in the repository root, which need not be the
             # caller's working folder (e.g. `accel-jax report --out` from elsewhere).
-            [sys.executable, "-c", _DIAGNOSE_CODE, str(out), *(str(Path(f).resolve()) for f in folders)],
+            [
+                sys.executable,
+                "-c",
+                _DIAGNOSE_CODE,
+                str(out),
+                *(str(Path(f).resolve()) for f in folders),
+            ],
             check=True,
             cwd=Path(__file__).resolve().parent.parent,
         )
@@ -525,19 +562,24 @@ def score(truths: list[dict], verdicts: list[dict], classes=EFFECTS) -> dict:
 def _by_snr(truths, verdicts, snr, edges) -> list[dict]:
     """Correct-naming rate of the effect datasets in bins of their signal-to-noise ratio."""
     rows = []
-    effect = [(s, v["verdict"] == t["effect"], v["verdict"]) for t, v, s in
-              zip(truths, verdicts, snr, strict=True) if t["effect"] != "none"]
+    effect = [
+        (s, v["verdict"] == t["effect"], v["verdict"])
+        for t, v, s in zip(truths, verdicts, snr, strict=True)
+        if t["effect"] != "none"
+    ]
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         inside = [(ok, v) for s, ok, v in effect if lo <= s < hi]
         values = [s for s, _, _ in effect if lo <= s < hi]
-        rows.append({
-            "snr_range": [lo, hi],
-            "median_snr": float(np.median(values)) if values else None,
-            "n": len(inside),
-            "correct": sum(ok for ok, _ in inside),
-            "cannot_tell": sum(v == "cannot_tell" for _, v in inside),
-            "none": sum(v == "none" for _, v in inside),
-        })
+        rows.append(
+            {
+                "snr_range": [lo, hi],
+                "median_snr": float(np.median(values)) if values else None,
+                "n": len(inside),
+                "correct": sum(ok for ok, _ in inside),
+                "cannot_tell": sum(v == "cannot_tell" for _, v in inside),
+                "none": sum(v == "none" for _, v in inside),
+            }
+        )
     return rows
 
 
@@ -597,6 +639,9 @@ def _figures(out_dir, result, lag_rows):
     ax.plot([], [], "o", color="0.3", label="truth: torquer_lag")
     ax.plot([], [], "s", color="0.3", label="truth: output_filter")
     ax.set_xlabel("true lag T_dm or T_f [µs]")
+    # Plain decade labels: the default minor labels (3×10¹, 4×10¹) collide.
+    ax.xaxis.set_minor_formatter(plt.NullFormatter())
+    ax.set_xticks([5, 10, 20, 50], ["5", "10", "20", "50"])
     ax.set_ylabel("verdict")
     ax.set_title("lag datasets: verdict vs magnitude")
     ax.legend(fontsize=8)
@@ -654,8 +699,14 @@ def _kind_figure(out_dir, kind, section, snr_label):
     ax = axes[2]
     snr = np.asarray(section["_snr"])
     ok = np.asarray(section["_named"], dtype=float)
-    ax.semilogx(snr, ok + np.random.default_rng(0).uniform(-0.05, 0.05, ok.size), "o", ms=3,
-                color="0.4", alpha=0.6)
+    ax.semilogx(
+        snr,
+        ok + np.random.default_rng(0).uniform(-0.05, 0.05, ok.size),
+        "o",
+        ms=3,
+        color="0.4",
+        alpha=0.6,
+    )
     bins = section["correct_by_snr"]
     centres = [b["median_snr"] for b in bins if b["n"]]
     rate = [b["correct"] / b["n"] for b in bins if b["n"]]
@@ -713,8 +764,17 @@ def _assumptions(kind) -> dict:
             "row_noise_g_log_uniform": list(VIB_ROW_NOISE),
             "device": f"a0 uniform {list(VIB_BIAS_RANGE)} g, δ normal sd {VIB_SCALE_SD}",
             "magnitudes_log_uniform_random_sign": {
-                k: {"range": list(v), "unit": {"asymmetry": "ppm", "k2": "ppm/g", "k3": "ppm/g²",
-                    "k4": "ppm/g³", "k5": "ppm/g⁴", "cross_coupling": "ppm/g (m31 and m32 each)"}[k]}
+                k: {
+                    "range": list(v),
+                    "unit": {
+                        "asymmetry": "ppm",
+                        "k2": "ppm/g",
+                        "k3": "ppm/g²",
+                        "k4": "ppm/g³",
+                        "k5": "ppm/g⁴",
+                        "cross_coupling": "ppm/g (m31 and m32 each)",
+                    }[k],
+                }
                 for k, v in VIB_MAGNITUDES.items()
             },
             "snr_definition": "‖effect's mean-output contribution over the rows, minus its "
@@ -730,11 +790,15 @@ def _assumptions(kind) -> dict:
         "held_out": "the last third of the record",
         "white_std_g_log_uniform": list(NOISE_WHITE),
         "level_g": f"1 + uniform {list(NOISE_LEVEL)}",
-        "gauss_markov": {"std_over_white_log_uniform": list(GM_STD_RATIO),
-                         "correlation_time_s_log_uniform": list(GM_TIME)},
-        "exp_cosine": {"std_over_white_log_uniform": list(EC_STD_RATIO),
-                       "period_s_log_uniform": list(EC_PERIOD),
-                       "beta_over_alpha_log_uniform": list(EC_QUALITY)},
+        "gauss_markov": {
+            "std_over_white_log_uniform": list(GM_STD_RATIO),
+            "correlation_time_s_log_uniform": list(GM_TIME),
+        },
+        "exp_cosine": {
+            "std_over_white_log_uniform": list(EC_STD_RATIO),
+            "period_s_log_uniform": list(EC_PERIOD),
+            "beta_over_alpha_log_uniform": list(EC_QUALITY),
+        },
         "random_walk": {"walk_over_record_over_white_log_uniform": list(RW_WALK)},
         "snr_definition": "effect variance / white variance (random walk: q·T_record/σ_w²)",
         "truth_simulator": "simulate_noise (exact discrete-time sampling)",
@@ -800,7 +864,9 @@ def run(
     timing["diagnose_all_kinds_one_process"] = time.perf_counter() - t0
     for kind in kinds:
         if [v["file"] for v in answers[kind]] != names[kind]:
-            raise RuntimeError(f"the diagnosis returned verdicts for other {kind} files than were written")
+            raise RuntimeError(
+                f"the diagnosis returned verdicts for other {kind} files than were written"
+            )
     aj.write_json_atomic(
         out_dir / "truth.json",
         {kind: dict(zip(names[kind], truths[kind], strict=True)) for kind in kinds},
@@ -821,26 +887,33 @@ def run(
             if v["verdict"] == t["effect"] != "none"
         ]
         if kind in SNR_EDGES:
-            effect_rows = [(s, v["verdict"] == t["effect"]) for t, v, s in
-                           zip(truths[kind], verdicts, snr, strict=True) if t["effect"] != "none"]
+            effect_rows = [
+                (s, v["verdict"] == t["effect"])
+                for t, v, s in zip(truths[kind], verdicts, snr, strict=True)
+                if t["effect"] != "none"
+            ]
             section["_snr"] = [s for s, _ in effect_rows]
             section["_named"] = [ok for _, ok in effect_rows]
             section["correct_by_snr"] = _by_snr(truths[kind], verdicts, snr, SNR_EDGES[kind])
             effect_snr = np.asarray(section["_snr"])
             section["snr_percentiles_p10_p50_p90"] = (
-                [float(np.percentile(effect_snr, q)) for q in (10, 50, 90)] if effect_snr.size else None
+                [float(np.percentile(effect_snr, q)) for q in (10, 50, 90)]
+                if effect_snr.size
+                else None
             )
             result[kind] = section
-            figures.append({
-                "file": _kind_figure(out_dir, kind, section, SNR_LABEL[kind]),
-                "caption": (
-                    f"Blind validation of the {kind} diagnosis. Left: confusion matrix of true "
-                    "effect vs blind verdict. Middle: held-out gap shrink where the effect was "
-                    "named correctly. Right: naming against the effect's signal-to-noise ratio "
-                    f"({SNR_LABEL[kind]}); squares: fraction per bin. Magnitudes and noise as in "
-                    "the assumptions block."
-                ),
-            })
+            figures.append(
+                {
+                    "file": _kind_figure(out_dir, kind, section, SNR_LABEL[kind]),
+                    "caption": (
+                        f"Blind validation of the {kind} diagnosis. Left: confusion matrix of true "
+                        "effect vs blind verdict. Middle: held-out gap shrink where the effect was "
+                        "named correctly. Right: naming against the effect's signal-to-noise ratio "
+                        f"({SNR_LABEL[kind]}); squares: fraction per bin. Magnitudes and noise as in "
+                        "the assumptions block."
+                    ),
+                }
+            )
         else:
             result[kind] = section
             figures += _figures(out_dir, result, _lag_breakdown(truths[kind], verdicts))
@@ -848,45 +921,72 @@ def run(
         for key in ("_shrinks", "_snr", "_named"):
             section.pop(key, None)
         summary += [
-            {"quantity": f"{kind}: effects named correctly (strict: verdict = true effect)",
-             "ours": section["accuracy"], "paper": 0.90,
-             "note": f"{target} ≥ 0.90. cannot_tell counts as wrong here. 95 % interval "
-                     f"{_fmt_ci(section['accuracy_95ci'])} over {sum(section['n_per_class'].values()) - section['n_per_class']['none']} effect datasets."},
-            {"quantity": f"{kind}: effects named correctly or cannot_tell naming the true effect",
-             "ours": section["accuracy_incl_cannot_tell_naming_truth"], "paper": 0.90,
-             "note": _LENIENT_NOTE[kind]},
-            {"quantity": f"{kind}: false-alarm rate on no-effect datasets",
-             "ours": section["false_alarm_rate"], "paper": 0.05,
-             "note": f"{target} ≤ 0.05 ({section['false_alarms']} of "
-                     f"{section['n_per_class']['none']}; 95 % interval "
-                     f"{_fmt_ci(section['false_alarm_rate_95ci'])})."},
-            {"quantity": f"{kind}: median held-out gap shrink (effect named)",
-             "ours": section["median_gap_shrink"], "paper": 0.5,
-             "note": f"{target} ≥ 0.5; {_GAP_NOTE[kind]}"},
+            {
+                "quantity": f"{kind}: effects named correctly (strict: verdict = true effect)",
+                "ours": section["accuracy"],
+                "paper": 0.90,
+                "note": f"{target} ≥ 0.90. cannot_tell counts as wrong here. 95 % interval "
+                f"{_fmt_ci(section['accuracy_95ci'])} over {sum(section['n_per_class'].values()) - section['n_per_class']['none']} effect datasets.",
+            },
+            {
+                "quantity": f"{kind}: effects named correctly or cannot_tell naming the true effect",
+                "ours": section["accuracy_incl_cannot_tell_naming_truth"],
+                "paper": 0.90,
+                "note": _LENIENT_NOTE[kind],
+            },
+            {
+                "quantity": f"{kind}: false-alarm rate on no-effect datasets",
+                "ours": section["false_alarm_rate"],
+                "paper": 0.05,
+                "note": f"{target} ≤ 0.05 ({section['false_alarms']} of "
+                f"{section['n_per_class']['none']}; 95 % interval "
+                f"{_fmt_ci(section['false_alarm_rate_95ci'])}).",
+            },
+            {
+                "quantity": f"{kind}: median held-out gap shrink (effect named)",
+                "ours": section["median_gap_shrink"],
+                "paper": 0.5,
+                "note": f"{target} ≥ 0.5; {_GAP_NOTE[kind]}",
+            },
         ]
         datasets[kind] = [
-            {"file": name, "truth": truth["effect"], "verdict": verdict["verdict"],
-             "tied": verdict["tied"], "gap_shrink": verdict["gap"]["shrink"],
-             "gap_shrink_std": verdict["gap"]["shrink_std"], "snr": s}
-            for name, truth, verdict, s in
-            zip(names[kind], truths[kind], verdicts, _snr(kind, truths[kind]), strict=True)
+            {
+                "file": name,
+                "truth": truth["effect"],
+                "verdict": verdict["verdict"],
+                "tied": verdict["tied"],
+                "gap_shrink": verdict["gap"]["shrink"],
+                "gap_shrink_std": verdict["gap"]["shrink_std"],
+                "snr": s,
+            }
+            for name, truth, verdict, s in zip(
+                names[kind], truths[kind], verdicts, _snr(kind, truths[kind]), strict=True
+            )
         ]
         assumptions[kind] = _assumptions(kind)
     timing["total"] = time.perf_counter() - started
-    result.update({
-        "summary": summary,
-        "datasets": datasets,
-        "figures": figures,
-        "assumptions": {
-            **assumptions,
-            "per_class": {k: (per_class if per_class is not None else
-                              (PER_CLASS_QUICK[k] if quick else PER_CLASS_FULL[k])) for k in kinds},
-            "blindness": "diagnosis in a separate process given only the CSV folders",
-            "precision": "float64",
-        },
-        "timing_s": timing,
-        "provenance": aj.provenance(seeds={"study": seed}, precision="float64"),
-    })
+    result.update(
+        {
+            "summary": summary,
+            "datasets": datasets,
+            "figures": figures,
+            "assumptions": {
+                **assumptions,
+                "per_class": {
+                    k: (
+                        per_class
+                        if per_class is not None
+                        else (PER_CLASS_QUICK[k] if quick else PER_CLASS_FULL[k])
+                    )
+                    for k in kinds
+                },
+                "blindness": "diagnosis in a separate process given only the CSV folders",
+                "precision": "float64",
+            },
+            "timing_s": timing,
+            "provenance": aj.provenance(seeds={"study": seed}, precision="float64"),
+        }
+    )
     aj.write_json_atomic(out_dir / "result.json", result)
     return result
 
