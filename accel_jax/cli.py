@@ -54,6 +54,13 @@ def main():
 )
 @click.option("--no-progress", is_flag=True, help="No progress bars (e.g. in logs).")
 @click.option(
+    "--compile-cache/--no-compile-cache",
+    default=True,
+    show_default=True,
+    help="Keep compiled XLA programs on disk ($ACCEL_JAX_CACHE_DIR, default "
+    "~/.cache/accel_jax/xla) so that later runs skip most of the compilation.",
+)
+@click.option(
     "--params",
     "params_file",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -61,7 +68,9 @@ def main():
     help="Your device (TOML: ServoParams fields, value or {value, uncertainty}) for the "
     "studies of the closed loop; default the SPEC.md reference device.",
 )
-def report(out_dir: Path, quick: bool, force: bool, no_progress: bool, params_file):
+def report(
+    out_dir: Path, quick: bool, force: bool, no_progress: bool, compile_cache: bool, params_file
+):
     """Run every study and write a self-contained HTML report (OUT/index.html).
 
     Interrupted runs resume: a study that finished with the same options and code is not
@@ -72,6 +81,12 @@ def report(out_dir: Path, quick: bool, force: bool, no_progress: bool, params_fi
     # Studies measure effects below float32 resolution (δK_a at 0.1 %): run them in float64.
     jax.config.update("jax_enable_x64", True)
     from ._data import DataError, read_params_toml
+    from ._xla import enable_compilation_cache
+
+    if compile_cache:
+        folder = enable_compilation_cache()
+        if folder is not None:
+            click.echo(f"compilation cache: {folder}")
     from .report._run import ReportError, run_report
 
     params = None

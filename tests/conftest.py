@@ -6,6 +6,12 @@ from accel_jax._xla import apply_cpu_workarounds
 
 apply_cpu_workarounds()  # XLA:CPU scheduler deadlock on batched nested loops (see _xla.py)
 
+import os  # noqa: E402
+
+# Hermetic timings: the report's persistent compilation cache stays off in the tests unless
+# the caller chose a folder (tests/test_xla.py checks the cache itself in a subprocess).
+os.environ.setdefault("ACCEL_JAX_CACHE_DIR", "off")
+
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
@@ -39,10 +45,11 @@ def quick_report(tmp_path_factory, worker_id):
                 result = CliRunner().invoke(
                     main, ["report", "--quick", "--no-progress", "--out", str(out)]
                 )
-                done.write_text(json.dumps({"exit_code": result.exit_code, "output": result.output}))
+                done.write_text(
+                    json.dumps({"exit_code": result.exit_code, "output": result.output})
+                )
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
     status = json.loads(done.read_text())
     assert status["exit_code"] == 0, status["output"]
     return out
-

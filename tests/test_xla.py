@@ -1,0 +1,70 @@
+"""Process-level settings of the entry points (accel_jax/_xla.py): the persistent
+compilation cache the report uses. Each case runs in a fresh interpreter, because JAX's
+cache configuration is process-global."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from accel_jax._xla import compilation_cache_dir
+
+_PROGRAM = """
+import sys
+from accel_jax._xla import enable_compilation_cache
+folder = enable_compilation_cache(sys.argv[1] if len(sys.argv) > 1 else None)
+import jax, jax.numpy as jnp
+f = jax.jit(lambda x: jnp.sin(x) @ jnp.cos(x).T + jnp.linalg.inv(x @ x.T + 3.0 * jnp.eye(8)))
+print(float(f(jnp.ones((8, 8))).sum()))
+print(folder)
+"""
+
+
+def _run(args, **env):
+    environment = {**os.environ, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0", **env}
+    environment.pop("JAX_COMPILATION_CACHE_DIR", None)
+    out = subprocess.run(
+        [sys.executable, "-c", _PROGRAM, *args],
+        capture_output=True,
+        text=True,
+        env=environment,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    return out.stdout.split()
+
+
+def test_cache_is_written_and_reused(tmp_path):
+    folder = tmp_path / "xla"
+    first = _run([str(folder)])
+    entries = sorted(p.name for p in folder.rglob("*") if p.is_file())
+    assert entries, "no compiled program was written to the cache"
+    second = _run([str(folder)])
+    assert second[0] == first[0]  # same result from the cached program
+    assert sorted(p.name for p in folder.rglob("*") if p.is_file()) == entries  # a hit
+
+
+def test_cache_folder_from_environment(tmp_path):
+    folder = tmp_path / "from_env"
+    assert _run([], ACCEL_JAX_CACHE_DIR=str(folder))[1] == str(folder)
+    assert any(folder.rglob("*"))
+
+
+@pytest.mark.parametrize("value", ["off", "0", ""])
+def test_cache_disabled(monkeypatch, value):
+    monkeypatch.setenv("ACCEL_JAX_CACHE_DIR", value)
+    assert compilation_cache_dir() is None
+
+
+def test_cache_default_folder(monkeypatch, tmp_path):
+    monkeypatch.delenv("ACCEL_JAX_CACHE_DIR", raising=False)
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert compilation_cache_dir() == tmp_path / "accel_jax" / "xla"
+
+
+def test_unwritable_cache_folder_runs_without_it(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    assert _run([str(blocker / "xla")])[1] == "None"
