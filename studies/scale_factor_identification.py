@@ -161,7 +161,14 @@ def _summarise(errors: np.ndarray, codes: np.ndarray, n_values: int, seeds: int)
     }
 
 
+def _traced(*values):
+    """Shared scalars (γ, k_dp k_y, lag) as float64 arrays: as Python floats they would be
+    static to the compiled sweep, and every new value would compile it again."""
+    return tuple(jnp.asarray(v, jnp.float64) for v in values)
+
+
 def _run_sweep(one, base, field, values, seeds, key, shared_args):
+    shared_args = _traced(*shared_args)
     batch = _params_batch(base, field, values, seeds)
     keys = jax.random.split(key, len(values) * seeds)
     errors, codes = aj.sweep(
@@ -185,8 +192,10 @@ def _devices(params: aj.ServoParams | None) -> tuple[aj.ServoParams, aj.ServoPar
     if params is None:
         return aj.ServoParams.reference(), aj.ServoParams.reference_aperiodic(), "SPEC.md reference"
     xi = float(aj.damping_ratio(params))
-    other = {True: float(aj.damping_ratio(aj.ServoParams.reference_aperiodic())),
-             False: float(aj.damping_ratio(aj.ServoParams.reference()))}[xi < 1]
+    other = {
+        True: float(aj.damping_ratio(aj.ServoParams.reference_aperiodic())),
+        False: float(aj.damping_ratio(aj.ServoParams.reference())),
+    }[xi < 1]
     twin = eqx.tree_at(
         lambda p: p.damping, params, jnp.asarray(_damping_for_ratio(params, other), jnp.float64)
     )
@@ -233,9 +242,7 @@ def run(
             one,
             batch,
             keys,
-            gamma,
-            gain_stops,
-            *extra,
+            *_traced(gamma, gain_stops, *extra),
             in_axes=(0, 0, None, None) + (None,) * len(extra),
         )
         s = _summarise(np.asarray(errors), np.asarray(codes), 1, seeds)
@@ -300,7 +307,11 @@ def run(
         "provenance": aj.provenance(
             seeds={"root": seed},
             precision="float64",
-            extra={"params": ref.as_dict(), "params_aperiodic": ref_ap.as_dict(), "wall_time_s": time.perf_counter() - started},
+            extra={
+                "params": ref.as_dict(),
+                "params_aperiodic": ref_ap.as_dict(),
+                "wall_time_s": time.perf_counter() - started,
+            },
         ),
     }
     result["summary"] = _summary_rows(result)
@@ -597,8 +608,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
             aper,
             batch,
             keys,
-            gamma,
-            gain,
+            *_traced(gamma, gain),
             jnp.repeat(lag, seeds),
             in_axes=(0, 0, None, None, 0),
         )
@@ -611,8 +621,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
             clean,
             batch1,
             jax.random.split(key, len(values)),
-            gamma,
-            gain,
+            *_traced(gamma, gain),
             lag,
             in_axes=(0, 0, None, None, 0),
         )
@@ -693,7 +702,7 @@ def compare_fit(ref, gain, gamma, seeds, key, ts) -> dict:
     osc = functools.partial(
         _oscillatory_error, ts=ts, crossing=CROSSING, extremum=EXTREMUM, noisy=True
     )
-    e, c = aj.sweep(osc, batch, keys, gamma, gain, in_axes=(0, 0, None, None))
+    e, c = aj.sweep(osc, batch, keys, *_traced(gamma, gain), in_axes=(0, 0, None, None))
     out["graph_analytic"] = {
         k: v[0] for k, v in _summarise(np.asarray(e), np.asarray(c), 1, seeds).items()
     }
@@ -703,7 +712,7 @@ def compare_fit(ref, gain, gamma, seeds, key, ts) -> dict:
         ("fit_order_3_known_filter", 3, True),
     ):
         one = functools.partial(_fit_error, ts=ts, order=order, known_filter=known)
-        e, c = aj.sweep(one, batch, keys, gamma, gain, in_axes=(0, 0, None, None))
+        e, c = aj.sweep(one, batch, keys, *_traced(gamma, gain), in_axes=(0, 0, None, None))
         out[name] = {k: v[0] for k, v in _summarise(np.asarray(e), np.asarray(c), 1, seeds).items()}
     out["note"] = (
         "γ exact, k_dp k_y true, reference device with noise ε = 1e-5 V. fit_order_3 ignores "
@@ -754,7 +763,9 @@ def _summary_rows(result: dict) -> list[dict]:
         # The paper's numbers belong to its device; do not set them beside another one's.
         for row in rows:
             if row["paper"] != "—":
-                row["note"] = f"paper value {row['paper']} is for the SPEC.md device; " + row["note"]
+                row["note"] = (
+                    f"paper value {row['paper']} is for the SPEC.md device; " + row["note"]
+                )
                 row["paper"] = "—"
     return rows
 

@@ -6,6 +6,7 @@ import sys
 import textwrap
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -24,6 +25,26 @@ def test_sweep_matches_vmap_single_device():
     ref = eqx.filter_jit(eqx.filter_vmap(_one, in_axes=(0, None)))(batch, 2.0)
     np.testing.assert_array_equal(out[0], ref[0])
     np.testing.assert_array_equal(out[1], ref[1])
+
+
+def _first_pair(params, gain):
+    return aj.damping_ratio(params) * gain
+
+
+def test_weak_and_strong_batches_share_one_compilation():
+    # A batch whose leaves come from Python numbers is weakly typed; the same batch with one
+    # field swept as a float64 array is not. Both must hit one compiled kernel.
+    from accel_jax._sweep import _compiled
+
+    ref = aj.ServoParams.reference()
+    weak = jax.tree_util.tree_map(lambda x: jnp.full(5, x), ref)  # weak_type leaves
+    strong = eqx.tree_at(lambda p: p.damping, weak, jnp.linspace(1e-5, 2e-4, 5, dtype=float))
+    assert weak.damping.weak_type and not strong.damping.weak_type
+    a = aj.sweep(_first_pair, weak, jnp.asarray(2.0), in_axes=(0, None))
+    b = aj.sweep(_first_pair, strong, jnp.asarray(2.0, float), in_axes=(0, None))
+    assert _compiled(_first_pair, (0, None))._cached._cache_size() == 1
+    np.testing.assert_allclose(a, aj.damping_ratio(ref) * 2.0, rtol=1e-15)
+    assert np.all(np.diff(np.asarray(b)) != 0)  # the swept field did reach the kernel
 
 
 def test_sweep_chunks_and_progress_give_the_same_numbers(capsys):
