@@ -82,6 +82,13 @@ COEFFICIENT_UNITS = {
 }
 """SI-free units of each coefficient (accelerations in g); ×1e6 gives the paper's ppm units."""
 
+PPM_UNITS = {
+    name: {"g": "µg", "1": "ppm"}.get(unit, "ppm" + unit[1:])
+    for name, unit in COEFFICIENT_UNITS.items()
+}
+"""The paper's display units of each coefficient ×1e6: a0 in µg, δ and A1 in ppm, k2 in ppm/g,
+k3 in ppm/g², …"""
+
 
 class StaticTransferFunction(eqx.Module):
     """Static transfer function of a pendulum accelerometer in acceleration units, eq. (1):

@@ -148,17 +148,6 @@ def _writable(path: Path | None, force: bool, option: str) -> None:
         )
 
 
-_PPM_UNITS = {
-    "asymmetry": "ppm",
-    "k2": "ppm/g",
-    "k3": "ppm/g²",
-    "k4": "ppm/g³",
-    "k5": "ppm/g⁴",
-    "m31": "ppm/g",
-    "m32": "ppm/g",
-}
-
-
 def _read_psd(path: Path):
     """A band-PSD CSV (header f_low,f_high,psd[,eta]; Hz, Hz, g²/Hz, 1) as a BandSpectrum."""
     import csv
@@ -259,7 +248,7 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     # Limits are ratios of O(1e-4 g) budgets to exact sensitivities: float64 for ppm.
     jax.config.update("jax_enable_x64", True)
     from ._io import write_json_atomic
-    from ._static import StaticTransferFunction
+    from ._static import PPM_UNITS, StaticTransferFunction
     from ._tolerance import TOLERANCED, ToleranceScenario, gradient_limits, paper_limits
     from ._vibration import VibrationEnvironment
 
@@ -301,7 +290,7 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     rows = {}
     for name in TOLERANCED:
         row = {
-            "unit": _PPM_UNITS[name],
+            "unit": PPM_UNITS[name],
             "paper_method": float(paper[name]) * 1e6,
             "gradient_paper_shares": float(grad["paper_shares"][name]) * 1e6,
             "gradient_full_budget": float(grad["full_budget"][name]) * 1e6,

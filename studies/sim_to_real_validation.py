@@ -767,11 +767,7 @@ def _assumptions(kind) -> dict:
                 k: {
                     "range": list(v),
                     "unit": {
-                        "asymmetry": "ppm",
-                        "k2": "ppm/g",
-                        "k3": "ppm/g²",
-                        "k4": "ppm/g³",
-                        "k5": "ppm/g⁴",
+                        **aj.PPM_UNITS,
                         "cross_coupling": "ppm/g (m31 and m32 each)",
                     }[k],
                 }

@@ -62,7 +62,7 @@ TABLE5 = {
 UNITS = {"AKS-05": StaticTransferFunction.aks05, "AL-1M": StaticTransferFunction.al1m}
 EFFECTS = ("asymmetry", "k2", "k3", "k4", "k5")
 LABELS = {"asymmetry": "A1", "k2": "k2", "k3": "k3", "k4": "k4", "k5": "k5"}
-UNIT_NAMES = {"asymmetry": "ppm", "k2": "ppm/g", "k3": "ppm/g²", "k4": "ppm/g³", "k5": "ppm/g⁴"}
+UNIT_NAMES = {effect: aj.PPM_UNITS[effect] for effect in EFFECTS}
 
 # Further shaker rows at which the candidate explanations are compared (a [g], b [g]).
 PROBES = ((1.0, 2.0), (-1.0, 2.0), (0.0, 2.0), (1.0, 4.0), (1.0, 1.0), (0.0, 6.0))
@@ -88,7 +88,9 @@ def _errors(tf, a, b):
 
 def _exact(tf, a, b) -> np.ndarray:
     """Exact vibration error [ppm] at the (broadcast) points a, b [g]."""
-    a, b = np.broadcast_arrays(np.atleast_1d(np.asarray(a, float)), np.atleast_1d(np.asarray(b, float)))
+    a, b = np.broadcast_arrays(
+        np.atleast_1d(np.asarray(a, float)), np.atleast_1d(np.asarray(b, float))
+    )
     return np.asarray(_errors(tf, jnp.asarray(a), jnp.asarray(b))[0]) / PPM
 
 
@@ -174,8 +176,15 @@ def analyse_unit(name: str) -> dict:
     spread = []
     for j, (a, b) in enumerate(PROBES):
         values = [closing[e]["predicted_at_probes_ppm"][j] for e in EFFECTS]
-        spread.append({"a_g": a, "b_g": b, "min_ppm": min(values), "max_ppm": max(values),
-                       "spread_ppm": max(values) - min(values)})
+        spread.append(
+            {
+                "a_g": a,
+                "b_g": b,
+                "min_ppm": min(values),
+                "max_ppm": max(values),
+                "spread_ppm": max(values) - min(values),
+            }
+        )
     return {
         "passport": passport.as_ppm(),
         "readings_g": list(readings),
@@ -211,6 +220,13 @@ def analyse_unit(name: str) -> dict:
 
 def _figures(out_dir: Path, result: dict) -> list[dict]:
     figures = []
+
+    def save(fig, file, caption):
+        fig.tight_layout()
+        aj.save_figure_atomic(fig, out_dir / file)
+        plt.close(fig)
+        figures.append({"file": file, "caption": caption})
+
     units = list(TABLE5)
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
     for ax, unit in zip(axes, units, strict=True):
@@ -222,13 +238,25 @@ def _figures(out_dir: Path, result: dict) -> list[dict]:
         paper_stack = np.concatenate([[0], np.cumsum(paper)])
         for i, e in enumerate(EFFECTS):
             ax.bar(i - 0.2, exact[i], 0.4, bottom=exact_stack[i], color=f"C{i}")
-            ax.bar(i + 0.2, paper[i], 0.4, bottom=paper_stack[i], color=f"C{i}", alpha=0.45,
-                   hatch="//")
+            ax.bar(
+                i + 0.2, paper[i], 0.4, bottom=paper_stack[i], color=f"C{i}", alpha=0.45, hatch="//"
+            )
         ax.bar(len(EFFECTS) - 0.2, exact_stack[-1], 0.4, color="0.3", label="exact expectation")
-        ax.bar(len(EFFECTS) + 0.2, paper_stack[-1], 0.4, color="0.7", hatch="//",
-               label="paper's closed form (19)")
-        ax.bar(len(EFFECTS) + 1, r["measured_vibration_error_ppm"], 0.5, color="k",
-               label="measured (after basic compensation)")
+        ax.bar(
+            len(EFFECTS) + 0.2,
+            paper_stack[-1],
+            0.4,
+            color="0.7",
+            hatch="//",
+            label="paper's closed form (19)",
+        )
+        ax.bar(
+            len(EFFECTS) + 1,
+            r["measured_vibration_error_ppm"],
+            0.5,
+            color="k",
+            label="measured (after basic compensation)",
+        )
         ax.set_xticks(x, [LABELS[e] for e in EFFECTS] + ["sum", "measured"])
         ax.set_ylabel("vibration error at 1 g, 2 g sine [ppm]")
         gap = r["gap"]
@@ -237,18 +265,16 @@ def _figures(out_dir: Path, result: dict) -> list[dict]:
             f"{gap['after_paper_ppm']:.1f} ppm (closed form)"
         )
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "table5_contributions.png")
-    plt.close(fig)
-    figures.append({
-        "file": "table5_contributions.png",
-        "caption": (
+    save(
+        fig,
+        "table5_contributions.png",
+        (
             "Table 5 (1 g, 2 g sinusoid at 30 Hz): the vibration error each effect explains "
             "with its Table 4 passport value, cumulated (solid: exact expectation; hatched: the "
             "paper's closed form (19), which differs only in the A1 term), against the measured "
             "vibration error (the reading after basic-error compensation). Nothing is fitted."
         ),
-    })
+    )
 
     fig, axes = plt.subplots(2, 2, figsize=(13, 8.5))
     amplitudes = np.linspace(0.0, 4.0, 81)
@@ -258,22 +284,29 @@ def _figures(out_dir: Path, result: dict) -> list[dict]:
             for i, e in enumerate(EFFECTS):
                 delta = r["one_effect_closing_the_gap"][e]["change"]
                 extra = _sensitivity(e, a, amplitudes) * delta
-                ax.plot(amplitudes, extra, color=f"C{i}",
-                        label=f"Δ{LABELS[e]} = {delta:+.3g} {UNIT_NAMES[e]}")
+                ax.plot(
+                    amplitudes,
+                    extra,
+                    color=f"C{i}",
+                    label=f"Δ{LABELS[e]} = {delta:+.3g} {UNIT_NAMES[e]}",
+                )
             if a == INPUT_G:
-                ax.plot([SINE_G], [r["gap"]["after_exact_ppm"]], "ko", ms=7,
-                        label="Table 5 gap (exact model)")
+                ax.plot(
+                    [SINE_G],
+                    [r["gap"]["after_exact_ppm"]],
+                    "ko",
+                    ms=7,
+                    label="Table 5 gap (exact model)",
+                )
             ax.axhline(0, color="k", lw=0.5)
             ax.set_xlabel(f"sine amplitude b along the input axis [g] (a = {a:+g} g)")
             ax.set_ylabel("vibration error beyond the passport model [ppm]")
             ax.set_title(f"{unit}, a = {a:+g} g: the single-effect explanations")
             ax.legend(fontsize=7)
-    fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "table5_explanations.png")
-    plt.close(fig)
-    figures.append({
-        "file": "table5_explanations.png",
-        "caption": (
+    save(
+        fig,
+        "table5_explanations.png",
+        (
             "The gap the passport model leaves (exact expectation), closed by changing one "
             "coefficient at a time: the extra vibration error each explanation predicts. At "
             "a = +1 g every curve passes through the one Table 5 reading (b = 2 g) and they "
@@ -281,7 +314,7 @@ def _figures(out_dir: Path, result: dict) -> list[dict]:
             "rows at other amplitudes and input levels would discriminate the explanations; "
             "the one reading cannot."
         ),
-    })
+    )
     return figures
 
 
@@ -305,23 +338,35 @@ def run(out_dir: Path, *, quick: bool = False) -> dict:
     for name, r in units.items():
         gap = r["gap"]
         summary += [
-            {"quantity": f"{name}: measured vibration error (after basic compensation) [ppm]",
-             "ours": r["measured_vibration_error_ppm"], "paper": r["measured_vibration_error_ppm"],
-             "note": "Table 5 reading; the basic error from Table 4 at 1 g is "
-                     f"{r['basic_error_ppm']:.1f} ppm (the readings differ by "
-                     f"{r['basic_from_readings_ppm']:.0f})."},
-            {"quantity": f"{name}: explained by A1, k2..k5 with passport values, exact [ppm]",
-             "ours": r["explained_exact_ppm"], "paper": None,
-             "note": "largest share: " + max(
-                 EFFECTS, key=lambda e: r["contributions"][e]["exact_ppm"]) + "."},
-            {"quantity": f"{name}: explained, paper's closed form (19) [ppm]",
-             "ours": r["explained_paper_ppm"],
-             "paper": r["readings_residual_ppm"][1] - r["readings_residual_ppm"][2],
-             "note": "paper column: what its compensation removed (Table 5)."},
-            {"quantity": f"{name}: gap left, exact expectation [ppm]",
-             "ours": gap["after_exact_ppm"], "paper": gap["paper_published_after_ppm"],
-             "note": f"shrink {gap['shrink_exact']:.2f}; paper column: its residual after "
-                     f"compensation; readings rounded to ±{gap['reading_rounding_ppm']} ppm."},
+            {
+                "quantity": f"{name}: measured vibration error (after basic compensation) [ppm]",
+                "ours": r["measured_vibration_error_ppm"],
+                "paper": r["measured_vibration_error_ppm"],
+                "note": "Table 5 reading; the basic error from Table 4 at 1 g is "
+                f"{r['basic_error_ppm']:.1f} ppm (the readings differ by "
+                f"{r['basic_from_readings_ppm']:.0f}).",
+            },
+            {
+                "quantity": f"{name}: explained by A1, k2..k5 with passport values, exact [ppm]",
+                "ours": r["explained_exact_ppm"],
+                "paper": None,
+                "note": "largest share: "
+                + max(EFFECTS, key=lambda e: r["contributions"][e]["exact_ppm"])
+                + ".",
+            },
+            {
+                "quantity": f"{name}: explained, paper's closed form (19) [ppm]",
+                "ours": r["explained_paper_ppm"],
+                "paper": r["readings_residual_ppm"][1] - r["readings_residual_ppm"][2],
+                "note": "paper column: what its compensation removed (Table 5).",
+            },
+            {
+                "quantity": f"{name}: gap left, exact expectation [ppm]",
+                "ours": gap["after_exact_ppm"],
+                "paper": gap["paper_published_after_ppm"],
+                "note": f"shrink {gap['shrink_exact']:.2f}; paper column: its residual after "
+                f"compensation; readings rounded to ±{gap['reading_rounding_ppm']} ppm.",
+            },
         ]
     closing_aks = aks["one_effect_closing_the_gap"]
     within = [LABELS[e] for e in EFFECTS if closing_aks[e]["within_table2_range"]]

@@ -97,18 +97,6 @@ PPM = 1e-6
 FIT_TOLERANCE = 1e-10
 """rtol = atol of the least-squares fits (ppm-scaled coefficients and residuals)."""
 
-_UNITS = {
-    "bias": "µg",
-    "scale_factor_error": "ppm",
-    "asymmetry": "ppm",
-    "k2": "ppm/g",
-    "k3": "ppm/g²",
-    "k4": "ppm/g³",
-    "k5": "ppm/g⁴",
-    "m31": "ppm/g",
-    "m32": "ppm/g",
-}
-
 
 class VibrationEffect(AbstractEffect):
     """An effect on a vibration table: it frees the transfer-function coefficients
@@ -233,9 +221,7 @@ def _fit_table(design, target, masks, weights):
         # Gauss–Newton with an SVD solve: the problem is linear, so the first step lands on
         # the least-squares solution and the second confirms it; the SVD keeps a fold whose
         # training rows cannot determine a coefficient finite (minimum-norm solution).
-        solver = optx.GaussNewton(
-            rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE, linear_solver=lx.SVD()
-        )
+        solver = optx.GaussNewton(rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE, linear_solver=lx.SVD())
         solution = optx.least_squares(
             residuals, solver, jnp.zeros(design.shape[1]), max_steps=16, throw=False
         )
@@ -396,8 +382,10 @@ def _localise(data: VibrationData, residual: np.ndarray, sigma: float, prep: dic
         where["by_vibration_frequency"] = [
             {
                 "band": int(b),
-                "frequency_range_Hz": [float(freq[vibrating & (band == b)].min()),
-                                       float(freq[vibrating & (band == b)].max())],
+                "frequency_range_Hz": [
+                    float(freq[vibrating & (band == b)].min()),
+                    float(freq[vibrating & (band == b)].max()),
+                ],
                 "rows": int(np.sum(vibrating & (band == b))),
                 "rms_residual_g": float(np.sqrt(np.mean(residual[vibrating & (band == b)] ** 2))),
             }
@@ -466,8 +454,9 @@ def _postprocess(data: VibrationData, prep: dict, effects, thetas, converged) ->
     floor = min(f.train_ms for f in fits)
     by_name = {f.effect: f for f in fits}
     for entry in ranking:
-        g = held_out_gap(fits[0].held_out_errors, by_name[entry["effect"]].held_out_errors, floor,
-                         block=1)
+        g = held_out_gap(
+            fits[0].held_out_errors, by_name[entry["effect"]].held_out_errors, floor, block=1
+        )
         entry["gap_shrink"] = g["shrink"]
     chosen = verdict if verdict in by_name else (tied[0] if tied else "nominal")
     after = by_name[chosen].held_out_errors if verdict != "none" else fits[0].held_out_errors
