@@ -305,8 +305,8 @@ class OscillatoryEstimate(eqx.Module):
     result: IdentificationResult
 
 
-def _crossing(ts, deviation, fit_width, state_change_count, last_labelled, number, crossing):
-    """Time of the `number`-th hysteresis transition's zero crossing, and whether it exists.
+def _crossing(ts, deviation, label, fit_width, k, exists, crossing):
+    """Time of a hysteresis transition's zero crossing (see `_transitions`).
 
     The transition completes at sample k (first beyond the far band edge); the last sample
     before it beyond the near edge is a (between them all samples are inside the band). The
@@ -325,18 +325,39 @@ def _crossing(ts, deviation, fit_width, state_change_count, last_labelled, numbe
     a..k instead jumped by O(dt² U''/U') each time a sample entered or left the band, and
     finite differences across such a jump disagreed with the gradient.
     """
-    exists = state_change_count[-1] >= number
-    k = jnp.argmax(state_change_count >= number)
+    index = jnp.arange(ts.shape[0], dtype=jnp.int32)
     k = jnp.where(exists, k, 1)
-    a = last_labelled[k - 1]
-    return _fit_crossing(ts, deviation, fit_width, a, k, crossing), exists
+    # The last sample outside the band before k (it lies beyond the near edge: had one
+    # been beyond the far edge, the transition would have completed there).
+    a = jnp.max(jnp.where((index < k) & (label != 0), index, 0))
+    return _fit_crossing(ts, deviation, fit_width, a, k, crossing)
 
 
-def _rising_crossing(ts, deviation, band, fit_width, state_change_count, limit, crossing):
+def _transitions(label):
+    """The first two transitions of the Schmitt trigger on `label` (+1/−1 beyond the band's
+    upper/lower edge, 0 inside), whose state starts at −1 (`label[0]` is −1).
+
+    The state is the label of the last sample outside the band; it changes to +1 at the
+    first sample labelled +1 (k₁) and back to −1 at the first sample labelled −1 after k₁
+    (k₂). Returns (k₁, k₁ exists, k₂, k₂ exists); an index that does not exist is 0. Two
+    masked arg-max reductions: the same indices as a forward fill of the state (cumulative
+    max, gather, cumulative count of changes) at a fraction of the cost on XLA:CPU, where
+    cumulative scans are several passes each.
+    """
+    index = jnp.arange(label.shape[0], dtype=jnp.int32)
+    up = label > 0
+    k1, has_1 = jnp.argmax(up), jnp.any(up)
+    down = (label < 0) & (index > k1) & has_1
+    k2, has_2 = jnp.argmax(down), jnp.any(down)
+    return k1, has_1, k2, has_2
+
+
+def _rising_crossing(ts, deviation, band, fit_width, below, has_below, limit, crossing):
     """The upward zero crossing that ends the first full period (t2), and whether it exists.
 
-    After the second hysteresis transition (the signal has gone below −band), t2 is the
-    first upward sign change of the deviation before sample `limit`. The third transition
+    After the second hysteresis transition at sample `below` (the signal has gone below
+    −band; `has_below` says whether it exists), t2 is the first upward sign change of the
+    deviation before sample `limit`. The third transition
     (rising above +band) is not required: for ξ ≳ 0.75 the overshoot after t2 is below the
     noise (at ξ = 0.77 it is 1.2e-5 of the step), while the crossing itself is still steep
     (the signal rises from the undershoot A2). The fit window runs from the last sample
@@ -345,9 +366,7 @@ def _rising_crossing(ts, deviation, band, fit_width, state_change_count, limit, 
     hysteresis crossing of `_crossing`.
     """
     n = ts.shape[0]
-    index = jnp.arange(n)
-    below = jnp.argmax(state_change_count >= 2)  # first sample of the −1 state
-    has_below = state_change_count[-1] >= 2
+    index = jnp.arange(n, dtype=jnp.int32)
     rises = jnp.concatenate([(deviation[:-1] < 0) & (deviation[1:] >= 0), jnp.zeros(1, bool)])
     candidate = rises & (index >= below) & (index + 1 < limit)
     exists = has_below & jnp.any(candidate)
@@ -363,7 +382,7 @@ def _rising_crossing(ts, deviation, band, fit_width, state_change_count, limit, 
 def _fit_crossing(ts, deviation, fit_width, a, k, crossing):
     """Weighted straight-line zero crossing over samples a..k (see `_crossing`)."""
     n = ts.shape[0]
-    index = jnp.arange(n)
+    index = jnp.arange(n, dtype=jnp.int32)
     window = (index >= a) & (index <= k)
     # The deviations at a and k lie beyond opposite band edges, so a sign change exists.
     positive = deviation >= 0
@@ -420,7 +439,7 @@ def _identify_oscillatory(
     record = _summarise(ts, u, step_time, steady_state, n_tail, saturation_level)
     ts, band = record.ts, record.band
     n = ts.shape[0]
-    index = jnp.arange(n)
+    index = jnp.arange(n, dtype=jnp.int32)
     # Deviation from the steady state, oriented so the response rises towards zero from
     # below whatever the direction of the step: crossings 1 and 3 go up, crossing 2 down.
     deviation = record.direction * (record.u - record.steady_state)
@@ -430,12 +449,9 @@ def _identify_oscillatory(
     # tail's own settling (a not-quite-settled aperiodic record crosses its tail mean
     # there), and U_ss is only defined by the tail.
     label = jnp.where(index < n - n_tail, label, 0)
-    # Schmitt trigger without a loop: the state is the label of the last sample outside
-    # the band (forward fill by a cumulative max of indices).
-    last_labelled = jax.lax.cummax(jnp.where(label != 0, index, 0))
-    state = label[last_labelled]
-    changes = jnp.concatenate([jnp.zeros(1, bool), state[1:] != state[:-1]])
-    change_count = jnp.cumsum(changes)
+    # Schmitt trigger: its first two transitions (the state is the label of the last sample
+    # outside the band).
+    k1, has_1, k2, has_2 = _transitions(label)
 
     # Width of the crossing fit's weights from the noise alone (not the band's floor), so
     # a noiseless record gives pure linear interpolation. σ is computed here without
@@ -445,9 +461,11 @@ def _identify_oscillatory(
     noisy = variance > 0
     sigma = jnp.where(noisy, jnp.sqrt(jnp.where(noisy, variance, 1.0)), 0.0)
     fit_width = _CROSSING_FIT_WIDTH * _NOISE_SIGMAS * sigma
-    t1, has_1 = _crossing(ts, deviation, fit_width, change_count, last_labelled, 1, crossing)
-    t_mid, _ = _crossing(ts, deviation, fit_width, change_count, last_labelled, 2, crossing)
-    t2, has_3 = _rising_crossing(ts, deviation, band, fit_width, change_count, n - n_tail, crossing)
+    t1 = _crossing(ts, deviation, label, fit_width, k1, has_1, crossing)
+    t_mid = _crossing(ts, deviation, label, fit_width, k2, has_2, crossing)
+    t2, has_3 = _rising_crossing(
+        ts, deviation, band, fit_width, k2, has_2, n - n_tail, crossing
+    )
     overshoot = _largest_between(ts, deviation, t1, t_mid, extremum)
     undershoot = _largest_between(ts, -deviation, t_mid, t2, extremum)
 
