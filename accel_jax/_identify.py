@@ -463,9 +463,7 @@ def _identify_oscillatory(
     fit_width = _CROSSING_FIT_WIDTH * _NOISE_SIGMAS * sigma
     t1 = _crossing(ts, deviation, label, fit_width, k1, has_1, crossing)
     t_mid = _crossing(ts, deviation, label, fit_width, k2, has_2, crossing)
-    t2, has_3 = _rising_crossing(
-        ts, deviation, band, fit_width, k2, has_2, n - n_tail, crossing
-    )
+    t2, has_3 = _rising_crossing(ts, deviation, band, fit_width, k2, has_2, n - n_tail, crossing)
     overshoot = _largest_between(ts, deviation, t1, t_mid, extremum)
     undershoot = _largest_between(ts, -deviation, t_mid, t2, extremum)
 
