@@ -15,21 +15,27 @@ from tqdm.auto import tqdm
 
 _ENABLED = contextvars.ContextVar("accel_jax_progress", default=False)
 _LABEL = contextvars.ContextVar("accel_jax_progress_label", default="")
+_POSITION = contextvars.ContextVar("accel_jax_progress_position", default=None)
 
 
 @contextlib.contextmanager
-def show_progress(enabled: bool = True, label: str = "") -> Iterator[None]:
+def show_progress(
+    enabled: bool = True, label: str = "", position: int | None = None
+) -> Iterator[None]:
     """Within this block, sweeps and studies draw progress bars on stderr.
 
     **Arguments:**
 
     - `enabled`: draw bars (default) or silence them inside an enabled block.
     - `label`: a prefix for the bars' descriptions (e.g. the study's name).
+    - `position`: the terminal line of the bars (tqdm's `position`), for processes that
+        draw bars side by side (the report's parallel studies); `None` lets tqdm choose.
     """
-    tokens = (_ENABLED.set(enabled), _LABEL.set(label))
+    tokens = (_ENABLED.set(enabled), _LABEL.set(label), _POSITION.set(position))
     try:
         yield
     finally:
+        _POSITION.reset(tokens[2])
         _LABEL.reset(tokens[1])
         _ENABLED.reset(tokens[0])
 
@@ -49,4 +55,5 @@ def bar(total: int, desc: str, unit: str = "it"):
         disable=not progress_enabled(),
         leave=False,
         dynamic_ncols=True,
+        position=_POSITION.get(),
     )

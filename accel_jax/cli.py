@@ -54,6 +54,13 @@ def main():
 )
 @click.option("--no-progress", is_flag=True, help="No progress bars (e.g. in logs).")
 @click.option(
+    "--jobs",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Studies run at a time, each in its own process. Default: one per CPU core, at "
+    "most 4 (1 on a GPU, whose memory every process would claim).",
+)
+@click.option(
     "--compile-cache/--no-compile-cache",
     default=True,
     show_default=True,
@@ -69,7 +76,13 @@ def main():
     "studies of the closed loop; default the SPEC.md reference device.",
 )
 def report(
-    out_dir: Path, quick: bool, force: bool, no_progress: bool, compile_cache: bool, params_file
+    out_dir: Path,
+    quick: bool,
+    force: bool,
+    no_progress: bool,
+    jobs: int | None,
+    compile_cache: bool,
+    params_file,
 ):
     """Run every study and write a self-contained HTML report (OUT/index.html).
 
@@ -106,6 +119,7 @@ def report(
             echo=click.echo,
             params=params,
             params_label=str(params_file) if params_file else None,
+            jobs=jobs,
         )
     except ReportError as error:
         raise click.ClickException(str(error)) from error

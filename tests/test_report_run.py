@@ -138,6 +138,105 @@ def test_user_device_reaches_studies_that_take_it_and_keys_the_cache(setup, tmp_
     assert runs(root) == 2  # the study without a params argument ran again, unchanged
 
 
+WORKER_STUDY = textwrap.dedent(
+    """
+    import os
+    from pathlib import Path
+
+    import jax
+    import jax.numpy as jnp
+
+    import accel_jax as aj
+
+    def run(out_dir, *, quick=False, params=None):
+        key = jax.random.key(len(Path(out_dir).name))  # the study seeds itself
+        value = jnp.sum(jax.random.normal(key, (1000,), jnp.float64 if
+                        jax.config.jax_enable_x64 else jnp.float32) ** 2)
+        aj.write_json_atomic(Path(out_dir) / "result.json", {
+            "title": "w", "pid": os.getpid(), "x64": bool(jax.config.jax_enable_x64),
+            "value": float(value), "damping": None if params is None else float(params.damping),
+        })
+        if (Path(out_dir).parent / f"fail_{Path(out_dir).name}").exists():
+            raise ValueError("this study rejects its input")
+        return {}
+    """
+)
+
+
+def _worker_setup(tmp_path, names):
+    studies = tmp_path / "studies"
+    studies.mkdir(exist_ok=True)
+    for name in names:
+        (studies / f"{name}.py").write_text(WORKER_STUDY)
+    return studies
+
+
+def test_parallel_studies_run_in_their_own_processes_with_the_same_results(tmp_path):
+    """jobs > 1: each study in a spawned process, with the parent's float64 setting and
+    device, and results identical to running them one by one in this process."""
+    import os
+
+    import jax
+
+    import accel_jax as aj
+
+    names = ("a1", "bb2", "ccc3")
+    studies = _worker_setup(tmp_path, names)
+    device = aj.ServoParams.reference(damping=3e-5)
+    results = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}" / "report"
+        messages = []
+        run_report(
+            out,
+            studies=names,
+            studies_dir=studies,
+            progress=False,
+            echo=messages.append,
+            params=device,
+            jobs=jobs,
+        )
+        results[jobs] = {n: json.loads((out.parent / n / "result.json").read_text()) for n in names}
+        for n in names:
+            assert json.loads((out.parent / n / MARKER).read_text())["complete"] is True
+            assert any(m.startswith(f"[{n}] done in") for m in messages)
+    assert {r["pid"] for r in results[1].values()} == {os.getpid()}
+    pids = {r["pid"] for r in results[2].values()}
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2
+    for n in names:
+        assert results[2][n]["x64"] is bool(jax.config.jax_enable_x64)
+        for field in ("value", "damping", "x64"):
+            assert results[2][n][field] == results[1][n][field]
+    assert results[2]["a1"]["damping"] == 3e-5
+
+
+def test_a_failing_parallel_study_stops_the_report_and_stays_unfinished(tmp_path):
+    names = ("a1", "bb2")
+    studies = _worker_setup(tmp_path, names)
+    out = tmp_path / "out" / "report"
+    out.parent.mkdir(parents=True)
+    (out.parent / "fail_bb2").write_text("")
+    with pytest.raises(ValueError, match="rejects its input"):
+        run_report(
+            out, studies=names, studies_dir=studies, progress=False, echo=lambda s: None, jobs=2
+        )
+    assert json.loads((out.parent / "bb2" / MARKER).read_text())["complete"] is False
+    assert not (out / "index.html").exists()
+    (out.parent / "fail_bb2").unlink()
+    run_report(
+        out, studies=names, studies_dir=studies, progress=False, echo=lambda s: None, jobs=2
+    )  # resumes: redoes bb2 (and a1 unless it had finished)
+    assert json.loads((out.parent / "bb2" / MARKER).read_text())["complete"] is True
+
+
+@pytest.mark.parametrize("jobs", [0, -1, 1.5, "2"])
+def test_bad_jobs_values_are_refused(setup, jobs):
+    root, out, run = setup
+    with pytest.raises(ReportError, match="jobs must be a positive whole number"):
+        run(jobs=jobs)
+    assert not root.exists()
+
+
 def test_cli_report_rejects_a_bad_params_file(tmp_path):
     from click.testing import CliRunner
 

@@ -10,10 +10,13 @@ code) is left alone and reported, unless `force` replaces it.
 
 from __future__ import annotations
 
+import concurrent.futures
 import hashlib
 import importlib.util
 import inspect
 import json
+import multiprocessing
+import os
 import shutil
 import sys
 import time
@@ -109,6 +112,60 @@ def _plan(folder: Path, key: str, force: bool) -> str:
     )
 
 
+def _run_study(
+    name: str,
+    studies_dir: Path,
+    folder: Path,
+    key: str,
+    quick: bool,
+    params_fields: dict | None,
+    progress: bool,
+    position: int | None = None,
+) -> float:
+    """Run one study into `folder` (marker first 'unfinished', then 'complete'); return
+    its wall time [s]. Runs in the report's process or in a worker process."""
+    module = load_study(name, studies_dir)
+    started = time.perf_counter()
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_marker(folder, key, complete=False)
+    extra = {}
+    if params_fields is not None and "params" in inspect.signature(module.run).parameters:
+        from .._params import ServoParams
+
+        extra["params"] = ServoParams(**params_fields)
+    with show_progress(progress, label=name, position=position):
+        module.run(folder, quick=quick, **extra)
+    _write_marker(folder, key, complete=True)
+    return time.perf_counter() - started
+
+
+_WORKER_POSITION: int | None = None
+
+
+def _init_worker(x64: bool, lock, positions) -> None:
+    """A worker process: the parent's float64 setting, the shared terminal lock for the
+    bars, and a terminal line of its own below the overall bar."""
+    global _WORKER_POSITION
+    jax.config.update("jax_enable_x64", x64)
+    from tqdm.auto import tqdm
+
+    tqdm.set_lock(lock)
+    _WORKER_POSITION = positions.get()
+
+
+def _run_study_in_worker(*args) -> float:
+    return _run_study(*args, position=_WORKER_POSITION)
+
+
+def default_jobs(n_studies: int) -> int:
+    """Studies run side by side: one process per CPU core up to 4 (each study is mostly
+    single-threaded Python tracing and XLA compilation), one on a GPU or TPU (every
+    process would claim the accelerator's memory)."""
+    if jax.default_backend() != "cpu":
+        return 1
+    return max(1, min(n_studies, os.cpu_count() or 1, 4))
+
+
 def run_report(
     out_dir: Path,
     *,
@@ -120,12 +177,15 @@ def run_report(
     echo: Callable[[str], None] = print,
     params=None,
     params_label: str | None = None,
+    jobs: int | None = 1,
 ) -> Path:
     """Run `studies` (skipping those cached), then write `out_dir/index.html`.
 
     `params` (a `ServoParams`) is passed to the studies whose `run` takes a `params`
     argument (the others use their papers' devices); `params_label` names it in the cache
-    key and the report.
+    key and the report. `jobs` > 1 runs that many studies at a time, each in its own
+    process (`None`: `default_jobs`); the results are those of running them one by one
+    (each study seeds its own random numbers).
 
     Raises `ReportError` (nothing deleted, nothing half-written) when an existing folder
     would have to be replaced and `force` is false; a study's own `ValueError` propagates.
@@ -140,37 +200,85 @@ def run_report(
             f"{index} exists and was not written by accel-jax report; pass --force to "
             "replace it, or choose another --out."
         )
+    if jobs is not None and not (isinstance(jobs, int) and jobs >= 1):
+        raise ReportError(f"jobs must be a positive whole number, got {jobs!r}.")
     options = {"quick": bool(quick)}
+    params_fields = None
     if params is not None:
-        options["params"] = {k: float(v) for k, v in params.as_dict().items()}
+        params_fields = {k: float(v) for k, v in params.as_dict().items()}
+        options["params"] = params_fields
     plans = {}
     for name in studies:
         key = cache_key(name, Path(studies_dir) / f"{name}.py", options)
         plans[name] = (key, _plan(root / name, key, force))  # checks every folder first
-    study_dirs = []
+    todo = []
+    for name in studies:
+        if plans[name][1] == "cached":
+            echo(f"[{name}] up to date (cached; --force recomputes)")
+        else:
+            todo.append(name)
+    jobs = min(default_jobs(len(todo)) if jobs is None else jobs, max(1, len(todo)))
+
+    def task(name):
+        key, plan = plans[name]
+        if plan == "replace":
+            shutil.rmtree(root / name)
+        if params_fields is not None:
+            echo(f"[{name}] on {params_label or 'the given device'}")
+        echo(f"[{name}] running{' (quick)' if quick else ''} ...")
+        return (name, studies_dir, root / name, key, quick, params_fields, progress)
+
     with show_progress(progress), bar(len(studies), "studies", unit="study") as overall:
-        for name in studies:
-            key, plan = plans[name]
-            folder = root / name
-            study_dirs.append(folder)
-            if plan == "cached":
-                echo(f"[{name}] up to date (cached; --force recomputes)")
+        overall.update(len(studies) - len(todo))
+        if jobs == 1:
+            for name in todo:
+                elapsed = _run_study(*task(name))
+                echo(f"[{name}] done in {elapsed:.0f} s")
                 overall.update(1)
-                continue
-            if plan == "replace":
-                shutil.rmtree(folder)
-            module = load_study(name, studies_dir)
-            echo(f"[{name}] running{' (quick)' if quick else ''} ...")
-            started = time.perf_counter()
-            folder.mkdir(parents=True, exist_ok=True)
-            _write_marker(folder, key, complete=False)
-            extra = {}
-            if params is not None and "params" in inspect.signature(module.run).parameters:
-                extra["params"] = params
-                echo(f"[{name}] on {params_label or 'the given device'}")
-            with show_progress(progress, label=name):
-                module.run(folder, quick=quick, **extra)
-            _write_marker(folder, key, complete=True)
-            echo(f"[{name}] done in {time.perf_counter() - started:.0f} s")
-            overall.update(1)
-    return build_report(study_dirs, index, title="accel_jax design-study report")
+        else:
+            _run_parallel(todo, task, jobs, echo, overall)
+    return build_report([root / name for name in studies], index, title=REPORT_TITLE)
+
+
+REPORT_TITLE = "accel_jax design-study report"
+
+
+def _run_parallel(todo, task, jobs, echo, overall) -> None:
+    """Run the studies `jobs` at a time in spawned worker processes (JAX is not fork-safe);
+    on an error or an interrupt, cancel what has not started and re-raise."""
+    from tqdm.auto import tqdm
+
+    context = multiprocessing.get_context("spawn")
+    positions = context.Queue()
+    for slot in range(jobs):
+        positions.put(slot + 1)  # line 0 is the overall bar
+    echo(f"running {len(todo)} studies, {jobs} at a time (one process each)")
+    # One terminal lock for this process's bar and the workers' (tqdm's own is made in
+    # the fork context, which a spawned process cannot share).
+    lock, previous_lock = context.RLock(), tqdm.get_lock()
+    tqdm.set_lock(lock)
+    executor = concurrent.futures.ProcessPoolExecutor(
+        max_workers=jobs,
+        mp_context=context,
+        initializer=_init_worker,
+        initargs=(bool(jax.config.jax_enable_x64), lock, positions),
+    )
+    waiting, running = list(todo), {}
+    try:
+        while waiting or running:
+            while waiting and len(running) < jobs:  # submitted only when a process is free
+                name = waiting.pop(0)
+                running[executor.submit(_run_study_in_worker, *task(name))] = name
+            done, _ = concurrent.futures.wait(
+                running, return_when=concurrent.futures.FIRST_COMPLETED
+            )
+            for future in done:
+                elapsed = future.result()
+                echo(f"[{running.pop(future)}] done in {elapsed:.0f} s")
+                overall.update(1)
+    except BaseException:
+        executor.shutdown(wait=False, cancel_futures=True)
+        raise
+    finally:
+        tqdm.set_lock(previous_lock)
+    executor.shutdown(wait=True)
