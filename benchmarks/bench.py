@@ -136,12 +136,25 @@ def _profile(ts, size, impl, repeats):
     scan = jax.jit(jax.vmap(lambda d: aj.simulate_linear(d, ts, TEST_VOLTAGE)))
     noise = jax.jit(jax.vmap(lambda k: jax.random.normal(k, (n,), jnp.float64)))
     bits = jax.jit(jax.vmap(lambda k: jax.random.bits(k, (n,), jnp.uint64)))
-    labels = (jax.random.uniform(jax.random.key(9), (size, n)) > 0.5).astype(jnp.int32)
-    cumulative = jax.jit(
-        jax.vmap(lambda b: jnp.cumsum(b) + jax.lax.cummax(b * jnp.arange(n, dtype=jnp.int32)))
-    )
-    reduction = jax.jit(jax.vmap(lambda b: jnp.sum(b) + jnp.max(b)))
     records = sim(params)
+    offsets = ts - ts[n // 2]
+
+    def moments(u):
+        # One crossing fit's pattern in `identify_oscillatory`: five weighted moment sums
+        # sharing their products (XLA:CPU materialises the shared products).
+        w = jnp.where(jnp.abs(u) < 0.5, 1 - u**2, 0.0)
+        return jnp.stack(
+            [
+                jnp.sum(w),
+                jnp.sum(w * offsets),
+                jnp.sum(w * u),
+                jnp.sum(w * offsets**2),
+                jnp.sum(w * offsets * u),
+            ]
+        )
+
+    moment_sums = jax.jit(jax.vmap(moments))
+    reduction = jax.jit(jax.vmap(lambda u: jnp.sum(u) + jnp.max(u)))
     ident = jax.jit(
         jax.vmap(
             lambda u: (
@@ -157,8 +170,11 @@ def _profile(ts, size, impl, repeats):
         f"noise (jax.random.normal, {impl})": (noise, keys),
         f"  of which random bits ({impl}, uint64)": (bits, keys),
         "identify_oscillatory": (ident, records),
-        "  its cumsum + cummax (XLA:CPU associative scans), one pass each": (cumulative, labels),
-        "  for scale: a plain sum + max over the record": (reduction, labels),
+        "  one crossing fit's 5 weighted moment sums (it does 3 such fits)": (
+            moment_sums,
+            records,
+        ),
+        "  for scale: a plain sum + max over the record": (reduction, records),
     }
     out = {}
     for name, (fn, arg) in parts.items():
