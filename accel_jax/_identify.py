@@ -190,7 +190,7 @@ def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Rec
     step_time = jnp.where(finite, step_time, ts[0])
 
     pre = ts < step_time
-    n_pre = jnp.sum(pre)
+    n_pre = jnp.sum(pre, dtype=jnp.int32)  # counts in int32: int64 sums are slow on XLA:CPU
     initial = jnp.where(n_pre > 0, jnp.sum(jnp.where(pre, u, 0)) / jnp.maximum(n_pre, 1), u[0])
     tail = u[n - n_tail :]
     sigma = jnp.std(tail)
@@ -212,8 +212,8 @@ def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Rec
 
     # A rail shows as a flat top (many samples at exactly the extreme value) before the
     # tail, away from both the initial and the steady-state level.
-    region = (ts >= step_time) & (jnp.arange(n) < n - n_tail)
-    n_region = jnp.sum(region)
+    region = (ts >= step_time) & (jnp.arange(n, dtype=jnp.int32) < n - n_tail)
+    n_region = jnp.sum(region, dtype=jnp.int32)
     min_run = jnp.maximum(3, _PLATEAU_FRACTION * n_region)
     saturated = jnp.array(False)
     for sign in (1.0, -1.0):
@@ -221,7 +221,7 @@ def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Rec
         extreme = jnp.max(jnp.where(region, signed, -jnp.inf))
         at_extreme = region & (signed >= extreme - 4 * jnp.finfo(dtype).eps * jnp.abs(extreme))
         away = (jnp.abs(extreme - sign * u_ss) > band) & (jnp.abs(extreme - sign * initial) > band)
-        saturated = saturated | ((jnp.sum(at_extreme) >= min_run) & away)
+        saturated = saturated | ((jnp.sum(at_extreme, dtype=jnp.int32) >= min_run) & away)
     saturated = saturated | jnp.any(jnp.abs(u) >= saturation_level)
 
     return _Record(
@@ -379,6 +379,41 @@ def _rising_crossing(ts, deviation, band, fit_width, below, has_below, limit, cr
     return _fit_crossing(ts, deviation, fit_width, a, k, crossing), exists
 
 
+def _add(left, right):
+    return tuple(a + b for a, b in zip(left, right, strict=True))
+
+
+@jax.custom_jvp
+def _weighted_moments(weight, x, y):
+    """(Σw, Σwx, Σwy, Σwx², Σwxy) over the last axis, in one pass.
+
+    One variadic reduction: five `jnp.sum`s sharing the products w·x and w·y made XLA:CPU
+    write those products out and reduce each separately, ten times slower (46 µs against
+    4 µs per 5 001-sample record; `benchmarks/bench.py` profiles it). The sums are the
+    same up to summation order (rounding). Differentiable: the JVP below is written with
+    plain sums, which JAX can transpose for reverse mode.
+    """
+    wx, wy = weight * x, weight * y
+    operands = (weight, wx, wy, wx * x, wx * y)
+    zero = jnp.zeros((), weight.dtype)
+    return jax.lax.reduce(operands, (zero,) * 5, _add, (weight.ndim - 1,))
+
+
+@_weighted_moments.defjvp
+def _weighted_moments_jvp(primals, tangents):
+    weight, x, y = primals
+    d_weight, d_x, d_y = tangents
+    d_wx = d_weight * x + weight * d_x
+    terms = (
+        d_weight,
+        d_wx,
+        d_weight * y + weight * d_y,
+        d_wx * x + weight * x * d_x,
+        d_wx * y + weight * x * d_y,
+    )
+    return _weighted_moments(weight, x, y), tuple(jnp.sum(t, axis=-1) for t in terms)
+
+
 def _fit_crossing(ts, deviation, fit_width, a, k, crossing):
     """Weighted straight-line zero crossing over samples a..k (see `_crossing`)."""
     n = ts.shape[0]
@@ -394,9 +429,7 @@ def _fit_crossing(ts, deviation, fit_width, a, k, crossing):
     weight = pair + jnp.where(near, (1 - ratio**2) ** 2, 0.0)
     x = jnp.where(weight > 0, ts - ts[k], 0.0)  # centred on t_k for conditioning
     y = jnp.where(weight > 0, deviation, 0.0)
-    sw = jnp.sum(weight)
-    sx, sy = jnp.sum(weight * x), jnp.sum(weight * y)
-    sxx, sxy = jnp.sum(weight * x * x), jnp.sum(weight * x * y)
+    sw, sx, sy, sxx, sxy = _weighted_moments(weight, x, y)
     denominator = sw * sxx - sx * sx
     slope = (sw * sxy - sx * sy) / jnp.where(denominator > 0, denominator, 1.0)
     intercept = (sy - slope * sx) / sw
