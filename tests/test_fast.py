@@ -121,6 +121,7 @@ def test_monte_carlo_matches_identify_oscillatory():
         shape_factor=gamma,
         chunk_size=4,
         extremum="parabolic",
+        noise_dtype=jnp.float64,
     )
 
     def separate(device, key, gamma):
@@ -156,8 +157,48 @@ def test_monte_carlo_matches_identify_oscillatory():
         shape_factor=gamma * 0.99,
         chunk_size=4,
         extremum="parabolic",
+        noise_dtype=jnp.float64,
     )
     assert _monte_carlo._cached._cache_size() == compiled
+
+
+def test_monte_carlo_default_draws_noise_in_float32():
+    # The default: float64 simulation and identification, noise deviates drawn in float32
+    # and widened: exactly fast_step_response(..., noise_dtype=float32) then identify, and
+    # the noise is N(0, ε²) all the same.
+    size = 24
+    devices = eqx.tree_at(lambda p: p.noise_std, _drawn_devices(size, 7), jnp.full(size, 1e-4))
+    keys = jax.random.split(jax.random.key(8), size)
+    fused = monte_carlo_oscillatory(
+        devices, keys, TS, pickoff_amplifier_gain=GAIN, shape_factor=0.75, chunk_size=8
+    )
+    records = jax.vmap(lambda d, k: fast_step_response(d, TS, 1.0, key=k, noise_dtype="float32"))(
+        devices, keys
+    )
+    assert records.dtype == jnp.float64
+    expected = jax.vmap(
+        lambda u: aj.identify_oscillatory(
+            TS, u, pickoff_amplifier_gain=GAIN, shape_factor=0.75, throw=False
+        )
+    )(records)
+    np.testing.assert_allclose(fused.scale_factor, expected.scale_factor, rtol=1e-12)
+    assert bool(jnp.all(fused.result == aj.IdentificationResult.successful))
+    clean = jax.vmap(lambda d: fast_step_response(d, TS, 1.0))(devices)
+    residual = np.asarray(records - clean)
+    np.testing.assert_allclose(residual.std(axis=1), 1e-4, rtol=0.1)
+    wide = jax.vmap(lambda d, k: fast_step_response(d, TS, 1.0, key=k))(devices, keys)
+    assert not np.array_equal(np.asarray(wide), np.asarray(records))  # other draws
+    with pytest.raises(ValueError, match="noise_dtype"):
+        fast_step_response(devices, TS, 1.0, key=keys[0], noise_dtype=jnp.int32)
+    with pytest.raises(ValueError, match="noise_dtype"):
+        monte_carlo_oscillatory(
+            devices,
+            keys,
+            TS,
+            pickoff_amplifier_gain=GAIN,
+            shape_factor=0.75,
+            noise_dtype="float16",
+        )
 
 
 def test_rbg_noise_statistics():
