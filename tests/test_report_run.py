@@ -252,6 +252,18 @@ def test_cli_report_rejects_a_bad_params_file(tmp_path):
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("jobs", ["0", "two"])
+def test_cli_report_rejects_a_bad_jobs_value(tmp_path, jobs):
+    from click.testing import CliRunner
+
+    from accel_jax.cli import main
+
+    result = CliRunner().invoke(main, ["report", "--out", str(tmp_path / "r"), "--jobs", jobs])
+    assert result.exit_code == 2
+    assert "--jobs" in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "r").exists()
+
+
 def test_overview_collects_published_numbers_tolerances_and_validation(tmp_path):
     import accel_jax as aj
     from accel_jax.report._html import build_report
