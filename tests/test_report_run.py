@@ -302,3 +302,15 @@ def test_overview_collects_published_numbers_tolerances_and_validation(tmp_path)
     assert "beyond the paper" not in overview  # rows without a published value stay below
     assert "Cyclone-4" in overview and "445" in overview and "tactical, short range" in overview
     assert "0.967" in overview and "130" in overview
+
+
+def test_side_by_side_the_longest_study_starts_first(tmp_path):
+    from accel_jax.report._run import _longest_first, _write_marker
+
+    names = ["a1", "bb2", "ccc3", "d4"]
+    assert _longest_first(names, tmp_path, {}) == names  # nothing known: the given order
+    typical = {"ccc3": 10.0, "a1": 1.0}
+    assert _longest_first(names, tmp_path, typical) == ["ccc3", "a1", "bb2", "d4"]
+    (tmp_path / "bb2").mkdir()
+    _write_marker(tmp_path / "bb2", "key", complete=True, seconds=50.0)  # took 50 s last time
+    assert _longest_first(names, tmp_path, typical) == ["bb2", "ccc3", "a1", "d4"]

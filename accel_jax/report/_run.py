@@ -83,8 +83,8 @@ def _read_marker(folder: Path) -> dict | None:
         return None
 
 
-def _write_marker(folder: Path, key: str, complete: bool) -> None:
-    body = json.dumps({"key": key, "complete": complete}).encode()
+def _write_marker(folder: Path, key: str, complete: bool, seconds: float | None = None) -> None:
+    body = json.dumps({"key": key, "complete": complete, "seconds": seconds}).encode()
     _atomic_write_bytes(folder / MARKER, body)
 
 
@@ -135,8 +135,9 @@ def _run_study(
         extra["params"] = ServoParams(**params_fields)
     with show_progress(progress, label=name, position=position):
         module.run(folder, quick=quick, **extra)
-    _write_marker(folder, key, complete=True)
-    return time.perf_counter() - started
+    elapsed = time.perf_counter() - started
+    _write_marker(folder, key, complete=True, seconds=elapsed)
+    return elapsed
 
 
 _WORKER_POSITION: int | None = None
@@ -178,6 +179,7 @@ def run_report(
     params=None,
     params_label: str | None = None,
     jobs: int | None = 1,
+    typical_seconds: dict[str, float] | None = None,
 ) -> Path:
     """Run `studies` (skipping those cached), then write `out_dir/index.html`.
 
@@ -185,7 +187,9 @@ def run_report(
     argument (the others use their papers' devices); `params_label` names it in the cache
     key and the report. `jobs` > 1 runs that many studies at a time, each in its own
     process (`None`: `default_jobs`); the results are those of running them one by one
-    (each study seeds its own random numbers).
+    (each study seeds its own random numbers). Side by side, the longest start first: as
+    long as the study took last time in this folder (its marker), else
+    `typical_seconds[name]`, else in the given order.
 
     Raises `ReportError` (nothing deleted, nothing half-written) when an existing folder
     would have to be replaced and `force` is false; a study's own `ValueError` propagates.
@@ -218,6 +222,8 @@ def run_report(
         else:
             todo.append(name)
     jobs = min(default_jobs(len(todo)) if jobs is None else jobs, max(1, len(todo)))
+    if jobs > 1:
+        todo = _longest_first(todo, root, typical_seconds or {})
 
     def task(name):
         key, plan = plans[name]
@@ -241,6 +247,18 @@ def run_report(
 
 
 REPORT_TITLE = "accel_jax design-study report"
+
+
+def _longest_first(names: list[str], root: Path, typical_seconds: dict[str, float]) -> list[str]:
+    """The studies ordered longest first (a stable sort: unknown durations keep their order
+    after the known ones), so that the longest does not start last."""
+
+    def expected(name):
+        marker = _read_marker(root / name) or {}
+        seconds = marker.get("seconds") or typical_seconds.get(name)
+        return -float(seconds) if isinstance(seconds, (int, float)) else 0.0
+
+    return sorted(names, key=expected)
 
 
 def _run_parallel(todo, task, jobs, echo, overall) -> None:
