@@ -463,7 +463,8 @@ def generate_noise(truths: list[dict], seed: int) -> list[NoiseData]:
 # --------------------------------------------------------------------------------------
 
 _DIAGNOSE_CODE = """
-import json, sys, pathlib
+import json, sys, pathlib, signal
+signal.signal(signal.SIGINT, lambda *_: sys.exit(130))  # Ctrl-C: quiet exit, no traceback
 import jax
 jax.config.update("jax_enable_x64", True)
 from accel_jax import read_csv
