@@ -215,6 +215,8 @@ def run_report(
     for name in studies:
         key = cache_key(name, Path(studies_dir) / f"{name}.py", options)
         plans[name] = (key, _plan(root / name, key, force))  # checks every folder first
+    if progress:
+        echo = _above_the_bars(echo)
     todo = []
     for name in studies:
         if plans[name][1] == "cached":
@@ -247,6 +249,18 @@ def run_report(
 
 
 REPORT_TITLE = "accel_jax design-study report"
+
+
+def _above_the_bars(echo: Callable[[str], None]) -> Callable[[str], None]:
+    """`echo` that clears this process's progress bars first and redraws them after, so
+    that a message is a line of its own above the bars, not text glued to one."""
+    from tqdm.auto import tqdm
+
+    def say(message: str) -> None:
+        with tqdm.external_write_mode():
+            echo(message)
+
+    return say
 
 
 def _longest_first(names: list[str], root: Path, typical_seconds: dict[str, float]) -> list[str]:
