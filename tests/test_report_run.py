@@ -314,3 +314,26 @@ def test_side_by_side_the_longest_study_starts_first(tmp_path):
     (tmp_path / "bb2").mkdir()
     _write_marker(tmp_path / "bb2", "key", complete=True, seconds=50.0)  # took 50 s last time
     assert _longest_first(names, tmp_path, typical) == ["bb2", "ccc3", "a1", "d4"]
+
+
+def test_a_study_process_that_dies_is_reported_not_a_traceback(tmp_path):
+    # A worker killed from outside (as by the kernel's out-of-memory killer): one clear
+    # ReportError, the other study's results kept, the dead one unfinished.
+    studies = _worker_setup(tmp_path, ("a1",))
+    (studies / "dies.py").write_text(
+        "import os, signal\n"
+        "def run(out_dir, *, quick=False):\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    out = tmp_path / "out" / "report"
+    with pytest.raises(ReportError, match="died before it finished"):
+        run_report(
+            out,
+            studies=("a1", "dies"),
+            studies_dir=studies,
+            progress=False,
+            echo=lambda s: None,
+            jobs=2,
+        )
+    assert json.loads((out.parent / "dies" / MARKER).read_text())["complete"] is False
+    assert not (out / "index.html").exists()

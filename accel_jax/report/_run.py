@@ -305,8 +305,16 @@ def _run_parallel(todo, task, jobs, echo, overall) -> None:
                 running, return_when=concurrent.futures.FIRST_COMPLETED
             )
             for future in done:
-                elapsed = future.result()
-                echo(f"[{running.pop(future)}] done in {elapsed:.0f} s")
+                name = running.pop(future)
+                try:
+                    elapsed = future.result()
+                except concurrent.futures.process.BrokenProcessPool as error:
+                    raise ReportError(
+                        f"the process running {name} died before it finished (out of "
+                        "memory?); finished studies are kept: run the same command again, "
+                        "with --jobs 1 if it recurs."
+                    ) from error
+                echo(f"[{name}] done in {elapsed:.0f} s")
                 overall.update(1)
     except BaseException:
         executor.shutdown(wait=False, cancel_futures=True)
