@@ -337,3 +337,22 @@ def test_a_study_process_that_dies_is_reported_not_a_traceback(tmp_path):
         )
     assert json.loads((out.parent / "dies" / MARKER).read_text())["complete"] is False
     assert not (out / "index.html").exists()
+
+
+def test_default_jobs_follow_cores_and_memory(monkeypatch):
+    from accel_jax.report import _run
+
+    monkeypatch.setattr(_run.os, "cpu_count", lambda: 16)
+    monkeypatch.setattr(_run, "_physical_memory", lambda: 64 * 2**30)
+    assert _run.default_jobs(7) == 4  # at most 4
+    assert _run.default_jobs(2) == 2  # no more than studies to run
+    monkeypatch.setattr(_run, "_physical_memory", lambda: 9 * 2**30)
+    assert _run.default_jobs(7) == 2  # 4 GiB each
+    monkeypatch.setattr(_run, "_physical_memory", lambda: 2**30)
+    assert _run.default_jobs(7) == 1
+    monkeypatch.setattr(_run, "_physical_memory", lambda: None)
+    monkeypatch.setattr(_run.os, "cpu_count", lambda: None)
+    assert _run.default_jobs(7) == 1
+    monkeypatch.setattr(_run.jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(_run.os, "cpu_count", lambda: 16)
+    assert _run.default_jobs(7) == 1  # one process owns the accelerator
