@@ -69,7 +69,8 @@ def main():
     type=click.IntRange(min=1),
     default=None,
     help="Studies run at a time, each in its own process. Default: one per CPU core, at "
-    "most 4 (1 on a GPU, whose memory every process would claim).",
+    "most 4 and at most one per 4 GiB of memory (1 on a GPU, whose memory every process "
+    "would claim).",
 )
 @click.option(
     "--compile-cache/--no-compile-cache",
