@@ -53,6 +53,12 @@ def _concrete(value) -> np.ndarray | None:
         return None
 
 
+def _shown(value: np.ndarray) -> str:
+    """A concrete value as a message shows it: `-1.0`, or `[1.0, -2.0]`, not `array(-1.)`."""
+    value = np.asarray(value)
+    return repr(value.item()) if value.ndim == 0 else repr(value.tolist())
+
+
 def _as_float(value: ArrayLike) -> Array:
     # Keep the caller's floating dtype; promote ints/Python floats to JAX's default float
     # (float32 unless the caller enabled x64: the library never flips that switch itself).
@@ -122,15 +128,15 @@ class ServoParams(eqx.Module):
                 continue
             unit = _UNITS[name]
             if not np.all(np.isfinite(value)):
-                raise ValueError(f"ServoParams.{name} must be finite, got {value!r} {unit}.")
+                raise ValueError(f"ServoParams.{name} must be finite, got {_shown(value)} {unit}.")
             if name in _POSITIVE and not np.all(value > 0):
                 raise ValueError(
-                    f"ServoParams.{name} must be positive, got {value!r} {unit}; "
+                    f"ServoParams.{name} must be positive, got {_shown(value)} {unit}; "
                     "check the sign and the units (SI)."
                 )
             if name in _NON_NEGATIVE and not np.all(value >= 0):
                 raise ValueError(
-                    f"ServoParams.{name} must be non-negative, got {value!r} {unit}; "
+                    f"ServoParams.{name} must be non-negative, got {_shown(value)} {unit}; "
                     "use 0 to switch the effect off."
                 )
 

@@ -25,7 +25,7 @@ import numpy as np
 from jax.scipy.special import erf
 from jaxtyping import Array, ArrayLike, Float
 
-from ._params import _concrete
+from ._params import _concrete, _shown
 from ._static import StaticTransferFunction, _as_float, basic_error, indicated_acceleration
 
 AXES = ("OA (a1)", "PA (a2)", "IA (a3)")
@@ -154,7 +154,9 @@ def random_rms(psd: ArrayLike, band_width: ArrayLike, eta: ArrayLike = 1.0, *, p
         concrete = _concrete(value)
         if concrete is not None and not np.all(concrete >= 0):
             unit = {"psd": "g²/Hz", "band_width": "Hz", "eta": ""}[name]
-            raise ValueError(f"random_rms: {name} must be non-negative, got {concrete!r} {unit}.")
+            raise ValueError(
+                f"random_rms: {name} must be non-negative, got {_shown(concrete)} {unit}."
+            )
     power = eta * psd * band_width
     total = jnp.sum(power)
     return jnp.sqrt(total / power.size) if paper else jnp.sqrt(total)
@@ -198,10 +200,12 @@ class BandSpectrum(eqx.Module):
                     f"f_low), got shape {v.shape}: {v!r}."
                 )
             if not np.all(np.isfinite(v)):
-                raise ValueError(f"BandSpectrum.{name} must be finite, got {v!r}.")
+                raise ValueError(f"BandSpectrum.{name} must be finite, got {_shown(v)}.")
         for name, v, unit in (("psd", psd, "g²/Hz"), ("eta", eta, ""), ("f_low", lo, "Hz")):
             if np.any(v < 0):
-                raise ValueError(f"BandSpectrum.{name} must be non-negative, got {v!r} {unit}.")
+                raise ValueError(
+                    f"BandSpectrum.{name} must be non-negative, got {_shown(v)} {unit}."
+                )
         bad = np.flatnonzero(~(hi > lo))
         if bad.size:
             j = int(bad[0])
