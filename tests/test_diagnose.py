@@ -377,3 +377,80 @@ def test_validation_study_quick(quick_report):
     assert step["median_gap_shrink"] > 0.5
     for figure in saved["figures"]:
         assert (tmp_path / figure["file"]).exists() and figure["caption"]
+
+
+def test_torquer_lag_and_output_filter_fit_a_step_record_exactly_alike():
+    """The step kind's known degeneracy, checked independently of the fits: a loop with a
+    torquer lag T_dm gives the same test-step record as a loop with an output filter T_f'
+    and shifted J', μ' (c, k_dm unchanged), found by matching the two all-pole cubics
+    (J T, J + μT, μ + cT, c + K) = (J'T', J' + μ'T', μ' + (c + K)T', c + K)."""
+    ref = aj.ServoParams.reference()
+    tdm = 2e-5
+    lagged = eqx.tree_at(
+        lambda p: (p.torquer_time_constant, p.filter_time_constant),
+        ref,
+        (jnp.float64(tdm), jnp.float64(0.0)),
+    )
+    J, mu, c = (float(x) for x in (ref.moment_of_inertia, ref.damping, ref.stiffness))
+    K = float(aj.loop_stiffness(ref)) - c
+    a3, a2, a1 = J * tdm, J + mu * tdm, mu + c * tdm
+    roots = np.roots([c + K, -a1, a2, -a3])
+    tf = min(
+        (r.real for r in roots if abs(r.imag) < 1e-12 and r.real > 0), key=lambda r: abs(r - tdm)
+    )
+    mu2 = a1 - (c + K) * tf
+    J2 = a2 - mu2 * tf
+    filtered = eqx.tree_at(
+        lambda p: (p.moment_of_inertia, p.damping, p.torquer_time_constant, p.filter_time_constant),
+        ref,
+        (jnp.float64(J2), jnp.float64(mu2), jnp.float64(0.0), jnp.float64(tf)),
+    )
+    ts = jnp.arange(3000) * 5e-6
+    u = jnp.where((ts >= 2.5e-3) & (ts < 10e-3), 1.0, -1.0)
+    moment = jnp.full_like(ts, float(ref.external_moment))
+    y_lag = simulate_step(lagged, ts, u, moment)
+    y_filter = simulate_step(filtered, ts, u, moment)
+    # Same record to rounding, though the two loops differ by a damping shift of ~6.6 %...
+    assert float(jnp.max(jnp.abs(y_lag - y_filter))) < 1e-9 * float(jnp.max(jnp.abs(y_lag)))
+    assert abs(mu2 / mu - 1) > 0.05
+    # ...which to first order in T is Δμ = k_dm k_dp k_y l·T, as the summary note says.
+    assert (mu - mu2) == pytest.approx(K * tdm, rel=0.05)
+    # And the no-lag loop differs from both by far more than the rounding above.
+    y_none = simulate_step(
+        eqx.tree_at(lambda p: p.torquer_time_constant, lagged, 0.0), ts, u, moment
+    )
+    assert float(jnp.max(jnp.abs(y_none - y_lag))) > 1e-3 * float(jnp.max(jnp.abs(y_lag)))
+
+
+def test_lag_forced_choice_ceiling():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "s2r", Path(__file__).resolve().parent.parent / "studies" / "sim_to_real_validation.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    def verdict(name, tied=(), tl=0.0, of=0.0):
+        ranking = [
+            {"effect": "torquer_lag", "evidence": tl},
+            {"effect": "output_filter", "evidence": of},
+        ]
+        return {"verdict": name, "tied": list(tied), "ranking": ranking}
+
+    pair = ("torquer_lag", "output_filter")
+    truths = [{"effect": e} for e in ("torquer_lag", "output_filter", "torquer_lag", "none", "k2")]
+    verdicts = [
+        verdict("cannot_tell", pair, tl=30.0, of=28.0),  # forced to torquer_lag: right
+        verdict("cannot_tell", pair, tl=30.0, of=28.0),  # forced to torquer_lag: wrong
+        verdict("torquer_lag"),  # named: right
+        verdict("none"),  # no effect: not counted
+        verdict("cannot_tell", ("k2", "k4")),  # another tie: left as it is (wrong)
+    ]
+    out = module.lag_forced_choice(truths, verdicts)
+    assert out["forced_datasets"] == 2
+    assert out["accuracy_forced"] == pytest.approx(2 / 4)
+    p = 1 / (1 + np.exp(-1.0))  # |Δ| = 2 on the 2 ln B scale
+    assert out["accuracy_expected_by_evidence"] == pytest.approx((2 * p + 1) / 4)
+    assert out["evidence_gap_median"] == pytest.approx(2.0)
