@@ -580,6 +580,7 @@ def _simulate_nonlinear(
     max_steps,
     solver,
     throw,
+    constant_inputs=False,
 ):
     loop = _Loop(params)
     period = time_constant(params)
@@ -609,13 +610,25 @@ def _simulate_nonlinear(
             b_matrix = b_matrix.at[1, 0].add(correction)
         return b_matrix
 
-    terms = diffrax.MultiTerm(
-        diffrax.ODETerm(drift),
-        diffrax.ControlTerm(input_matrix, _HeldInputPath(ts, loop.scaled_inputs(inputs))),
-    )
-    controller = diffrax.ClipStepSizeController(
-        diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=ts
-    )
+    if constant_inputs:
+        # Inputs constant over the record: one smooth vector field, so the steps need not
+        # stop at every sample; the solver's dense output gives the samples (as solve_ivp's
+        # t_eval does). Same ODE as the held path below, far fewer steps where it is smooth.
+        held = loop.scaled_inputs(inputs)[0]
+
+        def vector_field(t, y, args):
+            return drift(t, y, args) + input_matrix(t, y, args) @ held
+
+        terms = diffrax.ODETerm(vector_field)
+        controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    else:
+        terms = diffrax.MultiTerm(
+            diffrax.ODETerm(drift),
+            diffrax.ControlTerm(input_matrix, _HeldInputPath(ts, loop.scaled_inputs(inputs))),
+        )
+        controller = diffrax.ClipStepSizeController(
+            diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=ts
+        )
     solution = diffrax.diffeqsolve(
         terms,
         solver,
@@ -669,11 +682,16 @@ def simulate_nonlinear(
     h_max, so the stopped output is k_dp k_y h_max to that accuracy.
 
     The inputs are piecewise constant (sample i held on [t_i, t_{i+1})): the solver steps
-    onto every sample time (`ClipStepSizeController(jump_ts=ts)`) and saves at ts. The state
+    onto every sample time (`ClipStepSizeController(jump_ts=ts)`) and saves at ts. When every
+    input is a scalar (constant over the record, e.g. a test-voltage step from rest), the
+    vector field is smooth between contacts and the steps are left to the error control;
+    the samples come from the solver's dense output (about 6x fewer right-hand-side
+    evaluations on a stop record, at the same tolerance). The state
     is solved in O(1) units (θ in θ_max, θ' in θ_max/T with T = sqrt(J/(c + k_dm l k_dp k_y)),
     M_dm in (c + k_dm l k_dp k_y)·θ_max, U_f in volts), so `rtol` and `atol` are relative
     to the stop angle. With `stops=False`, or when the stops are not reached, it solves the
-    same linear loop as `simulate_linear` (they agree to ~1e-13 relative in float64).
+    same linear loop as `simulate_linear` (they agree to ~1e-13 relative in float64 on the
+    per-sample path, to ~1e-10 — the default tolerance — on the adaptive path).
 
     Gradients: exact (to the solver tolerance) for records that do not reach the stops,
     and for the output settled on a stop. Across the impact itself they are not: the
@@ -728,6 +746,10 @@ def simulate_nonlinear(
             stops=stops,
             stop_stiffness_ratio=stop_stiffness_ratio,
         )
+    # Scalar inputs (static shapes, so also under jit/vmap) are constant over the record.
+    constant = all(
+        jnp.ndim(x) == 0 for x in (test_voltage, acceleration, external_moment) if x is not None
+    )
     states, _ = _simulate_nonlinear(
         params,
         ts,
@@ -740,6 +762,7 @@ def simulate_nonlinear(
         max_steps=max_steps,
         solver=solver,
         throw=throw,
+        constant_inputs=constant,
     )
     outputs = _add_noise(params, states[:, 3], key)
     return (outputs, states) if return_states else outputs
