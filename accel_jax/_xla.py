@@ -34,6 +34,36 @@ def apply_cpu_workarounds() -> bool:
     return True
 
 
+_WARNED = False
+
+
+def warn_if_cpu_scheduler_unsafe(what: str) -> bool:
+    """Warn once per process when `what` (vmapped nested-loop fits) runs on XLA:CPU without
+    `CPU_SCHEDULER_FLAG`: a batch of them can then hang for good, with no error. Reads
+    `XLA_FLAGS` as it is now (the backend read it at start-up). Returns whether it warned."""
+    global _WARNED
+    import warnings
+
+    import jax
+
+    if _WARNED or "xla_cpu_enable_concurrency_optimized_scheduler" in os.environ.get(
+        "XLA_FLAGS", ""
+    ):
+        return False
+    if jax.default_backend() != "cpu":
+        return False
+    _WARNED = True
+    warnings.warn(
+        f"{what} on XLA:CPU: jaxlib 0.10.2's concurrency-optimised scheduler can deadlock on "
+        "a vmapped batch of these fits (every thread idle, the call never returns). Call "
+        "accel_jax.apply_cpu_workarounds() before the first JAX computation, or set "
+        f"XLA_FLAGS={CPU_SCHEDULER_FLAG} in the environment.",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+    return True
+
+
 CACHE_ENV = "ACCEL_JAX_CACHE_DIR"
 """Where `enable_compilation_cache` keeps compiled programs; `off` (or `0`) disables it."""
 

@@ -68,3 +68,20 @@ def test_unwritable_cache_folder_runs_without_it(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
     assert _run([str(blocker / "xla")])[1] == "None"
+
+
+def test_unsafe_cpu_scheduler_warns_once(monkeypatch):
+    import jax
+
+    from accel_jax import _xla
+
+    if jax.default_backend() != "cpu":
+        pytest.skip("the deadlock and the warning concern XLA:CPU only")
+    monkeypatch.setattr(_xla, "_WARNED", False)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    with pytest.warns(RuntimeWarning, match="apply_cpu_workarounds"):
+        assert _xla.warn_if_cpu_scheduler_unsafe("fit_sensing_element")
+    assert not _xla.warn_if_cpu_scheduler_unsafe("fit_sensing_element")  # once per process
+    monkeypatch.setattr(_xla, "_WARNED", False)
+    monkeypatch.setenv("XLA_FLAGS", _xla.CPU_SCHEDULER_FLAG)
+    assert not _xla.warn_if_cpu_scheduler_unsafe("fit_sensing_element")
