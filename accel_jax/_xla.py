@@ -21,15 +21,20 @@ from pathlib import Path
 CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
 
+def _scheduler_option_set() -> bool:
+    """Whether `XLA_FLAGS` already sets the scheduler option (to either value)."""
+    return "xla_cpu_enable_concurrency_optimized_scheduler" in os.environ.get("XLA_FLAGS", "")
+
+
 def apply_cpu_workarounds() -> bool:
     """Add `CPU_SCHEDULER_FLAG` to `XLA_FLAGS` unless the user set that option already.
 
     Effective only before JAX initialises its CPU backend (the first computation); returns
     whether the environment was changed.
     """
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_enable_concurrency_optimized_scheduler" in flags:
+    if _scheduler_option_set():
         return False
+    flags = os.environ.get("XLA_FLAGS", "")
     os.environ["XLA_FLAGS"] = f"{flags} {CPU_SCHEDULER_FLAG}".strip()
     return True
 
@@ -46,9 +51,7 @@ def warn_if_cpu_scheduler_unsafe(what: str) -> bool:
 
     import jax
 
-    if _WARNED or "xla_cpu_enable_concurrency_optimized_scheduler" in os.environ.get(
-        "XLA_FLAGS", ""
-    ):
+    if _WARNED or _scheduler_option_set():
         return False
     if jax.default_backend() != "cpu":
         return False

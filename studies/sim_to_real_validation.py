@@ -630,7 +630,7 @@ def _lag_breakdown(truths, verdicts):
     on a test-winding step except through the damping prior (see the summary note)."""
     rows = []
     for truth, verdict in zip(truths, verdicts, strict=True):
-        if truth["effect"] in ("torquer_lag", "output_filter"):
+        if truth["effect"] in LAG_PAIR:
             lag = truth["torquer_time_constant"] or truth["filter_time_constant"]
             rows.append({"effect": truth["effect"], "lag_s": lag, "verdict": verdict["verdict"]})
     return rows
@@ -955,8 +955,8 @@ def run(
         else:
             section["lag_forced_choice"] = lag_forced_choice(truths[kind], verdicts)
             result[kind] = section
-            figures += _figures(out_dir, result, _lag_breakdown(truths[kind], verdicts))
             result["lag_breakdown"] = _lag_breakdown(truths[kind], verdicts)
+            figures += _figures(out_dir, result, result["lag_breakdown"])
         for key in ("_shrinks", "_snr", "_named"):
             section.pop(key, None)
         summary += [

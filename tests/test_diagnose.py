@@ -423,14 +423,13 @@ def test_torquer_lag_and_output_filter_fit_a_step_record_exactly_alike():
 
 
 def test_lag_forced_choice_ceiling():
-    import importlib.util
     from pathlib import Path
 
-    spec = importlib.util.spec_from_file_location(
-        "s2r", Path(__file__).resolve().parent.parent / "studies" / "sim_to_real_validation.py"
+    from accel_jax.report._run import load_study
+
+    module = load_study(
+        "sim_to_real_validation", Path(__file__).resolve().parent.parent / "studies"
     )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
 
     def verdict(name, tied=(), tl=0.0, of=0.0):
         ranking = [
