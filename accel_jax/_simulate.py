@@ -30,7 +30,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from ._checks import check_uniform_grid
-from ._params import ServoParams
+from ._params import ServoParams, _concrete, _shown
 from ._servo import feedback_stiffness, loop_stiffness, time_constant
 
 _STATE_NAMES = ("θ [rad]", "θ' [rad/s]", "M_dm [N·m]", "U_f [V]")
@@ -296,6 +296,13 @@ def _prepare(params, ts, test_voltage, acceleration, external_moment, initial_st
     )
 
     def sequence(value, name, unit):
+        concrete = _concrete(value)  # None under jit/vmap: nothing to check there
+        if concrete is not None and not np.all(np.isfinite(concrete)):
+            bad = np.flatnonzero(~np.isfinite(concrete.ravel()))[0]
+            where = "" if concrete.ndim == 0 else f" (sample {bad})"
+            raise ValueError(
+                f"{name} must be finite, got {_shown(concrete.ravel()[bad])} {unit}{where}."
+            )
         value = jnp.asarray(value, dtype=dtype)
         if value.ndim == 0:
             return jnp.broadcast_to(value, (n,))
