@@ -103,18 +103,41 @@ def _aperiodic_error(params, key, gamma, gain, lag, *, ts, noisy, smoothing):
     return _outcome(est.scale_factor, est.result, params)
 
 
-def _fit_error(params, key, gamma, gain, *, ts, order, known_filter=False):
-    """The same for a least-squares fit; `known_filter`: order 3 given the design T_f and
-    K_test (as a designer knows them), else the fit ignores T_f and takes K = 1."""
+def _fit_error(params, key, gamma, gain, known_filter=None, *, ts, order):
+    """The same for a least-squares fit. Order 3 takes `known_filter` (traced, so that both
+    cases share one compiled fit): true, the fit is given the design T_f and K_test (as a
+    designer knows them); false, it ignores T_f and takes K = 1."""
     extra = {}
-    if known_filter:
+    if order == 3:
         extra = dict(
-            feedback_fraction=aj.closed_loop_test_gain(params),
-            filter_time_constant=params.filter_time_constant,
+            feedback_fraction=jnp.where(known_filter, aj.closed_loop_test_gain(params), 1.0),
+            filter_time_constant=jnp.where(known_filter, params.filter_time_constant, 0.0),
         )
     fit = aj.fit_step_response(ts, _record(params, key, ts), order=order, throw=False, **extra)
     kahat, _ = aj.scale_factor_from_fit(fit, gain, gamma)
     return _outcome(kahat, fit.result, params)
+
+
+# One kernel object per configuration, shared by every sweep that uses it: `aj.sweep`
+# compiles once per (kernel, shape), and a fresh `functools.partial` is a new kernel.
+# Every Monte Carlo sweep is cut into chunks of SWEEP_CHUNK trajectories (the batch padded
+# up to a whole chunk), so the headline, the parameter sweeps and the fit comparison all run
+# one compiled shape instead of one per batch size.
+SWEEP_CHUNK = 16
+
+
+@functools.cache
+def _kernel(method: str, duration: float, **static):
+    """The per-trajectory error function of `method` ('oscillatory', 'aperiodic', 'fit') on
+    a 1 MHz record of `duration` [s], with its static options."""
+    ts = _grid(duration, SAMPLE_RATE)
+    if method == "oscillatory":
+        return functools.partial(
+            _oscillatory_error, ts=ts, crossing=CROSSING, extremum=EXTREMUM, **static
+        )
+    if method == "aperiodic":
+        return functools.partial(_aperiodic_error, ts=ts, smoothing=APER_SMOOTHING, **static)
+    return functools.partial(_fit_error, ts=ts, **static)
 
 
 # --- k_dp·k_y from the stops (eq. 11), nonlinear simulation ----------------------------
@@ -172,7 +195,12 @@ def _run_sweep(one, base, field, values, seeds, key, shared_args):
     batch = _params_batch(base, field, values, seeds)
     keys = jax.random.split(key, len(values) * seeds)
     errors, codes = aj.sweep(
-        one, batch, keys, *shared_args, in_axes=(0, 0) + (None,) * len(shared_args)
+        one,
+        batch,
+        keys,
+        *shared_args,
+        in_axes=(0, 0) + (None,) * len(shared_args),
+        chunk_size=SWEEP_CHUNK,
     )
     return _summarise(np.asarray(errors), np.asarray(codes), len(values), seeds)
 
@@ -226,13 +254,10 @@ def run(
     gain_stops = float(identify_pickoff_gain(ref, key=k_stop))
     gamma_exact = float(aj.shape_factor(ref))
     ts_osc = _grid(OSC_DURATION, SAMPLE_RATE)
-    ts_ap = _grid(APER_DURATION, SAMPLE_RATE)
     lag_ref = float(ref.filter_time_constant + ref.torquer_time_constant)
 
-    osc = functools.partial(
-        _oscillatory_error, ts=ts_osc, crossing=CROSSING, extremum=EXTREMUM, noisy=True
-    )
-    aper = functools.partial(_aperiodic_error, ts=ts_ap, noisy=True, smoothing=APER_SMOOTHING)
+    osc = _kernel("oscillatory", OSC_DURATION, noisy=True)
+    aper = _kernel("aperiodic", APER_DURATION, noisy=True)
 
     # Headline numbers: the full reference device, noise, Monte Carlo over seeds.
     def headline(one, base, gamma, *extra, key):
@@ -244,6 +269,7 @@ def run(
             keys,
             *_traced(gamma, gain_stops, *extra),
             in_axes=(0, 0, None, None) + (None,) * len(extra),
+            chunk_size=SWEEP_CHUNK,
         )
         s = _summarise(np.asarray(errors), np.asarray(codes), 1, seeds)
         return {k: v[0] for k, v in s.items()}
@@ -269,7 +295,7 @@ def run(
     }
     sweeps = run_sweeps(ref, ref_ap, gain_stops, gamma_exact, seeds, k_osc, k_ap, quick)
     gradients = gradient_checks(ref, gain_true, gamma_exact)
-    fits = compare_fit(ref, gain_true, gamma_exact, 8 if quick else 32, k_fit, ts_osc)
+    fits = compare_fit(ref, gain_true, gamma_exact, 8 if quick else 32, k_fit)
 
     result = {
         "title": "Scale-factor identification from a test-signal step (SPEC.md §1)",
@@ -532,11 +558,7 @@ def decompose_aperiodic(ref_ap, gain_true) -> dict:
 
 def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
     n = 7 if quick else 15
-    ts_osc = _grid(OSC_DURATION, SAMPLE_RATE)
-    ts_ap = _grid(APER_DURATION, SAMPLE_RATE)
-    osc = functools.partial(
-        _oscillatory_error, ts=ts_osc, crossing=CROSSING, extremum=EXTREMUM, noisy=True
-    )
+    osc = _kernel("oscillatory", OSC_DURATION, noisy=True)
     lag_ref = float(ref.filter_time_constant + ref.torquer_time_constant)
     keys = jax.random.split(k_osc, 6)
     keys_ap = jax.random.split(k_ap, 6)
@@ -545,13 +567,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
     noise = np.logspace(-6, -2, n)
     tdm = np.linspace(0.0, 1e-4, n)
     out = {"oscillatory": {}, "aperiodic": {}}
-    osc_long = functools.partial(
-        _oscillatory_error,
-        ts=_grid(XI_SWEEP_DURATION, SAMPLE_RATE),
-        crossing=CROSSING,
-        extremum=EXTREMUM,
-        noisy=True,
-    )
+    osc_long = _kernel("oscillatory", XI_SWEEP_DURATION, noisy=True)
     out["oscillatory"]["damping_ratio"] = {
         "x": xi.tolist(),
         "record_s": XI_SWEEP_DURATION,
@@ -565,7 +581,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
         "x": xi.tolist(),
         "record_s": XI_SWEEP_DURATION,
         **_run_sweep(
-            functools.partial(osc_long, period="half"),
+            _kernel("oscillatory", XI_SWEEP_DURATION, noisy=True, period="half"),
             ref,
             "damping",
             _damping_for_ratio(ref, xi),
@@ -596,8 +612,8 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
         ]
 
     ratio = np.linspace(1.05, 3.0, n)  # T1/(2 T2) = ξ
-    aper = functools.partial(_aperiodic_error, ts=ts_ap, noisy=True, smoothing=APER_SMOOTHING)
-    clean = functools.partial(_aperiodic_error, ts=ts_ap, noisy=False, smoothing=APER_SMOOTHING)
+    aper = _kernel("aperiodic", APER_DURATION, noisy=True)
+    clean = _kernel("aperiodic", APER_DURATION, noisy=False)
 
     def aperiodic_sweep(field, values, key, lag):
         """Noisy Monte Carlo and the noise-free curve; `lag` is a scalar or per-value."""
@@ -611,6 +627,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
             *_traced(gamma, gain),
             jnp.repeat(lag, seeds),
             in_axes=(0, 0, None, None, 0),
+            chunk_size=SWEEP_CHUNK,
         )
         summary = {
             "x": list(map(float, values)),
@@ -702,15 +719,20 @@ def gradient_checks(ref, gain, gamma) -> dict:
     return out
 
 
-def compare_fit(ref, gain, gamma, seeds, key, ts) -> dict:
+def compare_fit(ref, gain, gamma, seeds, key) -> dict:
     """Graph-analytic method vs least-squares fits (2nd and 3rd order) on the same records."""
     keys = jax.random.split(key, seeds)
     batch = _params_batch(ref, "damping", np.array([float(ref.damping)]), seeds)
     out = {}
-    osc = functools.partial(
-        _oscillatory_error, ts=ts, crossing=CROSSING, extremum=EXTREMUM, noisy=True
+    shared = _traced(gamma, gain)
+    e, c = aj.sweep(
+        _kernel("oscillatory", OSC_DURATION, noisy=True),
+        batch,
+        keys,
+        *shared,
+        in_axes=(0, 0, None, None),
+        chunk_size=SWEEP_CHUNK,
     )
-    e, c = aj.sweep(osc, batch, keys, *_traced(gamma, gain), in_axes=(0, 0, None, None))
     out["graph_analytic"] = {
         k: v[0] for k, v in _summarise(np.asarray(e), np.asarray(c), 1, seeds).items()
     }
@@ -719,8 +741,15 @@ def compare_fit(ref, gain, gamma, seeds, key, ts) -> dict:
         ("fit_order_3", 3, False),
         ("fit_order_3_known_filter", 3, True),
     ):
-        one = functools.partial(_fit_error, ts=ts, order=order, known_filter=known)
-        e, c = aj.sweep(one, batch, keys, *_traced(gamma, gain), in_axes=(0, 0, None, None))
+        e, c = aj.sweep(
+            _kernel("fit", OSC_DURATION, order=order),
+            batch,
+            keys,
+            *shared,
+            jnp.asarray(known),
+            in_axes=(0, 0, None, None, None),
+            chunk_size=SWEEP_CHUNK,
+        )
         out[name] = {k: v[0] for k, v in _summarise(np.asarray(e), np.asarray(c), 1, seeds).items()}
     out["note"] = (
         "γ exact, k_dp k_y true, reference device with noise ε = 1e-5 V. fit_order_3 ignores "
