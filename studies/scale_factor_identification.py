@@ -121,8 +121,9 @@ def _fit_error(params, key, gamma, gain, known_filter=None, *, ts, order):
 # One kernel object per configuration, shared by every sweep that uses it: `aj.sweep`
 # compiles once per (kernel, shape), and a fresh `functools.partial` is a new kernel.
 # Every Monte Carlo sweep is cut into chunks of SWEEP_CHUNK trajectories (the batch padded
-# up to a whole chunk), so the headline, the parameter sweeps and the fit comparison all run
-# one compiled shape instead of one per batch size.
+# up to a whole chunk), so the headline and the parameter sweeps run one compiled shape
+# instead of one per batch size (a batch smaller than a chunk, as the fit comparison's 8
+# records in --quick, runs at its own size).
 SWEEP_CHUNK = 16
 
 
@@ -267,8 +268,10 @@ def run(
             one,
             batch,
             keys,
-            *_traced(gamma, gain_stops, *extra),
-            in_axes=(0, 0, None, None) + (None,) * len(extra),
+            *_traced(gamma, gain_stops),
+            # The lag correction per record, as the aperiodic sweeps pass it: one program.
+            *(jnp.full(seeds, value, jnp.float64) for value in extra),
+            in_axes=(0, 0, None, None) + (0,) * len(extra),
             chunk_size=SWEEP_CHUNK,
         )
         s = _summarise(np.asarray(errors), np.asarray(codes), 1, seeds)
