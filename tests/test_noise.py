@@ -161,6 +161,27 @@ def test_maximum_likelihood_recovers_with_calibrated_intervals():
     assert 0.5 < rel_se / np.std(np.log(tau)) < 2.0
 
 
+def test_maximum_likelihood_convergence_is_judged_at_the_point_returned():
+    """A fit whose BFGS budget ran out at the optimum counts as converged (Newton-step
+    test on the exact Hessian); one stopped short of the optimum does not."""
+    from accel_jax._noise import NoiseFitResult
+
+    x = simulate_noise(GaussMarkov(2.0, 10.0), DT, 2000, key=jax.random.key(11))
+    fit = jax.jit(fit_maximum_likelihood)
+    best = fit(GaussMarkov(1.0, 3.0), x, DT)
+    assert best.result == NoiseFitResult.successful
+    # Restarted at the optimum with a budget of one step: BFGS itself reports max_steps,
+    # but the point returned is the optimum.
+    again = fit_maximum_likelihood(best.model, x, DT, max_steps=1, throw=False)
+    assert again.result == NoiseFitResult.successful
+    np.testing.assert_allclose(again.model.correlation_time, best.model.correlation_time, rtol=1e-6)
+    # Two steps from a poor start: far from the optimum, so not converged (and raises).
+    short = fit_maximum_likelihood(GaussMarkov(1.0, 3.0), x, DT, max_steps=2, throw=False)
+    assert short.result == NoiseFitResult.not_converged
+    with pytest.raises(Exception, match="did not converge"):
+        fit_maximum_likelihood(GaussMarkov(1.0, 3.0), x, DT, max_steps=2)
+
+
 def test_structure_selection_picks_the_true_structure():
     truth = NoiseSum((WhiteNoise(0.5), GaussMarkov(1.0, 5.0)))
     x = simulate_noise(truth, DT, 1200, key=jax.random.key(6))
