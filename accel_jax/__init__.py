@@ -253,5 +253,7 @@ from ._vibration import validate_vibration_table as validate_vibration_table
 from ._vibration import vibration_error as vibration_error
 from ._vibration import write_vibration_table as write_vibration_table
 from ._xla import apply_cpu_workarounds as apply_cpu_workarounds
+from ._xla import apply_fast_compile as apply_fast_compile
+from ._xla import fast_compile as fast_compile
 
 __version__ = "0.1.0"

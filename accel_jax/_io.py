@@ -67,7 +67,7 @@ def save_figure_atomic(figure, path: str | os.PathLike, **kwargs) -> Path:
 
 def provenance(*, seeds: dict | None = None, precision: str, extra: dict | None = None) -> dict:
     """The provenance block every result file carries: package version, JAX and device,
-    precision, seeds and the date (UTC)."""
+    precision, the XLA options in effect, seeds and the date (UTC)."""
     from . import __version__
 
     block = {
@@ -75,6 +75,9 @@ def provenance(*, seeds: dict | None = None, precision: str, extra: dict | None 
         "jax_version": jax.__version__,
         "devices": [str(d) for d in jax.devices()],
         "precision": precision,
+        # XLA options change results at the round-off level (e.g. fast-compile in --quick).
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "xla_most_optimizations_off": bool(jax.config.read("jax_disable_most_optimizations")),
         "seeds": seeds or {},
         "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }

@@ -15,6 +15,7 @@ from their own script should set the flag themselves (`XLA_FLAGS`).
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -65,6 +66,48 @@ def warn_if_cpu_scheduler_unsafe(what: str) -> bool:
         stacklevel=3,
     )
     return True
+
+
+FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
+"""XLA:CPU option for compile-bound runs: the older loop emitters instead of the MLIR fusion
+emitters. On the 2-core CPU it cut the quick studies' compile time by a quarter to a third
+(scale-factor study 44 → 31 s, noise 30 → 20 s) at an unchanged run time (one vmapped
+scale-factor identification: 13.3 ms either way). An XLA:CPU option only: GPU and TPU
+backends ignore it."""
+
+
+def apply_fast_compile() -> list[str]:
+    """Add `FAST_COMPILE_FLAGS` to `XLA_FLAGS` (each unless the user set that option);
+    returns the flags added. Effective only before JAX initialises its backend, for this
+    process and the processes it starts (the report's workers and the blind diagnosis)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    added = [f for f in FAST_COMPILE_FLAGS if f.split("=")[0] not in flags]
+    if added:
+        os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
+    return added
+
+
+@contextlib.contextmanager
+def fast_compile(enabled: bool = True):
+    """Inside the block, compile with most of XLA's optimisations off (JAX's
+    `jax_disable_most_optimizations`: LLVM at -O0, no expensive passes) on the CPU backend;
+    elsewhere, or with `enabled` false, a no-op. For work that compiles many programs and
+    runs each a few times. Measured on the 2-core CPU with `FAST_COMPILE_FLAGS`: one
+    vmapped scale-factor identification compiles in 0.6 s instead of 1.9 s and runs in
+    66 ms instead of 13 ms; the quick scale-factor study takes 58 CPU-s instead of 68.
+    Results agree to round-off. Programs compiled inside stay compiled that way for the
+    rest of the process (JAX's in-memory cache does not key on the option)."""
+    import jax
+
+    if not enabled or jax.default_backend() != "cpu":
+        yield
+        return
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", previous)
 
 
 CACHE_ENV = "ACCEL_JAX_CACHE_DIR"

@@ -56,7 +56,12 @@ def main():
     show_default=True,
     help="Folder for index.html; each study writes its own folder beside it.",
 )
-@click.option("--quick", is_flag=True, help="Smaller sweeps (a smoke run, minutes not tens).")
+@click.option(
+    "--quick",
+    is_flag=True,
+    help="Smaller sweeps (a smoke run, minutes not tens), compiled for compile speed on the "
+    "CPU (XLA options recorded in each result's provenance; results equal to round-off).",
+)
 @click.option(
     "--force",
     is_flag=True,
@@ -101,12 +106,17 @@ def report(
     Interrupted runs resume: a study that finished with the same options and code is not
     redone. Nothing is deleted unless --force.
     """
+    from ._xla import apply_fast_compile, enable_compilation_cache
+
+    if quick:
+        # Before anything starts JAX's backend: the quick report is compile-bound (most of
+        # its programs run once or a few times), see FAST_COMPILE_FLAGS.
+        apply_fast_compile()
     import jax
 
     # Studies measure effects below float32 resolution (δK_a at 0.1 %): run them in float64.
     jax.config.update("jax_enable_x64", True)
     from ._data import DataError, read_params_toml
-    from ._xla import enable_compilation_cache
 
     if compile_cache:
         folder = enable_compilation_cache()

@@ -34,6 +34,10 @@ import numpy as np  # noqa: E402
 import accel_jax as aj  # noqa: E402
 
 STUDY = "scale_factor_identification"
+# In `accel-jax report --quick` this study compiles with most XLA optimisations off
+# (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: ~170 programs,
+# most run once or on a few chunks: 68 → 58 CPU-s).
+QUICK_FAST_COMPILE = True
 
 # --- assumptions (the paper states none of these; ours are recorded in the output) -------
 SAMPLE_RATE = 1e6  # Hz

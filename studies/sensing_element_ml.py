@@ -50,6 +50,8 @@ from accel_jax import (  # noqa: E402
 )
 
 STUDY = "sensing_element_ml"
+# Not compiled for speed in --quick (no QUICK_FAST_COMPILE): its nonlinear fits are run-bound
+# (quick, 2-core CPU: 70 CPU-s at the default optimisation, 103 with most of it off).
 
 # --- assumptions (the paper gives no numbers; ours are recorded in the output) -------------
 NATURAL_FREQUENCY = 2 * np.pi  # ω0 [rad/s]: a 1 Hz precession oscillation

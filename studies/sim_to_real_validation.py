@@ -51,6 +51,11 @@ import accel_jax as aj  # noqa: E402
 from accel_jax import NoiseData, StepData, VibrationData, write_csv  # noqa: E402
 
 STUDY = "sim_to_real_validation"
+# In `accel-jax report --quick` this study compiles with most XLA optimisations off
+# (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: this process
+# simulates the datasets, ~55 programs: 13 → 9 CPU-s). The blind diagnosis, run-bound, runs
+# in its own process at the default optimisation.
+QUICK_FAST_COMPILE = True
 
 KINDS = ("step", "vibration", "noise")
 

@@ -356,3 +356,56 @@ def test_default_jobs_follow_cores_and_memory(monkeypatch):
     monkeypatch.setattr(_run.jax, "default_backend", lambda: "gpu")
     monkeypatch.setattr(_run.os, "cpu_count", lambda: 16)
     assert _run.default_jobs(7) == 1  # one process owns the accelerator
+
+
+FAST_STUDY = textwrap.dedent(
+    """
+    from pathlib import Path
+
+    import jax
+
+    import accel_jax as aj
+
+    QUICK_FAST_COMPILE = {flag}
+
+    def run(out_dir, *, quick=False):
+        aj.write_json_atomic(Path(out_dir) / "result.json", {{
+            "title": "f", "provenance": aj.provenance(precision="float64"),
+        }})
+        return {{}}
+    """
+)
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_quick_compiles_declared_studies_for_speed_and_records_it(tmp_path, jobs):
+    """In --quick, a study with QUICK_FAST_COMPILE runs under accel_jax.fast_compile (in
+    its provenance), the others and the full run do not; the setting does not leak."""
+    import jax
+
+    studies = tmp_path / "studies"
+    studies.mkdir()
+    (studies / "fast.py").write_text(FAST_STUDY.format(flag=True))
+    (studies / "plain.py").write_text(FAST_STUDY.format(flag=False))
+    seen = {}
+    for quick in (True, False):
+        out = tmp_path / f"quick{quick}" / "report"
+        run_report(
+            out,
+            studies=("fast", "plain"),
+            studies_dir=studies,
+            quick=quick,
+            progress=False,
+            echo=lambda s: None,
+            jobs=jobs,
+        )
+        for name in ("fast", "plain"):
+            result = json.loads((out.parent / name / "result.json").read_text())
+            seen[quick, name] = result["provenance"]["xla_most_optimizations_off"]
+    assert seen == {
+        (True, "fast"): True,
+        (True, "plain"): False,
+        (False, "fast"): False,
+        (False, "plain"): False,
+    }
+    assert jax.config.read("jax_disable_most_optimizations") is False

@@ -85,3 +85,55 @@ def test_unsafe_cpu_scheduler_warns_once(monkeypatch):
     monkeypatch.setattr(_xla, "_WARNED", False)
     monkeypatch.setenv("XLA_FLAGS", _xla.CPU_SCHEDULER_FLAG)
     assert not _xla.warn_if_cpu_scheduler_unsafe("fit_sensing_element")
+
+
+def test_fast_compile_flags_added_once_respecting_the_user(monkeypatch):
+    import accel_jax._xla as xla
+
+    monkeypatch.setenv("XLA_FLAGS", "--other=1")
+    assert xla.apply_fast_compile() == ["--xla_cpu_use_fusion_emitters=false"]
+    assert xla.apply_fast_compile() == []
+    assert os.environ["XLA_FLAGS"].split() == ["--other=1", "--xla_cpu_use_fusion_emitters=false"]
+    # The user's own setting of the option wins.
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert xla.apply_fast_compile() == []
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+
+
+_FAST_PROGRAM = """
+import sys
+import accel_jax as aj
+if sys.argv[1] == "fast":
+    assert aj.apply_fast_compile()
+import jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+x = jnp.linspace(0.0, 3.0, 64).reshape(8, 8)
+f = lambda x: jnp.sin(x) @ jnp.cos(x).T + jnp.linalg.inv(x @ x.T + 3.0 * jnp.eye(8))
+with aj.fast_compile(sys.argv[1] == "fast"):
+    value = float(jax.jit(f)(x).sum())
+    block = aj.provenance(precision="float64")
+after = aj.provenance(precision="float64")["xla_most_optimizations_off"]
+print(repr(value), block["xla_most_optimizations_off"], after, block["xla_flags"] or "-")
+"""
+
+
+def test_fast_compile_gives_the_same_results_and_is_recorded():
+    def run(mode):
+        env = {**os.environ, "ACCEL_JAX_CACHE_DIR": "off", "XLA_FLAGS": ""}
+        out = subprocess.run(
+            [sys.executable, "-c", _FAST_PROGRAM, mode],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
+        assert out.returncode == 0, out.stderr
+        value, inside, after, flags = out.stdout.split()
+        return float(value), inside, after, flags
+
+    default = run("default")
+    fast = run("fast")
+    assert default[1:] == ("False", "False", "-")
+    # Recorded in the provenance while on, and switched back off after the block.
+    assert fast[1:] == ("True", "False", "--xla_cpu_use_fusion_emitters=false")
+    assert fast[0] == pytest.approx(default[0], rel=1e-12)
