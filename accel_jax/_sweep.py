@@ -146,6 +146,18 @@ def sweep(
     return jax.tree_util.tree_map(lambda x: x[:size] if eqx.is_array(x) else x, out)
 
 
+def even_chunk_size(size: int, largest: int) -> int:
+    """The chunk size that splits `size` elements into as few chunks of at most `largest` as
+    possible, all of (nearly) equal size: 18 at most 16 at a time gives 9 (2 × 9), not 16
+    (16 + 2 padded to 16, where a vmapped chunk of iterative fits costs about as much as
+    its slowest element whatever its fill)."""
+    if size < 1 or largest < 1:
+        raise ValueError(
+            f"even_chunk_size: size and largest must be positive, got {size}, {largest}."
+        )
+    return -(-size // -(-size // largest))
+
+
 def _strong(tree):
     def leaf_fn(leaf):
         if isinstance(leaf, jax.Array) and getattr(leaf, "weak_type", False):

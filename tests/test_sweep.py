@@ -102,3 +102,19 @@ def test_sweep_on_four_simulated_devices():
     assert proc.returncode == 0, proc.stderr[-3000:]
     # The result lives on all four devices: the batch was really split.
     assert proc.stdout.strip() == "OK 4", proc.stdout
+
+
+def test_even_chunk_size_splits_into_fewest_equal_chunks():
+    from accel_jax._sweep import even_chunk_size
+
+    assert even_chunk_size(18, 16) == 9  # 2 × 9, not 16 + 2 padded to 16
+    assert even_chunk_size(16, 16) == 16
+    assert even_chunk_size(5, 16) == 5
+    assert even_chunk_size(120, 16) == 15  # 8 × 15
+    for size in range(1, 200):
+        chunk = even_chunk_size(size, 16)
+        chunks = -(-size // chunk)
+        assert chunk <= 16 and chunks == -(-size // 16)  # as few chunks as possible
+        assert chunks * chunk - size < chunks  # less than one padded element per chunk
+    with pytest.raises(ValueError, match="must be positive"):
+        even_chunk_size(0, 16)

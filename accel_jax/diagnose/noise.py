@@ -54,7 +54,7 @@ import optimistix as optx
 
 from .._data import DataError, NoiseData, NominalDevice
 from .._noise import _DIFFUSE, initial_model
-from .._sweep import sweep
+from .._sweep import even_chunk_size, sweep
 from .base import (
     AbstractEffect,
     CandidateFit,
@@ -629,8 +629,7 @@ def diagnose_noise(
             guesses,
             candidates,
             in_axes=(0, None, 0, None),
-            # Equal chunks of at most BATCH_CHUNK records (sweep pads the last chunk).
-            chunk_size=-(-len(indices) // -(-len(indices) // BATCH_CHUNK)),
+            chunk_size=even_chunk_size(len(indices), BATCH_CHUNK),
             desc="diagnose noise",
         )
         outputs = [np.asarray(o) for o in outputs]

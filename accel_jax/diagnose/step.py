@@ -38,7 +38,7 @@ from .._data import NominalDevice, StepData
 from .._params import ServoParams
 from .._servo import loop_stiffness, scale_factor, time_constant
 from .._simulate import discretise, state_space
-from .._sweep import sweep
+from .._sweep import even_chunk_size, sweep
 from .base import (
     AbstractEffect,
     CandidateFit,
@@ -647,7 +647,7 @@ def diagnose_step(datasets: list[StepData], nominal: NominalDevice) -> list[Diag
             guesses,
             jnp.arange(1 + len(effects)),
             in_axes=(None, None, 0, 0, 0, 0, 0, None),
-            chunk_size=min(BATCH_CHUNK, len(indices)),
+            chunk_size=even_chunk_size(len(indices), BATCH_CHUNK),
             desc="diagnose step",
         )
         outputs = [np.asarray(o) for o in outputs]
