@@ -76,10 +76,23 @@ scale-factor identification: 13.3 ms either way). An XLA:CPU option only: GPU an
 backends ignore it."""
 
 
+def _backend_started() -> bool:
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # a JAX without this (private) query
+        return False
+
+
 def apply_fast_compile() -> list[str]:
-    """Add `FAST_COMPILE_FLAGS` to `XLA_FLAGS` (each unless the user set that option);
-    returns the flags added. Effective only before JAX initialises its backend, for this
-    process and the processes it starts (the report's workers and the blind diagnosis)."""
+    """Add `FAST_COMPILE_FLAGS` to `XLA_FLAGS` (each unless the user set that option), for
+    this process and the processes it starts (the report's workers, the blind diagnosis);
+    returns the flags added. Nothing is added once JAX has started its backend (the flags
+    would not apply here, and `XLA_FLAGS`, which `provenance` records, would then claim
+    them)."""
+    if _backend_started():
+        return []
     flags = os.environ.get("XLA_FLAGS", "")
     added = [f for f in FAST_COMPILE_FLAGS if f.split("=")[0] not in flags]
     if added:

@@ -50,8 +50,6 @@ from accel_jax import (  # noqa: E402
 )
 
 STUDY = "sensing_element_ml"
-# Not compiled for speed in --quick (no QUICK_FAST_COMPILE): its nonlinear fits are run-bound
-# (quick, 2-core CPU: 70 CPU-s at the default optimisation, 103 with most of it off).
 
 # --- assumptions (the paper gives no numbers; ours are recorded in the output) -------------
 NATURAL_FREQUENCY = 2 * np.pi  # ω0 [rad/s]: a 1 Hz precession oscillation
@@ -563,6 +561,8 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
+    if args.quick:
+        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
     aj.apply_cpu_workarounds()  # before the batched fits start JAX (see accel_jax._xla)
     result = run(args.out, quick=args.quick)
     for row in result["summary"]:

@@ -51,11 +51,6 @@ import accel_jax as aj  # noqa: E402
 from accel_jax import NoiseData, StepData, VibrationData, write_csv  # noqa: E402
 
 STUDY = "sim_to_real_validation"
-# In `accel-jax report --quick` this study compiles with most XLA optimisations off
-# (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: this process
-# simulates the datasets, ~55 programs: 13 → 9 CPU-s). The blind diagnosis, run-bound, runs
-# in its own process at the default optimisation.
-QUICK_FAST_COMPILE = True
 
 KINDS = ("step", "vibration", "noise")
 
@@ -866,7 +861,17 @@ SNR_LABEL = {
 }
 
 
-def run(
+def run(out_dir: Path, *, quick: bool = False, **options) -> dict:
+    """Run the study; write OUT/result.json and figures; return the result dict (options
+    as `_run`). `quick` is compile-bound and compiles with most XLA optimisations off
+    (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: the dataset
+    simulation, ~55 programs, 13 → 9 CPU-s). The blind diagnosis, run-bound, runs in its
+    own process at the default optimisation."""
+    with aj.fast_compile(quick):
+        return _run(out_dir, quick=quick, **options)
+
+
+def _run(
     out_dir: Path, *, quick: bool = False, seed: int = 20261122, kinds=KINDS, per_class=None
 ) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict.
@@ -1089,6 +1094,8 @@ def main(argv=None):
     parser.add_argument("--kinds", default=",".join(KINDS), help="comma-separated subset of kinds")
     parser.add_argument("--per-class", type=int, default=None, help="datasets per class")
     args = parser.parse_args(argv)
+    if args.quick:
+        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
     kinds = tuple(k for k in args.kinds.split(",") if k)
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:

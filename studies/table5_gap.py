@@ -47,9 +47,6 @@ from accel_jax import (  # noqa: E402
 )
 
 STUDY = "table5_gap"
-# In `accel-jax report --quick` this study compiles with most XLA optimisations off
-# (accel_jax.fast_compile): it is closed-form, a few dozen small programs run once.
-QUICK_FAST_COMPILE = True
 
 # --- the measurement (SPEC.md §3, Table 5) ---------------------------------------------
 INPUT_G = 1.0  # along the input axis

@@ -58,9 +58,6 @@ from accel_jax import (  # noqa: E402
 )
 
 STUDY = "vibration_compensation"
-# In `accel-jax report --quick` this study compiles with most XLA optimisations off
-# (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: ~150 programs: 11 → 7.6 CPU-s).
-QUICK_FAST_COMPILE = True
 
 # --- the paper's published numbers ------------------------------------------------------
 TABLE3_1E4G = [2.2, 1.8, 0.5, 1.0, 0.6, 1.2, 2.0, 2.5, 0.7, 0.2, 2.0, 2.3]
@@ -534,7 +531,16 @@ def coefficient_fitting(key, quick: bool) -> dict:
 # --- run ---------------------------------------------------------------------------------
 
 
-def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
+def run(out_dir: Path, *, quick: bool = False, **options) -> dict:
+    """Run the study; write OUT/result.json and figures; return the result dict (options
+    as `_run`). `quick` is compile-bound and compiles with most XLA optimisations off
+    (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off:
+    ~150 programs, most run once: 11 → 7.6 CPU-s)."""
+    with aj.fast_compile(quick):
+        return _run(out_dir, quick=quick, **options)
+
+
+def _run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict."""
     jax.config.update("jax_enable_x64", True)  # the study's own choice, see docstring
     out_dir = Path(out_dir)
@@ -855,6 +861,8 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
+    if args.quick:
+        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
     result = run(args.out, quick=args.quick)
     for row in result["summary"]:
         print(f"{row['quantity']}: {row['ours']} (paper {row['paper']})")

@@ -57,6 +57,28 @@ def test_report_has_every_study_and_figure(report_dir, study):
 
 
 @pytest.mark.slow
+def test_quick_compiles_one_off_work_for_speed_and_says_so(report_dir):
+    """--quick compiles the one-off parts with most XLA optimisations off and records it;
+    the sensing-element fits (run-bound) and every Monte Carlo kernel keep the default."""
+    import jax
+
+    def provenance(name):
+        return json.loads((report_dir.parent / name / "result.json").read_text())["provenance"]
+
+    key = "compiled_with_most_xla_optimisations_off"
+    assert provenance("scale_factor_identification")[key] == (
+        "stop identification, decompositions, gradient checks, fit comparison"
+    )
+    assert provenance("noise_identification")[key] == (
+        "structure selection, Kalman filter, Allan deviation"
+    )
+    for name in ("vibration_compensation", "tolerance_limits", "sim_to_real_validation"):
+        assert provenance(name)["xla_most_optimizations_off"] is True, name
+    assert provenance("sensing_element_ml")["xla_most_optimizations_off"] is False
+    assert jax.config.read("jax_disable_most_optimizations") is False  # nothing leaks
+
+
+@pytest.mark.slow
 def test_result_schema(study):
     for method in ("oscillatory", "aperiodic"):
         assert np.isfinite(study["dKa_percent"][method])

@@ -90,6 +90,7 @@ def test_unsafe_cpu_scheduler_warns_once(monkeypatch):
 def test_fast_compile_flags_added_once_respecting_the_user(monkeypatch):
     import accel_jax._xla as xla
 
+    monkeypatch.setattr(xla, "_backend_started", lambda: False)
     monkeypatch.setenv("XLA_FLAGS", "--other=1")
     assert xla.apply_fast_compile() == ["--xla_cpu_use_fusion_emitters=false"]
     assert xla.apply_fast_compile() == []
@@ -98,6 +99,11 @@ def test_fast_compile_flags_added_once_respecting_the_user(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
     assert xla.apply_fast_compile() == []
     assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    # Once the backend has started, the flags could not apply: nothing is added.
+    monkeypatch.setattr(xla, "_backend_started", lambda: True)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert xla.apply_fast_compile() == []
+    assert os.environ["XLA_FLAGS"] == ""
 
 
 _FAST_PROGRAM = """

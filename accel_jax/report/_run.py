@@ -27,7 +27,6 @@ import jax
 
 from .._io import _atomic_write_bytes
 from .._progress import bar, show_progress
-from .._xla import fast_compile
 from ._html import REPORT_MARKER, build_report
 
 MARKER = ".accel_jax_run.json"
@@ -134,10 +133,7 @@ def _run_study(
         from .._params import ServoParams
 
         extra["params"] = ServoParams(**params_fields)
-    # A study that declares itself compile-bound at quick sizes compiles with most XLA
-    # optimisations off in --quick (see accel_jax.fast_compile).
-    fast = quick and bool(getattr(module, "QUICK_FAST_COMPILE", False))
-    with show_progress(progress, label=name, position=position), fast_compile(fast):
+    with show_progress(progress, label=name, position=position):
         module.run(folder, quick=quick, **extra)
     elapsed = time.perf_counter() - started
     _write_marker(folder, key, complete=True, seconds=elapsed)
