@@ -179,14 +179,17 @@ def _batch(n_samples, **columns):
     # runs as many iterations and steps as its slowest record, so the chunks are small;
     # measured on the 2-core CPU: ~0.6 s per record in chunks of 8 against ~3 s one by one
     # (the per-step overhead of the ODE loop is shared by the chunk).
+    # Padded to whole chunks here too: a batch smaller than a chunk (a quick sweep's 6
+    # records) would otherwise compile the fit a second time, at its own size.
+    pad = -size % FIT_BLOCK
+    fit_args = [jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) for a in [*args, keys]]
     fits = aj.sweep(
         _one_record(n_samples, True),
-        *args,
-        keys,
+        *fit_args,
         chunk_size=FIT_BLOCK,
         desc="nonlinear fits",
     )
-    fits = {name: np.asarray(fits[name]) for name in ("nonlinear_fit", "fit_ok", "fit_std")}
+    fits = {name: np.asarray(fits[name])[:size] for name in ("nonlinear_fit", "fit_ok", "fit_std")}
     out.update(fits)
     return out
 
