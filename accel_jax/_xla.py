@@ -107,9 +107,10 @@ def fast_compile(enabled: bool = True):
     elsewhere, or with `enabled` false, a no-op. For work that compiles many programs and
     runs each a few times. Measured on the 2-core CPU with `FAST_COMPILE_FLAGS`: one
     vmapped scale-factor identification compiles in 0.6 s instead of 1.9 s and runs in
-    66 ms instead of 13 ms; the quick scale-factor study takes 58 CPU-s instead of 68.
-    Results agree to round-off. Programs compiled inside stay compiled that way for the
-    rest of the process (JAX's in-memory cache does not key on the option)."""
+    66 ms instead of 13 ms; the quick scale-factor study, with its one-off parts inside,
+    takes 42 CPU-s instead of 59. Results agree to round-off. Programs compiled inside stay
+    compiled that way for the rest of the process, and programs compiled before keep their
+    optimisation inside (JAX's in-memory cache does not key on the option; checked)."""
     import jax
 
     if not enabled or jax.default_backend() != "cpu":
