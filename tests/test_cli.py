@@ -139,3 +139,29 @@ def test_tolerance_from_a_psd_file_and_bad_input(tmp_path):
         assert result.exit_code in (1, 2), (extra, result.output)
         assert message in result.output, (extra, result.output)
         assert "Traceback" not in result.output
+
+
+def test_subcommands_keep_compiled_programs_in_the_cache(tmp_path):
+    """`accel-jax info` (like diagnose and identify) writes compiled programs to the
+    persistent cache, reads them back with the same output, and runs without a cache under
+    ACCEL_JAX_CACHE_DIR=off. Fresh processes: JAX's cache configuration is process-global."""
+    import os
+    import subprocess
+    import sys
+
+    def run(value):
+        env = {**os.environ, "ACCEL_JAX_CACHE_DIR": value}
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
+        env.pop("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", None)
+        code = "from accel_jax.cli import main; main(['info'])"
+        out = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120
+        )
+        assert out.returncode == 0, out.stderr
+        return out.stdout
+
+    folder = tmp_path / "xla"
+    first = run(str(folder))
+    assert any(p.is_file() for p in folder.rglob("*")), "nothing written to the cache"
+    assert run(str(folder)) == first  # same output from cached programs
+    assert run("off") == first
