@@ -255,5 +255,6 @@ from ._vibration import write_vibration_table as write_vibration_table
 from ._xla import apply_cpu_workarounds as apply_cpu_workarounds
 from ._xla import apply_fast_compile as apply_fast_compile
 from ._xla import fast_compile as fast_compile
+from ._xla import fast_compile_when_quick as fast_compile_when_quick
 
 __version__ = "0.1.0"

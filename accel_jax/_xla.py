@@ -16,6 +16,7 @@ from their own script should set the flag themselves (`XLA_FLAGS`).
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 from pathlib import Path
 
@@ -122,6 +123,18 @@ def fast_compile(enabled: bool = True):
         yield
     finally:
         jax.config.update("jax_disable_most_optimizations", previous)
+
+
+def fast_compile_when_quick(run):
+    """Decorate a study's `run(out_dir, *, quick=False, ...)` so that a quick run compiles
+    inside `fast_compile` (for studies whose quick run is compile-bound throughout)."""
+
+    @functools.wraps(run)
+    def wrapper(out_dir, *, quick: bool = False, **options):
+        with fast_compile(quick):
+            return run(out_dir, quick=quick, **options)
+
+    return wrapper
 
 
 CACHE_ENV = "ACCEL_JAX_CACHE_DIR"

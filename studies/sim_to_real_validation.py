@@ -861,17 +861,12 @@ SNR_LABEL = {
 }
 
 
-def run(out_dir: Path, *, quick: bool = False, **options) -> dict:
-    """Run the study; write OUT/result.json and figures; return the result dict (options
-    as `_run`). `quick` is compile-bound and compiles with most XLA optimisations off
-    (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: the dataset
-    simulation, ~55 programs, 13 → 9 CPU-s). The blind diagnosis, run-bound, runs in its
-    own process at the default optimisation."""
-    with aj.fast_compile(quick):
-        return _run(out_dir, quick=quick, **options)
-
-
-def _run(
+# A quick run is compile-bound throughout and compiles with most XLA optimisations off
+# (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: the dataset
+# simulation, ~55 programs, 13 → 9 CPU-s). The blind diagnosis, run-bound, runs in its own
+# process at the default optimisation.
+@aj.fast_compile_when_quick
+def run(
     out_dir: Path, *, quick: bool = False, seed: int = 20261122, kinds=KINDS, per_class=None
 ) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict.
