@@ -12,6 +12,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from ._xla import usable_cpus
+
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
     path = Path(path)
@@ -74,6 +76,8 @@ def provenance(*, seeds: dict | None = None, precision: str, extra: dict | None 
         "accel_jax_version": __version__,
         "jax_version": jax.__version__,
         "devices": [str(d) for d in jax.devices()],
+        # CPUs the process could use (a report's side-by-side studies get a share each).
+        "cpus": len(usable_cpus()),
         "precision": precision,
         # XLA options change results at the round-off level (e.g. fast-compile in --quick).
         "xla_flags": os.environ.get("XLA_FLAGS", ""),

@@ -342,7 +342,7 @@ def test_a_study_process_that_dies_is_reported_not_a_traceback(tmp_path):
 def test_default_jobs_follow_cores_and_memory(monkeypatch):
     from accel_jax.report import _run
 
-    monkeypatch.setattr(_run.os, "cpu_count", lambda: 16)
+    monkeypatch.setattr(_run, "usable_cpus", lambda: list(range(16)))
     monkeypatch.setattr(_run, "_physical_memory", lambda: 64 * 2**30)
     assert _run.default_jobs(7) == 4  # at most 4
     assert _run.default_jobs(2) == 2  # no more than studies to run
@@ -351,8 +351,34 @@ def test_default_jobs_follow_cores_and_memory(monkeypatch):
     monkeypatch.setattr(_run, "_physical_memory", lambda: 2**30)
     assert _run.default_jobs(7) == 1
     monkeypatch.setattr(_run, "_physical_memory", lambda: None)
-    monkeypatch.setattr(_run.os, "cpu_count", lambda: None)
+    monkeypatch.setattr(_run, "usable_cpus", lambda: [3])  # e.g. a process pinned to one CPU
     assert _run.default_jobs(7) == 1
     monkeypatch.setattr(_run.jax, "default_backend", lambda: "gpu")
-    monkeypatch.setattr(_run.os, "cpu_count", lambda: 16)
+    monkeypatch.setattr(_run, "usable_cpus", lambda: list(range(16)))
     assert _run.default_jobs(7) == 1  # one process owns the accelerator
+
+
+def test_side_by_side_workers_get_disjoint_cpu_shares():
+    from accel_jax.report._run import worker_cpus
+
+    # Two studies on two cores: one core each; four on 16: every fourth CPU each.
+    assert [worker_cpus(slot, 2, [0, 1]) for slot in (1, 2)] == [[0], [1]]
+    shares = [worker_cpus(slot, 4, list(range(16))) for slot in (1, 2, 3, 4)]
+    assert shares[0] == [0, 4, 8, 12]
+    assert sorted(sum(shares, [])) == list(range(16))  # disjoint, all used
+    # The affinity mask's own numbering is kept (a container given CPUs 2, 5 and 7).
+    assert worker_cpus(2, 2, [2, 5, 7]) == [5]
+    # Not pinned: one job, fewer CPUs than jobs, a slot out of range.
+    assert worker_cpus(1, 1, [0, 1]) is None
+    assert worker_cpus(1, 3, [0, 1]) is None
+    assert worker_cpus(0, 2, [0, 1]) is None
+
+
+def test_usable_cpus_follow_the_affinity_mask(monkeypatch):
+    from accel_jax import _xla
+
+    monkeypatch.setattr(_xla.os, "sched_getaffinity", lambda pid: {5, 2}, raising=False)
+    assert _xla.usable_cpus() == [2, 5]
+    monkeypatch.delattr(_xla.os, "sched_getaffinity", raising=False)
+    monkeypatch.setattr(_xla.os, "cpu_count", lambda: None)
+    assert _xla.usable_cpus() == [0]

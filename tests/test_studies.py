@@ -183,3 +183,18 @@ def test_user_device_and_its_twin():
     assert ape is heavy and float(aj.damping_ratio(osc)) == pytest.approx(
         float(aj.damping_ratio(aj.ServoParams.reference())), rel=1e-12
     )
+
+
+@pytest.mark.slow
+def test_quick_report_studies_ran_on_their_own_cpu_shares(report_dir):
+    """Side by side, each study process is pinned to its share of the CPUs (one core each
+    on a 2-core machine) and its provenance says how many it had."""
+    from accel_jax._xla import usable_cpus
+    from accel_jax.report._run import default_jobs
+
+    n, jobs = len(usable_cpus()), default_jobs(7)
+    shares = {n // jobs, -(-n // jobs)} if jobs > 1 else {n}
+    for folder in report_dir.parent.iterdir():
+        result = folder / "result.json"
+        if folder.is_dir() and result.exists():
+            assert json.loads(result.read_text())["provenance"]["cpus"] in shares, folder.name

@@ -27,6 +27,7 @@ import jax
 
 from .._io import _atomic_write_bytes
 from .._progress import bar, show_progress
+from .._xla import usable_cpus
 from ._html import REPORT_MARKER, build_report
 
 MARKER = ".accel_jax_run.json"
@@ -143,15 +144,37 @@ def _run_study(
 _WORKER_POSITION: int | None = None
 
 
-def _init_worker(x64: bool, lock, positions) -> None:
+def worker_cpus(slot: int, jobs: int, cpus: Sequence[int]) -> list[int] | None:
+    """The CPUs worker `slot` (1..jobs) of `jobs` side-by-side study processes is pinned
+    to: every jobs-th CPU from its own (disjoint shares, all CPUs used), or `None` (not
+    pinned) for a single job or fewer CPUs than jobs.
+
+    Pinned, each process's XLA thread pool is sized to its share and the processes do not
+    compete for cores. Measured on the 2-core CPU (cold `report --quick`, three pairs run
+    back to back): 106.9 / 88.3 / 116.7 s pinned against 112.1 / 113.2 / 141.5 s not, with
+    197 / 165 / 217 against 207 / 208 / 263 CPU-s: the same work costs less CPU time when
+    two processes' thread pools do not oversubscribe the two cores."""
+    if jobs < 2 or len(cpus) < jobs or not 1 <= slot <= jobs:
+        return None
+    return list(cpus[slot - 1 :: jobs])
+
+
+def _init_worker(x64: bool, lock, positions, jobs: int = 1) -> None:
     """A worker process: the parent's float64 setting, the shared terminal lock for the
-    bars, and a terminal line of its own below the overall bar."""
+    bars, a terminal line of its own below the overall bar, and its share of the CPUs
+    (`worker_cpus`; set before JAX starts its backend, whose thread pool follows it)."""
     global _WORKER_POSITION
     jax.config.update("jax_enable_x64", x64)
     from tqdm.auto import tqdm
 
     tqdm.set_lock(lock)
     _WORKER_POSITION = positions.get()
+    share = worker_cpus(_WORKER_POSITION, jobs, usable_cpus())
+    if share is not None and hasattr(os, "sched_setaffinity"):
+        try:
+            os.sched_setaffinity(0, share)
+        except OSError:  # not permitted here: run unpinned
+            pass
 
 
 def _run_study_in_worker(*args) -> float:
@@ -176,7 +199,7 @@ def default_jobs(n_studies: int) -> int:
     4 GiB each; one on a GPU or TPU (every process would claim the accelerator's memory)."""
     if jax.default_backend() != "cpu":
         return 1
-    jobs = min(n_studies, os.cpu_count() or 1, 4)
+    jobs = min(n_studies, len(usable_cpus()), 4)
     memory = _physical_memory()
     if memory is not None:
         jobs = min(jobs, memory // _MEMORY_PER_JOB)
@@ -309,7 +332,7 @@ def _run_parallel(todo, task, jobs, echo, overall) -> None:
         max_workers=jobs,
         mp_context=context,
         initializer=_init_worker,
-        initargs=(bool(jax.config.jax_enable_x64), lock, positions),
+        initargs=(bool(jax.config.jax_enable_x64), lock, positions, jobs),
     )
     waiting, running = list(todo), {}
     try:
