@@ -196,9 +196,9 @@ from ._simulate import (
 )
 from ._static import COEFFICIENT_UNITS as COEFFICIENT_UNITS
 from ._static import COEFFICIENTS as COEFFICIENTS
-from ._static import PPM_UNITS as PPM_UNITS
 from ._static import MILLI_G as MILLI_G
 from ._static import PPM as PPM
+from ._static import PPM_UNITS as PPM_UNITS
 from ._static import STANDARD_GRAVITY as STANDARD_GRAVITY
 from ._static import StaticTransferFunction as StaticTransferFunction
 from ._static import basic_error as basic_error

@@ -236,7 +236,7 @@ def _figures(out_dir: Path, result: dict) -> list[dict]:
         paper = [r["contributions"][e]["paper_ppm"] for e in EFFECTS]
         exact_stack = np.concatenate([[0], np.cumsum(exact)])
         paper_stack = np.concatenate([[0], np.cumsum(paper)])
-        for i, e in enumerate(EFFECTS):
+        for i in range(len(EFFECTS)):
             ax.bar(i - 0.2, exact[i], 0.4, bottom=exact_stack[i], color=f"C{i}")
             ax.bar(
                 i + 0.2, paper[i], 0.4, bottom=paper_stack[i], color=f"C{i}", alpha=0.45, hatch="//"

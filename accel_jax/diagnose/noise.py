@@ -248,7 +248,7 @@ def _components(z, candidate) -> tuple[jax.Array, NoiseComponents]:
     out = NoiseComponents(zero, zero, zero, zero)
     for i, effect in enumerate(_effects(), start=1):
         parts = effect.components(z[1 : 1 + effect.n_params])
-        out = jax.tree_util.tree_map(lambda o, p: jnp.where(candidate == i, p, o), out, parts)
+        out = jax.tree_util.tree_map(lambda o, p, i=i: jnp.where(candidate == i, p, o), out, parts)
     return white, out
 
 

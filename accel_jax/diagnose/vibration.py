@@ -570,7 +570,9 @@ def diagnose_vibration(
         key = (prep["design"].shape[0], tuple(prep["candidates"]))
         groups.setdefault(key, []).append(i)
     for indices in groups.values():
-        stack = lambda name: jnp.asarray(np.stack([preps[i][name] for i in indices]))  # noqa: E731
+        stack = lambda name, indices=indices: jnp.asarray(  # noqa: E731
+            np.stack([preps[i][name] for i in indices])
+        )
         thetas, converged = _fit_tables(
             stack("design"), stack("target"), stack("masks"), stack("weights")
         )
