@@ -16,15 +16,16 @@ STUDIES = (
     "sim_to_real_validation",
     "table5_gap",
 )
-# Wall time of each study in a full report on a 2-core CPU, two at a time [s]: the report
-# starts the longest first when it runs studies side by side (its order stays STUDIES).
+# Wall time of each study in a full report on a 2-core CPU, two at a time, each process
+# pinned to one core (a cold run at this version) [s]: the report starts the longest first
+# when it runs studies side by side (its order stays STUDIES).
 TYPICAL_SECONDS = {
-    "scale_factor_identification": 194,
-    "sensing_element_ml": 300,
-    "vibration_compensation": 31,
-    "tolerance_limits": 19,
-    "noise_identification": 134,
-    "sim_to_real_validation": 183,
+    "scale_factor_identification": 104,
+    "sensing_element_ml": 156,
+    "vibration_compensation": 22,
+    "tolerance_limits": 12,
+    "noise_identification": 113,
+    "sim_to_real_validation": 177,
     "table5_gap": 2,
 }
 
