@@ -137,15 +137,15 @@ def fast_compile_when_quick(run):
     return wrapper
 
 
-CACHE_ENV = "ACCEL_JAX_CACHE_DIR"
-"""Where `enable_compilation_cache` keeps compiled programs; `off` (or `0`) disables it."""
-
-
 def usable_cpus() -> list[int]:
     """The CPUs this process may run on (its affinity mask where the OS has one)."""
     if hasattr(os, "sched_getaffinity"):
         return sorted(os.sched_getaffinity(0))
     return list(range(os.cpu_count() or 1))
+
+
+CACHE_ENV = "ACCEL_JAX_CACHE_DIR"
+"""Where `enable_compilation_cache` keeps compiled programs; `off` (or `0`) disables it."""
 
 
 def compilation_cache_dir() -> Path | None:

@@ -142,8 +142,8 @@ def _profile(ts, size, impl, repeats):
     bits = jax.jit(jax.vmap(lambda k: jax.random.bits(k, (n,), jnp.uint64)))
     # The Monte Carlo kernel with the identification left out: each noisy record (float32
     # deviates, as `monte_carlo_oscillatory` draws them) reduced to one number, in the
-    # kernel's chunks (`lax.map` over vmapped chunks of `default_chunk_size()`; the batch
-    # is cut to whole chunks). Its rate bounds what any identification, however fast,
+    # kernel's chunks (`lax.map` over vmapped chunks of `default_chunk_size()`, on the
+    # whole chunks of the batch). Its rate bounds what any identification, however fast,
     # could reach with this simulation.
     chunk = default_chunk_size()
     whole = size // chunk * chunk
@@ -152,11 +152,12 @@ def _profile(ts, size, impl, repeats):
         return jnp.sum(fast_step_response(d, ts, TEST_VOLTAGE, key=k, noise_dtype=jnp.float32))
 
     @jax.jit
-    def fused(d, k):
-        chunks = jax.tree_util.tree_map(
-            lambda x: x[:whole].reshape((whole // chunk, chunk) + x.shape[1:]), (d, k)
-        )
-        return jax.lax.map(lambda c: jax.vmap(noisy_sum)(*c), chunks)
+    def fused(chunked_params, chunked_keys):
+        return jax.lax.map(lambda c: jax.vmap(noisy_sum)(*c), (chunked_params, chunked_keys))
+
+    in_chunks = jax.tree_util.tree_map(
+        lambda x: x[:whole].reshape((whole // chunk, chunk) + x.shape[1:]), (params, keys)
+    )
 
     records = sim(params)
     offsets = ts - ts[n // 2]
@@ -198,10 +199,7 @@ def _profile(ts, size, impl, repeats):
         f"noise (jax.random.normal, {impl}, float64)": (noise, keys),
         f"noise (jax.random.normal, {impl}, float32 widened)": (noise32, keys),
         f"  of which random bits ({impl}, uint64)": (bits, keys),
-        "record + noise, chunked as the kernel, identification left out": (
-            fused,
-            (params, keys),
-        ),
+        "record + noise, chunked as the kernel, identification left out": (fused, in_chunks),
         "identify_oscillatory": (ident, records),
         "  a crossing fit's 5 moment sums, one variadic reduction (as identify does)": (
             moment_pass,
@@ -217,7 +215,7 @@ def _profile(ts, size, impl, repeats):
     for name, (fn, arg) in parts.items():
         args = arg if isinstance(arg, tuple) else (arg,)
         jax.block_until_ready(fn(*args))
-        count = whole if fn is fused else size
+        count = whole if arg is in_chunks else size  # trajectories in the call
         out[name] = _median([_timed(fn, *args)[0] for _ in range(repeats)]) / count * 1e6
     return out  # µs per trajectory
 
