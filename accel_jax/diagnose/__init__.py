@@ -50,7 +50,6 @@ from .noise import NoiseEffect as NoiseEffect
 from .noise import diagnose_noise as diagnose_noise
 from .step import StepEffect as StepEffect
 from .step import diagnose_step as diagnose_step
-from .step import simulate_step as simulate_step
 from .vibration import VibrationEffect as VibrationEffect
 from .vibration import diagnose_vibration as diagnose_vibration
 

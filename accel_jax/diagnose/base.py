@@ -240,6 +240,7 @@ def held_out_gap(
     after: np.ndarray,
     noise_floor: float,
     *,
+    floor_after: float | None = None,
     n_boot: int = 200,
     block: int | None = None,
     seed: int = 0,
@@ -258,6 +259,8 @@ def held_out_gap(
     - `before`, `after`: held-out prediction errors of the nominal refit and of the model
         with the effect [unit], same shape (n_test,).
     - `noise_floor`: σ² [unit²].
+    - `floor_after`: the variance the model with the effect expects of its own errors, when
+        the effect is a noise (default `noise_floor`).
     - `n_boot`: bootstrap resamples; `block`: block length in samples (default
         max(10, n_test // 20)); `seed`: NumPy seed of the resampling (reproducible).
 
@@ -268,8 +271,9 @@ def held_out_gap(
     before = np.asarray(before, dtype=np.float64)
     after = np.asarray(after, dtype=np.float64)
     n = before.shape[0]
+    floor_after = noise_floor if floor_after is None else floor_after
     gap_before = float(_excess_rms(np.mean(before**2), noise_floor))
-    gap_after = float(_excess_rms(np.mean(after**2), noise_floor))
+    gap_after = float(_excess_rms(np.mean(after**2), floor_after))
     shrink = 1.0 - gap_after / gap_before if gap_before > 0 else 0.0
     block = max(10, n // 20) if block is None else block
     block = min(block, n)
@@ -278,7 +282,7 @@ def held_out_gap(
     starts = rng.integers(0, n - block + 1, size=(n_boot, n_blocks))
     index = (starts[:, :, None] + np.arange(block)[None, None, :]).reshape(n_boot, -1)[:, :n]
     boot_before = _excess_rms(np.mean(before[index] ** 2, axis=1), noise_floor)
-    boot_after = _excess_rms(np.mean(after[index] ** 2, axis=1), noise_floor)
+    boot_after = _excess_rms(np.mean(after[index] ** 2, axis=1), floor_after)
     with np.errstate(divide="ignore", invalid="ignore"):
         boot_shrink = np.where(boot_before > 0, 1.0 - boot_after / boot_before, 0.0)
     return {
@@ -326,7 +330,8 @@ class DiagnosisResult:
     **Fields:**
 
     - `kind`: the kind of record.
-    - `verdict`: the named effect, `"none"` or `"cannot_tell"`.
+    - `verdict`: the named effect, `"none"`, `"cannot_tell"` or `"unexplained"`
+        (`accel_jax.diagnose.openworld`).
     - `tied`: with `cannot_tell`, the two effects that fit equally well; else empty.
     - `ranking`: one dict per effect, best first (effect, evidence, gap_shrink, params…).
     - `gap`: the held-out gap before/after the chosen effect (`held_out_gap`).
@@ -336,6 +341,11 @@ class DiagnosisResult:
         residuals, held-out mask), NumPy float64; not part of `to_dict`.
     - `notes`: plain-language caveats of this diagnosis (e.g. an effect left out of the
         candidates because the data cannot show it).
+    - `explained_fraction`: the fraction of the held-out excess (gap²) that the chosen
+        effect, or for `unexplained` the best partial effect, removes (0 when none).
+    - `remaining_gap`: what remains after it: `V` (or the kind's unit), `noise_floor_…`,
+        `over_floor`, `model`, `where` (in words).
+    - `reason`: one or two sentences: why this verdict.
     """
 
     kind: str
@@ -347,6 +357,9 @@ class DiagnosisResult:
     refit: dict
     traces: dict = dataclasses.field(default_factory=dict, repr=False)
     notes: list = dataclasses.field(default_factory=list)
+    explained_fraction: float = 0.0
+    remaining_gap: dict = dataclasses.field(default_factory=dict)
+    reason: str = ""
 
     def to_dict(self) -> dict:
         """The JSON document of SPEC.md §5's CLI contract (plain numbers and strings)."""
@@ -354,6 +367,9 @@ class DiagnosisResult:
             "kind": self.kind,
             "verdict": self.verdict,
             "tied": list(self.tied),
+            "reason": self.reason,
+            "explained_fraction": self.explained_fraction,
+            "remaining_gap": self.remaining_gap,
             "ranking": self.ranking,
             "gap": self.gap,
             "where": self.where,
@@ -362,12 +378,27 @@ class DiagnosisResult:
         }
 
     def summary(self) -> str:
-        """A few lines for a terminal."""
+        """A few lines for a terminal: the verdict and why first."""
         lines = [f"kind: {self.kind}"]
         if self.verdict == "cannot_tell":
             lines.append(f"verdict: cannot_tell — {self.tied[0]} or {self.tied[1]}")
+        elif self.verdict == "unexplained":
+            lines.append("verdict: unexplained — the gap is real and no library effect closes it")
+        elif self.verdict == "none":
+            lines.append("verdict: none — nothing is missing from the nominal model")
         else:
             lines.append(f"verdict: {self.verdict}")
+        if self.reason:
+            lines.append(f"why: {self.reason}")
+        unit = self.gap.get("unit", "")
+        remaining = self.remaining_gap
+        if remaining:
+            floor_key = next((k for k in remaining if k.startswith("noise_floor")), None)
+            floor = f" against a {remaining[floor_key]:.3g} {unit} noise floor" if floor_key else ""
+            lines.append(
+                f"explained: {self.explained_fraction:.0%} of the held-out excess; remaining gap "
+                f"{remaining.get(unit, remaining.get('value', float('nan'))):.3g} {unit}{floor}"
+            )
         shifts = self.refit.get("parameters", {})
         moved = [
             f"{k} {v['shift_relative']:+.2%} ({v['shift_sigma']:+.1f}σ)" for k, v in shifts.items()
@@ -380,8 +411,9 @@ class DiagnosisResult:
             lines.append("the refit closes the gap: a parameter error, not missing physics")
         gap = self.gap
         lines.append(
-            f"held-out gap ({gap['unit']} above the noise floor): {gap['before']:.3g} → "
-            f"{gap['after']:.3g}, shrink {gap['shrink']:.2f} ± {gap['shrink_std']:.2f}"
+            f"held-out gap ({unit} above the noise floor): {gap['before']:.3g} → "
+            f"{gap['after']:.3g} ({gap.get('model_after', '')}), shrink {gap['shrink']:.2f} ± "
+            f"{gap['shrink_std']:.2f}"
         )
         lines.append("ranking (evidence = 2 ln B vs nominal):")
         for r in self.ranking:

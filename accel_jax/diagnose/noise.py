@@ -55,10 +55,13 @@ import optimistix as optx
 from .._data import DataError, NoiseData, NominalDevice
 from .._noise import _DIFFUSE, initial_model
 from .._sweep import even_chunk_size, sweep
+from . import openworld
 from .base import (
+    NESTED_LEVEL,
     AbstractEffect,
     CandidateFit,
     DiagnosisResult,
+    _resolve_nested,
     effect_library,
     held_out_gap,
     ljung_box,
@@ -336,7 +339,7 @@ def _negative_log_likelihood(z, args):
     return -jnp.sum(weight * log_lik) / jnp.sum(weight)
 
 
-def _fit_record(record, split_mask, guesses, candidates):
+def _fit_record(record, split_mask, guesses, candidates, band, band_count):
     """Fit every candidate (vmapped) to one normalised, centred record: Whittle start on
     the training part, exact-likelihood polish, then the filter over the whole record."""
     n = record.shape[0]
@@ -355,7 +358,10 @@ def _fit_record(record, split_mask, guesses, candidates):
     fourier = jnp.fft.rfft(diff)
     periodogram = (jnp.abs(fourier) ** 2 / jnp.sum(taper**2))[1:]
     omega = (2 * jnp.pi * jnp.arange(fourier.shape[0]) / (n - 1))[1:]
-    band, n_bands = _bands(periodogram.shape[0])
+    # The band index enters as an argument: computed on the host and embedded as a
+    # constant, a million-sample record's index made XLA spend seconds constant-folding
+    # (and print warnings about it).
+    n_bands = band_count.shape[0]
     counts = jax.ops.segment_sum(jnp.ones_like(omega), band, n_bands)
     periodogram = jax.ops.segment_sum(periodogram, band, n_bands) / counts
     omega = jax.ops.segment_sum(omega, band, n_bands) / counts
@@ -526,27 +532,90 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
                 converged=bool(converged[i]),
             )
         )
-    verdict, ranking, tied = rank_candidates(fits[0], fits[1:], nested=NESTED)
+    _, ranking, _ = rank_candidates(fits[0], fits[1:], nested=NESTED)
     by_name = {f.effect: f for f in fits}
-    chosen = verdict if verdict in by_name else (tied[0] if tied else "nominal")
-    # The noise floor is the chosen model's own predicted innovation variance on the
+    # Open world: a model explains the record when its held-out one-step errors, each
+    # scaled by the variance the model predicts for it, are white with unit variance (to
+    # 3 standard errors); a stochastic effect is not named for a predictable (periodic)
+    # misfit.
+    n_test = n - split
+    assessed = {}
+    for i, name in enumerate(names):
+        predicted = ss[i, split:] * scale**2
+        scaled = by_name[name].held_out_errors / np.sqrt(predicted)
+        test = openworld.whiteness(scaled)
+        ratio = float(np.mean(scaled**2))
+        consistent = abs(ratio - 1) <= 3 * math.sqrt(2 / max(n_test, 1))
+        assessed[name] = {
+            "floor": float(np.mean(predicted)),
+            "whiteness": test,
+            "variance_ratio": ratio,
+            "explains": bool(test["white"] and consistent),
+        }
+    residual = np.asarray(data.a_out) - host["level"]
+    predictable = openworld.predictability(
+        residual, split, dt, np.zeros(0, int), np.zeros(0), 1, tests=("periodic",)
+    )
+    for entry in ranking:
+        own = assessed[entry["effect"]]
+        before = openworld.excess(fits[0].held_out_ms, own["floor"])
+        after = openworld.excess(by_name[entry["effect"]].held_out_ms, own["floor"])
+        entry.update(
+            {
+                "stochastic": True,
+                "explains": own["explains"],
+                "plausible": entry["converged"],
+                "one_step_whiteness": own["whiteness"],
+                "variance_ratio": own["variance_ratio"],
+                "deterministic_misfit": predictable["deterministic"],
+                "explained_fraction": (
+                    0.0
+                    if predictable["deterministic"]
+                    else openworld.explained_fraction(before, after)
+                ),
+            }
+        )
+    nominal_status = {
+        "explains": assessed["nominal"]["explains"],
+        "white": assessed["nominal"]["whiteness"]["white"],
+        "plausible": bool(converged[0]),
+    }
+    decision = openworld.decide(
+        nominal_status,
+        ranking,
+        resolve_tie=lambda a, b: _resolve_nested(a, b, fits[1:], NESTED, NESTED_LEVEL),
+    )
+    verdict, tied = decision["verdict"], decision["tied"]
+    shown = decision["chosen"] or decision["best_partial"]
+    chosen = shown or "nominal"
+    # The noise floor is the shown model's own predicted innovation variance on the
     # held-out part (the filter's S_k): what remains above it is what the model did not
     # expect. (A floor estimated on the training part would add the sampling mismatch of
     # two segments' variances, as large as the excess being measured.)
-    floor = float(np.mean(ss[names.index(chosen), split:])) * scale**2
+    floor = assessed[chosen]["floor"]
     for entry in ranking:
         g = held_out_gap(fits[0].held_out_errors, by_name[entry["effect"]].held_out_errors, floor)
         entry["gap_shrink"] = g["shrink"]
         entry["fit_steps"] = int(steps[names.index(entry["effect"])])
-    after = by_name[chosen].held_out_errors if verdict != "none" else fits[0].held_out_errors
+    after = by_name[chosen].held_out_errors
     gap = held_out_gap(fits[0].held_out_errors, after, floor)
     gap["unit"] = "g"
-    gap["model_after"] = chosen if verdict != "none" else "nominal"
+    gap["model_after"] = chosen
     gap["held_out"] = f"the last {n - split} of {n} samples (one-step prediction errors)"
     gap["metric"] = (
         "held-out RMS one-step prediction error in excess of the chosen model's predicted "
         "innovation variance"
     )
+    fraction = next((e["explained_fraction"] for e in ranking if e["effect"] == shown), 0.0)
+    remaining = gap["after"]
+    remaining_gap = {
+        "g": remaining,
+        "noise_floor_g": math.sqrt(floor),
+        "over_floor": remaining / math.sqrt(floor) if floor > 0 else float("inf"),
+        "model": chosen,
+        "whiteness_p_value": assessed[chosen]["whiteness"]["p_value"],
+    }
+    reason = _reason(decision, assessed, ranking, predictable, remaining, floor, chosen)
 
     white_sigma = fits[0].params["white_sigma_g"]
     x = np.asarray(data.a_out)
@@ -573,6 +642,7 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
         "best_name": chosen,
         "split": split,
     }
+    where["predictability"] = predictable
     return DiagnosisResult(
         kind="noise",
         verdict=verdict,
@@ -582,7 +652,60 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
         where=where,
         refit=refit,
         traces=traces,
+        explained_fraction=fraction,
+        remaining_gap=remaining_gap,
+        reason=reason,
     )
+
+
+def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) -> str:
+    verdict = decision["verdict"]
+    sigma = math.sqrt(floor)
+    entry = {e["effect"]: e for e in ranking}
+    if verdict == "none":
+        return (
+            "the held-out record is white noise about its level (Ljung–Box p = "
+            f"{assessed['nominal']['whiteness']['p_value']:.2g}) and no effect is significant."
+        )
+    if verdict == "cannot_tell":
+        a, b = decision["tied"]
+        return (
+            f"{a} and {b} both whiten the held-out record and their evidence differs by "
+            f"{abs(entry[a]['evidence'] - entry[b]['evidence']):.1f} (< 6 on the 2 ln B scale)."
+        )
+    if verdict != "unexplained":
+        return (
+            f"with {verdict} the held-out one-step prediction errors are white (Ljung–Box p = "
+            f"{assessed[verdict]['whiteness']['p_value']:.2g}) at the variance it predicts; "
+            f"evidence 2 ln B = {entry[verdict]['evidence']:.1f} over white noise."
+        )
+    parts = []
+    if predictable["deterministic"]:
+        parts.append(
+            f"a periodic line at {predictable['frequency_Hz']:.4g} Hz continues from the "
+            f"training part into the held-out part (it predicts {predictable['periodic']:.0%} "
+            "of it): deterministic, not one of the library's noises"
+        )
+    if decision["best_partial"]:
+        best = decision["best_partial"]
+        parts.append(
+            f"the best library effect, {best}, explains {entry[best]['explained_fraction']:.0%} "
+            f"of the excess, but its one-step errors are not white (Ljung–Box p = "
+            f"{assessed[best]['whiteness']['p_value']:.2g}); {remaining:.3g} g above its "
+            f"{sigma:.3g} g floor remains"
+        )
+    elif not any(e["significant"] for e in ranking):
+        parts.append(
+            "the record is not white noise (Ljung–Box p = "
+            f"{assessed['nominal']['whiteness']['p_value']:.2g}) and no library effect is "
+            "significant"
+        )
+    else:
+        parts.append(
+            "no library noise leaves white one-step prediction errors (best: "
+            f"{chosen}, Ljung–Box p = {assessed[chosen]['whiteness']['p_value']:.2g})"
+        )
+    return "; ".join(parts) + "."
 
 
 def diagnose_noise(
@@ -622,13 +745,16 @@ def diagnose_noise(
         records = jnp.asarray(np.stack([hosts[i]["normalised"] for i in indices]))
         guesses = jnp.asarray(np.stack([hosts[i]["guesses"] for i in indices]))
         mask = jnp.asarray((np.arange(n) < split).astype(np.float64))
+        band, n_bands = _bands((n - 1) // 2)
         outputs = sweep(
             _fit_record,
             records,
             mask,
             guesses,
             candidates,
-            in_axes=(0, None, 0, None),
+            jnp.asarray(band.astype(np.int32)),
+            jnp.zeros(n_bands),
+            in_axes=(0, None, 0, None, None, None),
             chunk_size=even_chunk_size(len(indices), BATCH_CHUNK),
             desc="diagnose noise",
         )

@@ -1,0 +1,299 @@
+"""The open-world verdict: a diagnosis that can say "not something I know".
+
+The verdict of a diagnosis is one of four (SPEC.md §5, issue 19):
+
+- `none`: nothing is missing. Only when the refitted nominal model leaves held-out residuals
+  consistent with the noise floor (their excess RMS over the floor at most
+  `FLOOR_FACTOR`·floor, a whiteness test passed), its refit converged inside its prior,
+  and no library effect is significant.
+- an effect's name: the effect is significant (evidence and held-out improvement) and,
+  with it, the held-out residual is at the floor. Deterministic effects are tried before
+  stochastic ones, and a stochastic effect (correlated noise) is named only when the misfit
+  it absorbs is not predictable from the input changes or from a periodic or trend
+  component of the training residual (an AR(1) noise with φ → 1 whitens any smooth misfit;
+  a noise cannot be locked to the test sequence).
+- `cannot_tell`: two effects both explain the record and their evidence differs by less
+  than `INDISTINCT`.
+- `unexplained`: the gap is significant and neither the refit nor any library effect brings
+  it to the floor, or the record is outside the model family (a domain check). The best
+  partial effect, the fraction of the excess it explains and the gap that remains are
+  reported.
+
+The noise floor is estimated without the model (`noise_floor`), so that a model that fits
+badly cannot raise its own floor; records quantised by an ADC get the quantisation floor
+q/√12 when it is the larger.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .base import INDISTINCT, ljung_box
+
+FLOOR_FACTOR = 1.0
+"""A model explains the held-out data when the RMS of its held-out error in excess of the
+noise floor is at most this many floors (so its mean square is at most (1 + F²)·σ²)."""
+
+WHITENESS_LEVEL = 1e-3
+"""Ljung–Box level below which a held-out residual counts as not white."""
+
+PREDICTABLE = 0.2
+"""A misfit is deterministic when a predictor fitted on the training residual alone (a
+template locked to the input changes, a sinusoid, a trend) removes at least this fraction
+of the held-out residual's mean square."""
+
+PRIOR_LIMIT = 5.0
+"""A refit that moves a parameter beyond this many σ of its prior is not credible: it can
+never give `none`, and an effect whose fit needs it is not named."""
+
+VERDICTS = ("none", "cannot_tell", "unexplained")
+"""The verdicts that are not an effect's name."""
+
+
+def excess(mean_square: float, floor_variance: float) -> float:
+    """RMS in excess of the floor, sqrt(max(ms − σ², 0))."""
+    return float(math.sqrt(max(mean_square - floor_variance, 0.0)))
+
+
+def explained_fraction(before: float, after: float) -> float:
+    """The fraction of the excess mean square (gap²) an effect removes, in [0, 1]."""
+    if before <= 0:
+        return 0.0
+    return float(min(max(1.0 - (after / before) ** 2, 0.0), 1.0))
+
+
+def quantum(values: np.ndarray) -> float:
+    """The step q of an ADC grid the values lie on (0 when they do not): the smallest
+    spacing of the distinct values, accepted when at least 99 % of the spacings are whole
+    multiples of it (to 1 % of q) and there are at most n/4 distinct values."""
+    x = np.unique(np.asarray(values, dtype=np.float64))
+    if x.size < 3 or x.size > max(values.size // 4, 3):
+        return 0.0
+    gaps = np.diff(x)
+    scale = max(float(np.max(np.abs(x))), 1e-300)
+    gaps = gaps[gaps > 1e-12 * scale]
+    if gaps.size == 0:
+        return 0.0
+    q = float(np.min(gaps))
+    ratio = gaps / q
+    whole = np.abs(ratio - np.round(ratio)) < 0.01
+    return q if np.mean(whole) >= 0.99 else 0.0
+
+
+def noise_floor(values: np.ndarray, exclude: np.ndarray | None = None, order: int = 2) -> dict:
+    """The white-noise floor of a record, without any model of it.
+
+    σ from the median absolute `order`-th difference (variance factor C(2k, k): 6 for the
+    second, 70 for the fourth; robust to steps and transients, and a smooth signal adds
+    only x⁽ᵏ⁾Δᵏ), and the quantisation floor q/√12 of an ADC grid (`quantum`). `exclude`
+    masks samples whose differences are not noise (e.g. next to a step). Returns `sigma`
+    (the floor used, the larger of the two), `sigma_differences`, `quantum`."""
+    x = np.asarray(values, dtype=np.float64)
+    k = int(order)
+    diff = np.diff(x, k)
+    if exclude is not None:
+        bad = np.zeros(diff.size, dtype=bool)
+        for shift in range(k + 1):
+            bad |= exclude[shift : shift + diff.size]
+        if np.sum(~bad) >= 16:
+            diff = diff[~bad]
+    mad = float(np.median(np.abs(diff - np.median(diff))))
+    sigma = mad / 0.6745 / math.sqrt(math.comb(2 * k, k))
+    q = quantum(x)
+    floor = max(sigma, q / math.sqrt(12.0))
+    return {"sigma": floor, "sigma_differences": sigma, "quantum": q}
+
+
+def whiteness(residual: np.ndarray, lags: int = 20) -> dict:
+    """Ljung–Box on a residual, with the verdict at `WHITENESS_LEVEL`."""
+    test = ljung_box(residual, lags=lags)
+    test["white"] = bool(test["p_value"] >= WHITENESS_LEVEL)
+    test["level"] = WHITENESS_LEVEL
+    test.pop("autocorrelation", None)
+    return test
+
+
+def _reduction(before: np.ndarray, predicted: np.ndarray) -> float:
+    ms = float(np.mean(before**2))
+    if ms <= 0:
+        return 0.0
+    return 1.0 - float(np.mean((before - predicted) ** 2)) / ms
+
+
+def predictability(
+    residual: np.ndarray,
+    split: int,
+    dt: float,
+    change_index: np.ndarray,
+    change_step: np.ndarray,
+    window: int,
+    tests: tuple[str, ...] = ("input_locked", "periodic", "trend"),
+) -> dict:
+    """How much of the held-out residual a predictor fitted on the training residual alone
+    removes: the test that tells a deterministic misfit from a stochastic one.
+
+    - `input_locked`: a template h(m) of the residual after each input change, scaled by
+      the change ΔU_j (least squares over the training changes), predicts the windows after
+      the held-out changes;
+    - `periodic`: the strongest line of the training residual's periodogram (at least 3
+      cycles in the training part; frequency refined on a 16× zero-padded grid), fitted as
+      a sinusoid and continued over the held-out part;
+    - `trend`: a straight line fitted to the training residual and extrapolated.
+
+    Each value is the fraction of the held-out mean square removed (negative when the
+    predictor only adds its own noise, as it does for a stochastic residual); the misfit is
+    `deterministic` when one of `tests` removes at least `PREDICTABLE` (a static record
+    leaves out the trend: a random walk, a noise, is as predictable by a line)."""
+    r = np.asarray(residual, dtype=np.float64)
+    n = r.size
+    train, test = r[:split], r[split:]
+    out = {"input_locked": 0.0, "periodic": 0.0, "trend": 0.0, "frequency_Hz": None}
+    if test.size < 8 or train.size < 16:
+        out["deterministic"] = False
+        return out
+    # Input-locked template.
+    steps = np.asarray(change_step, dtype=np.float64)
+    index = np.asarray(change_index)
+    use = steps != 0
+    index, steps = index[use], steps[use]
+    bounds = np.concatenate([index, [n]])
+    numerator = np.zeros(window)
+    denominator = np.zeros(window)
+    for j, (i, step) in enumerate(zip(index, steps, strict=True)):
+        stop = min(bounds[j + 1], i + window, split)
+        if stop <= i:
+            continue
+        seg = r[i:stop]
+        numerator[: seg.size] += step * seg
+        denominator[: seg.size] += step**2
+    template = np.where(denominator > 0, numerator / np.where(denominator > 0, denominator, 1), 0)
+    predicted = np.zeros(n)
+    covered = np.zeros(n, dtype=bool)
+    for j, (i, step) in enumerate(zip(index, steps, strict=True)):
+        if i < split:
+            continue
+        stop = min(bounds[j + 1], i + window)
+        predicted[i:stop] = step * template[: stop - i]
+        covered[i:stop] = True
+    if np.any(covered[split:]):
+        out["input_locked"] = _reduction(
+            r[split:][covered[split:]], predicted[split:][covered[split:]]
+        )
+    # Periodic component.
+    centred = train - np.mean(train)
+    pad = 16 * train.size
+    spectrum = np.abs(np.fft.rfft(centred * np.hanning(train.size), pad))
+    freqs = np.fft.rfftfreq(pad, dt)
+    lowest = 3.0 / (train.size * dt)
+    usable = freqs >= lowest
+    if np.any(usable):
+        f = float(freqs[usable][np.argmax(spectrum[usable])])
+        t = np.arange(n) * dt
+        basis = np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t), np.ones(n)], 1)
+        coef, *_ = np.linalg.lstsq(basis[:split], train, rcond=None)
+        sinusoid = basis[:, :2] @ coef[:2]
+        out["periodic"] = _reduction(test - coef[2], sinusoid[split:])
+        out["frequency_Hz"] = f
+    # Trend.
+    t = np.arange(n) * dt
+    slope, intercept = np.polyfit(t[:split], train, 1)
+    out["trend"] = _reduction(test, slope * t[split:] + intercept)
+    out["deterministic"] = bool(max(out[test] for test in tests) >= PREDICTABLE)
+    return out
+
+
+def decide(
+    nominal: dict,
+    candidates: list[dict],
+    *,
+    domain: list[str] | None = None,
+    indistinct: float = INDISTINCT,
+    resolve_tie=None,
+) -> dict:
+    """The open-world verdict from the nominal model's status and the candidates' fits.
+
+    **Arguments:**
+
+    - `nominal`: `explains` (held-out excess at most FLOOR_FACTOR floors), `white`,
+        `plausible` (converged, inside its prior).
+    - `candidates`: one dict per effect with `effect`, `evidence`, `significant`,
+        `stochastic`, `explains` (with the effect, the held-out residual is at the
+        floor), `plausible`, `explained_fraction`, and for stochastic effects
+        `deterministic_misfit` (the misfit is predictable: `predictability`).
+    - `domain`: problems found by a domain check (the record is outside the model family).
+    - `resolve_tie(first, second)`: the effect a tie resolves to, or None (nested effects).
+
+    **Returns:** dict with `verdict`, `tied`, `chosen` (the effect whose model is reported
+    "after", or None), `best_partial` (for `unexplained`), `path` (which rule decided).
+    """
+    if domain:
+        partial = _best_partial(candidates)
+        return {
+            "verdict": "unexplained",
+            "tied": [],
+            "chosen": None,
+            "best_partial": partial,
+            "path": "domain",
+        }
+    usable = [c for c in candidates if c["significant"] and c["plausible"]]
+    if not usable and nominal["explains"] and nominal["white"] and nominal["plausible"]:
+        return {
+            "verdict": "none",
+            "tied": [],
+            "chosen": None,
+            "best_partial": None,
+            "path": "nominal",
+        }
+    deterministic = [c for c in usable if not c["stochastic"] and c["explains"]]
+    stochastic = [
+        c
+        for c in usable
+        if c["stochastic"] and c["explains"] and not c.get("deterministic_misfit", False)
+    ]
+    for group, path in ((deterministic, "deterministic"), (stochastic, "stochastic")):
+        if not group:
+            continue
+        group = sorted(group, key=lambda c: c["evidence"], reverse=True)
+        if len(group) > 1 and group[0]["evidence"] - group[1]["evidence"] < indistinct:
+            first, second = group[0]["effect"], group[1]["effect"]
+            simpler = resolve_tie(first, second) if resolve_tie else None
+            if simpler is not None:
+                return {
+                    "verdict": simpler,
+                    "tied": [],
+                    "chosen": simpler,
+                    "best_partial": None,
+                    "path": path + "+nested",
+                }
+            return {
+                "verdict": "cannot_tell",
+                "tied": [first, second],
+                "chosen": first,
+                "best_partial": None,
+                "path": path,
+            }
+        return {
+            "verdict": group[0]["effect"],
+            "tied": [],
+            "chosen": group[0]["effect"],
+            "best_partial": None,
+            "path": path,
+        }
+    return {
+        "verdict": "unexplained",
+        "tied": [],
+        "chosen": None,
+        "best_partial": _best_partial(candidates),
+        "path": "unexplained",
+    }
+
+
+def _best_partial(candidates: list[dict]) -> str | None:
+    """The significant, credible effect that explains most of the excess (None if none)."""
+    usable = [c for c in candidates if c["significant"] and c["plausible"]]
+    if not usable:
+        return None
+    best = max(usable, key=lambda c: (c["explained_fraction"], c["evidence"]))
+    return best["effect"] if best["explained_fraction"] > 0 else None

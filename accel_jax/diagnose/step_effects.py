@@ -1,0 +1,198 @@
+"""The effects of the `step` kind: each an extension of the nominal loop that is exactly the
+nominal loop at zero (`step.py` describes the kind; `step_fit.py` applies the hooks).
+
+- `torquer_lag`: T_dm > 0 (inside the loop: changes the overshoot as well as the delay);
+- `output_filter`: T_f > 0 (outside the loop: delays the output only);
+- `stop_saturation`: mechanical stops, upper and lower (`step_model.stop_record`);
+- `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
+- `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
+  fitted through its one-step prediction errors (an ARMA(1,1) recursion).
+
+Adding an effect: subclass `StepEffect`, set `name`, `parameter_names`, `description`,
+`starts`, override one hook and `physical`, decorate with `register_effect`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._params import ServoParams
+from .base import AbstractEffect, effect_library, register_effect
+
+
+class StepEffect(AbstractEffect):
+    """An effect on a step record. Hooks (each the identity at z = 0; override one):
+
+    - `device(params, z, ctx)`: change the loop's `ServoParams` (lags);
+    - `drift(z, ctx)`: the external moment's change over the record, r [V];
+    - `inverse_stops(z, ctx)`: (upper, lower) stop parameters, 0 for none; the stops sit
+        at mid ± half/inverse (`StepContext`); an effect with stops is `nonlinear`;
+    - `noise(z, ctx)`: (φ, s) of white + AR(1) output noise: φ the AR(1) coefficient, s
+        the white share of the one-step prediction variance (φ = 0: white).
+
+    Class attributes: `nonlinear` (simulated with stops, sample by sample), `stochastic`
+    (changes the noise model, not the prediction), `starts` (the starting points of its
+    parameters, one tuple per start), `bounds` (|z| beyond which a steep penalty acts).
+    """
+
+    kind = "step"
+    nonlinear: ClassVar[bool] = False
+    stochastic: ClassVar[bool] = False
+    starts: ClassVar[tuple] = ((0.0,), (0.0,))
+    bounds: ClassVar[tuple] = (10.0, 10.0)
+
+    def device(self, params: ServoParams, z, ctx) -> ServoParams:
+        return params
+
+    def drift(self, z, ctx):
+        return jnp.zeros_like(z[0])
+
+    def inverse_stops(self, z, ctx):
+        zero = jnp.zeros_like(z[0])
+        return zero, zero
+
+    def noise(self, z, ctx):
+        zero = jnp.zeros_like(z[0])
+        return zero, zero
+
+    def initial_guess(self, context):
+        return np.asarray(self.starts[0])
+
+
+def _lag(z, unit):
+    """T = unit·max(z, 0): 0 for z ≤ 0. A fit that wants no lag ends on the flat side
+    instead of creeping towards a double zero (T ∝ z² converged slowly there), and the
+    lag's first-order effect keeps the fit well conditioned for small T."""
+    return unit * jnp.maximum(z, 0.0) if isinstance(z, jax.Array) else unit * max(z, 0.0)
+
+
+@register_effect
+class TorquerLag(StepEffect):
+    """Torquer electrical lag T_dm = lag_unit·max(z, 0) inside the loop."""
+
+    name = "torquer_lag"
+    parameter_names = ("torquer_time_constant_s",)
+    description = "magnetoelectric torquer time constant T_dm inside the loop"
+    starts = ((1.0,), (5.0,))
+    bounds = (100.0,)
+
+    def device(self, params, z, ctx):
+        return eqx.tree_at(lambda p: p.torquer_time_constant, params, _lag(z[0], ctx.lag_unit))
+
+    def physical(self, z, context):
+        return {"torquer_time_constant_s": float(_lag(float(z[0]), context["lag_unit"]))}
+
+
+@register_effect
+class OutputFilter(StepEffect):
+    """Output filter T_f = lag_unit·max(z, 0) outside the loop."""
+
+    name = "output_filter"
+    parameter_names = ("filter_time_constant_s",)
+    description = "output (amplifier) filter time constant T_f outside the loop"
+    starts = ((1.0,), (5.0,))
+    bounds = (100.0,)
+
+    def device(self, params, z, ctx):
+        return eqx.tree_at(lambda p: p.filter_time_constant, params, _lag(z[0], ctx.lag_unit))
+
+    def physical(self, z, context):
+        return {"filter_time_constant_s": float(_lag(float(z[0]), context["lag_unit"]))}
+
+
+@register_effect
+class StopSaturation(StepEffect):
+    """Inelastic mechanical stops at U = mid ± half/|z| (upper, lower)."""
+
+    name = "stop_saturation"
+    parameter_names = ("stop_high_V", "stop_low_V")
+    description = "mechanical stops reached (the pendulum held at ±h_max)"
+    nonlinear = True
+    starts = ((1.02, 1.02), (1.15, 1.15))
+
+    def inverse_stops(self, z, ctx):
+        return jnp.abs(z[0]), jnp.abs(z[1])
+
+    def physical(self, z, context):
+        out = {}
+        for name, value, sign in (("high", z[0], 1), ("low", z[1], -1)):
+            if abs(value) < 1e-9:
+                stop = sign * float("inf")
+            else:
+                stop = context["mid"] + sign * context["half"] / abs(float(value))
+            out[f"stop_{name}_V"] = stop
+            out[f"stop_displacement_{name}_m"] = stop / context["gain"]
+        return out
+
+
+@register_effect
+class DisturbanceDrift(StepEffect):
+    """External moment drifting linearly; z = 1 moves the settled output ≈ 10 mV over the
+    record."""
+
+    name = "disturbance_drift"
+    parameter_names = ("moment_rate_Nm_per_s",)
+    description = "slow drift of the external moment, M(t) = M + Ṁ t"
+    starts = ((0.0,),)
+
+    def drift(self, z, ctx):
+        return 1e-2 * z[0]
+
+    def physical(self, z, context):
+        change = 1e-2 * float(z[0])  # V of M/k_dm over the record
+        return {
+            "moment_rate_Nm_per_s": change * context["torquer_gain"] / context["duration"],
+            "output_drift_V_per_s": change * context["test_gain"] / context["duration"],
+        }
+
+
+@register_effect
+class ColoredNoise(StepEffect):
+    """White + AR(1) (sampled Gauss–Markov) output noise: the AR(1) part's standard
+    deviation is λ = max(z₀, 0) times the white part's, its coefficient φ = tanh z₁."""
+
+    name = "colored_noise"
+    parameter_names = ("correlated_over_white", "ar1_coefficient")
+    description = "correlated (Gauss–Markov) output noise on top of the white noise"
+    stochastic = True
+    starts = ((1.0, 1.5), (1.0, 3.0))
+    bounds = (30.0, 5.0)
+
+    def noise(self, z, ctx):
+        ratio = jnp.maximum(z[0], 0.0) ** 2
+        phi = jnp.tanh(z[1])
+        return phi, _white_share(ratio, phi)
+
+    def physical(self, z, context):
+        ratio = max(float(z[0]), 0.0) ** 2
+        phi = float(np.tanh(z[1]))
+        tau = -context["dt"] / math.log(abs(phi)) if 0 < abs(phi) < 1 else float("nan")
+        white = float(_white_share(ratio, phi)) * context["innovation_variance"]
+        return {
+            "ar1_coefficient": phi,
+            "correlation_time_s": float(tau),
+            "sigma_white_V": math.sqrt(white),
+            "sigma_correlated_V": math.sqrt(ratio * white),
+        }
+
+
+def _white_share(ratio, phi):
+    """θ/φ of white + AR(1) noise written as ARMA(1,1) (n_k − φ n_{k−1} = a_k − θ a_{k−1}),
+    with σ_s²/σ_w² = `ratio`: θ/(1 + θ²) = c = φ/(ratio (1 − φ²) + 1 + φ²), the invertible
+    root θ = 2c/(1 + √(1 − 4c²)). It is also σ_w²/σ_a², the white share of the one-step
+    prediction variance (1 when ratio = 0 or φ = 0: white)."""
+    xp = jnp if isinstance(phi, jax.Array) or isinstance(ratio, jax.Array) else np
+    denominator = ratio * (1 - phi**2) + 1 + phi**2
+    c = phi / denominator
+    return 2 / (denominator * (1 + xp.sqrt(1 - 4 * c**2)))
+
+
+def step_effects() -> list[StepEffect]:
+    """The registered step effects, in registration order."""
+    return [cls() for cls in effect_library("step").values()]

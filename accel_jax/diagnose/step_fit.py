@@ -1,0 +1,303 @@
+"""The step diagnosis's fit (JAX): the parameters of a candidate model, its prediction and
+one-step errors, and the vmapped least-squares fit of every candidate of a record.
+
+Parameters w = [refit z (4), external moment, test winding gain z, initial displacement
+(2), effect slot (2), change times (J)], all O(1): the refit as log-normal deviations in
+units of their prior σ, held within ±`REFIT_BOUND`σ by a steep penalty; the change times in
+samples from where `u_test` shows each change, under a N(−0.5, 1) prior.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+
+from .._params import ServoParams
+from .step_effects import step_effects
+from .step_model import linear_record, stop_record
+
+REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
+"""ServoParams fields the refit moves, each under its log-normal prior (a field given no
+uncertainty in the device file stays at its nominal value)."""
+
+REFIT_BOUND = 6.0
+"""|z| of a refitted value (and of the test winding's gain) stays within about this many σ:
+beyond it a steep penalty (`BARRIER`) acts, so a refit stays inside its prior by
+construction. A refit beyond `openworld.PRIOR_LIMIT` (5σ) is reported as not credible."""
+
+BARRIER = 30.0
+"""Slope of the penalty residual BARRIER·max(|w| − bound, 0) that keeps a parameter within
+its bound (a fit that wants more stays at the bound instead of running away)."""
+
+GAIN_SIGMA = 0.1
+"""Relative (1σ) uncertainty of the test winding's gain."""
+
+TIMING_PRIOR = (-0.5, 1.0)
+"""Prior (mean, σ) of each change's time in samples from the sample where `u_test` shows
+it: a sampled u_test column puts it up to one sample earlier, the library's own records
+exactly there. Clipped to ±`TIMING_LIMIT` samples."""
+
+TIMING_LIMIT = 4.0
+
+SLOT = 2
+_I_MOMENT, _I_GAIN, _I_DV, _I_DW = 4, 5, 6, 7
+_I_SLOT = 8
+_I_TIMING = _I_SLOT + SLOT
+_N_FIXED = _I_TIMING
+
+
+class StepContext(eqx.Module):
+    """Per-record scales, masks and the test sequence (array leaves: vmappable).
+
+    **Fields:** `dt` [s] the sample period; `duration` [s] of the fitted record (the drift
+    is per this); `first_level` U_test at the first sample [V];
+    `polarity` ±1 of
+    the test winding; `sigma_ref` [V] the residual scale (the noise floor); `scale` [V] of
+    the offset and initial-state parameters; `lag_unit` [s] the lag per z² (3 % of the
+    nominal T); `mid`, `half` [V] the middle and half range of the training output (the
+    stops' scale); `change_index` (J,), `change_step` ΔU (J,) [V] (0 pads),
+    `held_out_change` (J,) 1 for changes in the held-out part; `train`, `test` masks of the
+    fitted outputs (block means; 0 on padding); `block` m, samples per block; `max_block`
+    (static) the largest m of the batch.
+    """
+
+    dt: jax.Array
+    duration: jax.Array
+    first_level: jax.Array
+    polarity: jax.Array
+    sigma_ref: jax.Array
+    scale: jax.Array
+    lag_unit: jax.Array
+    mid: jax.Array
+    half: jax.Array
+    change_index: jax.Array
+    change_step: jax.Array
+    held_out_change: jax.Array
+    train: jax.Array
+    test: jax.Array
+    block: jax.Array
+    max_block: int = eqx.field(static=True, default=1)
+
+
+def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:
+    values = [getattr(base, f) * jnp.exp(prior_sigma[i] * z[i]) for i, f in enumerate(REFIT_FIELDS)]
+    params = eqx.tree_at(lambda p: [getattr(p, f) for f in REFIT_FIELDS], base, values)
+    zero = jnp.zeros_like(base.damping)
+    return eqx.tree_at(
+        lambda p: (p.torquer_time_constant, p.filter_time_constant), params, (zero, zero)
+    )
+
+
+def _barrier(w, bound):
+    return BARRIER * jnp.maximum(jnp.abs(w) - bound, 0.0)
+
+
+def unpack(w, candidate, effects, base, prior_sigma, ctx):
+    """The model of candidate `candidate` (0: nominal; i: effect i − 1 of `effects`) at the
+    parameters w = [refit z (4), moment, gain z, dv, dw, effect slot (2), change times (J)]."""
+    z = w[:4]
+    params = refitted_device(base, z, prior_sigma)
+    gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[_I_GAIN])
+    slot = w[_I_SLOT:_I_TIMING]
+    rate = jnp.zeros_like(w[0])
+    inv_high = inv_low = phi = share = jnp.zeros_like(w[0])
+    used = jnp.zeros(SLOT, w.dtype)
+    bounds = jnp.full(SLOT, jnp.inf, w.dtype)
+    for i, effect in enumerate(effects, start=1):
+        # Every effect sees zeros unless it is the candidate: exactly the nominal model.
+        on = candidate == i
+        ze = jnp.where(on, slot, 0.0)
+        params = effect.device(params, ze, ctx)
+        rate = rate + effect.drift(ze, ctx)
+        high, low = effect.inverse_stops(ze, ctx)
+        inv_high, inv_low = inv_high + high, inv_low + low
+        p, s = effect.noise(ze, ctx)
+        phi, share = phi + p, share + s
+        mask = jnp.arange(SLOT) < effect.n_params
+        used = jnp.where(on, mask.astype(w.dtype), used)
+        bound = jnp.asarray(effect.bounds + (jnp.inf,) * (SLOT - len(effect.bounds)), w.dtype)
+        bounds = jnp.where(on, bound, bounds)
+    timing = w[_I_TIMING:]
+    penalties = jnp.concatenate(
+        [
+            z,  # the standard normal prior of the refit
+            w[_I_GAIN][None],  # and of the test winding's gain
+            _barrier(z, REFIT_BOUND),
+            _barrier(w[_I_GAIN][None], REFIT_BOUND),
+            slot * (1 - used),  # an effect's unused parameters are pinned at 0
+            _barrier(slot, bounds) * used,
+            (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1],
+        ]
+    )
+    return {
+        "params": params,
+        "gain": gain,
+        "moment": ctx.scale * w[_I_MOMENT],
+        "rate": rate,
+        "dv": ctx.scale * w[_I_DV],
+        "dw": ctx.scale * w[_I_DW],
+        "shift": jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT),
+        "inv_high": inv_high,
+        "inv_low": inv_low,
+        "phi": phi,
+        "share": share,
+        "penalties": penalties,
+    }
+
+
+def predict(m, ctx, n, nonlinear: bool):
+    args = (
+        m["params"],
+        ctx.dt,
+        n,
+        ctx.first_level,
+        m["gain"],
+        m["moment"],
+        m["rate"],
+        m["dv"],
+        m["dw"],
+        ctx.change_index,
+        ctx.change_step,
+        m["shift"],
+    )
+    if not nonlinear:
+        return linear_record(*args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration)
+
+    def stop(inverse, sign):
+        safe = jnp.where(inverse > 0, inverse, 1.0)
+        far = ctx.mid + sign * 1e6 * ctx.half
+        return jnp.where(inverse > 0, ctx.mid + sign * ctx.half / safe, far)
+
+    high, low = stop(m["inv_high"], 1.0), stop(m["inv_low"], -1.0)
+    return stop_record(*args, high, low, block=ctx.block, duration=ctx.duration)
+
+
+def innovation_terms(error, phi, share):
+    """One-step prediction errors of white + AR(1) noise (an ARMA(1,1) recursion
+    a_k = e_k − φ e_{k−1} + θ a_{k−1}, θ = sφ, s the white share (`_white_share`), by a
+    parallel scan), and ln V, V the variance of the first sample over σ_a², its exact
+    stationary term (σ_w² + σ_s²)/σ_a² = s + (1 − θφ)(1 − s)/(1 − φ²)."""
+    theta = share * phi
+    variance = share + (1 - theta * phi) * (1 - share) / (1 - phi**2)
+    first = error[:1] / jnp.sqrt(variance)
+    b = jnp.concatenate([first, error[1:] - phi * error[:-1]])
+    coef = jnp.full_like(b, theta).at[0].set(0.0)
+
+    def combine(left, right):
+        c1, v1 = left
+        c2, v2 = right
+        return c1 * c2, v1 * c2 + v2
+
+    _, a = jax.lax.associative_scan(combine, (coef, b))
+    return a, jnp.log(variance)
+
+
+FIT_TOLERANCE = 1e-6
+"""rtol = atol of the Levenberg–Marquardt fits (on the O(1) parameters)."""
+
+BATCH_CHUNK = 8
+"""Records fitted per compiled call (a vmapped batch runs until its slowest fit stops)."""
+
+
+FIT_MAX_STEPS = 30
+"""Levenberg–Marquardt steps per start. A batch runs until its slowest fit stops, and the
+fits of effects that do not describe the record creep on for many steps after the loss has
+settled, so a fit that is not done by then is judged by its Newton decrement instead."""
+
+CONVERGED_DECREMENT = 0.5
+"""A fit counts as converged when the solver says so or when a full Gauss–Newton step from
+its result would lower the cost ½Σr² (r in noise-floor units) by less than this plus 1e-8
+of the cost: its log-likelihood is then within that of the minimum, and the evidence (2 ln
+B) within 1 — the precision a significance threshold of 10 needs."""
+
+HELD_OUT_ITERATIONS = 4
+"""Gauss–Newton iterations of the held-out change times (nearly linear: a few suffice)."""
+
+
+def _gauss_newton_step(fn, x):
+    """(x − (JᵀJ + μI)⁻¹Jᵀr, ½‖r‖², Newton decrement rᵀJ(JᵀJ + μI)⁻¹Jᵀr) at x."""
+    jac, r = jax.jacfwd(lambda v: (fn(v), fn(v)), has_aux=True)(x)
+    normal = jac.T @ jac
+    mu = 1e-12 * jnp.trace(normal) / x.shape[0] + 1e-300
+    gradient = jac.T @ r
+    step = jnp.linalg.solve(normal + mu * jnp.eye(x.shape[0], dtype=x.dtype), gradient)
+    return x - step, 0.5 * jnp.sum(r**2), gradient @ step
+
+
+def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: bool):
+    """Fit every candidate (vmapped) to one record: from each start on the training part
+    (Levenberg–Marquardt, optimistix), then, from the best start, the held-out change times
+    on the held-out part (a few Gauss–Newton steps)."""
+    n = u_out.shape[0]
+    effects = step_effects()
+
+    def error_of(w, candidate):
+        m = unpack(w, candidate, effects, base, prior_sigma, ctx)
+        prediction = predict(m, ctx, n, nonlinear)
+        a, log_v = innovation_terms(u_out - prediction, m["phi"], m["share"])
+        return m, prediction, a, log_v
+
+    def residuals(w, candidate):
+        m, _, a, _ = error_of(w, candidate)
+        return jnp.concatenate([a * ctx.train / ctx.sigma_ref, m["penalties"]])
+
+    solver = optx.LevenbergMarquardt(
+        rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE, linear_solver=lx.Normal(lx.Cholesky())
+    )
+
+    def train_fit(guess, candidate):
+        solution = optx.least_squares(
+            residuals, solver, guess, args=candidate, max_steps=FIT_MAX_STEPS, throw=False
+        )
+        cost = jnp.sum(residuals(solution.value, candidate) ** 2)
+        cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+        solved = solution.result == optx.RESULTS.successful
+        return solution.value, cost, solved, solution.stats["num_steps"]
+
+    def fit_one(starts, candidate):
+        ws, costs, solved, steps = jax.vmap(train_fit, in_axes=(0, None))(starts, candidate)
+        best = jnp.argmin(costs)
+        w = ws[best]
+        # One Gauss–Newton step from the result: its predicted decrease (the Newton
+        # decrement) tells whether the fit is at a minimum; taken when it lowers the cost.
+        polished, cost, decrement = _gauss_newton_step(lambda x: residuals(x, candidate), w)
+        better = jnp.sum(residuals(polished, candidate) ** 2) < 2 * cost
+        w = jnp.where(better, polished, w)
+        converged = solved[best] | (decrement <= CONVERGED_DECREMENT + 1e-8 * cost)
+
+        def held_out(delta):
+            timing = w[_I_TIMING:] + ctx.held_out_change * delta
+            _, _, a, _ = error_of(w.at[_I_TIMING:].set(timing), candidate)
+            prior = ctx.held_out_change * (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
+            return jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior])
+
+        def iterate(_, carry):
+            delta, best_delta, best_cost = carry
+            new, cost, _ = _gauss_newton_step(held_out, delta)
+            better = cost < best_cost
+            return new, jnp.where(better, delta, best_delta), jnp.where(better, cost, best_cost)
+
+        zero = jnp.zeros_like(w[_I_TIMING:])
+        delta, best_delta, best_cost = jax.lax.fori_loop(
+            0, HELD_OUT_ITERATIONS, iterate, (zero, zero, jnp.inf)
+        )
+        last = 0.5 * jnp.sum(held_out(delta) ** 2)
+        delta = jnp.where(last < best_cost, delta, best_delta)
+        w = w.at[_I_TIMING:].add(ctx.held_out_change * delta)
+        _, prediction, a, log_v = error_of(w, candidate)
+        # The same model with the device at its prior values (what the refit changed).
+        _, prior_prediction, _, _ = error_of(w.at[:4].set(0.0), candidate)
+        return w, prediction, a, log_v, converged, steps[best], prior_prediction
+
+    return jax.vmap(fit_one)(guesses, candidates)
+
+
+def fit_linear(base, prior_sigma, ctx, u_out, guesses, candidates):
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, False)
+
+
+def fit_nonlinear(base, prior_sigma, ctx, u_out, guesses, candidates):
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, True)

@@ -1,0 +1,342 @@
+"""The step diagnosis's model of a record: the closed loop under a piecewise-constant test
+voltage whose changes fall anywhere between samples, from any initial state, with the test
+winding of unknown polarity and gain, an external moment that may drift, and optional
+mechanical stops.
+
+**State** (6, every entry in volts so that all are O(1)): the deflection as the amplifier
+voltage v = k_dp k_y l θ; the velocity w = k_dp k_y l T θ' (T the loop's time constant);
+the torquer moment m = M_dm/k_dm; the output filter's state U_f; the external moment
+M̃ = M/k_dm; and its change over the record, r = Ṁ·t_rec/k_dm (M̃' = r/t_rec, r' = 0, so a
+drifting moment is part of the state, not an input). The loop's matrices are
+`accel_jax._simulate.state_space`'s, rescaled; the output is U_out = C x.
+
+**Linear record** (`linear_record`): exact superposition. With the test-voltage changes
+ΔU_j at times τ_j = t_{i_j} + δ_j Δ (δ_j real, in samples: a change between samples, e.g.
+from a DAC on another clock or a sampled u_test column) and the input g·U_test (g the test
+winding's signed gain),
+
+    U_out(t) = C x_eq + C e^{A t} (x_0 − x_eq) + g Σ_j ΔU_j S(t − τ_j)·[t > τ_j],
+
+S(s) = C ∫_0^s e^{Aσ} dσ B the unit step response. On the affine state z = [x; u] every
+change is a source, z(t) = e^{[[A, B], [0, 0]](t − τ_j)} [0; gΔU_j]; the record is the sum
+of the sources carried from block to block by M^m (M the one-sample map), read out
+either at the samples (m = 1) or as exact means over blocks of m samples. The matrix
+exponentials are `expm_minus_identity`'s (e^X − I, exact for the small X of a sample step
+and for stiff lags). The tests check it against `simulate_linear` on a grid 50 times
+finer and against the SciPy truth simulator of `studies/step_truth.py`, to 1e-10 V.
+
+**Record with stops** (`stop_record`): the same loop, stepped sample by sample
+(`lax.scan`), with inelastic stops at v = v_hi and v = v_lo (asymmetric in general: an
+external moment, or an output offset, shifts the deflection between them). A pendulum that
+reaches a stop within a sample step loses its velocity at the contact time (found by
+interpolation within the step) and moves on from the stop for the rest of the step (a
+fourth-order Taylor expansion of the flow, exact to ‖AΔ‖⁵/120); one pushed into a stop
+stays there, and leaves it at the exact (sub-sample) time of the test-voltage change that
+reverses the push. Only meant for the ideal lags (T_dm = T_f = 0) of the stop candidate.
+
+Float64 throughout (the fitted change times are ~1e-7 s against records of ~1e-2 s, and
+the evidence compares log-likelihoods of ~1e4 to within ~1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from .._params import ServoParams
+from .._servo import loop_stiffness, time_constant
+from .._simulate import state_space
+
+N_STATES = 6
+"""v, w, m, U_f, M̃, r (see the module docstring)."""
+
+TAYLOR_ORDER = 4
+"""Order of the flow's Taylor expansion after a stop contact within a sample step."""
+
+
+def loop_system(params: ServoParams, duration):
+    """(A, B, C) of the scaled loop with the moment states: shapes (6, 6), (6,), (6,).
+
+    B is the column of the test voltage [V] (before the test winding's gain); the external
+    moment enters through the states M̃ and r. `duration` [s] scales r."""
+    a, b, c, _ = state_space(params)
+    gain = params.pickoff_gain * params.amplifier_gain * params.pendulum_length
+    period = time_constant(params)
+    one = jnp.ones_like(gain)
+    scale = jnp.stack([1 / gain, 1 / (gain * period), params.torquer_gain, one])
+    inputs = jnp.stack([one, params.torquer_gain])
+    b = b[:, jnp.array([0, 2])]
+    a_s = a * scale[None, :] / scale[:, None]
+    b_s = b * inputs[None, :] / scale[:, None]
+    c_s = c[0] * scale
+    dtype = a_s.dtype
+    a_full = jnp.zeros((N_STATES, N_STATES), dtype)
+    a_full = a_full.at[:4, :4].set(a_s).at[:4, 4].set(b_s[:, 1]).at[4, 5].set(1 / duration)
+    b_full = jnp.zeros(N_STATES, dtype).at[:4].set(b_s[:, 0])
+    c_full = jnp.zeros(N_STATES, dtype).at[:4].set(c_s)
+    return a_full, b_full, c_full
+
+
+def equilibrium(params: ServoParams, drive, moment):
+    """The state at rest under a test-winding drive g·U_test = `drive` [V] and the external
+    moment M̃ = `moment` [V] (moment rate zero)."""
+    gain = params.pickoff_gain * params.amplifier_gain * params.pendulum_length
+    v = gain * params.torquer_gain * (drive + moment) / loop_stiffness(params)
+    return jnp.stack([v, 0 * v, drive - v, v, moment + 0 * v, 0 * v])
+
+
+def initial_state(params: ServoParams, drive, moment, rate, dv, dw):
+    """The state at the first sample: at rest under the first drive, displaced by dv [V]
+    in deflection and dw [V] in velocity (a record that starts in a transient), the lag
+    states at their quasi-static values, the moment drifting at `rate` [V per record]."""
+    rest = equilibrium(params, drive, moment)
+    return rest + jnp.stack([dv, dw, -dv, dv, 0 * dv, rate + 0 * dv])
+
+
+TAYLOR_TERMS = 8
+"""Taylor terms of `expm_minus_identity` on X/2^s, ‖X/2^s‖₁ ≤ 0.05: error 0.05⁹/9! ≈ 5e-18."""
+
+
+def expm_minus_identity(x):
+    """e^X − I by scaling and squaring in the "minus identity" form: the Taylor series of
+    e^{X/2^s} − I with s the fewest squarings that bring ‖X‖₁/2^s to 0.05, then s times
+    F ← 2F + F² (that is (I + F)² − I). Working with F instead of I + F keeps full relative
+    precision when X is small (a sample step of a loop that is slow against it), and a stiff
+    lag only costs more squarings (a loop with a traced count: forward-mode differentiable,
+    and vmapped batches run to their largest count)."""
+    norm = jnp.max(jnp.sum(jnp.abs(x), axis=0))
+    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.05)), 0, 60).astype(jnp.int32)
+    scaled = x / 2.0 ** s.astype(x.dtype)
+    term = scaled
+    out = scaled
+    for k in range(2, TAYLOR_TERMS + 1):
+        term = term @ scaled / k
+        out = out + term
+    return jax.lax.fori_loop(0, s, lambda _, f: 2 * f + f @ f, out)
+
+
+def zoh(a, b, dt):
+    """(e^{AΔ}, ∫_0^Δ e^{As} ds b) of x' = A x + b u (u held over the step), from the
+    exponential of the augmented matrix [[A, b], [0, 0]]Δ (Van Loan)."""
+    n = a.shape[0]
+    augmented = jnp.zeros((n + 1, n + 1), a.dtype).at[:n, :n].set(a).at[:n, n].set(b)
+    f = expm_minus_identity(augmented * dt)
+    return f[:n, :n] + jnp.eye(n, dtype=a.dtype), f[:n, n]
+
+
+def power_rows(matrix, row, count: int):
+    """[row·M^i for i < count], shape (count, len(row)).
+
+    Blocked: i = kB + j with B ≈ √count; M^j (j < B) and row·M^{kB} by doubling, then one
+    product row·M^{kB}·M^j for all (k, j) — a few small products and one larger one, which
+    stays fast when vmapped and differentiated (a doubling of the rows alone is a long
+    chain of tiny batched products)."""
+    d = matrix.shape[0]
+    levels = max(0, math.ceil(math.log2(max(count, 1)) / 2))
+    n_outer = -(-count // 2**levels)
+    stack, power = jnp.eye(d, dtype=matrix.dtype)[None], matrix
+    for _ in range(levels):
+        stack = jnp.concatenate([stack, stack @ power])
+        power = power @ power
+    outer = row[None, :]
+    for _ in range(max(0, math.ceil(math.log2(n_outer)))):
+        outer = jnp.concatenate([outer, outer @ power])
+        power = power @ power
+    return jnp.einsum("kd,jde->kje", outer[:n_outer], stack).reshape(-1, d)[:count]
+
+
+def _change_split(change_shift):
+    """For a change at t_i + δΔ (any real δ): the offset o of the first sample it reaches,
+    i + o (the first t_k > t_i + δΔ), and ρ/Δ ∈ (0, 1], the part of a sample step it has
+    acted for at that sample. The record is continuous (C¹) in δ across the jumps of o."""
+    offset = jnp.floor(change_shift).astype(jnp.int32) + 1
+    fraction = offset - change_shift
+    return offset, fraction
+
+
+def linear_record(
+    params: ServoParams,
+    dt,
+    n: int,
+    first_level,
+    gain,
+    moment,
+    rate,
+    dv,
+    dw,
+    change_index,
+    change_step,
+    change_shift,
+    *,
+    block=1,
+    max_block: int = 1,
+    duration=None,
+):
+    """Noise-free U_out [V] of the linear loop (no stops): at t_k = t_0 + kΔ, k < n, or,
+    with `block` = m > 1, the means of the n blocks of m samples (samples bm … bm + m − 1).
+
+    Block means are exact, not a resampling: with the unit-input affine state z = [x; u]
+    (transition M = e^{[[A, B], [0, 0]]Δ}), a change that first reaches sample s = qm + p
+    adds (1/m) c P_{m−p} ζ to block q and r̄ (M^m)^{b−q−1} ζ' to every later block b,
+    with P_L = Σ_{l<L} M^l, r̄ = (1/m) c P_m, ζ = gΔU [Γ(ρ); 1] its state after the ρ it
+    has acted before s and ζ' its state at the next block boundary; the initial
+    displacement is the source at s = 0.
+
+    **Arguments:** `params` (its `external_moment` is ignored: `moment`), `dt` Δ [s], `n`
+    (static) the number of outputs, `first_level` U_test at t_0 [V], `gain` g, the test
+    winding's signed gain, `moment` M̃ [V], `rate` r [V per record], `dv`, `dw` the initial
+    displacement [V], `change_index` (J,) int, `change_step` ΔU_j [V] (0 pads),
+    `change_shift` δ_j (J,) in samples; `block` m (may be traced: records sampled at
+    different rates share one compiled program) and `max_block` (static) the largest m
+    it may take (a Python int m raises it as needed); `duration` [s] the record's length that r refers to (default (n·m − 1)Δ).
+    jit/vmap/grad-safe; float64.
+    """
+    m = block
+    if isinstance(m, int) and m > max_block:
+        max_block = m
+    duration = dt * (n * m - 1) if duration is None else duration
+    a, b, c = loop_system(params, duration)
+    dtype = a.dtype
+    size = N_STATES + 1
+    augmented = jnp.zeros((size, size), dtype)
+    augmented = augmented.at[:N_STATES, :N_STATES].set(a).at[:N_STATES, N_STATES].set(b)
+    eye = jnp.eye(size, dtype=dtype)
+
+    def flow(time):  # e^{[[A, B], [0, 0]] time}: the unit-input affine flow
+        return expm_minus_identity(augmented * time) + eye
+
+    c_aug = jnp.concatenate([c, jnp.zeros(1, dtype)])
+    within = power_rows(flow(dt), c_aug, max(max_block, 1))  # c M^l
+    within = jnp.where((jnp.arange(within.shape[0]) < m)[:, None], within, 0.0)
+    cumulative = jnp.cumsum(within, axis=0)  # c P_{l+1}, constant from l = m − 1 on
+    block_map = flow(m * dt)
+    mean_row = cumulative[-1] / m  # (1/m) c P_m
+    rest = equilibrium(params, gain * first_level, moment)
+    start = initial_state(params, gain * first_level, moment, rate, dv, dw)
+    offset, fraction = _change_split(change_shift)
+    first = (change_index + offset).astype(jnp.int32)  # the first sample each change reaches
+    q, p = first // m, first % m
+    # A change at τ leaves the state deviation e^{[[A, B], [0, 0]](t − τ)}[0; gΔU] at t ≥ τ:
+    # ζ at its first sample (after ρ), ζ' at the next block boundary.
+    unit = eye[:, N_STATES]
+    zeta = jax.vmap(lambda f: flow(f * dt) @ unit)(fraction)
+    zeta_next = jax.vmap(lambda f, pp: flow((f + m - pp) * dt) @ unit)(fraction, p)
+    weight = gain * change_step
+    initial = jnp.concatenate([start - rest, jnp.zeros(1, dtype)])
+    head = jnp.concatenate(
+        [
+            (cumulative[-1] @ initial / m)[None],
+            jnp.sum(cumulative[m - 1 - p] * zeta, 1) / m * weight,
+        ]
+    )
+    tail = jnp.concatenate([(block_map @ initial)[None], weight[:, None] * zeta_next])
+    q = jnp.concatenate([jnp.zeros(1, jnp.int32), q])
+    level = c @ rest
+
+    # Block recurrence of the summed sources: z_{b+1} = M^m z_b + (tails entering at b),
+    # ȳ_b = C x_eq + r̄·z_b + (heads at b). A short loop (one step per block, 7 states);
+    # a vectorised superposition (a convolution of r̄ (M^m)^i with the tails) computes the
+    # same but was 4× slower to differentiate, vmapped, on the CPU.
+    def step(z, b):
+        here = (q == b).astype(dtype)
+        return block_map @ z + here @ tail, level + mean_row @ z + here @ head
+
+    _, record = jax.lax.scan(step, jnp.zeros(N_STATES + 1, dtype), jnp.arange(n), unroll=8)
+    return record
+
+
+def _taylor_flow(a, state, velocity_field, s):
+    """x(s) of x' = A x + b from x(0) = `state`, with `velocity_field` = A x(0) + b:
+    x + Σ_{k=1..K} s^k/k! A^{k−1} f (b constant over the step)."""
+    term = velocity_field
+    out = state
+    factor = jnp.ones_like(s)
+    for k in range(1, TAYLOR_ORDER + 1):
+        factor = factor * s / k
+        out = out + factor * term
+        term = a @ term
+    return out
+
+
+def stop_record(
+    params: ServoParams,
+    dt,
+    n: int,
+    first_level,
+    gain,
+    moment,
+    rate,
+    dv,
+    dw,
+    change_index,
+    change_step,
+    change_shift,
+    stop_high,
+    stop_low,
+    *,
+    block=1,
+    duration=None,
+):
+    """Noise-free U_out [V] of the loop with inelastic stops at v = `stop_high` and
+    v = `stop_low` [V] (stop_low < stop_high; far away for none), stepped sample by sample:
+    at the samples (m = 1) or as the means of n blocks of `block` = m samples (m may be
+    traced). Arguments otherwise as `linear_record`. Meant for T_dm = T_f = 0 (U_out = v)."""
+    m = block
+    duration = dt * (n * m - 1) if duration is None else duration
+    a, b, c = loop_system(params, duration)
+    transition, forcing = zoh(a, b, dt)
+    offset, fraction = _change_split(change_shift)
+    # Step k (from t_k to t_{k+1}) holds the change j when τ_j lies in [t_k, t_{k+1}).
+    interval = change_index + offset - 1
+    active = change_step != 0
+    partial_t, partial_f = jax.vmap(lambda s: zoh(a, b, s))(fraction * dt)
+    start = initial_state(params, gain * first_level, moment, rate, dv, dw)
+
+    def clip_to(state, stop):
+        return state.at[0].set(stop).at[1].set(0.0)
+
+    def sample_step(k, carry):
+        x, held, total = carry
+        before = (k > interval) & active
+        level_k = first_level + jnp.sum(jnp.where(before, change_step, 0.0))
+        hit = (k == interval) & active
+        change = jnp.any(hit)
+        j = jnp.argmax(hit)
+        step_k = jnp.where(change, change_step[j], 0.0)
+        drive_old = gain * level_k
+        drive_new = gain * (level_k + step_k)
+        total = total + c @ x
+        x_free = transition @ x + drive_old * forcing + gain * step_k * partial_f[j]
+        # Held on a stop and pushed into it by the old input: it stays there until the
+        # change, then moves from the stop for the rest of the step.
+        push = (a @ x + b * drive_old)[1]
+        pushed = ((held > 0) & (push > 0)) | ((held < 0) & (push < 0))
+        x_held = partial_t[j] @ x + partial_f[j] * drive_new
+        x_next = jnp.where(change & pushed, x_held, x_free)
+        # A stop reached within the step: the velocity is lost at the contact (found by
+        # interpolation), and the flow goes on from the stop for the rest of the step.
+        new_held = jnp.zeros_like(held)
+        for sign, stop in ((1, stop_high), (-1, stop_low)):
+            beyond = sign * (x_next[0] - stop) > 0
+            gap_before = sign * (stop - x[0])
+            travelled = sign * (x_next[0] - x[0])
+            safe = jnp.where(travelled > 0, travelled, 1.0)
+            at = jnp.clip(jnp.where(travelled > 0, gap_before / safe, 0.0), 0.0, 1.0)
+            on_stop = clip_to(x + at * (x_next - x), stop)
+            moved = _taylor_flow(a, on_stop, a @ on_stop + b * drive_new, (1 - at) * dt)
+            still_beyond = sign * (moved[0] - stop) >= 0
+            after = jnp.where(still_beyond, clip_to(moved, stop), moved)
+            x_next = jnp.where(beyond, after, x_next)
+            new_held = jnp.where(beyond & still_beyond, sign, new_held)
+        return x_next, new_held, total
+
+    def block_step(carry, index):
+        x, held = carry
+        zero = jnp.zeros((), x.dtype)
+        x, held, total = jax.lax.fori_loop(index * m, index * m + m, sample_step, (x, held, zero))
+        return (x, held), total / m
+
+    _, ys = jax.lax.scan(block_step, (start, jnp.zeros((), jnp.int32)), jnp.arange(n))
+    return ys

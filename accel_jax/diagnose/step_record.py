@@ -1,0 +1,337 @@
+"""The step diagnosis's view of a record (host side, NumPy): its test sequence, the blocks
+it is fitted in, the noise floor measured without a model, the domain check, and the
+starting points of the fits.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .._data import DataError, NominalDevice, StepData
+from .._params import ServoParams
+from .._servo import closed_loop_test_gain, damping_ratio, time_constant
+from . import openworld
+from .step_fit import (
+    _I_DV,
+    _I_GAIN,
+    _I_MOMENT,
+    _I_SLOT,
+    _I_TIMING,
+    _N_FIXED,
+    GAIN_SIGMA,
+    REFIT_BOUND,
+    REFIT_FIELDS,
+    TIMING_PRIOR,
+    StepContext,
+)
+
+HELD_OUT_FRACTION = 1 / 3
+"""About this much of the record, from the input change nearest to it, is held out."""
+
+MAX_CHANGES = 64
+"""Most test-voltage changes a record may have (a piecewise-constant test sequence)."""
+
+
+def _split(u_test: np.ndarray) -> int:
+    """Index of the first held-out sample: the input change nearest to 1 − HELD_OUT_FRACTION
+    of the record, after the first change (falls back to that fraction of the record)."""
+    n = u_test.shape[0]
+    changes = np.flatnonzero(np.diff(u_test) != 0) + 1
+    target = int(round((1 - HELD_OUT_FRACTION) * n))
+    usable = changes[(changes > (changes[0] if changes.size else 0)) & (changes < n - n // 10)]
+    usable = usable[usable >= n // 2]
+    if usable.size:
+        return int(usable[np.argmin(np.abs(usable - target))])
+    return target
+
+
+def segments(u: np.ndarray) -> np.ndarray:
+    n = u.shape[0]
+    return np.concatenate([[0], np.flatnonzero(np.diff(u) != 0) + 1, [n]])
+
+
+def _nominal_rise(base: ServoParams) -> float:
+    """Time [s] the nominal loop (ideal lags) takes to reach half its settled step: the
+    second-order step response 1 + (p₂e^{p₁t} − p₁e^{p₂t})/(p₁ − p₂), poles
+    p = (−ξ ± √(ξ² − 1))/T, on a fine grid (NumPy, complex poles for ξ < 1)."""
+    period = float(time_constant(base))
+    zeta = float(damping_ratio(base))
+    if abs(zeta - 1) < 1e-6:
+        zeta = 1 + 1e-6  # a double pole: the limit, to 1e-6
+    root = np.sqrt(complex(zeta**2 - 1))
+    p1, p2 = (-zeta + root) / period, (-zeta - root) / period
+    t = np.linspace(0, 20 * period * max(zeta, 1.0), 20001)
+    y = (1 + (p2 * np.exp(p1 * t) - p1 * np.exp(p2 * t)) / (p1 - p2)).real
+    return float(t[np.argmax(y >= 0.5)])
+
+
+def _domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[list[str], dict]:
+    """Model-free checks that the record is a DC-coupled servo accelerometer's step
+    response on the nominal device's time scale. Returns (problems, measurements)."""
+    u, y = np.asarray(data.u_test), np.asarray(data.u_out)
+    dt = data.sample_period
+    edges = segments(u)
+    period = float(time_constant(nominal.params))
+    settle = max(int(4 * period / dt), 8)
+    rows = []
+    for j in range(1, edges.size - 1):
+        start, stop = edges[j], edges[j + 1]
+        prev_start = edges[j - 1]
+        if stop - start < settle or start - prev_start < settle:
+            continue
+        before = float(np.mean(y[start - max((start - prev_start) // 4, 2) : start]))
+        after = float(np.mean(y[stop - max((stop - start) // 4, 2) : stop]))
+        excursion = float(np.max(np.abs(y[start:stop] - before)))
+        if excursion < 10 * floor:
+            continue
+        target = after - before
+        crossed = np.flatnonzero(np.abs(y[start:stop] - before) >= 0.5 * abs(target))
+        rows.append(
+            {
+                "index": int(start),
+                "step_V": float(u[start] - u[start - 1]),
+                "settled_change_V": target,
+                "excursion_V": excursion,
+                "rise_s": float(crossed[0] * dt) if crossed.size and abs(target) > 0 else None,
+            }
+        )
+    measured = {"changes_checked": len(rows)}
+    problems = []
+    if not rows:
+        measured["note"] = (
+            "no change with settled segments on both sides (each at least 4 T of the nominal "
+            "device) and a response above the noise: the domain was not checked"
+        )
+        return problems, measured
+    ratio = float(np.median([abs(r["settled_change_V"]) / r["excursion_V"] for r in rows]))
+    measured["settled_over_excursion"] = ratio
+    if ratio < 0.4:
+        problems.append(
+            "the output returns to its previous level after each step (settled change "
+            f"{ratio:.0%} of the transient excursion): not the step response of a DC-coupled "
+            "servo accelerometer (a velocity-output or AC-coupled sensor?)"
+        )
+        return problems, measured
+    rises = [r["rise_s"] for r in rows if r["rise_s"] is not None]
+    nominal_rise = _nominal_rise(nominal.params)
+    measured["rise_time_s"] = float(np.median(rises)) if rises else None
+    measured["nominal_rise_time_s"] = nominal_rise
+    if rises:
+        factor = float(np.median(rises)) / max(nominal_rise, dt)
+        measured["rise_time_ratio"] = factor
+        if factor > 3 or (factor < 1 / 3 and nominal_rise > 2 * dt):
+            problems.append(
+                f"the transients reach half their step in {time_text(np.median(rises))}, the "
+                f"nominal device's in {time_text(nominal_rise)}: time scales {factor:.3g}× apart "
+                "(a different device? give its values with --params)"
+            )
+    return problems, measured
+
+
+def time_text(seconds: float) -> str:
+    seconds = float(seconds)
+    for unit, factor in (("s", 1.0), ("ms", 1e-3), ("µs", 1e-6)):
+        if abs(seconds) >= factor:
+            return f"{seconds / factor:.3g} {unit}"
+    return f"{seconds * 1e9:.3g} ns"
+
+
+def _changes(data: StepData, path=None) -> tuple[np.ndarray, np.ndarray]:
+    u = np.asarray(data.u_test)
+    index = np.flatnonzero(np.diff(u) != 0) + 1
+    if index.size > MAX_CHANGES:
+        raise DataError(
+            f"{path or '<data>'}: u_test changes at {index.size} samples; the step diagnosis "
+            f"needs a piecewise-constant test sequence (at most {MAX_CHANGES} changes). Is "
+            "u_test a noisy measurement? Round it to its levels."
+        )
+    return index, u[index] - u[index - 1]
+
+
+BLOCK_BUCKET = 256
+"""Block counts are padded to a multiple of this (one compiled program per bucket)."""
+
+BLOCKS_PER_PERIOD = 30
+"""Samples are averaged in blocks of about T/30 (T the nominal loop's time constant; at
+most 10 µs for the reference device): a record sampled at 1 MHz is fitted as the exact
+means of blocks of 10 samples. White noise averages down by √m with the signal kept, and
+the model predicts the block means exactly (`step_model.linear_record`), so little is lost
+while the fit handles ~30 points per T however fast the record was sampled."""
+
+
+class RecordView(eqx.Module):
+    """The record as the fit sees it: block start times, U_test at each block's first
+    sample, block means of U_out (`StepData`'s field names)."""
+
+    t: np.ndarray
+    u_test: np.ndarray
+    u_out: np.ndarray
+
+
+def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
+    """Host-side context of one record: blocks, floor, domain check, polarity, starts."""
+    t, u, y = np.asarray(data.t), np.asarray(data.u_test), np.asarray(data.u_out)
+    n = y.size
+    dt = data.sample_period
+    base = nominal.params
+    period = float(time_constant(base))
+    index, steps = _changes(data)
+    near_change = np.zeros(n, dtype=bool)
+    for i in index:
+        near_change[max(i - 2, 0) : i + 3] = True
+    full_floor = openworld.noise_floor(y, exclude=near_change)
+    m = max(1, int(round(period / BLOCKS_PER_PERIOD / dt)))
+    n_blocks = n // m
+    if n_blocks < 50:
+        raise DataError(
+            f"the record holds {n} samples of {time_text(dt)}: {n_blocks} blocks of {m} "
+            "(the fit's resolution, T/30 of the nominal device); at least 50 are needed."
+        )
+    yb = y[: n_blocks * m].reshape(n_blocks, m).mean(axis=1)
+    view = RecordView(t[: n_blocks * m : m], u[: n_blocks * m : m], yb)
+    near_block = np.zeros(n_blocks, dtype=bool)
+    for i in index // m:
+        near_block[max(i - 1, 0) : i + 2] = True
+    block_floor = openworld.noise_floor(yb, exclude=near_block, order=4)
+    q = full_floor["quantum"]
+    dithered = full_floor["sigma_differences"] >= 0.5 * q
+    quantised = q / math.sqrt(12) / (math.sqrt(m) if dithered else 1.0)
+    sigma = max(
+        block_floor["sigma_differences"], quantised, 1e-12 * max(float(np.max(np.abs(y))), 1.0)
+    )
+    floor = {
+        "sigma_V": sigma,
+        "sigma_per_sample_V": full_floor["sigma"],
+        "sigma_block_means_V": block_floor["sigma_differences"],
+        "adc_step_V": q,
+        "quantisation_floor_block_V": quantised,
+        "block_samples": m,
+        "method": "median absolute 4th difference of the block means (and the ADC step's "
+        "q/√12), without any model",
+    }
+    problems, domain = _domain(data, nominal, full_floor["sigma"])
+    split_sample = _split(u)
+    split = split_sample // m
+    edges = segments(u)
+    # Settled levels (last quarter of each segment) against the test voltage: polarity,
+    # gain and offset starts.
+    levels, outputs = [], []
+    for start, stop in zip(edges[:-1], edges[1:], strict=True):
+        tail = y[stop - max((stop - start) // 4, 1) : stop]
+        levels.append(u[start])
+        outputs.append(float(np.mean(tail)))
+    levels, outputs = np.asarray(levels), np.asarray(outputs)
+    if np.ptp(levels) > 0:
+        slope, intercept = np.polyfit(levels, outputs, 1)
+    else:
+        slope, intercept = 1.0, float(np.mean(outputs))
+    polarity = -1.0 if slope < 0 else 1.0
+    k_test = float(closed_loop_test_gain(base))
+    z_gain = np.log(max(abs(slope), 1e-12) / k_test) / GAIN_SIGMA
+    w_gain = float(np.clip(z_gain, -REFIT_BOUND, REFIT_BOUND))
+    train_y = yb[:split]
+    scale = max(float(np.ptp(train_y)) / 2, 10 * sigma)
+    moment = intercept / k_test
+    dv = (y[0] - (intercept + slope * u[0])) / k_test
+    # Padded shapes (blocks to a multiple of BLOCK_BUCKET, changes to a multiple of 4, m to
+    # a power of two): records of similar length share one compiled program whatever their
+    # sample rate. Padding carries zero weight.
+    n_padded = -(-n_blocks // BLOCK_BUCKET) * BLOCK_BUCKET
+    j_padded = max(4, -(-index.size // 4) * 4)
+    max_block = 1 if m == 1 else 2 ** math.ceil(math.log2(m))
+    change_index = np.zeros(j_padded, dtype=np.int32)
+    change_step = np.zeros(j_padded)
+    change_index[: index.size] = index
+    change_step[: index.size] = steps
+    held_out_change = ((change_index >= split * m) & (change_step != 0)).astype(np.float64)
+    blocks = np.arange(n_padded)
+    train = (blocks < split).astype(np.float64)
+    test = ((blocks >= split) & (blocks < n_blocks)).astype(np.float64)
+    ctx = StepContext(
+        dt=jnp.asarray(dt),
+        duration=jnp.asarray(dt * (n_blocks * m - 1)),
+        first_level=jnp.asarray(float(u[0])),
+        polarity=jnp.asarray(polarity),
+        sigma_ref=jnp.asarray(sigma),
+        scale=jnp.asarray(scale),
+        lag_unit=jnp.asarray(0.03 * period),
+        mid=jnp.asarray(float(train_y.max() + train_y.min()) / 2),
+        half=jnp.asarray(max(float(np.ptp(train_y)) / 2, 1e-12)),
+        change_index=jnp.asarray(change_index),
+        change_step=jnp.asarray(change_step),
+        held_out_change=jnp.asarray(held_out_change),
+        train=jnp.asarray(train),
+        test=jnp.asarray(test),
+        block=jnp.asarray(m, dtype=jnp.int32),
+        max_block=max_block,
+    )
+    common = np.zeros(_N_FIXED + j_padded)
+    common[_I_MOMENT] = moment / scale
+    common[_I_GAIN] = w_gain
+    common[_I_DV] = dv / scale
+    linear = [e for e in effects if not e.nonlinear]
+    nonlinear = [e for e in effects if e.nonlinear]
+    return {
+        "ctx": ctx,
+        "view": view,
+        "u_out": np.concatenate([yb, np.zeros(n_padded - n_blocks)]),
+        "n": n_blocks,
+        "block": m,
+        "dt": dt * m,
+        "dt_sample": dt,
+        "split": split,
+        "floor": floor,
+        "sigma": sigma,
+        "domain_problems": problems,
+        "domain": domain,
+        "polarity": polarity,
+        "k_test": k_test,
+        "levels_slope": float(slope),
+        "levels_intercept": float(intercept),
+        "change_index": index,
+        "change_block": index // m,
+        "change_step": steps,
+        "period": period,
+        "group": (n_padded, j_padded, max_block),
+        "guesses_linear": _guesses(common, linear, nominal_first=True),
+        "guesses_nonlinear": _guesses(common, nonlinear, nominal_first=False),
+        "host": {
+            "lag_unit": 0.03 * period,
+            "gain": float(base.pickoff_gain * base.amplifier_gain),
+            "mid": float(ctx.mid),
+            "half": float(ctx.half),
+            "dt": dt * m,
+            "duration": dt * (n_blocks * m - 1),
+            "torquer_gain": float(base.torquer_gain),
+        },
+    }
+
+
+STARTS = 2
+"""Starting points per candidate (the nominal: change times at the samples, and half a
+sample earlier — a sampled u_test column shows a change up to a sample late)."""
+
+
+def _guesses(common, effects, *, nominal_first: bool) -> np.ndarray:
+    """Starts, shape (candidates, STARTS, parameters): an effect's own starts, then the
+    nominal's second start (changes half a sample earlier) with its last start."""
+    late = common.copy()
+    late[_I_TIMING:] = TIMING_PRIOR[0]
+    rows = [[common, late]] if nominal_first else []
+    for effect in effects:
+        per = []
+        for k in range(STARTS):
+            w = (common if k < len(effect.starts) else late).copy()
+            start = effect.starts[min(k, len(effect.starts) - 1)]
+            w[_I_SLOT : _I_SLOT + len(start)] = start
+            per.append(w)
+        rows.append(per)
+    return np.asarray(rows)
+
+
+def prior_sigma_of(nominal: NominalDevice) -> np.ndarray:
+    return np.array([nominal.uncertainty.get(f, 0.0) for f in REFIT_FIELDS])

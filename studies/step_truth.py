@@ -1,0 +1,287 @@
+"""An independent truth simulator of closed-loop test-signal records (SciPy, not JAX).
+
+Written from the equations of SPEC.md §1 with none of the library's code: its own state
+equations, SciPy's `solve_ivp` (DOP853) integrating between events, and its own handling
+of the mechanical stops as exact events. The blind validation uses it so that the
+diagnosis is checked on records made with other conventions than its own:
+
+- the test voltage changes at arbitrary times between samples (a DAC on its own clock),
+  and the `u_test` column is that voltage *sampled* at the record's times;
+- the test winding may be wired with either polarity, and its gain differs from the
+  feedback winding's;
+- the record starts wherever the recorder was started: at rest, or in the middle of the
+  transient of an earlier change (a test sequence already running);
+- the output carries an ADC offset and is quantised by an ADC of given step size;
+- sample rates of 0.5–2 MHz and multi-level test sequences.
+
+Loop (SI units; a the input acceleration, M the external moment):
+
+    J θ'' + μ θ' + c θ = M_dm + M(t) + m l a(t) + M_stop
+    T_dm M_dm' = k_dm (g_w U_test(t) − U_amp) − M_dm      (M_dm algebraic when T_dm = 0)
+    U_amp = k_dp k_y l θ · (1 + p2 x + p3 x²),  x = θ/θ_ref   (pickoff nonlinearity)
+    T_f U_f' = U_amp − U_f,   U_out = U_f                  (U_out = U_amp when T_f = 0)
+
+Stops at |l θ| = h_max, inelastic: at contact the velocity is lost; the pendulum stays on
+the stop while the net moment presses it there and leaves it (from rest) when the moment
+reverses, each found as an event of the integration. Options outside the accelerometer
+model (for the out-of-library cases): the pickoff nonlinearity p2, p3; a sinusoidal input
+acceleration (a vibrating test stand); and a band-pass (velocity-output) sensor, whose
+output is the rate of a second-order system driven by the calibration signal.
+
+Everything is float64 NumPy/SciPy. `simulate(spec)` returns (t, u_test, u_out).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.integrate import solve_ivp
+from scipy.signal import lfilter
+
+
+@dataclasses.dataclass
+class Device:
+    """Physical values (SI). `test_gain` g_w is the test winding's signed gain relative to
+    the feedback winding (−1: wired the other way)."""
+
+    m: float = 2.9e-4
+    l: float = 4.28e-3
+    J: float = 7.09e-9
+    mu: float = 2.54e-5
+    c: float = 3.02e-4
+    h_max: float = float("inf")
+    k_dp: float = 2.5e5
+    k_y: float = 8.5
+    k_dm: float = 9.23e-6
+    T_dm: float = 0.0
+    T_f: float = 0.0
+    test_gain: float = 1.0
+    pickoff_p2: float = 0.0
+    pickoff_p3: float = 0.0
+    pickoff_reference_rad: float = 1e-3
+
+
+@dataclasses.dataclass
+class Record:
+    """What the recorder sees and the world it records.
+
+    `levels` (J+1,) the test voltages [V]; `change_times` (J,) [s] when they change;
+    `rate` [Hz]; `n` samples from `t0` [s]; `moment` M_0 [N·m] and `moment_rate` Ṁ
+    [N·m/s]; `vibration` (amplitude [m/s²], frequency [Hz], phase [rad]) of the input
+    acceleration; `output_offset` [V]; `output_sign` ±1 (an inverting recorder input);
+    `adc_step` [V] (0: none); `noise` white σ [V]; `gm` (σ [V], τ [s]) Gauss–Markov output
+    noise; `start` "rest" (at rest under the first level, long before t0) or a number:
+    the time [s] before t0 at which the first level was switched on from `start_level`.
+    `bandpass` (ω0 [rad/s], ζ, gain [V·s/V]) replaces the accelerometer by a velocity-
+    output sensor driven by the calibration voltage.
+    """
+
+    levels: np.ndarray
+    change_times: np.ndarray
+    rate: float
+    n: int
+    t0: float = 0.0
+    moment: float = 0.0
+    moment_rate: float = 0.0
+    vibration: tuple = (0.0, 0.0, 0.0)
+    output_offset: float = 0.0
+    output_sign: float = 1.0
+    adc_step: float = 0.0
+    noise: float = 0.0
+    gm: tuple = (0.0, 1.0)
+    start: object = "rest"
+    start_level: float = 0.0
+    bandpass: tuple | None = None
+
+
+class _Loop:
+    def __init__(self, d: Device, rec: Record):
+        self.d, self.rec = d, rec
+        self.gain = d.k_dp * d.k_y * d.l  # V/rad
+        self.theta_stop = d.h_max / d.l
+
+    def amp(self, theta):
+        d = self.d
+        x = theta / d.pickoff_reference_rad
+        return self.gain * theta * (1 + d.pickoff_p2 * x + d.pickoff_p3 * x * x)
+
+    def moment(self, t):
+        rec, d = self.rec, self.d
+        a_amp, a_freq, a_phase = rec.vibration
+        accel = a_amp * np.sin(2 * np.pi * a_freq * t + a_phase) if a_amp else 0.0
+        return rec.moment + rec.moment_rate * t + d.m * d.l * accel
+
+    def torquer(self, y, u):
+        """M_dm: the state, or algebraic when T_dm = 0."""
+        d = self.d
+        if d.T_dm > 0:
+            return y[2]
+        return d.k_dm * (d.test_gain * u - self.amp(y[0]))
+
+    def net_moment(self, t, y, u):
+        d = self.d
+        return self.torquer(y, u) + self.moment(t) - d.mu * y[1] - d.c * y[0]
+
+    def rhs(self, t, y, u, held):
+        d = self.d
+        dy = np.zeros_like(y)
+        if held:
+            dy[0] = dy[1] = 0.0
+        else:
+            dy[0] = y[1]
+            dy[1] = self.net_moment(t, y, u) / d.J
+        if d.T_dm > 0:
+            dy[2] = (d.k_dm * (d.test_gain * u - self.amp(y[0])) - y[2]) / d.T_dm
+        if d.T_f > 0:
+            dy[3] = (self.amp(y[0]) - y[3]) / d.T_f
+        return dy
+
+    def output(self, y):
+        return y[3] if self.d.T_f > 0 else self.amp(y[0])
+
+    def rest(self, u, t):
+        """The state at rest under the test voltage u and the moment at t (Newton on θ)."""
+        d = self.d
+        theta = (d.k_dm * d.test_gain * u + self.moment(t)) / (d.c + d.k_dm * self.gain)
+        for _ in range(50):
+            f = d.c * theta - d.k_dm * (d.test_gain * u - self.amp(theta)) - self.moment(t)
+            h = 1e-9 * max(abs(theta), 1e-9)
+            slope = (
+                d.c * (theta + h) + d.k_dm * self.amp(theta + h) - d.c * theta - d.k_dm * self.amp(theta)
+            ) / h
+            step = f / slope
+            theta -= step
+            if abs(step) < 1e-16 * max(abs(theta), 1e-12):
+                break
+        if np.isfinite(self.theta_stop):
+            theta = float(np.clip(theta, -self.theta_stop, self.theta_stop))
+        y = np.zeros(4)
+        y[0] = theta
+        y[2] = d.k_dm * (d.test_gain * u - self.amp(theta))
+        y[3] = self.amp(theta)
+        return y
+
+
+def _integrate(loop: _Loop, y, held, t_start, t_end, u, t_eval, out, rtol):
+    """Integrate from t_start to t_end under the constant test voltage u, handling stop
+    contacts and releases as events; fill `out` at the times `t_eval` (indices into out).
+    Returns the state and the held flag (0 free, ±1 on the upper/lower stop) at t_end."""
+    d = loop.d
+    stop = loop.theta_stop
+    times, index = t_eval
+    t = t_start
+    period = np.sqrt(d.J / (d.c + d.k_dm * loop.gain))
+    while t < t_end:
+        if held != 0 and held * loop.net_moment(t, y, u) <= 0:
+            held = 0  # the new test voltage pulls it off the stop at once
+        events = []
+        if held == 0 and np.isfinite(stop):
+
+            def hit_high(tt, yy):
+                return yy[0] - stop
+
+            def hit_low(tt, yy):
+                return yy[0] + stop
+
+            hit_high.terminal = hit_low.terminal = True
+            hit_high.direction, hit_low.direction = 1, -1
+            events = [hit_high, hit_low]
+        elif held != 0:
+
+            def release(tt, yy, sign=held):
+                return sign * loop.net_moment(tt, yy, u)
+
+            release.terminal = True
+            release.direction = -1
+            events = [release]
+        inside = (times >= t) & (times <= t_end)
+        sol = solve_ivp(
+            lambda tt, yy, on_stop=held != 0: loop.rhs(tt, yy, u, on_stop),
+            (t, t_end),
+            y,
+            method="DOP853",
+            rtol=rtol,
+            atol=1e-14,
+            events=events or None,
+            dense_output=True,
+            max_step=0.05 * period,
+        )
+        t_stop = sol.t[-1]
+        take = inside & (times <= t_stop)
+        if np.any(take):
+            states = sol.sol(times[take])
+            out[index[take]] = [loop.output(s) for s in states.T]
+            times, index = times[~take], index[~take]
+        y = sol.y[:, -1].copy()
+        if sol.status == 1:  # an event
+            if held == 0:
+                sign = 1 if y[0] > 0 else -1
+                y[0] = sign * stop
+                y[1] = 0.0
+                # Pressed onto the stop, or only touching it in an overshoot?
+                held = sign if sign * loop.net_moment(t_stop, y, u) > 0 else 0
+                if held == 0:
+                    # From rest on the stop, moving inward: nudge to avoid re-triggering.
+                    y[0] -= sign * 1e-15 * stop
+            else:
+                held = 0
+        t = t_stop
+    return y, held
+
+
+def simulate(device: Device, rec: Record, *, rng: np.random.Generator, rtol=1e-10):
+    """(t [s], u_test column [V], u_out column [V]) of one record (see `Record`)."""
+    t = rec.t0 + np.arange(rec.n) / rec.rate
+    levels = np.asarray(rec.levels, dtype=float)
+    changes = np.asarray(rec.change_times, dtype=float)
+    u_column = levels[np.searchsorted(changes, t, side="right")]
+    if rec.bandpass is not None:
+        clean = _bandpass(rec, t, levels, changes)
+    else:
+        loop = _Loop(device, rec)
+        clean = np.empty(rec.n)
+        if rec.start == "rest":
+            t_begin, y = t[0], loop.rest(levels[0], t[0])
+        else:
+            t_begin = t[0] - float(rec.start)
+            y = loop.rest(rec.start_level, t_begin)
+        held = 0
+        if np.isfinite(loop.theta_stop) and abs(abs(y[0]) - loop.theta_stop) < 1e-12 * loop.theta_stop:
+            held = 1 if y[0] > 0 else -1
+        edges = np.concatenate([[t_begin], changes[(changes > t_begin) & (changes < t[-1])], [t[-1]]])
+        level_of = levels[np.searchsorted(changes, edges[:-1], side="right")]
+        pending = (t, np.arange(rec.n))
+        for a, b, u in zip(edges[:-1], edges[1:], level_of, strict=True):
+            y, held = _integrate(loop, y, held, a, b, u, pending, clean, rtol)
+            done = pending[0] <= b
+            pending = (pending[0][~done], pending[1][~done])
+    y_out = rec.output_sign * clean + rec.output_offset
+    if rec.noise > 0:
+        y_out = y_out + rng.normal(size=rec.n) * rec.noise
+    sigma, tau = rec.gm
+    if sigma > 0:
+        phi = np.exp(-1 / (rec.rate * tau))
+        w = rng.normal(size=rec.n) * sigma * np.sqrt(1 - phi**2)
+        w[0] = rng.normal() * sigma  # stationary from the first sample
+        y_out = y_out + lfilter([1.0], [1.0, -phi], w)
+    if rec.adc_step > 0:
+        y_out = rec.adc_step * np.round(y_out / rec.adc_step)
+    return t, u_column, y_out
+
+
+def _bandpass(rec: Record, t, levels, changes):
+    """Velocity output of a second-order sensor (ω0, ζ, gain G) driven by the calibration
+    voltage: y = G·d/dt x, x'' + 2ζω0 x' + ω0² x = ω0² u — exact sum of step responses,
+    each (G ΔU ω0/ω_d) e^{−ζω0 s} sin(ω_d s) for ζ < 1. The output returns to zero after
+    every step."""
+    omega0, zeta, gain = rec.bandpass
+    wd = omega0 * np.sqrt(max(1 - zeta**2, 1e-12))
+    y = np.zeros(t.size)
+    for tau, step in zip(changes, np.diff(levels), strict=True):
+        s = t - tau
+        on = s > 0
+        y[on] += gain * step * omega0 / np.sqrt(1 - zeta**2) * np.exp(-zeta * omega0 * s[on]) * np.sin(
+            wd * s[on]
+        )
+    return y
