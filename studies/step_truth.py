@@ -148,7 +148,10 @@ class _Loop:
             f = d.c * theta - d.k_dm * (d.test_gain * u - self.amp(theta)) - self.moment(t)
             h = 1e-9 * max(abs(theta), 1e-9)
             slope = (
-                d.c * (theta + h) + d.k_dm * self.amp(theta + h) - d.c * theta - d.k_dm * self.amp(theta)
+                d.c * (theta + h)
+                + d.k_dm * self.amp(theta + h)
+                - d.c * theta
+                - d.k_dm * self.amp(theta)
             ) / h
             step = f / slope
             theta -= step
@@ -247,9 +250,14 @@ def simulate(device: Device, rec: Record, *, rng: np.random.Generator, rtol=1e-1
             t_begin = t[0] - float(rec.start)
             y = loop.rest(rec.start_level, t_begin)
         held = 0
-        if np.isfinite(loop.theta_stop) and abs(abs(y[0]) - loop.theta_stop) < 1e-12 * loop.theta_stop:
+        if (
+            np.isfinite(loop.theta_stop)
+            and abs(abs(y[0]) - loop.theta_stop) < 1e-12 * loop.theta_stop
+        ):
             held = 1 if y[0] > 0 else -1
-        edges = np.concatenate([[t_begin], changes[(changes > t_begin) & (changes < t[-1])], [t[-1]]])
+        edges = np.concatenate(
+            [[t_begin], changes[(changes > t_begin) & (changes < t[-1])], [t[-1]]]
+        )
         level_of = levels[np.searchsorted(changes, edges[:-1], side="right")]
         pending = (t, np.arange(rec.n))
         for a, b, u in zip(edges[:-1], edges[1:], level_of, strict=True):
@@ -281,7 +289,175 @@ def _bandpass(rec: Record, t, levels, changes):
     for tau, step in zip(changes, np.diff(levels), strict=True):
         s = t - tau
         on = s > 0
-        y[on] += gain * step * omega0 / np.sqrt(1 - zeta**2) * np.exp(-zeta * omega0 * s[on]) * np.sin(
-            wd * s[on]
+        y[on] += (
+            gain
+            * step
+            * omega0
+            / np.sqrt(1 - zeta**2)
+            * np.exp(-zeta * omega0 * s[on])
+            * np.sin(wd * s[on])
         )
     return y
+
+
+# --------------------------------------------------------------------------------------
+# The blind harness's world: conventions and effects drawn at random
+# --------------------------------------------------------------------------------------
+
+RATES = (0.5e6, 1e6, 2e6)
+"""Sample rates [Hz], one drawn per record."""
+
+DURATION = 12e-3
+"""Record length [s]: a test sequence of `SEGMENTS` levels, each 1.2–2.2 ms (4–8 loop time
+constants: most transients have not died out when the next level comes)."""
+
+SEGMENTS = 7
+LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
+"""Test-voltage levels in units of the record's U_max (uniform 1.5–2.5 V)."""
+
+NOISE = (2e-4, 2e-3)
+"""White output noise σ [V], log-uniform."""
+
+ADC_BITS = (14, 16, 18)
+"""ADC resolution over ±10 V (q = 1.2 mV, 0.31 mV, 76 µV)."""
+
+DEVICE_SD = {"J": 0.02, "mu": 0.02, "c": 0.02, "k_dm": 0.02, "k_dp": 0.01, "k_y": 0.01}
+"""Relative σ of the device's values about the reference (the ±2 % device)."""
+
+IN_LIBRARY = (
+    "torquer_lag",
+    "output_filter",
+    "stop_saturation",
+    "disturbance_drift",
+    "colored_noise",
+)
+OUT_OF_LIBRARY = ("pickoff_nonlinearity", "bandpass_sensor", "periodic_disturbance")
+CLASSES = ("none",) + IN_LIBRARY + OUT_OF_LIBRARY
+
+
+def _log_uniform(rng, low, high):
+    return float(np.exp(rng.uniform(np.log(low), np.log(high))))
+
+
+def draw_truth(rng: np.random.Generator, effect: str) -> dict:
+    """One record's world: device, conventions (rate, test sequence and its DAC timing,
+    polarities, offset, ADC, start state) and the effect with its magnitude."""
+    ref = Device()
+    device = {
+        "J": ref.J * np.exp(rng.normal() * DEVICE_SD["J"]),
+        "mu": ref.mu * np.exp(rng.normal() * DEVICE_SD["mu"]),
+        "c": ref.c * np.exp(rng.normal() * DEVICE_SD["c"]),
+        "k_dm": ref.k_dm * np.exp(rng.normal() * DEVICE_SD["k_dm"]),
+        "k_dp": ref.k_dp * np.exp(rng.normal() * DEVICE_SD["k_dp"]),
+        "k_y": ref.k_y * np.exp(rng.normal() * DEVICE_SD["k_y"]),
+        "test_gain": float(rng.choice([-1.0, 1.0]) * np.exp(rng.normal() * 0.02)),
+    }
+    u_max = rng.uniform(1.5, 2.5)
+    levels = [float(rng.choice(LEVELS))]
+    while len(levels) < SEGMENTS:
+        level = float(rng.choice(LEVELS))
+        if level != levels[-1]:
+            levels.append(level)
+    if max(abs(x) for x in levels) < 1:  # reach the full level at least once
+        levels[int(rng.integers(1, SEGMENTS))] = float(rng.choice([-1.0, 1.0]))
+        for i in range(1, SEGMENTS):
+            if levels[i] == levels[i - 1]:
+                levels[i] = 0.5 if levels[i - 1] != 0.5 else -0.5
+    lengths = rng.uniform(1.2, 2.2, SEGMENTS)
+    bounds = np.cumsum(lengths / lengths.sum() * DURATION)[:-1]
+    truth = {
+        "effect": effect,
+        "device": device,
+        "rate": float(rng.choice(RATES)),
+        "levels_V": [x * u_max for x in levels],
+        "change_times_s": bounds.tolist(),  # exact times: the DAC runs on its own clock
+        "noise_V": _log_uniform(rng, *NOISE),
+        "adc_step_V": 20.0 / 2 ** int(rng.choice(ADC_BITS)),
+        "output_offset_V": float(rng.uniform(-0.05, 0.05)),
+        "output_sign": float(rng.choice([-1.0, 1.0])),
+        "moment_Nm": float(rng.uniform(-2e-6, 2e-6)),
+        "start": "rest" if rng.uniform() < 0.5 else float(rng.uniform(1e-4, 1e-3)),
+        "start_level_V": float(rng.choice(LEVELS)) * u_max,
+        "u_max_V": u_max,
+    }
+    if effect in ("torquer_lag", "output_filter"):
+        truth["lag_s"] = _log_uniform(rng, 5e-6, 5e-5)
+    elif effect == "stop_saturation":
+        truth["stop_over_u_max"] = float(rng.uniform(0.8, 1.1))
+    elif effect == "disturbance_drift":
+        truth["drift_V"] = _log_uniform(rng, 2e-3, 2e-2) * float(rng.choice([-1.0, 1.0]))
+    elif effect == "colored_noise":
+        truth["gm_time_s"] = _log_uniform(rng, 2e-5, 2e-4)
+        truth["gm_over_white"] = float(rng.uniform(0.5, 2.0))
+    elif effect == "pickoff_nonlinearity":
+        truth["p2"] = _log_uniform(rng, 0.02, 0.1) * float(rng.choice([-1.0, 1.0]))
+        truth["p3"] = _log_uniform(rng, 0.02, 0.1) * float(rng.choice([-1.0, 1.0]))
+    elif effect == "bandpass_sensor":
+        truth["bandpass_Hz"] = _log_uniform(rng, 100.0, 1000.0)
+        truth["bandpass_zeta"] = float(rng.uniform(0.3, 0.8))
+        truth["bandpass_gain_s"] = _log_uniform(rng, 2e-4, 2e-3)
+    elif effect == "periodic_disturbance":
+        truth["vibration_Hz"] = _log_uniform(rng, 200.0, 3000.0)
+        truth["vibration_over_noise"] = _log_uniform(rng, 5.0, 50.0)
+        truth["vibration_phase"] = float(rng.uniform(0, 2 * np.pi))
+    return truth
+
+
+def make(truth: dict, rng: np.random.Generator):
+    """Simulate one drawn world: (t, u_test column, u_out column, noise component) [s, V]."""
+    d = truth["device"]
+    device = Device(J=d["J"], mu=d["mu"], c=d["c"], k_dm=d["k_dm"], k_dp=d["k_dp"], k_y=d["k_y"])
+    device.test_gain = d["test_gain"]
+    gain = device.k_dp * device.k_y * device.l
+    loop_k = device.c + device.k_dm * gain
+    u_max = truth["u_max_V"]
+    k_test = device.k_dm * gain / loop_k
+    effect = truth["effect"]
+    rate = truth["rate"]
+    n = int(round(DURATION * rate))
+    record = Record(
+        levels=np.asarray(truth["levels_V"]),
+        change_times=np.asarray(truth["change_times_s"]),
+        rate=rate,
+        n=n,
+        moment=truth["moment_Nm"],
+        output_offset=truth["output_offset_V"],
+        output_sign=truth["output_sign"],
+        adc_step=truth["adc_step_V"],
+        noise=truth["noise_V"],
+        start=truth["start"],
+        start_level=truth["start_level_V"],
+    )
+    if effect == "torquer_lag":
+        device.T_dm = truth["lag_s"]
+    elif effect == "output_filter":
+        device.T_f = truth["lag_s"]
+    elif effect == "stop_saturation":
+        device.h_max = truth["stop_over_u_max"] * u_max * k_test / (device.k_dp * device.k_y)
+    elif effect == "disturbance_drift":
+        # Ṁ such that the settled output moves by drift_V over the record.
+        record.moment_rate = truth["drift_V"] * loop_k / gain / DURATION
+    elif effect == "colored_noise":
+        record.gm = (truth["gm_over_white"] * truth["noise_V"], truth["gm_time_s"])
+    elif effect == "pickoff_nonlinearity":
+        device.pickoff_p2, device.pickoff_p3 = truth["p2"], truth["p3"]
+        device.pickoff_reference_rad = u_max * k_test / gain
+    elif effect == "bandpass_sensor":
+        record.bandpass = (
+            2 * np.pi * truth["bandpass_Hz"],
+            truth["bandpass_zeta"],
+            truth["bandpass_gain_s"],
+        )
+    elif effect == "periodic_disturbance":
+        # An input-axis vibration whose output amplitude is vibration_over_noise × σ.
+        omega = 2 * np.pi * truth["vibration_Hz"]
+        period = np.sqrt(device.J / loop_k)
+        zeta = device.mu / 2 / np.sqrt(device.J * loop_k)
+        response = 1 / abs(1 - (omega * period) ** 2 + 2j * zeta * omega * period)
+        scale_factor = device.m * device.l**2 * device.k_dp * device.k_y / loop_k  # V/(m/s²)
+        amplitude = truth["vibration_over_noise"] * truth["noise_V"] / (scale_factor * response)
+        record.vibration = (amplitude, truth["vibration_Hz"], truth["vibration_phase"])
+    t, u, y = simulate(device, record, rng=rng)
+    clean_record = dataclasses.replace(record, noise=0.0, gm=(0.0, 1.0), adc_step=0.0)
+    _, _, clean = simulate(device, clean_record, rng=np.random.default_rng(0))
+    return t - t[0], u, y, y - clean

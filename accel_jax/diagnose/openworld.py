@@ -36,6 +36,13 @@ FLOOR_FACTOR = 1.0
 """A model explains the held-out data when the RMS of its held-out error in excess of the
 noise floor is at most this many floors (so its mean square is at most (1 + F²)·σ²)."""
 
+MODEL_FORM = 0.05
+"""A deterministic effect that leaves at most this fraction of the gap it closes (RMS, on
+the training and the held-out part alike: ≥ 99.75 % of the excess mean square) explains the
+record even when what is left stands above the floor: the effect is right and its model
+differs in form from the record's physics (e.g. a stiff penalty contact at a stop instead
+of the model's inelastic one). The verdict names it and reports what remains."""
+
 WHITENESS_LEVEL = 1e-3
 """Ljung–Box level below which a held-out residual counts as not white."""
 

@@ -64,7 +64,7 @@ from .step_effects import (
     TorquerLag as TorquerLag,
 )
 from .step_effects import step_effects
-from .step_fit import BATCH_CHUNK, fit_linear, fit_nonlinear
+from .step_fit import _I_SLOT, _I_TIMING, BATCH_CHUNK, fit_linear, fit_nonlinear
 from .step_record import prepare, prior_sigma_of
 from .step_verdict import evaluate, explains_deterministically, fit_entries
 
@@ -140,6 +140,13 @@ def diagnose_step(datasets: list[StepData], nominal: NominalDevice) -> list[Diag
             continue
         if not any(explains_deterministically(f, prep) for f in fits[i]):
             need.append(i)
+            # One start from the nominal fit (a stop model with its stops out of reach is
+            # the nominal model), one from the record's own starting point: the nominal fit
+            # may have bent its nuisances (change times, offset) to absorb the clipping.
+            guesses = np.array(prep["guesses_nonlinear"])
+            guesses[:, 0, :_I_SLOT] = fits[i][0]["w"][:_I_SLOT]
+            guesses[:, 0, _I_TIMING:] = fits[i][0]["w"][_I_TIMING:]
+            prep["guesses_nonlinear"] = guesses
     groups = {}
     for i in need:
         groups.setdefault(preps[i]["group"], []).append(i)

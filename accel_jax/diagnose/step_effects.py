@@ -31,14 +31,18 @@ class StepEffect(AbstractEffect):
 
     - `device(params, z, ctx)`: change the loop's `ServoParams` (lags);
     - `drift(z, ctx)`: the external moment's change over the record, r [V];
-    - `inverse_stops(z, ctx)`: (upper, lower) stop parameters, 0 for none; the stops sit
-        at mid ± half/inverse (`StepContext`); an effect with stops is `nonlinear`;
+    - `inverse_stop(z, ctx)`: 1/h in units of the training output's half range (0 for
+        none), with symmetric stops at deflection ±h; an effect with stops is `nonlinear`;
+    - `output_offset(z, ctx)`: an offset c [V] added to the output (U_out = v + c);
     - `noise(z, ctx)`: (φ, s) of white + AR(1) output noise: φ the AR(1) coefficient, s
         the white share of the one-step prediction variance (φ = 0: white).
 
     Class attributes: `nonlinear` (simulated with stops, sample by sample), `stochastic`
     (changes the noise model, not the prediction), `starts` (the starting points of its
-    parameters, one tuple per start), `bounds` (|z| beyond which a steep penalty acts).
+    parameters, one tuple per start), `bounds` (|z| beyond which a steep penalty acts),
+    `held_out_nuisance`
+    (indices of its parameters that are nuisances: refitted on the held-out part with the
+    change times).
     """
 
     kind = "step"
@@ -46,6 +50,7 @@ class StepEffect(AbstractEffect):
     stochastic: ClassVar[bool] = False
     starts: ClassVar[tuple] = ((0.0,), (0.0,))
     bounds: ClassVar[tuple] = (10.0, 10.0)
+    held_out_nuisance: ClassVar[tuple] = ()
 
     def device(self, params: ServoParams, z, ctx) -> ServoParams:
         return params
@@ -53,9 +58,20 @@ class StepEffect(AbstractEffect):
     def drift(self, z, ctx):
         return jnp.zeros_like(z[0])
 
-    def inverse_stops(self, z, ctx):
-        zero = jnp.zeros_like(z[0])
-        return zero, zero
+    def inverse_stop(self, z, ctx):
+        return jnp.zeros_like(z[0])
+
+    def output_offset(self, z, ctx):
+        return jnp.zeros_like(z[0])
+
+    def prior(self, z, ctx):
+        """Prior residuals of its parameters (shape (2,), the slot's; default none)."""
+        return jnp.zeros(2, z.dtype)
+
+    def record_starts(self, host: dict) -> tuple:
+        """The starting points for one record (default `starts`), from the host context
+        of `step_record.prepare`."""
+        return self.starts
 
     def noise(self, z, ctx):
         zero = jnp.zeros_like(z[0])
@@ -106,29 +122,54 @@ class OutputFilter(StepEffect):
         return {"filter_time_constant_s": float(_lag(float(z[0]), context["lag_unit"]))}
 
 
+OFFSET_PRIOR = 0.02
+"""σ [V] of the prior of an output (ADC) offset in the stop model."""
+
+
 @register_effect
 class StopSaturation(StepEffect):
-    """Inelastic mechanical stops at U = mid ± half/|z| (upper, lower)."""
+    """Inelastic mechanical stops at deflection ±h (h = half/|z₀|, symmetric: ±h_max), seen
+    through an output offset c = 0.1·scale·z₁ (U_out = v + c): an ADC offset moves both
+    stops in the record, and the external moment moves the deflection between them."""
 
     name = "stop_saturation"
-    parameter_names = ("stop_high_V", "stop_low_V")
+    parameter_names = ("stop_V", "output_offset_V")
     description = "mechanical stops reached (the pendulum held at ±h_max)"
     nonlinear = True
-    starts = ((1.02, 1.02), (1.15, 1.15))
+    starts = ((1.02, 0.0), (1.02, 0.0))
+    # The output offset is a nuisance that only a contact reveals; a training part that
+    # reaches one stop cannot tell it from the external moment.
+    held_out_nuisance = (1,)
 
-    def inverse_stops(self, z, ctx):
-        return jnp.abs(z[0]), jnp.abs(z[1])
+    def inverse_stop(self, z, ctx):
+        return jnp.abs(z[0])
+
+    def prior(self, z, ctx):
+        # A stop the training part never reaches is not measured: a weak pull moves it out
+        # of reach (1/z → ∞) instead of leaving it where the fit started, at the training
+        # peak. The output offset has a N(0, OFFSET_PRIOR) prior: with only one stop
+        # reached it is not told from the external moment, and no offset is the default.
+        return jnp.stack([0.1 * z[0], self.output_offset(z, ctx) / OFFSET_PRIOR])
+
+    def output_offset(self, z, ctx):
+        return 0.1 * ctx.scale * z[1]
+
+    def record_starts(self, host):
+        # The offset at the middle of the training output's range: the stops are symmetric
+        # about it when both are reached.
+        offset = host["mid"] / (0.1 * host["scale"])
+        return tuple((s[0], offset) for s in self.starts)
 
     def physical(self, z, context):
-        out = {}
-        for name, value, sign in (("high", z[0], 1), ("low", z[1], -1)):
-            if abs(value) < 1e-9:
-                stop = sign * float("inf")
-            else:
-                stop = context["mid"] + sign * context["half"] / abs(float(value))
-            out[f"stop_{name}_V"] = stop
-            out[f"stop_displacement_{name}_m"] = stop / context["gain"]
-        return out
+        stop = context["half"] / abs(float(z[0])) if abs(float(z[0])) > 1e-9 else float("inf")
+        offset = 0.1 * context["scale"] * float(z[1])
+        return {
+            "stop_V": stop,
+            "stop_displacement_m": stop / context["gain"],
+            "output_offset_V": offset,
+            "stop_high_V": offset + stop,
+            "stop_low_V": offset - stop,
+        }
 
 
 @register_effect

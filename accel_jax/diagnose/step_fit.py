@@ -57,8 +57,8 @@ class StepContext(eqx.Module):
     `polarity` ±1 of
     the test winding; `sigma_ref` [V] the residual scale (the noise floor); `scale` [V] of
     the offset and initial-state parameters; `lag_unit` [s] the lag per z² (3 % of the
-    nominal T); `mid`, `half` [V] the middle and half range of the training output (the
-    stops' scale); `change_index` (J,), `change_step` ΔU (J,) [V] (0 pads),
+    nominal T); `mid`, `half` [V] the middle and half range of the training output (where
+    the stops start); `change_index` (J,), `change_step` ΔU (J,) [V] (0 pads),
     `held_out_change` (J,) 1 for changes in the held-out part; `train`, `test` masks of the
     fitted outputs (block means; 0 on padding); `block` m, samples per block; `max_block`
     (static) the largest m of the batch.
@@ -103,23 +103,25 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[_I_GAIN])
     slot = w[_I_SLOT:_I_TIMING]
     rate = jnp.zeros_like(w[0])
-    inv_high = inv_low = phi = share = jnp.zeros_like(w[0])
+    inverse = offset = phi = share = jnp.zeros_like(w[0])
     used = jnp.zeros(SLOT, w.dtype)
     bounds = jnp.full(SLOT, jnp.inf, w.dtype)
+    prior = jnp.zeros(SLOT, w.dtype)
     for i, effect in enumerate(effects, start=1):
         # Every effect sees zeros unless it is the candidate: exactly the nominal model.
         on = candidate == i
         ze = jnp.where(on, slot, 0.0)
         params = effect.device(params, ze, ctx)
         rate = rate + effect.drift(ze, ctx)
-        high, low = effect.inverse_stops(ze, ctx)
-        inv_high, inv_low = inv_high + high, inv_low + low
+        inverse = inverse + effect.inverse_stop(ze, ctx)
+        offset = offset + effect.output_offset(ze, ctx)
         p, s = effect.noise(ze, ctx)
         phi, share = phi + p, share + s
         mask = jnp.arange(SLOT) < effect.n_params
         used = jnp.where(on, mask.astype(w.dtype), used)
         bound = jnp.asarray(effect.bounds + (jnp.inf,) * (SLOT - len(effect.bounds)), w.dtype)
         bounds = jnp.where(on, bound, bounds)
+        prior = jnp.where(on, effect.prior(ze, ctx), prior)
     timing = w[_I_TIMING:]
     penalties = jnp.concatenate(
         [
@@ -129,6 +131,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
             _barrier(w[_I_GAIN][None], REFIT_BOUND),
             slot * (1 - used),  # an effect's unused parameters are pinned at 0
             _barrier(slot, bounds) * used,
+            prior * used,  # an effect's own prior, where it has one
             (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1],
         ]
     )
@@ -140,8 +143,8 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
         "dv": ctx.scale * w[_I_DV],
         "dw": ctx.scale * w[_I_DW],
         "shift": jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT),
-        "inv_high": inv_high,
-        "inv_low": inv_low,
+        "inverse_stop": inverse,
+        "output_offset": offset,
         "phi": phi,
         "share": share,
         "penalties": penalties,
@@ -164,15 +167,15 @@ def predict(m, ctx, n, nonlinear: bool):
         m["shift"],
     )
     if not nonlinear:
-        return linear_record(*args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration)
-
-    def stop(inverse, sign):
-        safe = jnp.where(inverse > 0, inverse, 1.0)
-        far = ctx.mid + sign * 1e6 * ctx.half
-        return jnp.where(inverse > 0, ctx.mid + sign * ctx.half / safe, far)
-
-    high, low = stop(m["inv_high"], 1.0), stop(m["inv_low"], -1.0)
-    return stop_record(*args, high, low, block=ctx.block, duration=ctx.duration)
+        record = linear_record(
+            *args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration
+        )
+        return record + m["output_offset"]
+    inverse = m["inverse_stop"]
+    safe = jnp.where(inverse > 0, inverse, 1.0)
+    stop = jnp.where(inverse > 0, ctx.half / safe, 1e6 * ctx.half)
+    record = stop_record(*args, stop, -stop, block=ctx.block, duration=ctx.duration)
+    return record + m["output_offset"]
 
 
 def innovation_terms(error, phi, share):
@@ -201,6 +204,10 @@ FIT_TOLERANCE = 1e-6
 BATCH_CHUNK = 8
 """Records fitted per compiled call (a vmapped batch runs until its slowest fit stops)."""
 
+
+STOP_FIT_MAX_STEPS = 20
+"""The same for the stop candidate: started from the nominal fit, it needs fewer, and each
+costs a sample-by-sample simulation."""
 
 FIT_MAX_STEPS = 30
 """Levenberg–Marquardt steps per start. A batch runs until its slowest fit stops, and the
@@ -250,7 +257,12 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
 
     def train_fit(guess, candidate):
         solution = optx.least_squares(
-            residuals, solver, guess, args=candidate, max_steps=FIT_MAX_STEPS, throw=False
+            residuals,
+            solver,
+            guess,
+            args=candidate,
+            max_steps=STOP_FIT_MAX_STEPS if nonlinear else FIT_MAX_STEPS,
+            throw=False,
         )
         cost = jnp.sum(residuals(solution.value, candidate) ** 2)
         cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
@@ -268,11 +280,23 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         w = jnp.where(better, polished, w)
         converged = solved[best] | (decrement <= CONVERGED_DECREMENT + 1e-8 * cost)
 
+        # The held-out nuisances: the times of the held-out changes, and parameters that an
+        # effect declares nuisances (`held_out_nuisance`: e.g. the output offset that only
+        # a stop contact reveals, which the training part may not have).
+        nuisance = jnp.zeros(SLOT, w.dtype)
+        for i, effect in enumerate(effects, start=1):
+            mask = jnp.isin(jnp.arange(SLOT), jnp.asarray(effect.held_out_nuisance, int))
+            nuisance = jnp.where(candidate == i, mask.astype(w.dtype), nuisance)
+        free = jnp.concatenate([nuisance, ctx.held_out_change])
+
+        def moved(delta):
+            return w.at[_I_SLOT:].add(free * delta)
+
         def held_out(delta):
-            timing = w[_I_TIMING:] + ctx.held_out_change * delta
-            _, _, a, _ = error_of(w.at[_I_TIMING:].set(timing), candidate)
+            _, _, a, _ = error_of(moved(delta), candidate)
+            timing = moved(delta)[_I_TIMING:]
             prior = ctx.held_out_change * (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
-            return jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior])
+            return jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])
 
         def iterate(_, carry):
             delta, best_delta, best_cost = carry
@@ -280,13 +304,12 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
             better = cost < best_cost
             return new, jnp.where(better, delta, best_delta), jnp.where(better, cost, best_cost)
 
-        zero = jnp.zeros_like(w[_I_TIMING:])
+        zero = jnp.zeros_like(w[_I_SLOT:])
         delta, best_delta, best_cost = jax.lax.fori_loop(
             0, HELD_OUT_ITERATIONS, iterate, (zero, zero, jnp.inf)
         )
         last = 0.5 * jnp.sum(held_out(delta) ** 2)
-        delta = jnp.where(last < best_cost, delta, best_delta)
-        w = w.at[_I_TIMING:].add(ctx.held_out_change * delta)
+        w = moved(jnp.where(last < best_cost, delta, best_delta))
         _, prediction, a, log_v = error_of(w, candidate)
         # The same model with the device at its prior values (what the refit changed).
         _, prior_prediction, _, _ = error_of(w.at[:4].set(0.0), candidate)

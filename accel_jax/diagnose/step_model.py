@@ -190,8 +190,8 @@ def linear_record(
     displacement [V], `change_index` (J,) int, `change_step` ΔU_j [V] (0 pads),
     `change_shift` δ_j (J,) in samples; `block` m (may be traced: records sampled at
     different rates share one compiled program) and `max_block` (static) the largest m
-    it may take (a Python int m raises it as needed); `duration` [s] the record's length that r refers to (default (n·m − 1)Δ).
-    jit/vmap/grad-safe; float64.
+    it may take (a Python int m raises it as needed); `duration` [s] the record's length
+    that r refers to (default (n·m − 1)Δ). jit/vmap/grad-safe; float64.
     """
     m = block
     if isinstance(m, int) and m > max_block:
@@ -317,19 +317,21 @@ def stop_record(
         x_next = jnp.where(change & pushed, x_held, x_free)
         # A stop reached within the step: the velocity is lost at the contact (found by
         # interpolation), and the flow goes on from the stop for the rest of the step.
-        new_held = jnp.zeros_like(held)
-        for sign, stop in ((1, stop_high), (-1, stop_low)):
-            beyond = sign * (x_next[0] - stop) > 0
-            gap_before = sign * (stop - x[0])
-            travelled = sign * (x_next[0] - x[0])
-            safe = jnp.where(travelled > 0, travelled, 1.0)
-            at = jnp.clip(jnp.where(travelled > 0, gap_before / safe, 0.0), 0.0, 1.0)
-            on_stop = clip_to(x + at * (x_next - x), stop)
-            moved = _taylor_flow(a, on_stop, a @ on_stop + b * drive_new, (1 - at) * dt)
-            still_beyond = sign * (moved[0] - stop) >= 0
-            after = jnp.where(still_beyond, clip_to(moved, stop), moved)
-            x_next = jnp.where(beyond, after, x_next)
-            new_held = jnp.where(beyond & still_beyond, sign, new_held)
+        # (At most one stop is reached in a step: the one on the side it moved to.)
+        upper = x_next[0] > stop_high
+        sign = jnp.where(upper, 1.0, -1.0)
+        stop = jnp.where(upper, stop_high, stop_low)
+        beyond = upper | (x_next[0] < stop_low)
+        gap_before = sign * (stop - x[0])
+        travelled = sign * (x_next[0] - x[0])
+        safe = jnp.where(travelled > 0, travelled, 1.0)
+        at = jnp.clip(jnp.where(travelled > 0, gap_before / safe, 0.0), 0.0, 1.0)
+        on_stop = clip_to(x + at * (x_next - x), stop)
+        moved = _taylor_flow(a, on_stop, a @ on_stop + b * drive_new, (1 - at) * dt)
+        still_beyond = sign * (moved[0] - stop) >= 0
+        after = jnp.where(still_beyond, clip_to(moved, stop), moved)
+        x_next = jnp.where(beyond, after, x_next)
+        new_held = jnp.where(beyond & still_beyond, sign.astype(held.dtype), 0)
         return x_next, new_held, total
 
     def block_step(carry, index):

@@ -155,6 +155,10 @@ def _changes(data: StepData, path=None) -> tuple[np.ndarray, np.ndarray]:
 BLOCK_BUCKET = 256
 """Block counts are padded to a multiple of this (one compiled program per bucket)."""
 
+MIN_MAX_BLOCK = 32
+"""The compiled programs allow blocks of up to this many samples (more when a record needs
+them): records sampled at 100 kHz and at 2 MHz then share one program."""
+
 BLOCKS_PER_PERIOD = 30
 """Samples are averaged in blocks of about T/30 (T the nominal loop's time constant; at
 most 10 µs for the reference device): a record sampled at 1 MHz is fitted as the exact
@@ -242,7 +246,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     # sample rate. Padding carries zero weight.
     n_padded = -(-n_blocks // BLOCK_BUCKET) * BLOCK_BUCKET
     j_padded = max(4, -(-index.size // 4) * 4)
-    max_block = 1 if m == 1 else 2 ** math.ceil(math.log2(m))
+    max_block = max(MIN_MAX_BLOCK, 2 ** math.ceil(math.log2(m)))
     change_index = np.zeros(j_padded, dtype=np.int32)
     change_step = np.zeros(j_padded)
     change_index[: index.size] = index
@@ -273,6 +277,16 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     common[_I_MOMENT] = moment / scale
     common[_I_GAIN] = w_gain
     common[_I_DV] = dv / scale
+    host = {
+        "lag_unit": 0.03 * period,
+        "gain": float(base.pickoff_gain * base.amplifier_gain),
+        "mid": float(ctx.mid),
+        "half": float(ctx.half),
+        "scale": scale,
+        "dt": dt * m,
+        "duration": dt * (n_blocks * m - 1),
+        "torquer_gain": float(base.torquer_gain),
+    }
     linear = [e for e in effects if not e.nonlinear]
     nonlinear = [e for e in effects if e.nonlinear]
     return {
@@ -297,17 +311,9 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "change_step": steps,
         "period": period,
         "group": (n_padded, j_padded, max_block),
-        "guesses_linear": _guesses(common, linear, nominal_first=True),
-        "guesses_nonlinear": _guesses(common, nonlinear, nominal_first=False),
-        "host": {
-            "lag_unit": 0.03 * period,
-            "gain": float(base.pickoff_gain * base.amplifier_gain),
-            "mid": float(ctx.mid),
-            "half": float(ctx.half),
-            "dt": dt * m,
-            "duration": dt * (n_blocks * m - 1),
-            "torquer_gain": float(base.torquer_gain),
-        },
+        "guesses_linear": _guesses(common, linear, host, nominal_first=True),
+        "guesses_nonlinear": _guesses(common, nonlinear, host, nominal_first=False),
+        "host": host,
     }
 
 
@@ -316,7 +322,7 @@ STARTS = 2
 sample earlier — a sampled u_test column shows a change up to a sample late)."""
 
 
-def _guesses(common, effects, *, nominal_first: bool) -> np.ndarray:
+def _guesses(common, effects, host, *, nominal_first: bool) -> np.ndarray:
     """Starts, shape (candidates, STARTS, parameters): an effect's own starts, then the
     nominal's second start (changes half a sample earlier) with its last start."""
     late = common.copy()
@@ -324,9 +330,10 @@ def _guesses(common, effects, *, nominal_first: bool) -> np.ndarray:
     rows = [[common, late]] if nominal_first else []
     for effect in effects:
         per = []
+        starts = effect.record_starts(host)
         for k in range(STARTS):
-            w = (common if k < len(effect.starts) else late).copy()
-            start = effect.starts[min(k, len(effect.starts) - 1)]
+            w = (common if k < len(starts) else late).copy()
+            start = starts[min(k, len(starts) - 1)]
             w[_I_SLOT : _I_SLOT + len(start)] = start
             per.append(w)
         rows.append(per)
