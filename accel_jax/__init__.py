@@ -5,6 +5,14 @@ The library never changes JAX's global configuration: enable float64 yourself
 (`jax.config.update("jax_enable_x64", True)`) where a computation needs it — the studies do.
 """
 
+import os as _os
+
+# Whether the user chose XLA's C++ log level before JAX (imported below) sets its default:
+# the command line keeps XLA's log lines off the terminal only when they did not
+# (`accel_jax._xla.quiet_xla_logs`). Reading it changes nothing.
+_USER_SET_XLA_LOG_LEVEL = "TF_CPP_MIN_LOG_LEVEL" in _os.environ
+del _os
+
 from ._data import DataError as DataError
 from ._data import Dataset as Dataset
 from ._data import NoiseData as NoiseData
@@ -254,6 +262,7 @@ from ._vibration import vibration_error as vibration_error
 from ._vibration import write_vibration_table as write_vibration_table
 from ._xla import apply_cpu_workarounds as apply_cpu_workarounds
 from ._xla import apply_fast_compile as apply_fast_compile
+from ._xla import enable_compilation_cache as enable_compilation_cache
 from ._xla import fast_compile as fast_compile
 from ._xla import fast_compile_when_quick as fast_compile_when_quick
 

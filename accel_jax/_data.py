@@ -104,11 +104,14 @@ class StepData(eqx.Module):
     - `t`: sample times [s], shape (n,), uniform.
     - `u_test`: test voltage U_test [V], shape (n,), held constant from each sample to the next.
     - `u_out`: output voltage U_out [V], shape (n,).
+    - `notes`: what reading the record changed or assumed (e.g. timestamps taken as their
+        uniform grid), for the diagnosis to report.
     """
 
     t: np.ndarray
     u_test: np.ndarray
     u_out: np.ndarray
+    notes: tuple = eqx.field(static=True, default=())
     kind = "step"
 
     @property
@@ -145,10 +148,11 @@ class VibrationData(eqx.Module):
 
 class NoiseData(eqx.Module):
     """A static record: sample times `t` [s] (uniform) and the indicated acceleration
-    `a_out` [g], each shape (n,)."""
+    `a_out` [g], each shape (n,); `notes` as `StepData`'s."""
 
     t: np.ndarray
     a_out: np.ndarray
+    notes: tuple = eqx.field(static=True, default=())
     kind = "noise"
 
     @property
@@ -197,7 +201,18 @@ def infer_kind(columns, *, path=None) -> str:
     )
 
 
-def _check_time(t: np.ndarray, where: str) -> None:
+JITTER_LIMIT = 0.05
+"""Timestamps within this fraction of the sample interval of a uniform grid (e.g. rounded
+when the file was written) are taken as that grid, with a note; larger deviations are an
+error (the record is not uniformly sampled)."""
+
+
+def _check_time(t: np.ndarray, where: str) -> tuple[np.ndarray, list[str]]:
+    """The uniform grid the times lie on, and notes; `DataError` if they do not.
+
+    The grid is the least-squares line t_0 + kΔ through the timestamps. Deviations of at
+    most `JITTER_LIMIT`·Δ (rounding in a CSV, a logger's timestamp jitter) are accepted and
+    the grid is used, with a note when they exceed float rounding."""
     spacing = np.diff(t)
     bad = np.flatnonzero(spacing <= 0)
     if bad.size:
@@ -206,16 +221,29 @@ def _check_time(t: np.ndarray, where: str) -> None:
             f"{where}: time must increase strictly; row {i + 3} has "
             f"t = {float(t[i + 1])!r} s after t = {float(t[i])!r} s."
         )
-    mean = (t[-1] - t[0]) / (len(t) - 1)
-    deviation = np.abs(spacing - mean)
+    k = np.arange(t.size, dtype=np.float64)
+    step, start = np.polyfit(k, t, 1)
+    grid = start + step * k
+    deviation = np.abs(t - grid)
     worst = int(np.argmax(deviation))
-    tolerance = _UNIFORM_TOLERANCE * mean + 8 * np.finfo(np.float64).eps * np.max(np.abs(t))
-    if deviation[worst] > tolerance:
+    rounding = _UNIFORM_TOLERANCE * step + 8 * np.finfo(np.float64).eps * np.max(np.abs(t))
+    if deviation[worst] <= rounding:
+        return t, []
+    if deviation[worst] > JITTER_LIMIT * step:
+        i = int(np.argmax(np.abs(spacing - step)))
         raise DataError(
-            f"{where}: sampling must be uniform; the spacing between rows {worst + 2} and "
-            f"{worst + 3} is {float(spacing[worst])!r} s but the mean spacing is {float(mean)!r} s "
-            "(resample the record onto a uniform grid)."
+            f"{where}: sampling must be uniform; row {worst + 2} is "
+            f"{float(deviation[worst] / step):.3g} sample intervals off the uniform grid "
+            f"(more than {JITTER_LIMIT:.0%}; the spacing between rows {i + 2} and {i + 3} is "
+            f"{float(spacing[i])!r} s, the mean {float(step)!r} s). Resample the record onto "
+            "a uniform grid."
         )
+    note = (
+        f"timestamps deviate from a uniform grid by up to {deviation[worst] / step:.1%} of "
+        f"the {float(step):.6g} s interval (rounded in the file?); the record is used on the "
+        f"grid t = {float(start):.9g} s + k·{float(step):.9g} s"
+    )
+    return grid, [note]
 
 
 def validate(data: Dataset, *, path=None) -> Dataset:
@@ -243,8 +271,10 @@ def validate(data: Dataset, *, path=None) -> Dataset:
                 f"{where}: column {column!r} row {i + 2} is {float(values[i])!r} {UNITS[column]}; "
                 "every value must be a finite number."
             )
+    notes = list(getattr(data, "notes", ()))
     if "t" in arrays:
-        _check_time(arrays["t"], where)
+        arrays["t"], time_notes = _check_time(arrays["t"], where)
+        notes += time_notes
     if kind == "vibration":
         for column in ("vib_amp", "vib_freq", "vib_rms") + OPTIONAL_COLUMNS[kind]:
             if column not in arrays:
@@ -261,6 +291,8 @@ def validate(data: Dataset, *, path=None) -> Dataset:
             f"{where}: u_test is constant ({float(arrays['u_test'][0])!r} V); a step record "
             "needs at least one change of the test voltage."
         )
+    if kind in ("step", "noise"):
+        return _CLASSES[kind](**arrays, notes=tuple(notes))
     return _CLASSES[kind](**arrays)
 
 

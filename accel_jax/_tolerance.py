@@ -275,9 +275,7 @@ def within_rms_region(
     (7), sqrt(Σ_k (s_k k)²) ≤ δ* (components of independent sign add in quadrature)."""
     d = _concrete(admissible_error)
     if d is not None and not np.all(d > 0):
-        raise ValueError(
-            f"within_rms_region: admissible_error δ* must be positive, got {d!r} g."
-        )
+        raise ValueError(f"within_rms_region: admissible_error δ* must be positive, got {d!r} g.")
     terms = jnp.stack([getattr(sensitivity, n) * getattr(tf, n) for n in TOLERANCED])
     return jnp.sqrt(jnp.sum(terms**2, axis=0)) <= admissible_error
 

@@ -830,9 +830,7 @@ def _residual_fn(names: tuple[str, ...], n_phase: int):
 def _design(names: tuple[str, ...], n_phase: int):
     @eqx.filter_jit
     def design(theta, rows, base):
-        return jax.jacfwd(lambda th: _predict_rows(_tf_from(names, th, base), rows, n_phase))(
-            theta
-        )
+        return jax.jacfwd(lambda th: _predict_rows(_tf_from(names, th, base), rows, n_phase))(theta)
 
     return design
 

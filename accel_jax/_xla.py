@@ -41,6 +41,21 @@ def apply_cpu_workarounds() -> bool:
     return True
 
 
+def quiet_xla_logs() -> bool:
+    """Keep XLA's C++ log lines (e.g. "Constant folding an instruction is taking > 1s")
+    off the user's terminal: `TF_CPP_MIN_LOG_LEVEL=3` unless the user set the variable.
+    Errors still reach the user as Python exceptions. JAX sets the variable to 1 when it is
+    imported, if unset, and XLA reads it at its first log line: so this works before any
+    computation, and it respects a value the user set before `import accel_jax`. Returns
+    whether the environment was changed."""
+    import accel_jax
+
+    if accel_jax._USER_SET_XLA_LOG_LEVEL:
+        return False
+    os.environ["TF_CPP_MIN_LOG_LEVEL"] = "3"
+    return True
+
+
 _WARNED = False
 
 

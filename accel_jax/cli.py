@@ -48,8 +48,9 @@ def main(ctx):
     `identify` of a record of the same kind starts faster ($ACCEL_JAX_CACHE_DIR moves it,
     `off` disables it).
     """
-    from ._xla import apply_cpu_workarounds, enable_compilation_cache
+    from ._xla import apply_cpu_workarounds, enable_compilation_cache, quiet_xla_logs
 
+    quiet_xla_logs()  # no XLA log lines on the user's terminal (unless they ask)
     apply_cpu_workarounds()  # before any subcommand starts JAX's backend
     if ctx.invoked_subcommand != "report":  # report has its own --compile-cache switch
         # Single records are compile-bound: a second `diagnose` of a step record took

@@ -504,7 +504,7 @@ def generate_noise(truths: list[dict], seed: int) -> list[NoiseData]:
 _DIAGNOSE_CODE = """
 import json, sys, pathlib, signal
 signal.signal(signal.SIGINT, lambda *_: sys.exit(130))  # Ctrl-C: quiet exit, no traceback
-from accel_jax._xla import apply_cpu_workarounds, enable_compilation_cache
+from accel_jax import apply_cpu_workarounds, enable_compilation_cache
 apply_cpu_workarounds()
 enable_compilation_cache()  # $ACCEL_JAX_CACHE_DIR as the parent process had it
 import jax
@@ -649,13 +649,14 @@ def true_gaps(noises: list[np.ndarray], verdicts: list[dict]) -> list[float | No
     """Per step dataset: the held-out gap the diagnosis left with its nominal refit, over
     the noise floor that the truth simulator actually added (the harness knows the noise
     it drew; the diagnosing process never sees it). Both on the diagnosis's own block
-    means and held-out part (reported in its `gap`): sqrt(max(RMS² − floor², 0))/floor."""
+    means and held-out blocks (reported in its `gap`): sqrt(max(RMS² − floor², 0))/floor."""
     out = []
     for noise, verdict in zip(noises, verdicts, strict=True):
         gap = verdict["gap"]
-        m, start, used = gap["block_samples"], gap["held_out_from_sample"], gap["fitted_samples"]
+        m, used = gap["block_samples"], gap["fitted_samples"]
         blocks = noise[:used].reshape(-1, m).mean(axis=1)
-        floor = float(np.sqrt(np.mean(blocks[start // m :] ** 2)))
+        held = np.concatenate([blocks[a:b] for a, b in gap["held_out_blocks"]])
+        floor = float(np.sqrt(np.mean(held**2)))
         rms = gap["rms_before"]
         out.append(float(np.sqrt(max(rms**2 - floor**2, 0.0)) / floor) if floor > 0 else None)
     return out

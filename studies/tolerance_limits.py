@@ -353,9 +353,7 @@ def joint_region(key, name, sc, arrays, quick: bool) -> dict:
     rms_prof = np.sqrt((k**2) @ (sp**2))  # (n, time)
     # The library's region test agrees with the NumPy one (a cross-check of `within_rms_region`).
     sens = sensitivities(sc.environment, sc.mean_acceleration)
-    batch = aj.StaticTransferFunction(
-        **{c: jnp.asarray(k[:, i]) for i, c in enumerate(TOLERANCED)}
-    )
+    batch = aj.StaticTransferFunction(**{c: jnp.asarray(k[:, i]) for i, c in enumerate(TOLERANCED)})
     inside_lib = np.asarray(within_rms_region(batch, sens, d))
     inside = rms_mean <= d
     return {
@@ -365,9 +363,7 @@ def joint_region(key, name, sc, arrays, quick: bool) -> dict:
             np.mean(np.max(rms_prof, axis=1) <= d)
         ),
         "library_region_test_agrees": bool(np.array_equal(inside, inside_lib)),
-        "paper_box_scale_to_touch_rms_region": float(
-            d / np.sqrt(np.sum((sm * corner) ** 2))
-        ),
+        "paper_box_scale_to_touch_rms_region": float(d / np.sqrt(np.sum((sm * corner) ** 2))),
         "meaning": f"{name}: the RMS criterion (7) with exact sensitivities, Σ (s_k k)² ≤ δ*², "
         "is an ellipsoid; the paper's fixed-share limits are a box. Fractions of the box "
         "(uniformly filled) inside the ellipsoid, at the mean a3 and at every instant of the "

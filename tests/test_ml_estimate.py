@@ -202,7 +202,9 @@ def test_compensation_on_exact_sine_motion(decay_rate, removed):
             element, amplitude, phase, sample_interval=0.02, n_samples=128, constant_angle=alpha_p
         )
         plain = ml_estimate(TS, y, omega, variances).constant_angle - alpha_p
-        comp = compensate_linearisation(TS, y, angular_frequency=omega, element=element, covariance=variances)
+        comp = compensate_linearisation(
+            TS, y, angular_frequency=omega, element=element, covariance=variances
+        )
         return plain, comp.constant_angle - alpha_p, comp.correction
 
     phases = jnp.linspace(0, 2 * jnp.pi, 8, endpoint=False)

@@ -446,9 +446,7 @@ def test_table_padding_is_invisible():
     np.testing.assert_allclose(
         predict_table(tf, small), np.asarray(predict_table(tf, big))[:3], rtol=1e-15
     )
-    np.testing.assert_allclose(
-        design_matrix(small), np.asarray(design_matrix(big))[:3], rtol=1e-15
-    )
+    np.testing.assert_allclose(design_matrix(small), np.asarray(design_matrix(big))[:3], rtol=1e-15)
     assert predict_table(tf, small).shape == (3,)
     # A fit with exactly as many rows as coefficients: no padding row leaks into it.
     plan = _plan([-1.0, -0.5, 0.5, 1.0, 1.0, -1.0, 0.0], [0, 0, 0, 2, 4, 3, 1])

@@ -74,9 +74,10 @@ def explained_fraction(before: float, after: float) -> float:
 def quantum(values: np.ndarray) -> float:
     """The step q of an ADC grid the values lie on (0 when they do not): the smallest
     spacing of the distinct values, accepted when at least 99 % of the spacings are whole
-    multiples of it (to 1 % of q) and there are at most n/4 distinct values."""
+    multiples of it (to 1 % of q). Continuous values fail that test (their smallest spacing
+    is tiny and the others are no multiples of it)."""
     x = np.unique(np.asarray(values, dtype=np.float64))
-    if x.size < 3 or x.size > max(values.size // 4, 3):
+    if x.size < 3:
         return 0.0
     gaps = np.diff(x)
     scale = max(float(np.max(np.abs(x))), 1e-300)
@@ -131,7 +132,7 @@ def _reduction(before: np.ndarray, predicted: np.ndarray) -> float:
 
 def predictability(
     residual: np.ndarray,
-    split: int,
+    held,
     dt: float,
     change_index: np.ndarray,
     change_step: np.ndarray,
@@ -142,25 +143,30 @@ def predictability(
     removes: the test that tells a deterministic misfit from a stochastic one.
 
     - `input_locked`: a template h(m) of the residual after each input change, scaled by
-      the change ΔU_j (least squares over the training changes), predicts the windows after
-      the held-out changes;
+      the change ΔU_j (least squares over the changes in the training part), predicts the
+      windows after the held-out changes;
     - `periodic`: the strongest line of the training residual's periodogram (at least 3
-      cycles in the training part; frequency refined on a 16× zero-padded grid), fitted as
-      a sinusoid and continued over the held-out part;
-    - `trend`: a straight line fitted to the training residual and extrapolated.
+      cycles in the record; frequency on a 16× zero-padded grid, 2× beyond 65 536 samples), fitted as a sinusoid on
+      the training samples and continued over the held-out ones;
+    - `trend`: a straight line fitted to the training residual and carried over.
 
-    Each value is the fraction of the held-out mean square removed (negative when the
-    predictor only adds its own noise, as it does for a stochastic residual); the misfit is
-    `deterministic` when one of `tests` removes at least `PREDICTABLE` (a static record
+    `held`: a boolean mask of the held-out samples, or the index where a held-out end part
+    starts. Each value is the fraction of the held-out mean square removed (negative when
+    the predictor only adds its own noise, as it does for a stochastic residual); the misfit
+    is `deterministic` when one of `tests` removes at least `PREDICTABLE` (a static record
     leaves out the trend: a random walk, a noise, is as predictable by a line)."""
     r = np.asarray(residual, dtype=np.float64)
     n = r.size
-    train, test = r[:split], r[split:]
+    if np.ndim(held) == 0:
+        held = np.arange(n) >= int(held)
+    held = np.asarray(held, dtype=bool)
+    train = ~held
     out = {"input_locked": 0.0, "periodic": 0.0, "trend": 0.0, "frequency_Hz": None}
-    if test.size < 8 or train.size < 16:
+    if np.sum(held) < 8 or np.sum(train) < 16:
         out["deterministic"] = False
         return out
-    # Input-locked template.
+    t = np.arange(n) * dt
+    # Input-locked template: windows after the changes that start in the training part.
     steps = np.asarray(change_step, dtype=np.float64)
     index = np.asarray(change_index)
     use = steps != 0
@@ -168,45 +174,42 @@ def predictability(
     bounds = np.concatenate([index, [n]])
     numerator = np.zeros(window)
     denominator = np.zeros(window)
-    for j, (i, step) in enumerate(zip(index, steps, strict=True)):
-        stop = min(bounds[j + 1], i + window, split)
-        if stop <= i:
-            continue
-        seg = r[i:stop]
-        numerator[: seg.size] += step * seg
-        denominator[: seg.size] += step**2
-    template = np.where(denominator > 0, numerator / np.where(denominator > 0, denominator, 1), 0)
     predicted = np.zeros(n)
     covered = np.zeros(n, dtype=bool)
     for j, (i, step) in enumerate(zip(index, steps, strict=True)):
-        if i < split:
-            continue
         stop = min(bounds[j + 1], i + window)
-        predicted[i:stop] = step * template[: stop - i]
-        covered[i:stop] = True
-    if np.any(covered[split:]):
-        out["input_locked"] = _reduction(
-            r[split:][covered[split:]], predicted[split:][covered[split:]]
-        )
+        if i >= n or stop <= i:
+            continue
+        if not held[i]:
+            part = np.arange(i, stop)
+            part = part[train[part]]
+            numerator[part - i] += step * r[part]
+            denominator[part - i] += step**2
+    template = np.where(denominator > 0, numerator / np.where(denominator > 0, denominator, 1), 0)
+    for j, (i, step) in enumerate(zip(index, steps, strict=True)):
+        stop = min(bounds[j + 1], i + window)
+        if i < n and held[i] and stop > i:
+            predicted[i:stop] = step * template[: stop - i]
+            covered[i:stop] = True
+    covered &= held
+    if np.any(covered):
+        out["input_locked"] = _reduction(r[covered], predicted[covered])
     # Periodic component.
-    centred = train - np.mean(train)
-    pad = 16 * train.size
-    spectrum = np.abs(np.fft.rfft(centred * np.hanning(train.size), pad))
+    centred = np.where(train, r - np.mean(r[train]), 0.0)
+    pad = 16 * n if n <= 1 << 16 else 2 * n  # a finer grid than the FFT's; bounded cost
+    spectrum = np.abs(np.fft.rfft(centred * np.hanning(n), pad))
     freqs = np.fft.rfftfreq(pad, dt)
-    lowest = 3.0 / (train.size * dt)
-    usable = freqs >= lowest
+    usable = freqs >= 3.0 / (n * dt)
     if np.any(usable):
         f = float(freqs[usable][np.argmax(spectrum[usable])])
-        t = np.arange(n) * dt
         basis = np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t), np.ones(n)], 1)
-        coef, *_ = np.linalg.lstsq(basis[:split], train, rcond=None)
+        coef, *_ = np.linalg.lstsq(basis[train], r[train], rcond=None)
         sinusoid = basis[:, :2] @ coef[:2]
-        out["periodic"] = _reduction(test - coef[2], sinusoid[split:])
+        out["periodic"] = _reduction(r[held] - coef[2], sinusoid[held])
         out["frequency_Hz"] = f
     # Trend.
-    t = np.arange(n) * dt
-    slope, intercept = np.polyfit(t[:split], train, 1)
-    out["trend"] = _reduction(test, slope * t[split:] + intercept)
+    slope, intercept = np.polyfit(t[train], r[train], 1)
+    out["trend"] = _reduction(r[held], slope * t[held] + intercept)
     out["deterministic"] = bool(max(out[test] for test in tests) >= PREDICTABLE)
     return out
 

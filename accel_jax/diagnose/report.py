@@ -41,7 +41,7 @@ def figure(result: DiagnosisResult):
 def _step_panels(result: DiagnosisResult, axes) -> None:
     tr = result.traces
     t_ms = np.asarray(tr["t"]) * 1e3
-    split_ms = t_ms[tr["split"]] if tr["split"] < len(t_ms) else t_ms[-1]
+    held = np.asarray(tr["held_out"], dtype=bool)
 
     ax = axes[0, 0]
     ax.plot(t_ms, tr["measured"], ".", ms=2, color="0.5", label="measured")
@@ -49,7 +49,7 @@ def _step_panels(result: DiagnosisResult, axes) -> None:
     ax.plot(t_ms, tr["nominal"], "-", color="C0", label="nominal, refitted")
     if tr["best_name"] != "nominal":
         ax.plot(t_ms, tr["best"], "--", color="C2", label=f"+ {tr['best_name']}")
-    ax.axvspan(split_ms, t_ms[-1], color="0.9", zorder=-1, label="held out")
+    _shade(ax, t_ms, held)
     ax.set_xlabel("time [ms]")
     ax.set_ylabel("U_out [V]")
     ax.set_title("measured vs simulated")
@@ -59,7 +59,7 @@ def _step_panels(result: DiagnosisResult, axes) -> None:
     ax.plot(t_ms, tr["residual_before"] * 1e3, lw=0.7, color="C0", label="nominal refit")
     label = f"with {tr['best_name']}" if tr["best_name"] != "nominal" else "(no effect chosen)"
     ax.plot(t_ms, tr["residual_after"] * 1e3, lw=0.7, color="C2", label=label)
-    ax.axvspan(split_ms, t_ms[-1], color="0.9", zorder=-1, label="held out")
+    _shade(ax, t_ms, held)
     ax.set_xlabel("time [ms]")
     ax.set_ylabel("residual [mV]")
     ax.set_title(
@@ -79,6 +79,15 @@ def _step_panels(result: DiagnosisResult, axes) -> None:
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("PSD [V²/Hz]")
     ax.set_title("residual spectrum")
+
+
+def _shade(ax, t, held):
+    """Grey spans over the held-out samples (one legend entry)."""
+    padded = np.concatenate([[False], held, [False]]).astype(int)
+    edges = np.flatnonzero(np.diff(padded))
+    for k, (a, b) in enumerate(zip(edges[::2], edges[1::2], strict=True)):
+        stop = t[b] if b < len(t) else t[-1]
+        ax.axvspan(t[a], stop, color="0.9", zorder=-1, label="held out" if k == 0 else None)
 
 
 def _vibration_panels(result: DiagnosisResult, axes) -> None:

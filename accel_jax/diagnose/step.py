@@ -24,10 +24,14 @@ at z = 0):
 - `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
   fitted through its one-step prediction errors (an ARMA(1,1) recursion).
 
-**Held out**: the record from the input change nearest 2/3 of it. The models are fitted on
-the training part; then only the times of the held-out changes are fitted on the held-out
-part (nuisances that no training data can fix), and the held-out *free-run* simulation
-error is the gap (one-step prediction errors are reported beside it).
+**Held out**: every third segment of constant test voltage, from the third on (the last
+third of the record when it has fewer than four segments; `step_record.held_out_samples`).
+Interleaving keeps both polarities and every level in training and in the test, so an
+effect seen only at one end of the sequence (a one-sided stop contact) cannot hide in the
+training part. The models are fitted on the training samples; then only the times of the
+held-out changes and the effects' nuisances are fitted on the held-out samples (what no
+training data can fix), and the held-out *free-run* simulation error is the gap (one-step
+prediction errors are reported beside it).
 
 **Verdict**: `openworld.decide` — `none`, an effect, `cannot_tell` or `unexplained`, after
 a domain check (`_domain`) that refuses records the model family cannot describe.

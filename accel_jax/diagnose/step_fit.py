@@ -313,7 +313,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         _, prediction, a, log_v = error_of(w, candidate)
         # The same model with the device at its prior values (what the refit changed).
         _, prior_prediction, _, _ = error_of(w.at[:4].set(0.0), candidate)
-        return w, prediction, a, log_v, converged, steps[best], prior_prediction
+        return w, prediction, a, log_v, converged, steps[best], prior_prediction, decrement
 
     return jax.vmap(fit_one)(guesses, candidates)
 

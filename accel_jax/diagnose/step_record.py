@@ -29,24 +29,38 @@ from .step_fit import (
     StepContext,
 )
 
+HELD_OUT_EVERY = 3
+"""Every third segment of constant test voltage is held out (`held_out_samples`)."""
+
 HELD_OUT_FRACTION = 1 / 3
-"""About this much of the record, from the input change nearest to it, is held out."""
+"""A record of fewer than four segments holds out about this much at its end."""
 
 MAX_CHANGES = 64
 """Most test-voltage changes a record may have (a piecewise-constant test sequence)."""
 
 
-def _split(u_test: np.ndarray) -> int:
-    """Index of the first held-out sample: the input change nearest to 1 − HELD_OUT_FRACTION
-    of the record, after the first change (falls back to that fraction of the record)."""
+def held_out_samples(u_test: np.ndarray) -> tuple[np.ndarray, str]:
+    """The held-out samples of a record, and how they were chosen.
+
+    Every third segment of constant test voltage, from the third on (segments 2, 5, 8, …):
+    the held-out part then sees the same kinds of change and the same levels as the fit, so
+    it tests the effect, not an extrapolation to a level (or a stop) the fit never saw. A
+    record of fewer than four segments holds out its last third instead (from the change
+    nearest 2/3 of it, else from 2/3)."""
     n = u_test.shape[0]
-    changes = np.flatnonzero(np.diff(u_test) != 0) + 1
+    edges = segments(u_test)
+    held = np.zeros(n, dtype=bool)
+    if edges.size - 1 >= 4:
+        for j in range(2, edges.size - 1, HELD_OUT_EVERY):
+            held[edges[j] : edges[j + 1]] = True
+        return held, f"every {HELD_OUT_EVERY}rd segment from the 3rd (of {edges.size - 1})"
+    changes = edges[1:-1]
     target = int(round((1 - HELD_OUT_FRACTION) * n))
     usable = changes[(changes > (changes[0] if changes.size else 0)) & (changes < n - n // 10)]
     usable = usable[usable >= n // 2]
-    if usable.size:
-        return int(usable[np.argmin(np.abs(usable - target))])
-    return target
+    start = int(usable[np.argmin(np.abs(usable - target))]) if usable.size else target
+    held[start:] = True
+    return held, "the last third of the record"
 
 
 def segments(u: np.ndarray) -> np.ndarray:
@@ -218,8 +232,9 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "q/√12), without any model",
     }
     problems, domain = _domain(data, nominal, full_floor["sigma"])
-    split_sample = _split(u)
-    split = split_sample // m
+    held_samples, held_rule = held_out_samples(u)
+    # A block is held out when any of its samples is.
+    held = held_samples[: n_blocks * m].reshape(n_blocks, m).any(axis=1)
     edges = segments(u)
     # Settled levels (last quarter of each segment) against the test voltage: polarity,
     # gain and offset starts.
@@ -237,7 +252,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     k_test = float(closed_loop_test_gain(base))
     z_gain = np.log(max(abs(slope), 1e-12) / k_test) / GAIN_SIGMA
     w_gain = float(np.clip(z_gain, -REFIT_BOUND, REFIT_BOUND))
-    train_y = yb[:split]
+    train_y = yb[~held]
     scale = max(float(np.ptp(train_y)) / 2, 10 * sigma)
     moment = intercept / k_test
     dv = (y[0] - (intercept + slope * u[0])) / k_test
@@ -251,10 +266,14 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     change_step = np.zeros(j_padded)
     change_index[: index.size] = index
     change_step[: index.size] = steps
-    held_out_change = ((change_index >= split * m) & (change_step != 0)).astype(np.float64)
-    blocks = np.arange(n_padded)
-    train = (blocks < split).astype(np.float64)
-    test = ((blocks >= split) & (blocks < n_blocks)).astype(np.float64)
+    # The changes that start a held-out segment: their times are refitted on it.
+    starts_held = np.zeros(j_padded, dtype=bool)
+    starts_held[: index.size] = held_samples[index]
+    held_out_change = (starts_held & (change_step != 0)).astype(np.float64)
+    train = np.zeros(n_padded)
+    test = np.zeros(n_padded)
+    train[:n_blocks] = ~held
+    test[:n_blocks] = held
     ctx = StepContext(
         dt=jnp.asarray(dt),
         duration=jnp.asarray(dt * (n_blocks * m - 1)),
@@ -297,7 +316,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "block": m,
         "dt": dt * m,
         "dt_sample": dt,
-        "split": split,
+        "held": held,
+        "held_rule": held_rule,
         "floor": floor,
         "sigma": sigma,
         "domain_problems": problems,

@@ -1,0 +1,136 @@
+"""The open-world verdict logic (accel_jax.diagnose.openworld), independently of any model:
+each path of `decide`, the model-free noise floor with ADC quantisation, and the
+predictability test that tells a deterministic misfit from a stochastic one."""
+
+import math
+
+import numpy as np
+import pytest
+
+from accel_jax.diagnose import openworld
+
+
+def _c(
+    effect,
+    evidence,
+    *,
+    significant=True,
+    explains=True,
+    stochastic=False,
+    plausible=True,
+    fraction=1.0,
+    deterministic=False,
+):
+    return {
+        "effect": effect,
+        "evidence": evidence,
+        "significant": significant,
+        "explains": explains,
+        "stochastic": stochastic,
+        "plausible": plausible,
+        "explained_fraction": fraction,
+        "deterministic_misfit": deterministic,
+    }
+
+
+OK = {"explains": True, "white": True, "plausible": True}
+
+
+def test_none_only_when_the_nominal_model_explains_and_nothing_is_significant():
+    weak = [_c("a", 3.0, significant=False)]
+    assert openworld.decide(OK, weak)["verdict"] == "none"
+    for broken in ("explains", "white", "plausible"):
+        status = {**OK, broken: False}
+        out = openworld.decide(status, weak)
+        assert out["verdict"] == "unexplained", broken
+    # Nothing significant and the nominal model far from the floor: unexplained, no partial.
+    out = openworld.decide({**OK, "explains": False}, weak)
+    assert out["best_partial"] is None and out["path"] == "unexplained"
+
+
+def test_effects_deterministic_first_then_stochastic():
+    bad = {**OK, "explains": False}
+    out = openworld.decide(bad, [_c("lag", 50.0), _c("noise", 900.0, stochastic=True)])
+    assert out["verdict"] == "lag" and out["path"] == "deterministic"
+    out = openworld.decide(
+        bad, [_c("lag", 50.0, explains=False, fraction=0.3), _c("noise", 900.0, stochastic=True)]
+    )
+    assert out["verdict"] == "noise" and out["path"] == "stochastic"
+    # A noise that absorbs a predictable misfit is not named: unexplained, with the best
+    # partial deterministic effect.
+    out = openworld.decide(
+        bad,
+        [
+            _c("lag", 50.0, explains=False, fraction=0.3),
+            _c("noise", 900.0, stochastic=True, deterministic=True, fraction=0.0),
+        ],
+    )
+    assert out["verdict"] == "unexplained" and out["best_partial"] == "lag"
+
+
+def test_ties_credibility_and_domain():
+    bad = {**OK, "explains": False}
+    out = openworld.decide(bad, [_c("a", 100.0), _c("b", 96.0)])
+    assert out["verdict"] == "cannot_tell" and out["tied"] == ["a", "b"]
+    out = openworld.decide(bad, [_c("a", 100.0), _c("b", 96.0)], resolve_tie=lambda a, b: "b")
+    assert out["verdict"] == "b"
+    out = openworld.decide(bad, [_c("a", 100.0), _c("b", 80.0)])
+    assert out["verdict"] == "a"
+    # An effect whose fit leaves its prior is not named.
+    out = openworld.decide(bad, [_c("a", 100.0, plausible=False), _c("b", 80.0)])
+    assert out["verdict"] == "b"
+    out = openworld.decide(OK, [_c("a", 100.0)], domain=["returns to zero"])
+    assert out["verdict"] == "unexplained" and out["path"] == "domain"
+
+
+def test_gap_arithmetic():
+    assert openworld.excess(5.0, 4.0) == 1.0 and openworld.excess(3.0, 4.0) == 0.0
+    assert openworld.explained_fraction(2.0, 1.0) == pytest.approx(0.75)
+    assert openworld.explained_fraction(0.0, 1.0) == 0.0
+    assert openworld.explained_fraction(1.0, 2.0) == 0.0
+
+
+def test_noise_floor_without_a_model_and_with_quantisation():
+    rng = np.random.default_rng(0)
+    t = np.arange(20000) * 1e-6
+    signal = 2.0 * (t > 5e-3) * (1 - np.exp(-(t - 5e-3) / 3e-4) * np.cos(3000 * (t - 5e-3)))
+    noisy = signal + 1e-3 * rng.normal(size=t.size)
+    floor = openworld.noise_floor(noisy)
+    assert floor["sigma"] == pytest.approx(1e-3, rel=0.05) and floor["quantum"] == 0.0
+    # 4th differences of block means (the step fit's resolution): the same floor / √m.
+    blocks = noisy.reshape(-1, 10).mean(axis=1)
+    assert openworld.noise_floor(blocks, order=4)["sigma"] == pytest.approx(
+        1e-3 / math.sqrt(10), rel=0.08
+    )
+    # An ADC with steps coarser than the noise: the floor is at least q/√12.
+    q = 5e-3
+    coarse = q * np.round(noisy / q)
+    floor = openworld.noise_floor(coarse)
+    assert floor["quantum"] == pytest.approx(q, rel=1e-9)
+    assert floor["sigma"] >= q / math.sqrt(12) * (1 - 1e-9)
+    assert openworld.quantum(noisy) == 0.0
+
+
+def test_predictability_tells_deterministic_from_stochastic():
+    rng = np.random.default_rng(1)
+    n, dt, split = 6000, 1e-5, 4000
+    t = np.arange(n) * dt
+    white = rng.normal(size=n)
+    index = np.array([500, 1500, 2500, 3500, 4500, 5500])
+    steps = np.array([1.0, -2.0, 1.0, 2.0, -1.0, -1.0])
+    out = openworld.predictability(white, split, dt, index, steps, 300)
+    assert not out["deterministic"]
+    assert max(out["input_locked"], out["periodic"], out["trend"]) < openworld.PREDICTABLE
+    line = white + 3 * np.sin(2 * np.pi * 700 * t + 0.4)
+    out = openworld.predictability(line, split, dt, index, steps, 300)
+    assert out["deterministic"] and out["frequency_Hz"] == pytest.approx(700, rel=0.01)
+    locked = white.copy()
+    for i, s in zip(index, steps, strict=True):
+        locked[i : i + 300] += 4 * s * np.exp(-np.arange(300) / 80)
+    out = openworld.predictability(locked, split, dt, index, steps, 300)
+    assert out["deterministic"] and out["input_locked"] > 0.5
+    trend = white + 3 * t / t[-1]
+    assert openworld.predictability(trend, split, dt, index, steps, 300)["trend"] > 0.5
+    # A static record leaves the trend out of the decision (a random walk is a noise).
+    out = openworld.predictability(trend, split, dt, index[:0], steps[:0], 1, tests=("periodic",))
+    assert not out["deterministic"]

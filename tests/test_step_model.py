@@ -1,0 +1,291 @@
+"""The step diagnosis's model of a record (accel_jax.diagnose.step_model), checked against
+simulators it does not share code with: `simulate_linear` on a grid 50× finer (sub-sample
+change times), and the SciPy truth simulator of studies/step_truth.py (its own equations,
+stops as exact events)."""
+
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import accel_jax as aj
+from accel_jax.diagnose.step_effects import step_effects
+from accel_jax.diagnose.step_fit import StepContext, innovation_terms, predict, unpack
+from accel_jax.diagnose.step_model import expm_minus_identity, linear_record, stop_record
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import step_truth  # noqa: E402
+
+RATE = 1e6
+DT = 1 / RATE
+LEVELS = np.array([0.5, 2.0, 0.0, -2.0, 2.0, 0.0])
+SEGMENT = 1000
+N = SEGMENT * LEVELS.size
+INDEX = np.arange(1, LEVELS.size) * SEGMENT + np.array([3, -7, 0, 5, 1])
+STEPS = np.diff(LEVELS)
+IDEAL = aj.ServoParams.reference(torquer_time_constant=0.0, filter_time_constant=0.0)
+KDM = float(IDEAL.torquer_gain)
+
+
+def _shifts(seed=1):
+    return np.random.default_rng(seed).uniform(-1, 1, INDEX.size)
+
+
+def _record(params, shift, *, moment=1e-6, rate=3e-7, gain=1.0, block=1, n=N):
+    return np.asarray(
+        linear_record(
+            params,
+            DT,
+            n // block,
+            LEVELS[0],
+            gain,
+            moment / KDM,
+            rate / KDM,
+            0.0,
+            0.0,
+            jnp.asarray(INDEX),
+            jnp.asarray(STEPS),
+            jnp.asarray(shift),
+            block=block,
+            duration=DT * (N - 1),
+        )
+    )
+
+
+@pytest.mark.parametrize("lags", [(0.0, 0.0), (2e-5, 0.0), (0.0, 3e-5)])
+def test_linear_record_matches_simulate_linear_on_a_finer_grid(lags):
+    # Changes at multiples of 1/20 sample (exact on the fine grid), a drifting moment.
+    params = aj.ServoParams.reference(torquer_time_constant=lags[0], filter_time_constant=lags[1])
+    fine = 20
+    shift = np.round(_shifts() * fine) / fine
+    tf = np.arange(N * fine) * DT / fine
+    uf = np.full(tf.size, LEVELS[0])
+    for i, step, d in zip(INDEX, STEPS, shift, strict=True):
+        uf[int(round((i + d) * fine)) :] += step
+    moment = 1e-6 + 3e-7 * tf / (DT * (N - 1))
+    start = aj.equilibrium_state(params, LEVELS[0], 0.0, 1e-6)
+    reference = aj.simulate_linear(params, tf, uf, external_moment=moment, initial_state=start)
+    ours = _record(params, shift)
+    # The fine grid holds the moment ramp in steps of Δ/20: O(Δ/40) of its slope.
+    np.testing.assert_allclose(ours, np.asarray(reference)[::fine], rtol=0, atol=3e-7)
+    flat = _record(params, shift, rate=0.0)
+    reference = aj.simulate_linear(params, tf, uf, external_moment=1e-6, initial_state=start)
+    np.testing.assert_allclose(flat, np.asarray(reference)[::fine], rtol=0, atol=1e-10)
+
+
+def test_block_means_are_exact_and_the_block_size_may_be_traced():
+    params = aj.ServoParams.reference(filter_time_constant=2e-5)
+    shift = _shifts(2)
+    full = _record(params, shift)
+    for m in (7, 10):
+        blocks = _record(params, shift, block=m)
+        reference = full[: N // m * m].reshape(-1, m).mean(axis=1)
+        np.testing.assert_allclose(blocks, reference, rtol=0, atol=1e-12)
+    # One compiled function for several block sizes (m traced, max_block static).
+    traced = jax.jit(
+        lambda m: linear_record(
+            params,
+            DT,
+            500,
+            LEVELS[0],
+            1.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            jnp.asarray(INDEX),
+            jnp.asarray(STEPS),
+            jnp.asarray(shift),
+            block=m,
+            max_block=16,
+            duration=DT * (N - 1),
+        )
+    )
+    for m in (7, 10):
+        static = _record(params, shift, moment=0.0, rate=0.0, block=m, n=500 * m)
+        np.testing.assert_allclose(np.asarray(traced(m)), static, rtol=0, atol=1e-12)
+
+
+def _truth(h_max=float("inf"), **record):
+    rec = step_truth.Record(
+        levels=LEVELS, change_times=(INDEX + _shifts()) * DT, rate=RATE, n=N, **record
+    )
+    return step_truth.simulate(step_truth.Device(h_max=h_max), rec, rng=np.random.default_rng(0))
+
+
+def test_linear_record_matches_the_independent_truth_simulator():
+    _, u, y = _truth(moment=1e-6)
+    ours = _record(IDEAL, _shifts(), rate=0.0)
+    np.testing.assert_allclose(ours, y, rtol=0, atol=1e-10)
+    # The u_test column is the voltage sampled at the record's times.
+    assert np.all(np.flatnonzero(np.diff(u)) + 1 == INDEX + (_shifts() > 0))
+
+
+@pytest.mark.parametrize("stop_over_level", [0.9, 1.2])
+def test_stop_record_matches_exact_inelastic_contact_events(stop_over_level):
+    # 0.9: held on the stop at ±2 V; 1.2: touched only in the overshoots. Sub-sample
+    # changes and contacts; released at the exact change times.
+    gain = float(IDEAL.pickoff_gain * IDEAL.amplifier_gain)
+    stop = stop_over_level * 2.0
+    _, _, y = _truth(h_max=stop / gain)
+    ours = stop_record(
+        IDEAL,
+        DT,
+        N,
+        LEVELS[0],
+        1.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        jnp.asarray(INDEX),
+        jnp.asarray(STEPS),
+        jnp.asarray(_shifts()),
+        stop,
+        -stop,
+    )
+    assert np.max(np.abs(y)) <= stop * (1 + 1e-12)
+    np.testing.assert_allclose(np.asarray(ours), y, rtol=0, atol=2e-6)
+    # Stops out of reach: the linear record.
+    far = stop_record(
+        IDEAL,
+        DT,
+        N,
+        LEVELS[0],
+        1.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        jnp.asarray(INDEX),
+        jnp.asarray(STEPS),
+        jnp.asarray(_shifts()),
+        1e6,
+        -1e6,
+    )
+    np.testing.assert_allclose(
+        np.asarray(far), _record(IDEAL, _shifts(), moment=0.0, rate=0.0), atol=1e-12
+    )
+
+
+def test_change_time_derivative_matches_finite_differences():
+    def first_change(d):
+        shift = jnp.asarray(_shifts()).at[0].set(d)
+        return linear_record(
+            IDEAL,
+            DT,
+            4000,
+            LEVELS[0],
+            1.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            jnp.asarray(INDEX),
+            jnp.asarray(STEPS),
+            shift,
+        )
+
+    for d in (-0.4, 0.3, 1.7):  # on either side of the sample where u_test shows it
+        exact = jax.jacfwd(first_change)(jnp.asarray(d))
+        h = 1e-6
+        numeric = (first_change(d + h) - first_change(d - h)) / (2 * h)
+        scale = float(jnp.max(jnp.abs(exact)))
+        np.testing.assert_allclose(exact, numeric, rtol=0, atol=1e-6 * scale)
+    # A continuous derivative (C¹) where the change crosses a sample instant.
+    below, above = (jax.jacfwd(first_change)(jnp.asarray(x)) for x in (-1e-9, 1e-9))
+    np.testing.assert_allclose(below, above, rtol=0, atol=1e-6 * float(jnp.max(jnp.abs(below))))
+
+
+def test_expm_minus_identity_small_and_stiff():
+    from jax.scipy.linalg import expm
+
+    rng = np.random.default_rng(3)
+    for scale in (1e-6, 1e-2, 3.0, 300.0):
+        x = rng.normal(size=(5, 5)) * scale - 2 * scale * np.eye(5)
+        if scale < 1e-3:  # e^X − I without the cancellation of e^X − I: its series
+            exact = x + x @ x / 2 + x @ x @ x / 6
+        else:
+            exact = np.asarray(expm(jnp.asarray(x), max_squarings=64)) - np.eye(5)
+        np.testing.assert_allclose(
+            expm_minus_identity(jnp.asarray(x)), exact, rtol=1e-10, atol=1e-13 * scale
+        )
+
+
+def _context(n_blocks, change_index, change_step):
+    j = change_index.size
+    return StepContext(
+        dt=jnp.asarray(DT),
+        duration=jnp.asarray(DT * (n_blocks - 1)),
+        first_level=jnp.asarray(LEVELS[0]),
+        polarity=jnp.asarray(1.0),
+        sigma_ref=jnp.asarray(1e-3),
+        scale=jnp.asarray(1.0),
+        lag_unit=jnp.asarray(8.7e-6),
+        mid=jnp.asarray(0.0),
+        half=jnp.asarray(2.0),
+        change_index=jnp.asarray(change_index),
+        change_step=jnp.asarray(change_step),
+        held_out_change=jnp.zeros(j),
+        train=jnp.ones(n_blocks),
+        test=jnp.zeros(n_blocks),
+        block=jnp.asarray(1, jnp.int32),
+        max_block=1,
+    )
+
+
+def test_every_effect_is_the_nominal_model_at_zero():
+    effects = step_effects()
+    assert [e.name for e in effects] == [
+        "torquer_lag",
+        "output_filter",
+        "stop_saturation",
+        "disturbance_drift",
+        "colored_noise",
+    ]
+    ctx = _context(N, INDEX, STEPS)
+    base = aj.ServoParams.reference()
+    sigma = jnp.full(4, 0.05)
+    w = jnp.zeros(10 + INDEX.size).at[1].set(0.3).at[10:].set(jnp.asarray(_shifts()))
+    nominal = unpack(w, 0, effects, base, sigma, ctx)
+    y0 = predict(nominal, ctx, N, False)
+    for i, effect in enumerate(effects, start=1):
+        m = unpack(w, i, effects, base, sigma, ctx)
+        y = predict(m, ctx, N, effect.nonlinear)
+        np.testing.assert_allclose(y, y0, rtol=0, atol=1e-12, err_msg=effect.name)
+        assert float(m["phi"]) == 0.0 and float(m["output_offset"]) == 0.0
+
+
+def test_innovations_of_white_plus_ar1_noise():
+    rng = np.random.default_rng(4)
+    e = rng.normal(size=3000)
+    a, log_v = innovation_terms(jnp.asarray(e), 0.0, 1.0)
+    np.testing.assert_allclose(a, e, atol=1e-15)
+    assert float(log_v) == 0.0
+    # The parallel recursion against a plain loop: a_k = e_k − φ e_{k−1} + θ a_{k−1}.
+    phi, share = 0.9, 0.4
+    a, log_v = innovation_terms(jnp.asarray(e), phi, share)
+    theta = share * phi
+    variance = share + (1 - theta * phi) * (1 - share) / (1 - phi**2)
+    loop = np.empty_like(e)
+    loop[0] = e[0] / np.sqrt(variance)
+    for k in range(1, e.size):
+        loop[k] = e[k] - phi * e[k - 1] + theta * loop[k - 1]
+    np.testing.assert_allclose(a, loop, atol=1e-12)
+    # White + AR(1) noise is whitened: its innovations have the predicted white share.
+    from accel_jax.diagnose.step_effects import _white_share
+
+    sigma_w, ratio, phi = 1.0, 4.0, 0.95
+    share = float(_white_share(ratio, phi))
+    ar = np.zeros(200_000)
+    w = rng.normal(size=ar.size) * np.sqrt(ratio * (1 - phi**2))
+    for k in range(1, ar.size):
+        ar[k] = phi * ar[k - 1] + w[k]
+    x = ar + sigma_w * rng.normal(size=ar.size)
+    a, _ = innovation_terms(jnp.asarray(x), phi, share)
+    a = np.asarray(a)[100:]
+    assert np.var(a) == pytest.approx(sigma_w**2 / share, rel=0.02)
+    assert abs(np.corrcoef(a[1:], a[:-1])[0, 1]) < 0.01
