@@ -146,8 +146,9 @@ def predictability(
       the change ΔU_j (least squares over the changes in the training part), predicts the
       windows after the held-out changes;
     - `periodic`: the strongest line of the training residual's periodogram (at least 3
-      cycles in the record; frequency on a 16× zero-padded grid, 2× beyond 65 536 samples), fitted as a sinusoid on
-      the training samples and continued over the held-out ones;
+      cycles in the record; frequency on a 16× zero-padded grid, 2× beyond 65 536
+      samples), fitted as a sinusoid on the training samples and continued over the
+      held-out ones;
     - `trend`: a straight line fitted to the training residual and carried over.
 
     `held`: a boolean mask of the held-out samples, or the index where a held-out end part
