@@ -551,7 +551,12 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
         consistent = abs(ratio - 1) <= 3 * math.sqrt(2 / max(n_test, 1))
         standardised = nus[i] / np.sqrt(np.maximum(ss[i], np.finfo(float).tiny))
         line = openworld.predictability(
-            standardised[1:], split - 1, dt, np.zeros(0, int), np.zeros(0), 1,
+            standardised[1:],
+            split - 1,
+            dt,
+            np.zeros(0, int),
+            np.zeros(0),
+            1,
             tests=("periodic",),
         )
         assessed[name] = {
