@@ -504,8 +504,11 @@ def identify(file: Path, params_file, method, gamma, json_out, force):
     default=None,
     help="Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
 )
-def diagnose(file: Path, kind, params_file, json_out, plot_out):
+@click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
+def diagnose(file: Path, kind, params_file, json_out, plot_out, force):
     """Diagnose the sim-to-real gap of one experiment (CSV, SI units, header row)."""
+    _writable(json_out, force, "--json")  # refused before the work, not after it
+    _writable(plot_out, force, "--plot")
     import jax
 
     # Evidence compares log-likelihoods of ~1e4 to within ~1: float64.

@@ -353,6 +353,10 @@ def test_cli_bad_input_one_line_nonzero_exit(tmp_path):
     )
     result = CliRunner().invoke(main, ["diagnose", str(vib)])
     assert result.exit_code != 0 and "frequencies positive" in result.stderr
+    kept = tmp_path / "kept.json"
+    kept.write_text("{}")  # a user's file is not replaced unasked (and nothing is run)
+    result = CliRunner().invoke(main, ["diagnose", str(csv), "--json", str(kept)])
+    assert result.exit_code != 0 and "--force" in result.stderr and kept.read_text() == "{}"
 
 
 # --- the study ----------------------------------------------------------------------------

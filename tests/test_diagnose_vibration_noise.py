@@ -20,7 +20,13 @@ import accel_jax as aj
 from accel_jax._data import DataError, NoiseData, VibrationData, write_csv
 from accel_jax._noise import log_likelihood
 from accel_jax.cli import main
-from accel_jax.diagnose import CandidateFit, diagnose, effect_library, rank_candidates
+from accel_jax.diagnose import (
+    CandidateFit,
+    diagnose,
+    diagnose_many,
+    effect_library,
+    rank_candidates,
+)
 from accel_jax.diagnose import noise as noise_kind
 from accel_jax.diagnose import vibration as vibration_kind
 
@@ -481,3 +487,53 @@ def test_blind_diagnosis_finds_relative_folders_from_any_working_folder(tmp_path
     answers = module.diagnose_blind([Path("datasets") / "noise"])
     assert [a["file"] for a in answers["noise"]] == ["noise_0000.csv"]
     assert answers["noise"][0]["verdict"] == "none"
+
+
+# --- a record the library did not make ----------------------------------------------------
+
+MPU6050 = Path(__file__).parent / "data" / "mpu6050_static_az_counts.txt.gz"
+
+
+def _mpu6050():
+    # A real static record (InvenSense MPU-6050, 100 Hz, 44 930 samples, z axis, counts of
+    # 1/16384 g; MIT licence, tests/data/LICENSE.mpu6050).
+    counts = np.loadtxt(MPU6050, comments="#")
+    return np.arange(counts.size) * 0.01, counts / 16384.0
+
+
+def test_real_mems_record_and_a_line_the_library_does_not_model():
+    t, a = _mpu6050()
+    clean, lined = diagnose_many(
+        [NoiseData(t, a), NoiseData(t, a + 1.5e-3 * np.sin(2 * np.pi * 0.56 * t + 0.3))]
+    )
+    # Its held-out part is white at 4.6 mg (the Allan deviation follows τ^-1/2 to 10 s):
+    # `none` is the honest answer, with the remaining gap at the floor.
+    assert clean.verdict == "none", clean.summary()
+    assert clean.remaining_gap["over_floor"] <= 1.0
+    # A 1.5 mg line at 0.56 Hz (1 % of the variance): no noise that cannot whiten it is named
+    # for it. Either the narrow-band exp-cosine whitens it (then at the line's frequency) or
+    # the verdict is `unexplained` with the line reported.
+    assert lined.verdict in ("exp_cosine", "unexplained"), lined.summary()
+    if lined.verdict == "exp_cosine":
+        params = next(e for e in lined.ranking if e["effect"] == "exp_cosine")["params"]
+        assert params["period_s"] == pytest.approx(1 / 0.56, rel=0.02)
+    else:
+        line = lined.remaining_gap["periodic_line"]
+        assert line["frequency_Hz"] == pytest.approx(0.56, rel=0.01)
+
+
+@pytest.mark.slow
+def test_cli_on_a_real_record_prints_no_xla_logs(tmp_path):
+    import subprocess
+    import sys
+
+    t, a = _mpu6050()
+    csv = tmp_path / "mpu.csv"
+    write_csv(csv, NoiseData(t, a))
+    cli = Path(sys.executable).parent / "accel-jax"
+    run = subprocess.run(
+        [str(cli), "diagnose", str(csv)], capture_output=True, text=True, timeout=600
+    )
+    assert run.returncode == 0, run.stderr
+    assert "verdict: none" in run.stdout
+    assert run.stderr.strip() == ""  # nothing from XLA on the user's terminal

@@ -558,6 +558,7 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
             np.zeros(0),
             1,
             tests=("periodic",),
+            line_z=openworld.LINE_Z,
         )
         assessed[name] = {
             "floor": float(np.mean(predicted)),
@@ -574,7 +575,11 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
             {
                 "stochastic": True,
                 "explains": own["explains"],
-                "plausible": entry["converged"],
+                # A fit that stopped short of its maximum only understates its evidence
+                # (a lower bound), as in the step kind: it stays credible. (Whether the
+                # exp-cosine fit of a near-undamped line reaches its tolerance within the
+                # step limit depended on the batch it ran in.)
+                "plausible": bool(np.isfinite(entry["evidence"])),
                 "one_step_whiteness": own["whiteness"],
                 "variance_ratio": own["variance_ratio"],
                 "deterministic_misfit": own["predictable"]["deterministic"],
@@ -621,6 +626,14 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
         "model": chosen,
         "whiteness_p_value": assessed[chosen]["whiteness"]["p_value"],
     }
+    line = assessed[chosen]["predictable"]
+    if line["deterministic"]:
+        # A line is a gap the RMS hardly shows: its amplitude, in g, beside the RMS gap.
+        remaining_gap["periodic_line"] = {
+            "frequency_Hz": line["frequency_Hz"],
+            "rms_g": line["periodic_rms"] * math.sqrt(floor),
+            "z": line["periodic_z"],
+        }
     predictable = assessed[chosen]["predictable"]
     reason = _reason(decision, assessed, ranking, predictable, remaining, floor, chosen)
 
@@ -691,16 +704,27 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
     if predictable["deterministic"]:
         parts.append(
             f"a periodic line at {predictable['frequency_Hz']:.4g} Hz continues from the "
-            f"training part into the held-out part (it predicts {predictable['periodic']:.0%} "
-            "of it): deterministic, not one of the library's noises"
+            f"training part into the held-out one-step errors of {chosen} (projection "
+            f"{predictable['periodic_z']:.1f} standard errors, {predictable['periodic']:.1%} "
+            "of their mean square): deterministic, not one of the library's noises"
         )
     if decision["best_partial"]:
         best = decision["best_partial"]
+        own = assessed[best]
+        if not own["whiteness"]["white"]:
+            p_value = own["whiteness"]["p_value"]
+            short = f"its one-step errors are not white (Ljung–Box p = {p_value:.2g})"
+        elif own["predictable"]["deterministic"]:
+            short = "it leaves the line"
+        else:
+            short = (
+                f"its one-step errors are {math.sqrt(own['variance_ratio']):.3g}× the size it "
+                "predicts"
+            )
         parts.append(
             f"the best library effect, {best}, explains {entry[best]['explained_fraction']:.0%} "
-            f"of the excess, but its one-step errors are not white (Ljung–Box p = "
-            f"{assessed[best]['whiteness']['p_value']:.2g}); {remaining:.3g} g above its "
-            f"{sigma:.3g} g floor remains"
+            f"of the excess, but {short}; {remaining:.3g} g above its {sigma:.3g} g floor "
+            "remains"
         )
     elif not any(e["significant"] for e in ranking):
         parts.append(
