@@ -158,17 +158,21 @@ def _tolerance_table(result: dict) -> str:
 def _sim_to_real_table(result: dict) -> str:
     """The blind validation of the gap diagnosis, one row per kind of record."""
     rows = []
-    for kind in ("step", "vibration", "noise"):
+    labels = {"step_independent": "step (independent simulator, other conventions)"}
+    for kind in ("step", "step_independent", "vibration", "noise"):
         section = result.get(kind)
         if not isinstance(section, dict) or "n_datasets" not in section:
             continue
+        assurance = section.get("false_assurance")
         cells = [
-            kind,
+            labels.get(kind, kind),
             section.get("n_datasets"),
             section.get("accuracy"),
             section.get("accuracy_incl_cannot_tell_naming_truth"),
             section.get("false_alarm_rate"),
             section.get("median_gap_shrink"),
+            section.get("out_of_library_unexplained_rate", "–"),
+            "–" if assurance is None else f"{assurance} of {section.get('none_verdicts')}",
         ]
         rows.append("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in cells) + "</tr>")
     if not rows:
@@ -176,7 +180,8 @@ def _sim_to_real_table(result: dict) -> str:
     head = (
         "<tr><th>kind</th><th>blind datasets</th><th>named correctly</th>"
         "<th>… or cannot_tell naming the truth</th><th>false alarms</th>"
-        "<th>median held-out gap shrink</th></tr>"
+        "<th>median held-out gap shrink</th><th>outside the library: unexplained</th>"
+        "<th>false assurance (none with a true gap ≥ 3 floors)</th></tr>"
     )
     return (
         "<h3>Sim-to-real diagnosis, checked blind</h3>"
