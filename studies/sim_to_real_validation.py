@@ -798,7 +798,7 @@ def _figures(out_dir, result, lag_rows):
             "caption": (
                 "Blind validation of the step diagnosis. Left: confusion matrix of true effect "
                 "vs blind verdict. Middle: held-out gap shrink (RMS prediction error above the "
-                "noise floor, on the last third of each record) where the effect was named "
+                "noise floor, on the held-out segments: every third) where the effect was named "
                 "correctly. Right: verdicts on the lag datasets against the true lag. "
                 f"Assumptions: {SAMPLE_RATE / 1e3:.0f} kHz, {len(PATTERN)} segments of "
                 f"{SEGMENT / SAMPLE_RATE * 1e3:.0f} ms at U_test = ±{STEP_VOLTAGE} V, white noise "
@@ -920,14 +920,14 @@ def _assumptions(kind) -> dict:
             },
             "right_answers": "none for no effect, the effect's name (or cannot_tell naming it) "
             "in the library, unexplained outside it",
-            "held_out": "the last ~1/3 of each record (from the input change nearest 2/3)",
+            "held_out": STEP_HELD_OUT,
         }
     if kind == "step":
         return {
             "sample_rate_Hz": SAMPLE_RATE,
             "segments_V": [p * STEP_VOLTAGE for p in PATTERN],
             "segment_s": SEGMENT / SAMPLE_RATE,
-            "held_out": "the last ~1/3 of each record (from the input change nearest 2/3)",
+            "held_out": STEP_HELD_OUT,
             "noise_std_V_log_uniform": list(NOISE_RANGE),
             "device_prior": "J, μ, c, k_dm log-normal 5 % (truncated at 2σ) about the reference",
             "external_moment_Nm_uniform": list(MOMENT_RANGE),
@@ -1342,10 +1342,15 @@ _LENIENT_NOTE = {
     "a random walk as τ_c outgrows the record; ties between nested models are resolved by a "
     "likelihood-ratio test, others stay cannot_tell.",
 }
+STEP_HELD_OUT = (
+    "every third segment of constant test voltage from the third on (interleaved; the last "
+    "third when a record has fewer than four segments)"
+)
 _GAP_NOTE = {
     "step_independent": "gap = held-out RMS free-run simulation error above the noise floor "
-    "(block means; the last third of each record).",
-    "step": "gap = held-out RMS error above the noise floor (last third of the record).",
+    "(block means; every third segment of constant test voltage held out).",
+    "step": "gap = held-out RMS free-run simulation error above the noise floor (every third "
+    "segment of constant test voltage held out).",
     "vibration": "gap = leave-one-out RMS residual above the noise floor, over the rows.",
     "noise": "gap = held-out RMS one-step prediction error above the chosen model's predicted "
     "innovation variance (last third of the record).",
