@@ -548,7 +548,10 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
         scaled = by_name[name].held_out_errors / np.sqrt(predicted)
         test = openworld.whiteness(scaled)
         ratio = float(np.mean(scaled**2))
-        consistent = abs(ratio - 1) <= 3 * math.sqrt(2 / max(n_test, 1))
+        # The predicted variance comes from the fit to the training part: both parts'
+        # sampling errors count (2/n each for a variance), not the held-out part's alone.
+        spread = math.sqrt(2 / max(n_test, 1) + 2 / max(split, 1))
+        consistent = abs(ratio - 1) <= 3 * spread
         standardised = nus[i] / np.sqrt(np.maximum(ss[i], np.finfo(float).tiny))
         line = openworld.predictability(
             standardised[1:],
@@ -727,11 +730,21 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
             "remains"
         )
     elif not any(e["significant"] for e in ranking):
-        parts.append(
-            "the record is not white noise (Ljung–Box p = "
-            f"{assessed['nominal']['whiteness']['p_value']:.2g}) and no library effect is "
-            "significant"
-        )
+        nominal = assessed["nominal"]
+        p_value = nominal["whiteness"]["p_value"]
+        if nominal["predictable"]["deterministic"]:
+            why = "the line is not one of the library's noises"
+        elif nominal["whiteness"]["white"]:
+            why = (
+                f"the held-out record is white (Ljung–Box p = {p_value:.2g}) but its variance "
+                f"is {nominal['variance_ratio']:.3g}× the training part's"
+            )
+        else:
+            why = (
+                "the record is not white noise (Ljung–Box p = "
+                f"{nominal['whiteness']['p_value']:.2g})"
+            )
+        parts.append(why + " and no library effect is significant")
     else:
         parts.append(
             "no library noise leaves white one-step prediction errors (best: "
