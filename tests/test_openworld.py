@@ -160,3 +160,16 @@ def test_line_significance_on_a_white_residual():
     )
     assert out["deterministic"] and out["frequency_Hz"] == pytest.approx(0.56, rel=0.01)
     assert out["periodic_rms"] == pytest.approx(0.3 / np.sqrt(2), rel=0.15)
+
+
+def test_a_wandering_line_is_seen_but_not_called_deterministic():
+    # A line whose phase flips between the training and the held-out part (a line that
+    # wanders, as the 0.56 Hz line of a real ADIS16405 record did): the held-out projection
+    # is many standard errors from zero, but negative, so the misfit is not predictable.
+    n, dt, split = 15000, 0.01, 10000
+    t = np.arange(n) * dt
+    phase = np.where(np.arange(n) < split, 0.0, np.pi)
+    x = np.random.default_rng(3).normal(size=n) + 0.5 * np.sin(2 * np.pi * 0.56 * t + phase)
+    none = np.empty(0, int)
+    out = openworld.predictability(x, split, dt, none, none * 0.0, 1, ("periodic",), 5.0)
+    assert out["periodic_z"] < -openworld.LINE_Z and not out["deterministic"]

@@ -711,6 +711,14 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
             f"{predictable['periodic_z']:.1f} standard errors, {predictable['periodic']:.1%} "
             "of their mean square): deterministic, not one of the library's noises"
         )
+    elif abs(predictable["periodic_z"]) >= openworld.LINE_Z and predictable["frequency_Hz"]:
+        # A line of the training part whose continuation is anti-correlated (or far off)
+        # with the held-out part: a real spectral line whose phase or frequency wanders.
+        parts.append(
+            f"a spectral line at {predictable['frequency_Hz']:.4g} Hz in the training part "
+            f"does not carry its phase into the held-out part (projection "
+            f"{predictable['periodic_z']:.1f} standard errors): a wandering line"
+        )
     if decision["best_partial"]:
         best = decision["best_partial"]
         own = assessed[best]
