@@ -738,20 +738,25 @@ def _lag_breakdown(truths, verdicts):
     return rows
 
 
-def _figures(out_dir, result, lag_rows):
-    figures = []
-    conf = result["step"]["confusion"]
-    matrix = np.array([[conf[t][v] for v in VERDICTS] for t in EFFECTS], dtype=float)
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
-    ax = axes[0]
+def _confusion_panel(ax, confusion: dict, rows, cols):
+    """A confusion matrix drawn as row fractions with the counts written in; the image."""
+    matrix = np.array([[confusion[t][v] for v in cols] for t in rows], dtype=float)
     shown = matrix / np.maximum(matrix.sum(1, keepdims=True), 1)
     im = ax.imshow(shown, cmap="Blues", vmin=0, vmax=1)
-    ax.set_xticks(range(len(VERDICTS)), VERDICTS, rotation=40, ha="right", fontsize=8)
-    ax.set_yticks(range(len(EFFECTS)), EFFECTS, fontsize=8)
-    for i in range(len(EFFECTS)):
-        for j in range(len(VERDICTS)):
+    ax.set_xticks(range(len(cols)), cols, rotation=40, ha="right", fontsize=8)
+    ax.set_yticks(range(len(rows)), rows, fontsize=8)
+    for i in range(len(rows)):
+        for j in range(len(cols)):
             if matrix[i, j]:
                 ax.text(j, i, int(matrix[i, j]), ha="center", va="center", fontsize=8)
+    return im
+
+
+def _figures(out_dir, result, lag_rows):
+    figures = []
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    ax = axes[0]
+    im = _confusion_panel(ax, result["step"]["confusion"], EFFECTS, VERDICTS)
     ax.set_xlabel("verdict (blind)")
     ax.set_ylabel("true effect")
     ax.set_title("confusion matrix (counts; colour = row fraction)")
@@ -814,18 +819,9 @@ def _kind_figure(out_dir, kind, section, snr_label):
     """Confusion matrix, held-out shrink and naming rate against the SNR of one kind."""
     classes = CLASSES[kind]
     verdict_names = tuple(classes[1:]) + ("none", "cannot_tell")
-    conf = section["confusion"]
-    matrix = np.array([[conf[t][v] for v in verdict_names] for t in classes], dtype=float)
     fig, axes = plt.subplots(1, 3, figsize=(17, 5))
     ax = axes[0]
-    shown = matrix / np.maximum(matrix.sum(1, keepdims=True), 1)
-    im = ax.imshow(shown, cmap="Blues", vmin=0, vmax=1)
-    ax.set_xticks(range(len(verdict_names)), verdict_names, rotation=40, ha="right", fontsize=8)
-    ax.set_yticks(range(len(classes)), classes, fontsize=8)
-    for i in range(len(classes)):
-        for j in range(len(verdict_names)):
-            if matrix[i, j]:
-                ax.text(j, i, int(matrix[i, j]), ha="center", va="center", fontsize=8)
+    im = _confusion_panel(ax, section["confusion"], classes, verdict_names)
     ax.set_xlabel("verdict (blind)")
     ax.set_ylabel("true effect")
     ax.set_title(f"{kind}: confusion matrix (counts; colour = row fraction)")
@@ -1041,19 +1037,9 @@ def _open_world_figure(out_dir, kind, section, truths, verdicts, gaps) -> dict:
     """Confusion matrix of the open-world harness and the true gap behind each verdict."""
     classes = CLASSES[kind]
     verdict_names = list(next(iter(section["confusion"].values())))
-    matrix = np.array(
-        [[section["confusion"][t][v] for v in verdict_names] for t in classes], dtype=float
-    )
     fig, axes = plt.subplots(1, 2, figsize=(15, 5.5))
     ax = axes[0]
-    shown = matrix / np.maximum(matrix.sum(1, keepdims=True), 1)
-    im = ax.imshow(shown, cmap="Blues", vmin=0, vmax=1)
-    ax.set_xticks(range(len(verdict_names)), verdict_names, rotation=40, ha="right", fontsize=8)
-    ax.set_yticks(range(len(classes)), classes, fontsize=8)
-    for i in range(len(classes)):
-        for j in range(len(verdict_names)):
-            if matrix[i, j]:
-                ax.text(j, i, int(matrix[i, j]), ha="center", va="center", fontsize=8)
+    im = _confusion_panel(ax, section["confusion"], classes, verdict_names)
     ax.axhline(len(classes) - len(OUT_OF_LIBRARY.get(kind, ())) - 0.5, color="C3", lw=1)
     ax.set_xlabel("verdict (blind)")
     ax.set_ylabel("true effect (below the red line: outside the library)")

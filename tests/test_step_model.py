@@ -34,6 +34,14 @@ def _shifts(seed=1):
     return np.random.default_rng(seed).uniform(-1, 1, INDEX.size)
 
 
+def _still_device():
+    """stop_record's arguments before the stops: the ideal device, gain 1, no moment, drift
+    or initial offsets, the test sequence with its sub-sample shifts."""
+    zeros = (0.0, 0.0, 0.0, 0.0)
+    changes = (jnp.asarray(INDEX), jnp.asarray(STEPS), jnp.asarray(_shifts()))
+    return (IDEAL, DT, N, LEVELS[0], 1.0, *zeros, *changes)
+
+
 def _record(params, shift, *, moment=1e-6, rate=3e-7, gain=1.0, block=1, n=N):
     return np.asarray(
         linear_record(
@@ -132,18 +140,7 @@ def test_stop_record_matches_exact_inelastic_contact_events(stop_over_level):
     stop = stop_over_level * 2.0
     _, _, y = _truth(h_max=stop / gain)
     ours = stop_record(
-        IDEAL,
-        DT,
-        N,
-        LEVELS[0],
-        1.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        jnp.asarray(INDEX),
-        jnp.asarray(STEPS),
-        jnp.asarray(_shifts()),
+        *_still_device(),
         stop,
         -stop,
     )
@@ -151,18 +148,7 @@ def test_stop_record_matches_exact_inelastic_contact_events(stop_over_level):
     np.testing.assert_allclose(np.asarray(ours), y, rtol=0, atol=2e-6)
     # Stops out of reach: the linear record.
     far = stop_record(
-        IDEAL,
-        DT,
-        N,
-        LEVELS[0],
-        1.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        jnp.asarray(INDEX),
-        jnp.asarray(STEPS),
-        jnp.asarray(_shifts()),
+        *_still_device(),
         1e6,
         -1e6,
     )
