@@ -323,6 +323,7 @@ def _bad_inputs(tmp_path):
         "non-uniform": "\n".join(uneven),
         "too few": "\n".join(lines[:50]),
         "text": good.replace(",0.1\n", ",hello\n", 1),
+        "flat output": good,  # u_out constant: a disconnected channel
     }
     out = {}
     for name, text in files.items():

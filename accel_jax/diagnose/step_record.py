@@ -100,7 +100,7 @@ def _domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[list[
         before = float(np.mean(y[start - max((start - prev_start) // 4, 2) : start]))
         after = float(np.mean(y[stop - max((stop - start) // 4, 2) : stop]))
         excursion = float(np.max(np.abs(y[start:stop] - before)))
-        if excursion < 10 * floor:
+        if excursion <= 0 or excursion < 10 * floor:
             continue
         target = after - before
         crossed = np.flatnonzero(np.abs(y[start:stop] - before) >= 0.5 * abs(target))
@@ -197,6 +197,11 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     dt = data.sample_period
     base = nominal.params
     period = float(time_constant(base))
+    if np.ptp(y) == 0:
+        raise DataError(
+            f"step record: u_out is constant ({y[0]:.6g} V) over the whole record; no "
+            "response to diagnose (a disconnected or saturated channel?)."
+        )
     index, steps = _changes(data)
     near_change = np.zeros(n, dtype=bool)
     for i in index:
