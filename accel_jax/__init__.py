@@ -9,9 +9,17 @@ import os as _os
 
 # Whether the user chose XLA's C++ log level before JAX (imported below) sets its default:
 # the command line keeps XLA's log lines off the terminal only when they did not
-# (`accel_jax._xla.quiet_xla_logs`). Reading it changes nothing.
+# (`accel_jax._runtime.quiet_xla_logs`). Reading it changes nothing.
 _USER_SET_XLA_LOG_LEVEL = "TF_CPP_MIN_LOG_LEVEL" in _os.environ
 del _os
+
+# The one process-level setting made on import: jaxlib 0.10.2's XLA:CPU scheduler deadlock
+# workaround, added to XLA_FLAGS before JAX starts its backend unless the user set the
+# option or opted out (ACCEL_JAX_XLA_WORKAROUND=off). It changes no result; see _runtime.py.
+from ._runtime import apply_at_import as _apply_at_import
+
+_XLA_WORKAROUND = _apply_at_import()
+del _apply_at_import
 
 from ._data import DataError as DataError
 from ._data import Dataset as Dataset
@@ -25,8 +33,6 @@ from ._data import parse_params_toml as parse_params_toml
 from ._data import read_csv as read_csv
 from ._data import read_params_toml as read_params_toml
 from ._data import write_csv as write_csv
-from ._fast import fast_step_response as fast_step_response
-from ._fast import monte_carlo_oscillatory as monte_carlo_oscillatory
 from ._identify import (
     AperiodicEstimate as AperiodicEstimate,
 )
@@ -52,22 +58,13 @@ from ._identify import (
     inflection_time_ratio as inflection_time_ratio,
 )
 from ._identify import (
+    monte_carlo_oscillatory as monte_carlo_oscillatory,
+)
+from ._identify import (
     pickoff_gain_from_stops as pickoff_gain_from_stops,
 )
 from ._identify import (
     scale_factor_from_fit as scale_factor_from_fit,
-)
-from ._identify import (
-    second_order_step as second_order_step,
-)
-from ._io import (
-    provenance as provenance,
-)
-from ._io import (
-    save_figure_atomic as save_figure_atomic,
-)
-from ._io import (
-    write_json_atomic as write_json_atomic,
 )
 from ._kalman import EARTH_RADIUS as EARTH_RADIUS
 from ._kalman import ConsistencyTrial as ConsistencyTrial
@@ -116,10 +113,10 @@ from ._noise import fit_exp_cosine_paper as fit_exp_cosine_paper
 from ._noise import fit_gauss_markov_paper as fit_gauss_markov_paper
 from ._noise import fit_maximum_likelihood as fit_maximum_likelihood
 from ._noise import initial_model as initial_model
-from ._noise import innovations as noise_innovations  # noqa: F401
 from ._noise import ljung_box as ljung_box
-from ._noise import log_likelihood as noise_log_likelihood  # noqa: F401
 from ._noise import model_parameters as model_parameters
+from ._noise import noise_innovations as noise_innovations
+from ._noise import noise_log_likelihood as noise_log_likelihood
 from ._noise import select_noise_model as select_noise_model
 from ._noise import simulate_noise as simulate_noise
 from ._params import (
@@ -144,7 +141,6 @@ from ._pendulum import record_mask as record_mask
 from ._pendulum import sample_sensing_element as sample_sensing_element
 from ._pendulum import sample_times as sample_times
 from ._pendulum import solve_sensing_element as solve_sensing_element
-from ._progress import show_progress as show_progress
 from ._servo import (
     aperiodic_time_constants as aperiodic_time_constants,
 )
@@ -189,6 +185,12 @@ from ._simulate import (
 )
 from ._simulate import (
     equilibrium_state as equilibrium_state,
+)
+from ._simulate import (
+    fast_step_response as fast_step_response,
+)
+from ._simulate import (
+    second_order_step as second_order_step,
 )
 from ._simulate import (
     simulate_linear as simulate_linear,
@@ -260,10 +262,5 @@ from ._vibration import time_domain_vibration_error as time_domain_vibration_err
 from ._vibration import validate_vibration_table as validate_vibration_table
 from ._vibration import vibration_error as vibration_error
 from ._vibration import write_vibration_table as write_vibration_table
-from ._xla import apply_cpu_workarounds as apply_cpu_workarounds
-from ._xla import apply_fast_compile as apply_fast_compile
-from ._xla import enable_compilation_cache as enable_compilation_cache
-from ._xla import fast_compile as fast_compile
-from ._xla import fast_compile_when_quick as fast_compile_when_quick
 
 __version__ = "0.1.0"

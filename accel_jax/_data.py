@@ -312,6 +312,15 @@ def parse_csv(text: str, *, kind: str | None = None, path=None) -> Dataset:
     rows of the wrong length, non-numeric text, NaN/inf, too few samples, and non-monotonic
     or non-uniform time.
     """
+    kind, arrays = _parse_columns(text, kind=kind, path=path)
+    return validate(_CLASSES[kind](**arrays), path=path)
+
+
+def _parse_columns(text: str, *, kind: str | None, path) -> tuple[str, dict[str, np.ndarray]]:
+    """The CSV reader behind `parse_csv` (and `accel_jax._vibration.read_vibration_table`):
+    the kind of record and its float64 columns (the kind's columns, then its optional ones
+    present), after the checks of the text itself (empty file, columns, field counts,
+    numbers); `validate`'s checks of the values are the caller's. Raises `DataError`."""
     where = _where(path)
     if kind is not None and kind not in COLUMNS:
         raise DataError(f"unknown kind {kind!r}; choose one of {sorted(COLUMNS)}.")
@@ -349,21 +358,25 @@ def parse_csv(text: str, *, kind: str | None = None, path=None) -> Dataset:
                 ) from None
     arrays = {name: values[:, j] for j, name in enumerate(header)}
     names = COLUMNS[kind] + tuple(c for c in OPTIONAL_COLUMNS[kind] if c in arrays)
-    return validate(_CLASSES[kind](**{c: arrays[c] for c in names}), path=path)
+    return kind, {c: arrays[c] for c in names}
 
 
-def read_csv(path: str | os.PathLike, *, kind: str | None = None) -> Dataset:
-    """Read and validate one experiment from a CSV file (see `parse_csv`)."""
-    path = Path(path)
+def _read_text(path: Path) -> str:
+    """The text of a CSV file; `DataError` if it cannot be read."""
     try:
-        text = path.read_text()
+        return path.read_text()
     except FileNotFoundError:
         raise DataError(f"{path}: no such file.") from None
     except UnicodeDecodeError:
         raise DataError(f"{path}: not a text (UTF-8) CSV file.") from None
     except OSError as error:
         raise DataError(f"{path}: cannot be read ({error.strerror}).") from None
-    return parse_csv(text, kind=kind, path=path)
+
+
+def read_csv(path: str | os.PathLike, *, kind: str | None = None) -> Dataset:
+    """Read and validate one experiment from a CSV file (see `parse_csv`)."""
+    path = Path(path)
+    return parse_csv(_read_text(path), kind=kind, path=path)
 
 
 def write_csv(path: str | os.PathLike, data: Dataset) -> Path:

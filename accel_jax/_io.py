@@ -12,7 +12,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._xla import usable_cpus
+from ._runtime import usable_cpus
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -31,6 +31,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._params import _as_float, _concrete
+from ._static import STANDARD_GRAVITY
 
 Scalar = Float[Array, ""]
 Vector = Float[Array, " n"]
@@ -38,9 +39,6 @@ Matrix = Float[Array, "n n"]
 
 EARTH_RADIUS = 6.371e6
 """Mean Earth radius R [m] of the Schuler loop."""
-
-STANDARD_GRAVITY = 9.80665
-"""g [m/s²]."""
 
 
 def _check_matrix(name: str, value, shape: tuple[int, ...]):

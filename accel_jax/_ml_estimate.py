@@ -53,7 +53,6 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from ._params import _as_float, _concrete
 from ._pendulum import Restoring, SensingElement, solve_sensing_element
-from ._xla import warn_if_cpu_scheduler_unsafe
 
 Scalar = Float[Array, ""]
 ScalarLike = Float[ArrayLike, ""]
@@ -621,12 +620,11 @@ def fit_sensing_element(
 
     Precision: float64 expected (errors of 1e-12 rad are resolved).
 
-    On the CPU, vmapping this fit needs `apply_cpu_workarounds()` (jaxlib 0.10.2's XLA:CPU
-    scheduler can deadlock on such batches); without it the first call warns once.
+    On the CPU, a vmapped batch of these fits needs jaxlib 0.10.2's XLA:CPU scheduler
+    workaround, which `import accel_jax` sets (see `accel_jax._runtime`).
     """
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"max_steps must be a positive Python int, got {max_steps!r}.")
-    warn_if_cpu_scheduler_unsafe("fit_sensing_element")
     omega_d = element.damped_frequency
     if initial_guess is None:
         initial_guess = ml_estimate(ts, samples, omega_d, covariance, mask=mask)

@@ -48,10 +48,10 @@ def main(ctx):
     `identify` of a record of the same kind starts faster ($ACCEL_JAX_CACHE_DIR moves it,
     `off` disables it).
     """
-    from ._xla import apply_cpu_workarounds, enable_compilation_cache, quiet_xla_logs
+    from ._runtime import enable_compilation_cache, quiet_xla_logs
 
+    # The XLA:CPU deadlock workaround was applied by `import accel_jax` (see _runtime.py).
     quiet_xla_logs()  # no XLA log lines on the user's terminal (unless they ask)
-    apply_cpu_workarounds()  # before any subcommand starts JAX's backend
     if ctx.invoked_subcommand != "report":  # report has its own --compile-cache switch
         # Single records are compile-bound: a second `diagnose` of a step record took
         # 10.8 s instead of 17.4 s with the cache warm (2-core CPU).
@@ -117,7 +117,7 @@ def report(
     Interrupted runs resume: a study that finished with the same options and code is not
     redone. Nothing is deleted unless --force.
     """
-    from ._xla import apply_fast_compile, enable_compilation_cache
+    from ._runtime import apply_fast_compile, enable_compilation_cache
 
     if quick:
         # Before anything starts JAX's backend: the quick report is compile-bound (most of
@@ -432,7 +432,7 @@ def identify(file: Path, params_file, method, gamma, json_out, force):
     # δK_a at the 0.1 % level and crossing times to 1e-9 s are below float32 resolution.
     jax.config.update("jax_enable_x64", True)
     from ._data import DataError, NominalDevice, read_csv, read_params_toml
-    from ._identify_record import identify_step_record
+    from ._identify.step_record import identify_step_record
     from ._io import write_json_atomic
 
     _writable(json_out, force, "--json")

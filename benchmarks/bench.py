@@ -42,12 +42,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import baselines  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax._fast import (  # noqa: E402
+from accel_jax._identify import (  # noqa: E402
+    _weighted_moments,  # noqa: E402
     default_chunk_size,
-    fast_step_response,
     monte_carlo_oscillatory,
 )
-from accel_jax._identify import _weighted_moments  # noqa: E402
+from accel_jax._simulate import fast_step_response  # noqa: E402
+from accel_jax.report import provenance, write_json_atomic  # noqa: E402
 
 SAMPLE_RATE = 1e6  # Hz
 DURATION = 5e-3  # s (the workload; δK_a is biased by the short tail, see notes)
@@ -677,11 +678,9 @@ def main(argv=None):
         "gradient_le_4_forward": result["gradient"]["grad_over_forward"] <= 4,
     }
     result["wall_s"] = time.perf_counter() - started
-    result["provenance"] = aj.provenance(
-        seeds={"draws": [0, 1, 2, 3, 4, 5, 6]}, precision="float64"
-    )
+    result["provenance"] = provenance(seeds={"draws": [0, 1, 2, 3, 4, 5, 6]}, precision="float64")
     out = Path(args.out)
-    aj.write_json_atomic(out / "result.json", result)
+    write_json_atomic(out / "result.json", result)
     print()
     print(_table(result))
     print(f"\nprofile of (1), µs per trajectory (vmapped, N = {mc['profile_batch']}):")

@@ -37,6 +37,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
+from accel_jax.report import save_figure_atomic  # noqa: E402
 
 # %% [markdown]
 # ## Inputs
@@ -226,7 +227,7 @@ axes[1].set_title("this unit along the flight profile")
 axes[1].legend(fontsize=8)
 axes[1].grid(alpha=0.3)
 fig.tight_layout()
-aj.save_figure_atomic(fig, "design_tolerance.png")
+save_figure_atomic(fig, "design_tolerance.png")
 fig
 
 # %% [markdown]

@@ -21,17 +21,18 @@ INS covariances spanning 1e-15..1).
 
 from __future__ import annotations
 
-import argparse
 import functools
+import sys
 import time
 from pathlib import Path
 
+import equinox as eqx  # noqa: E402
 import jax
 
+# Run as a script: float64 before the module's constants are built, as in the report's
+# workers (imported by the report, this changes nothing: the report chose already).
 if __name__ == "__main__":
-    jax.config.update("jax_enable_x64", True)  # a study script's own choice, see docstring
-
-import equinox as eqx  # noqa: E402
+    jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
@@ -60,6 +61,14 @@ from accel_jax import (  # noqa: E402
     scale_noise_coefficients,
     select_noise_model,
     simulate_noise,
+)
+from accel_jax._runtime import fast_compile  # noqa: E402
+from accel_jax.report import (  # noqa: E402
+    provenance,
+    save_figure_atomic,
+    study_main,
+    study_run,
+    write_json_atomic,
 )
 
 STUDY = "noise_identification"
@@ -400,6 +409,7 @@ def allan_case(n: int, key) -> dict:
 # --- the study -------------------------------------------------------------------------
 
 
+@study_run(compile_bound_when_quick=False)
 def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict."""
     out_dir = Path(out_dir)
@@ -411,10 +421,10 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     rec = recovery(runs, n, k_rec)
     timing = {"recovery": time.perf_counter() - started}
     # --quick is compile-bound after the recovery batch: the rest compiles with most XLA
-    # optimisations off (accel_jax.fast_compile). Measured on the 2-core CPU, quick, cache
+    # optimisations off (accel_jax._runtime.fast_compile). Measured on the 2-core CPU, quick, cache
     # off: structure 14.6 → 7.5, Kalman 9.9 → 6.2, Allan 3.9 → 1.7 CPU-s; the recovery
     # batch of ML fits runs longer so (15.1 → 17.7) and keeps the default.
-    with aj.fast_compile(quick):
+    with fast_compile(quick):
         structure = structure_case(1200 if quick else 5000, k_sel, quick)
         timing["structure"] = time.perf_counter() - started
         kal, traces = kalman_study(
@@ -470,7 +480,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             "ins_prior": "ΔV ~ N(0, 0.1² m²/s²), δ ~ N(0, 1e-4² rad²), sensors at their stationary variance",
             "precision": "float64",
         },
-        "provenance": aj.provenance(
+        "provenance": provenance(
             seeds={"root": seed},
             precision="float64",
             extra={
@@ -485,7 +495,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     timing["figures"] = time.perf_counter() - started
     result["provenance"]["wall_time_s"] = time.perf_counter() - started
     result["provenance"]["cumulative_time_s"] = timing
-    aj.write_json_atomic(out_dir / "result.json", result)
+    write_json_atomic(out_dir / "result.json", result)
     return result
 
 
@@ -580,7 +590,7 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
         ax.tick_params(axis="x", labelsize=8)
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "recovery.png")
+    save_figure_atomic(fig, out_dir / "recovery.png")
     plt.close(fig)
     figures.append(
         {
@@ -618,7 +628,7 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
     axes[1].legend()
     axes[1].grid(alpha=0.3)
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "structure_fig3.png")
+    save_figure_atomic(fig, out_dir / "structure_fig3.png")
     plt.close(fig)
     table = {row["structure"]: row for row in structure["table"]}
     figures.append(
@@ -658,7 +668,7 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "kalman_fig4_fig5.png")
+    save_figure_atomic(fig, out_dir / "kalman_fig4_fig5.png")
     plt.close(fig)
     kal = result["kalman"]
     figures.append(
@@ -695,7 +705,7 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "allan.png")
+    save_figure_atomic(fig, out_dir / "allan.png")
     plt.close(fig)
     figures.append(
         {
@@ -711,18 +721,9 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
     return figures
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    if args.quick:
-        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
-    result = run(args.out, quick=args.quick)
-    for row in result["summary"]:
-        print(f"{row['quantity']}: {row['ours']} (paper {row['paper']})")
-    print(f"written: {args.out / 'result.json'}")
+def main(argv=None) -> int:
+    return study_main(run, __file__, __doc__, argv=argv)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -14,16 +14,18 @@ Writes OUT/result.json and PNG figures. Run: `python studies/scale_factor_identi
 
 from __future__ import annotations
 
-import argparse
 import functools
+import sys
 import time
 from pathlib import Path
 
+import equinox as eqx  # noqa: E402
 import jax
 
-jax.config.update("jax_enable_x64", True)  # a study script's own choice, see docstring
-
-import equinox as eqx  # noqa: E402
+# Run as a script: float64 before the module's constants are built, as in the report's
+# workers (imported by the report, this changes nothing: the report chose already).
+if __name__ == "__main__":
+    jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
@@ -32,6 +34,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
+from accel_jax._runtime import fast_compile  # noqa: E402
+from accel_jax.report import (  # noqa: E402
+    provenance,
+    save_figure_atomic,
+    study_main,
+    study_run,
+    write_json_atomic,
+)
 
 STUDY = "scale_factor_identification"
 
@@ -232,6 +242,7 @@ def _devices(params: aj.ServoParams | None) -> tuple[aj.ServoParams, aj.ServoPar
     return (params, twin, label) if xi < 1 else (twin, params, label)
 
 
+@study_run(compile_bound_when_quick=False)
 def run(
     out_dir: Path,
     *,
@@ -253,11 +264,11 @@ def run(
     ref, ref_ap, device_label = _devices(params)
     gain_true = float(ref.pickoff_gain * ref.amplifier_gain)
     # --quick is compile-bound: the parts that compile programs to run them once or on a few
-    # records compile with most XLA optimisations off (accel_jax.fast_compile); the Monte
+    # records compile with most XLA optimisations off (accel_jax._runtime.fast_compile); the Monte
     # Carlo kernels (headline, sweeps), run on many chunks, keep the default. Measured on
     # the 2-core CPU, quick, cache off: 59 → 42 CPU-s (the sweeps alone, if compiled
     # fast too, take 26 CPU-s instead of 12).
-    fast = functools.partial(aj.fast_compile, quick)
+    fast = functools.partial(fast_compile, quick)
     with fast():
         gain_stops = float(identify_pickoff_gain(ref, key=k_stop))
     gamma_exact = float(aj.shape_factor(ref))
@@ -342,7 +353,7 @@ def run(
             "dKa_definition": "100·(K̂_a − K_a)/K̂_a",
             "device": device_label,
         },
-        "provenance": aj.provenance(
+        "provenance": provenance(
             seeds={"root": seed},
             precision="float64",
             extra={
@@ -360,7 +371,7 @@ def run(
     result["summary"] = _summary_rows(result)
     result["figures"] = make_figures(out_dir, result, ref, gain_true, gamma_exact, ts_osc)
     result["provenance"]["wall_time_s"] = time.perf_counter() - started
-    aj.write_json_atomic(out_dir / "result.json", result)
+    write_json_atomic(out_dir / "result.json", result)
     return result
 
 
@@ -892,7 +903,7 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     _panel(axes[2], osc["torquer_time_constant_s"], "torquer time constant T_dm [s]", **common)
     fig.suptitle("Oscillatory method: δK_a vs ξ, noise, T_dm (cf. paper Fig. 3)")
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "fig3_oscillatory_sweeps.png")
+    save_figure_atomic(fig, out_dir / "fig3_oscillatory_sweeps.png")
     plt.close(fig)
     figures.append(
         {
@@ -933,7 +944,7 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     axes[2].legend(fontsize=8)
     fig.suptitle("Aperiodic method: δK_a vs T1/2T2, noise, T_dm (cf. paper Fig. 5)")
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "fig5_aperiodic_sweeps.png")
+    save_figure_atomic(fig, out_dir / "fig5_aperiodic_sweeps.png")
     plt.close(fig)
     figures.append(
         {
@@ -960,7 +971,7 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     ax.legend()
     ax.grid(alpha=0.3, axis="x")
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "decomposition.png")
+    save_figure_atomic(fig, out_dir / "decomposition.png")
     plt.close(fig)
     figures.append(
         {
@@ -974,20 +985,26 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     return figures
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--params", type=Path, default=None, help="device TOML (default: SPEC.md)")
-    args = parser.parse_args(argv)
-    if args.quick:
-        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
-    params = aj.read_params_toml(args.params).params if args.params else None
-    result = run(args.out, quick=args.quick, params=params)
-    for row in result["summary"]:
-        print(f"{row['quantity']}: {row['ours']} (paper {row['paper']})")
-    print(f"written: {args.out / 'result.json'}")
+def main(argv=None) -> int:
+    def add_arguments(parser):
+        parser.add_argument(
+            "--params", type=Path, default=None, help="device TOML (default: SPEC.md)"
+        )
+
+    def options(args):
+        if args.params is None:
+            return {}, {}
+        try:
+            params = aj.read_params_toml(args.params).params
+        except aj.DataError as error:
+            sys.exit(f"{args.params}: {error}")
+        fields = {k: float(v) for k, v in params.as_dict().items()}
+        return {"params": params}, {"params": fields}
+
+    return study_main(
+        run, __file__, __doc__, argv=argv, add_arguments=add_arguments, options=options
+    )
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -20,12 +20,17 @@ Writes OUT/result.json and PNG figures. Run: `python studies/sensing_element_ml.
 
 from __future__ import annotations
 
-import argparse
 import functools
+import sys
 import time
 from pathlib import Path
 
 import jax
+
+# Run as a script: float64 before the module's constants are built, as in the report's
+# workers (imported by the report, this changes nothing: the report chose already).
+if __name__ == "__main__":
+    jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import matplotlib
 import numpy as np
@@ -47,6 +52,13 @@ from accel_jax import (  # noqa: E402
     sample_sensing_element,
     sample_times,
     state_basis,
+)
+from accel_jax.report import (  # noqa: E402
+    provenance,
+    save_figure_atomic,
+    study_main,
+    study_run,
+    write_json_atomic,
 )
 
 STUDY = "sensing_element_ml"
@@ -384,6 +396,7 @@ def _summary_rows(result):
     return rows
 
 
+@study_run(compile_bound_when_quick=False)
 def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict."""
     out_dir = Path(out_dir)
@@ -477,14 +490,14 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             "α(0), α'(0) with ω0 and ξ known, started from the linear estimate",
             "precision": "float64",
         },
-        "provenance": aj.provenance(
+        "provenance": provenance(
             seeds={"study": seed}, precision="float64", extra={"quick": quick}
         ),
     }
     result["summary"] = _summary_rows(result)
     result["figures"] = make_figures(out_dir, result)
     result["provenance"]["wall_time_s"] = time.perf_counter() - started
-    aj.write_json_atomic(out_dir / "result.json", result)
+    write_json_atomic(out_dir / "result.json", result)
     return result
 
 
@@ -514,7 +527,7 @@ def make_figures(out_dir, result):
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "error_vs_amplitude.png")
+    save_figure_atomic(fig, out_dir / "error_vs_amplitude.png")
     plt.close(fig)
     assume = result["assumptions"]
     figures.append(
@@ -542,7 +555,7 @@ def make_figures(out_dir, result):
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "error_vs_phase.png")
+    save_figure_atomic(fig, out_dir / "error_vs_phase.png")
     plt.close(fig)
     figures.append(
         {
@@ -575,7 +588,7 @@ def make_figures(out_dir, result):
     axes[0, 0].legend(fontsize=6)
     fig.suptitle("A = 0.033 rad; other parameters at their nominal values")
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "sweeps.png")
+    save_figure_atomic(fig, out_dir / "sweeps.png")
     plt.close(fig)
     figures.append(
         {
@@ -587,20 +600,9 @@ def make_figures(out_dir, result):
     return figures
 
 
-def main(argv=None):
-    jax.config.update("jax_enable_x64", True)
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    if args.quick:
-        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
-    aj.apply_cpu_workarounds()  # before the batched fits start JAX (see accel_jax._xla)
-    result = run(args.out, quick=args.quick)
-    for row in result["summary"]:
-        print(f"{row['quantity']}: {row['ours']} ({row['note']})")
-    print(f"written: {args.out / 'result.json'}")
+def main(argv=None) -> int:
+    return study_main(run, __file__, __doc__, argv=argv)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

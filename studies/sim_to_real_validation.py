@@ -26,7 +26,6 @@ Writes OUT/result.json, OUT/truth.json, the datasets and PNG figures. Run:
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -34,12 +33,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import equinox as eqx  # noqa: E402
 import jax
 
+# Run as a script: float64 before the module's constants are built, as in the report's
+# workers (imported by the report, this changes nothing: the report chose already).
 if __name__ == "__main__":
-    jax.config.update("jax_enable_x64", True)  # a study script's own choice, see docstring
-
-import equinox as eqx  # noqa: E402
+    jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
@@ -49,6 +49,13 @@ import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
 from accel_jax import NoiseData, StepData, VibrationData, write_csv  # noqa: E402
+from accel_jax.report import (  # noqa: E402
+    provenance,
+    save_figure_atomic,
+    study_main,
+    study_run,
+    write_json_atomic,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402  (the independent truth simulator, beside this study)
@@ -504,8 +511,8 @@ def generate_noise(truths: list[dict], seed: int) -> list[NoiseData]:
 _DIAGNOSE_CODE = """
 import json, sys, pathlib, signal
 signal.signal(signal.SIGINT, lambda *_: sys.exit(130))  # Ctrl-C: quiet exit, no traceback
-from accel_jax import apply_cpu_workarounds, enable_compilation_cache
-apply_cpu_workarounds()
+import accel_jax  # applies the XLA:CPU deadlock workaround (accel_jax._runtime)
+from accel_jax._runtime import enable_compilation_cache
 enable_compilation_cache()  # $ACCEL_JAX_CACHE_DIR as the parent process had it
 import jax
 jax.config.update("jax_enable_x64", True)
@@ -795,7 +802,7 @@ def _figures(out_dir, result, lag_rows):
     ax.set_title("lag datasets: verdict vs magnitude")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    aj.save_figure_atomic(fig, out_dir / "validation.png")
+    save_figure_atomic(fig, out_dir / "validation.png")
     plt.close(fig)
     figures.append(
         {
@@ -859,7 +866,7 @@ def _kind_figure(out_dir, kind, section, snr_label):
     ax.legend(fontsize=8)
     fig.tight_layout()
     name = f"validation_{kind}.png"
-    aj.save_figure_atomic(fig, out_dir / name)
+    save_figure_atomic(fig, out_dir / name)
     plt.close(fig)
     return name
 
@@ -1070,7 +1077,7 @@ def _open_world_figure(out_dir, kind, section, truths, verdicts, gaps) -> dict:
     ax.legend(fontsize=8)
     fig.tight_layout()
     name = f"validation_{kind}.png"
-    aj.save_figure_atomic(fig, out_dir / name)
+    save_figure_atomic(fig, out_dir / name)
     plt.close(fig)
     return {
         "file": name,
@@ -1087,10 +1094,10 @@ def _open_world_figure(out_dir, kind, section, truths, verdicts, gaps) -> dict:
 
 
 # A quick run is compile-bound throughout and compiles with most XLA optimisations off
-# (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: the dataset
+# (study_run(compile_bound_when_quick=True); measured on the 2-core CPU, quick, cache off: the dataset
 # simulation, ~55 programs, 13 → 9 CPU-s). The blind diagnosis, run-bound, runs in its own
 # process at the default optimisation.
-@aj.fast_compile_when_quick
+@study_run(compile_bound_when_quick=True)
 def run(
     out_dir: Path,
     *,
@@ -1105,7 +1112,6 @@ def run(
     `kinds`: which kinds to validate; `per_class`: datasets per class (overrides the
     defaults, e.g. for a larger run); `large`: `PER_CLASS_LARGE` (≥ 100 per kind of
     dataset, run by hand)."""
-    jax.config.update("jax_enable_x64", True)  # the truth simulators work in float64
     out_dir = Path(out_dir)
     started = time.perf_counter()
     timing = {}
@@ -1144,7 +1150,7 @@ def run(
             raise RuntimeError(
                 f"the diagnosis returned verdicts for other {kind} files than were written"
             )
-    aj.write_json_atomic(
+    write_json_atomic(
         out_dir / "truth.json",
         {kind: dict(zip(names[kind], truths[kind], strict=True)) for kind in kinds},
     )
@@ -1298,10 +1304,10 @@ def run(
                 "precision": "float64",
             },
             "timing_s": timing,
-            "provenance": aj.provenance(seeds={"study": seed}, precision="float64"),
+            "provenance": provenance(seeds={"study": seed}, precision="float64"),
         }
     )
-    aj.write_json_atomic(out_dir / "result.json", result)
+    write_json_atomic(out_dir / "result.json", result)
     return result
 
 
@@ -1343,25 +1349,40 @@ _GAP_NOTE = {
 }
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--large", action="store_true", help="≥ 100 datasets per kind (slow)")
-    parser.add_argument("--kinds", default=",".join(KINDS), help="comma-separated subset of kinds")
-    parser.add_argument("--per-class", type=int, default=None, help="datasets per class")
-    args = parser.parse_args(argv)
-    if args.quick:
-        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
-    kinds = tuple(k for k in args.kinds.split(",") if k)
-    unknown = [k for k in kinds if k not in KINDS]
-    if unknown:
-        parser.error(f"unknown kind(s) {unknown}; choose from {list(KINDS)}")
-    res = run(args.out, quick=args.quick, kinds=kinds, per_class=args.per_class, large=args.large)
-    print(json.dumps({k: res[k] for k in ("summary", "timing_s")}, indent=1, default=float))
-    for kind in kinds:
-        print(kind, json.dumps(res[kind]["confusion"], indent=1))
+def main(argv=None) -> int:
+    def add_arguments(parser):
+        parser.add_argument("--large", action="store_true", help="≥ 100 datasets per kind (slow)")
+        parser.add_argument(
+            "--kinds", default=",".join(KINDS), help="comma-separated subset of kinds"
+        )
+        parser.add_argument("--per-class", type=int, default=None, help="datasets per class")
+
+    def options(args):
+        kinds = tuple(k for k in args.kinds.split(",") if k)
+        unknown = [k for k in kinds if k not in KINDS]
+        if unknown:
+            sys.exit(f"unknown kind(s) {unknown}; choose from {list(KINDS)}")
+        run_kwargs = {"kinds": kinds, "per_class": args.per_class, "large": args.large}
+        defaults = {"kinds": KINDS, "per_class": None, "large": False}
+        key = {k: v for k, v in run_kwargs.items() if v != defaults[k]}
+        return run_kwargs, key
+
+    def summary(res):
+        print(json.dumps({k: res[k] for k in ("summary", "timing_s")}, indent=1, default=float))
+        for kind in res.get("kinds", KINDS):
+            if kind in res:
+                print(kind, json.dumps(res[kind]["confusion"], indent=1))
+
+    return study_main(
+        run,
+        __file__,
+        __doc__,
+        argv=argv,
+        add_arguments=add_arguments,
+        options=options,
+        summary=summary,
+    )
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -21,14 +21,16 @@ Writes OUT/result.json and PNG figures. Run: `python studies/table5_gap.py [--ou
 
 from __future__ import annotations
 
-import argparse
+import sys
 import time
 from pathlib import Path
 
 import jax
 
+# Run as a script: float64 before the module's constants are built, as in the report's
+# workers (imported by the report, this changes nothing: the report chose already).
 if __name__ == "__main__":
-    jax.config.update("jax_enable_x64", True)  # a study script's own choice, see docstring
+    jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -44,6 +46,13 @@ from accel_jax import (  # noqa: E402
     PPM,
     StaticTransferFunction,
     VibrationEnvironment,
+)
+from accel_jax.report import (  # noqa: E402
+    Figures,
+    provenance,
+    study_main,
+    study_run,
+    write_json_atomic,
 )
 
 STUDY = "table5_gap"
@@ -219,13 +228,8 @@ def analyse_unit(name: str) -> dict:
 
 
 def _figures(out_dir: Path, result: dict) -> list[dict]:
-    figures = []
-
-    def save(fig, file, caption):
-        fig.tight_layout()
-        aj.save_figure_atomic(fig, out_dir / file)
-        plt.close(fig)
-        figures.append({"file": file, "caption": caption})
+    figures = Figures(out_dir)
+    save = figures.save
 
     units = list(TABLE5)
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
@@ -315,14 +319,14 @@ def _figures(out_dir: Path, result: dict) -> list[dict]:
             "the one reading cannot."
         ),
     )
-    return figures
+    return figures.entries
 
 
+@study_run(compile_bound_when_quick=False)
 def run(out_dir: Path, *, quick: bool = False) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict. `quick`
     changes nothing (the study is closed-form); it is accepted for the report runner."""
     del quick
-    jax.config.update("jax_enable_x64", True)  # ppm-level differences of O(1 g) numbers
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -400,23 +404,20 @@ def run(out_dir: Path, *, quick: bool = False) -> dict:
     result["conclusions"] = conclusions
     result["figures"] = _figures(out_dir, result)
     result["timing_s"] = {"total": time.perf_counter() - started}
-    result["provenance"] = aj.provenance(precision="float64")
-    aj.write_json_atomic(out_dir / "result.json", result)
+    result["provenance"] = provenance(precision="float64")
+    write_json_atomic(out_dir / "result.json", result)
     return result
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    result = run(args.out, quick=args.quick)
-    for row in result["summary"]:
-        print(f"{row['quantity']}: {row['ours']:.4g} (paper {row['paper']})")
-    for line in result["conclusions"]:
-        print("-", line)
-    print(f"written: {args.out / 'result.json'}")
+def main(argv=None) -> int:
+    def summary(result):
+        for row in result["summary"]:
+            print(f"{row['quantity']}: {row['ours']:.4g} (paper {row['paper']})")
+        for line in result["conclusions"]:
+            print("-", line)
+
+    return study_main(run, __file__, __doc__, argv=argv, summary=summary)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

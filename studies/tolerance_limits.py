@@ -15,14 +15,20 @@ ppm-level differences of O(1 g) numbers.
 
 from __future__ import annotations
 
-import argparse
 import decimal
 import math
+import sys
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
+
+# Run as a script: float64 before the module's constants are built, as in the report's
+# workers (imported by the report, this changes nothing: the report chose already).
+if __name__ == "__main__":
+    jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx
 import jax.numpy as jnp
 import matplotlib
 import numpy as np
@@ -46,6 +52,13 @@ from accel_jax import (  # noqa: E402
     tactical_missile,
     unit_vibration_error,
     within_rms_region,
+)
+from accel_jax.report import (  # noqa: E402
+    Figures,
+    provenance,
+    study_main,
+    study_run,
+    write_json_atomic,
 )
 
 STUDY = "tolerance_limits"
@@ -441,12 +454,11 @@ def yield_study(key, name, sc, quick: bool) -> dict:
 
 
 # A quick run is compile-bound throughout and compiles with most XLA optimisations off
-# (accel_jax.fast_compile; measured on the 2-core CPU, quick, cache off: ~120 programs, most
+# (study_run(compile_bound_when_quick=True); measured on the 2-core CPU, quick, cache off: ~120 programs, most
 # run once: 9.4 → 7.4 CPU-s).
-@aj.fast_compile_when_quick
+@study_run(compile_bound_when_quick=True)
 def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict."""
-    jax.config.update("jax_enable_x64", True)  # the study's own choice, see docstring
     out_dir = Path(out_dir)
     started = time.perf_counter()
     k_region, k_yield = jax.random.split(jax.random.key(seed), 2)
@@ -514,14 +526,12 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             "(A1, k2..k5, m31 and m32 independently), random signs; exact vibration error "
             f"with {YIELD_PHASES} phases × 6 Gauss-Hermite nodes at every 10th profile point",
         },
-        "provenance": aj.provenance(
-            seeds={"root": seed}, precision="float64", extra={"quick": quick}
-        ),
+        "provenance": provenance(seeds={"root": seed}, precision="float64", extra={"quick": quick}),
     }
     result["summary"] = _summary(result)
     result["figures"] = make_figures(out_dir, result, scenarios, arrays, samples)
     result["provenance"]["wall_time_s"] = time.perf_counter() - started
-    aj.write_json_atomic(out_dir / "result.json", result)
+    write_json_atomic(out_dir / "result.json", result)
     return result
 
 
@@ -578,14 +588,9 @@ def _summary(r) -> list:
 
 
 def make_figures(out_dir, r, scenarios, arrays, samples) -> list:
-    figures = []
     out_dir.mkdir(parents=True, exist_ok=True)
-
-    def save(fig, file, caption):
-        fig.tight_layout()
-        aj.save_figure_atomic(fig, out_dir / file)
-        plt.close(fig)
-        figures.append({"file": file, "caption": caption})
+    figures = Figures(out_dir)
+    save = figures.save
 
     # 1. Table 2: paper vs ours vs gradient.
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
@@ -753,21 +758,12 @@ def make_figures(out_dir, r, scenarios, arrays, samples) -> list:
         "forms (moments of sine + Gaussian vibration), along the Cyclone-4 profile; right: "
         "relative difference (float64 rounding).",
     )
-    return figures
+    return figures.entries
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out") / STUDY)
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    if args.quick:
-        aj.apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
-    result = run(args.out, quick=args.quick)
-    for row in result["summary"]:
-        print(f"{row['quantity']}: {row['ours']} (paper {row['paper']})")
-    print(f"written: {args.out / 'result.json'}")
+def main(argv=None) -> int:
+    return study_main(run, __file__, __doc__, argv=argv)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

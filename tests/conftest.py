@@ -2,11 +2,9 @@
 machine-precision agreement between simulators — need it). This is the test suite's
 choice; the library itself never changes JAX's global settings."""
 
-from accel_jax._xla import apply_cpu_workarounds
-
-apply_cpu_workarounds()  # XLA:CPU scheduler deadlock on batched nested loops (see _xla.py)
-
 import os  # noqa: E402
+
+import accel_jax  # noqa: F401  (applies the XLA:CPU deadlock workaround; see _runtime.py)
 
 # Hermetic timings: the report's persistent compilation cache stays off in the tests unless
 # the caller chose a folder (tests/test_xla.py checks the cache itself in a subprocess).
@@ -18,21 +16,87 @@ jax.config.update("jax_enable_x64", True)
 
 import fcntl  # noqa: E402
 import json  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+
+# Quick-run order of the study scripts: the longest first, so that two side by side finish
+# close together (measured quick wall times on the 2-core CPU, one core each).
+_QUICK_ORDER = (
+    "sim_to_real_validation",
+    "scale_factor_identification",
+    "sensing_element_ml",
+    "noise_identification",
+    "vibration_compensation",
+    "tolerance_limits",
+    "table5_gap",
+)
+_SCRIPT_TIMEOUT_S = 900  # a study that hangs (the XLA:CPU deadlock) fails instead
+
+
+def _run_study_scripts(root: Path, names, jobs: int = 2) -> dict:
+    """Run each study as a user would — `python studies/<name>.py --quick --out ROOT/<name>`
+    in a fresh process — `jobs` at a time, each pinned to its share of the CPUs as the
+    report's workers are. Returns {name: {"returncode", "seconds", "output"}}."""
+    import subprocess
+    import sys
+    import time
+
+    from accel_jax._runtime import usable_cpus
+    from accel_jax.report._run import worker_cpus
+
+    studies_dir = Path(__file__).resolve().parent.parent / "studies"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # as a user's shell
+    status, running, queue = {}, {}, list(names)
+    free = list(range(1, jobs + 1))
+    while queue or running:
+        while queue and free:
+            name, slot = queue.pop(0), free.pop(0)
+            share = worker_cpus(slot, jobs, usable_cpus())
+            log = open(root / f"{name}.log", "w+")  # noqa: SIM115
+            command = [sys.executable, str(studies_dir / f"{name}.py"), "--quick"]
+            proc = subprocess.Popen(
+                [*command, "--out", str(root / name)],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+                preexec_fn=(lambda s=share: os.sched_setaffinity(0, s)) if share else None,
+            )
+            running[name] = (proc, slot, log, time.monotonic())
+        time.sleep(0.5)
+        for name, (proc, slot, log, started) in list(running.items()):
+            elapsed = time.monotonic() - started
+            if proc.poll() is None and elapsed < _SCRIPT_TIMEOUT_S:
+                continue
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            log.seek(0)
+            status[name] = {
+                "returncode": proc.returncode,
+                "seconds": round(elapsed, 1),
+                "output": log.read()[-4000:],
+            }
+            log.close()
+            del running[name]
+            free.append(slot)
+    return status
 
 
 @pytest.fixture(scope="session")
 def quick_report(tmp_path_factory, worker_id):
-    """`accel-jax report --quick` run once per test session and shared by every test (and
-    every pytest-xdist worker: the first to arrive runs it under a file lock, the others
-    wait and reuse it). Returns the report folder; each study's output is beside it.
+    """The quick report, made once per test session and shared by every test (and every
+    pytest-xdist worker: the first to arrive makes it under a file lock, the others wait
+    and reuse it). Returns the report folder; each study's output is beside it.
 
-    The studies' own tests read their results from here instead of running each study a
-    second time."""
+    Made as a user would: each study script runs alone in a fresh process (`--quick`,
+    `_run_study_scripts`), then `accel-jax report --quick` assembles the report, reusing
+    those runs (same folder, marker and cache key). The studies' own tests read their
+    results from here instead of running each study a second time; the script runs'
+    exit codes and times are in `study_scripts` of `quick_report.done`."""
     from click.testing import CliRunner
 
-    from accel_jax.cli import main
+    from accel_jax.cli import STUDIES, main
 
     base = tmp_path_factory.getbasetemp()
     shared = base.parent if worker_id != "master" else base
@@ -42,11 +106,21 @@ def quick_report(tmp_path_factory, worker_id):
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             if not done.exists():
+                out.parent.mkdir(parents=True, exist_ok=True)
+                names = [n for n in _QUICK_ORDER if n in STUDIES]
+                names += [n for n in STUDIES if n not in names]
+                scripts = _run_study_scripts(out.parent, names)
                 result = CliRunner().invoke(
                     main, ["report", "--quick", "--no-progress", "--out", str(out)]
                 )
                 done.write_text(
-                    json.dumps({"exit_code": result.exit_code, "output": result.output})
+                    json.dumps(
+                        {
+                            "exit_code": result.exit_code,
+                            "output": result.output,
+                            "study_scripts": scripts,
+                        }
+                    )
                 )
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)

@@ -4,6 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import accel_jax
+
 
 def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8):
     """True when two pytrees have the same structure and all leaves are close."""
@@ -29,3 +31,21 @@ def study_result(report_dir, study: str):
 
     folder = Path(report_dir).parent / study
     return folder, json.loads((folder / "result.json").read_text())
+
+
+def drawn_devices(size, seed):
+    """A batch of `ServoParams`: devices with J, μ, c, k_dm, T_dm, T_f drawn ±3 % (1σ) around the reference."""
+    reference = accel_jax.ServoParams.reference()
+    rng = np.random.default_rng(seed)
+    fields = {name: np.full(size, value) for name, value in accel_jax.REFERENCE_VALUES.items()}
+    for name in (
+        "moment_of_inertia",
+        "damping",
+        "stiffness",
+        "torquer_gain",
+        "torquer_time_constant",
+        "filter_time_constant",
+    ):
+        fields[name] = fields[name] * (1 + 0.03 * rng.standard_normal(size))
+    del reference
+    return accel_jax.ServoParams(**{k: jnp.asarray(v) for k, v in fields.items()})

@@ -16,6 +16,7 @@ from scipy import stats
 
 import accel_jax as aj
 from accel_jax._data import StepData, write_csv
+from accel_jax._simulate.sequence import linear_record
 from accel_jax.cli import main
 from accel_jax.diagnose import (
     CandidateFit,
@@ -24,7 +25,6 @@ from accel_jax.diagnose import (
     ljung_box,
     rank_candidates,
 )
-from accel_jax.diagnose.step_model import linear_record
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -361,34 +361,6 @@ def test_cli_bad_input_one_line_nonzero_exit(tmp_path):
 
 
 # --- the study ----------------------------------------------------------------------------
-
-
-@pytest.mark.slow
-def test_validation_study_quick(quick_report):
-    from helpers import study_result
-
-    tmp_path, saved = study_result(quick_report, "sim_to_real_validation")
-    assert set(saved) >= {
-        "title",
-        "summary",
-        "figures",
-        "assumptions",
-        "provenance",
-        "step",
-        "step_independent",
-    }
-    step = saved["step"]
-    assert step["n_datasets"] == 18 and sum(step["n_per_class"].values()) == 18
-    assert step["false_alarm_rate"] <= 1 / 3
-    assert step["accuracy_incl_cannot_tell_naming_truth"] >= 0.6
-    assert step["false_assurance"] == 0
-    independent = saved["step_independent"]
-    assert independent["n_datasets"] == 9 and independent["false_assurance"] == 0
-    assert independent["out_of_library_unexplained_rate"] >= 2 / 3
-    rows = {row["quantity"] for row in saved["summary"]}
-    assert any("false assurance" in q for q in rows) and any("out-of-library" in q for q in rows)
-    for figure in saved["figures"]:
-        assert (tmp_path / figure["file"]).exists() and figure["caption"]
 
 
 def test_torquer_lag_and_output_filter_fit_a_step_record_exactly_alike():

@@ -16,7 +16,6 @@ from helpers import central_difference
 
 from accel_jax._identify import (
     IdentificationResult,
-    _third_order_step,
     fit_step_response,
     identify_aperiodic,
     identify_oscillatory,
@@ -25,6 +24,7 @@ from accel_jax._identify import (
     scale_factor_from_fit,
     second_order_step,
 )
+from accel_jax._simulate.modal import _third_order_step
 
 R = IdentificationResult
 # The reference device (SPEC.md §1): T ≈ 2.90e-4 s, ξ ≈ 0.52; aperiodic ξ ≈ 2.07.

@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 import accel_jax as aj
 from accel_jax.cli import main
+from accel_jax.report import write_json_atomic
 
 
 def test_import_does_not_change_jax_config():
@@ -39,7 +40,7 @@ def test_cli_unknown_command_is_a_clear_error():
 
 
 def test_write_json_atomic(tmp_path):
-    path = aj.write_json_atomic(
+    path = write_json_atomic(
         tmp_path / "a" / "r.json", {"x": np.float64(1.5), "v": np.arange(3), "n": float("nan")}
     )
     assert json.loads(path.read_text()) == {"x": 1.5, "v": [0, 1, 2], "n": None}
@@ -52,29 +53,121 @@ def test_atomic_writes_get_the_usual_permissions(tmp_path):
 
     old = os.umask(0o022)
     try:
-        path = aj.write_json_atomic(tmp_path / "r.json", {"x": 1})
+        path = write_json_atomic(tmp_path / "r.json", {"x": 1})
     finally:
         os.umask(old)
     assert path.stat().st_mode & 0o777 == 0o644
 
 
 def test_write_json_atomic_keeps_old_file_on_failure(tmp_path):
-    path = aj.write_json_atomic(tmp_path / "r.json", {"x": 1})
+    path = write_json_atomic(tmp_path / "r.json", {"x": 1})
     with pytest.raises(TypeError):
-        aj.write_json_atomic(path, {"x": object()})
+        write_json_atomic(path, {"x": object()})
     assert json.loads(path.read_text()) == {"x": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
 
 
 def test_studies_and_notebooks_use_only_the_public_api():
     # STYLE.md: studies and notebooks import `accel_jax` (and its subpackages such as
-    # `accel_jax.diagnose`), never the private modules `accel_jax._*`.
+    # `accel_jax.diagnose`, `accel_jax.report`), never the private modules `accel_jax._*` —
+    # except the process-level runtime module, which the entry points (CLI, study scripts,
+    # tests, benchmarks) use by design (docs/architecture.md).
     import pathlib
     import re
 
     root = pathlib.Path(__file__).resolve().parent.parent
     scripts = sorted((root / "studies").glob("*.py")) + sorted((root / "notebooks").glob("*.py"))
     assert scripts
-    private = re.compile(r"^\s*(from|import)\s+accel_jax\._", re.MULTILINE)
+    private = re.compile(r"^\s*(from|import)\s+accel_jax\._(?!runtime\b)", re.MULTILINE)
     offenders = [p.name for p in scripts if private.search(p.read_text())]
+    runtime = re.compile(r"^\s*(from|import)\s+accel_jax\._runtime", re.MULTILINE)
+    assert not [
+        p.name for p in sorted((root / "notebooks").glob("*.py")) if runtime.search(p.read_text())
+    ]
     assert offenders == []
+
+
+# The layers of docs/architecture.md, lowest first; a module may import its own layer's
+# foundations and lower layers only; within the foundations and within the entry points
+# freely, within the estimation layer only as listed.
+_LAYERS = {
+    "foundations": ("_params", "_checks", "_data", "_io", "_progress", "_runtime"),
+    "models": ("_servo", "_static", "_pendulum"),
+    "simulation": ("_simulate",),
+    "estimation": (
+        "_identify",
+        "_ml_estimate",
+        "_noise",
+        "_kalman",
+        "_vibration",
+        "_tolerance",
+        "_sweep",
+    ),
+    "diagnosis": ("diagnose",),
+    "entry": ("cli", "report", ""),
+}
+_SAME_LAYER = {("_noise", "_kalman"), ("_tolerance", "_vibration")}
+# Upward imports inside functions, each for one name: the package version for provenance,
+# and whether the user set XLA's log level before `import accel_jax`.
+_UPWARD = {("_io", ""): "__version__", ("_runtime", ""): "_USER_SET_XLA_LOG_LEVEL"}
+
+
+def _internal_imports():
+    """{unit: {unit it imports: [names]}} over accel_jax's modules, a unit being a top-level
+    module or subpackage ('' for the package's __init__)."""
+    import ast
+    import pathlib
+
+    root = pathlib.Path(aj.__file__).resolve().parent
+    graph = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        unit = "" if parts == ["__init__"] else parts[0]
+        package = parts[:-1] if parts[-1] != "__init__" else parts[:-1]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                target = base + (node.module.split(".") if node.module else [])
+            elif node.module and node.module.split(".")[0] == "accel_jax":
+                target = node.module.split(".")[1:]
+            else:
+                continue
+            other = target[0] if target else ""
+            if other != unit:
+                names = [alias.name for alias in node.names]
+                graph.setdefault(unit, {}).setdefault(other, []).extend(names)
+    return graph
+
+
+def test_import_layers():
+    rank = {unit: i for i, units in enumerate(_LAYERS.values()) for unit in units}
+    graph = _internal_imports()
+    assert set(graph) <= set(rank), set(graph) - set(rank)  # every unit has a layer
+    wrong = []
+    for unit, targets in graph.items():
+        for other, names in targets.items():
+            if (unit, other) in _UPWARD:
+                assert set(names) == {_UPWARD[unit, other]}, (unit, other, names)
+                continue
+            # Foundations and entry points may use each other within their layer.
+            open_layer = rank[unit] == rank[other] in (0, rank["cli"])
+            if rank[other] < rank[unit] or open_layer or (unit, other) in _SAME_LAYER:
+                continue
+            wrong.append(f"{unit or 'accel_jax'} imports {other or 'accel_jax'} {names}")
+    assert wrong == []
+    # Process settings stay with the entry points (and the package's import-time hook).
+    for unit, targets in graph.items():
+        if "_runtime" in targets and rank[unit] not in (0, rank["cli"]):
+            wrong.append(f"{unit} imports _runtime {targets['_runtime']}")
+    assert wrong == []
+
+
+def test_import_layers_catch_an_upward_import(monkeypatch):
+    """The layer check itself: a model importing the diagnosis is reported."""
+    graph = _internal_imports()
+    graph.setdefault("_servo", {})["diagnose"] = ["diagnose"]
+    monkeypatch.setattr(sys.modules[__name__], "_internal_imports", lambda: graph)
+    with pytest.raises(AssertionError, match="_servo imports diagnose"):
+        test_import_layers()

@@ -5,6 +5,7 @@ import textwrap
 
 import pytest
 
+from accel_jax.report import write_json_atomic
 from accel_jax.report._html import REPORT_MARKER
 from accel_jax.report._run import MARKER, ReportError, run_report
 
@@ -13,7 +14,7 @@ FAKE_STUDY = textwrap.dedent(
     import json
     from pathlib import Path
 
-    import accel_jax as aj
+    from accel_jax.report import write_json_atomic
 
     def run(out_dir, *, quick=False):
         out_dir = Path(out_dir)
@@ -22,7 +23,7 @@ FAKE_STUDY = textwrap.dedent(
         if (out_dir.parent / "interrupt").exists():
             (out_dir / "partial.txt").write_text("half")
             raise KeyboardInterrupt
-        aj.write_json_atomic(out_dir / "result.json", {"title": "fake", "quick": quick})
+        write_json_atomic(out_dir / "result.json", {"title": "fake", "quick": quick})
         return {}
     """
 )
@@ -101,11 +102,11 @@ PARAMS_STUDY = textwrap.dedent(
     """
     from pathlib import Path
 
-    import accel_jax as aj
+    from accel_jax.report import write_json_atomic
 
     def run(out_dir, *, quick=False, params=None):
         damping = None if params is None else float(params.damping)
-        aj.write_json_atomic(Path(out_dir) / "result.json", {"title": "p", "damping": damping})
+        write_json_atomic(Path(out_dir) / "result.json", {"title": "p", "damping": damping})
         return {}
     """
 )
@@ -146,13 +147,13 @@ WORKER_STUDY = textwrap.dedent(
     import jax
     import jax.numpy as jnp
 
-    import accel_jax as aj
+    from accel_jax.report import write_json_atomic
 
     def run(out_dir, *, quick=False, params=None):
         key = jax.random.key(len(Path(out_dir).name))  # the study seeds itself
         value = jnp.sum(jax.random.normal(key, (1000,), jnp.float64 if
                         jax.config.jax_enable_x64 else jnp.float32) ** 2)
-        aj.write_json_atomic(Path(out_dir) / "result.json", {
+        write_json_atomic(Path(out_dir) / "result.json", {
             "title": "w", "pid": os.getpid(), "x64": bool(jax.config.jax_enable_x64),
             "value": float(value), "damping": None if params is None else float(params.damping),
         })
@@ -265,12 +266,11 @@ def test_cli_report_rejects_a_bad_jobs_value(tmp_path, jobs):
 
 
 def test_overview_collects_published_numbers_tolerances_and_validation(tmp_path):
-    import accel_jax as aj
     from accel_jax.report._html import build_report
 
     def study(name, payload):
         folder = tmp_path / name
-        aj.write_json_atomic(folder / "result.json", {"title": name, **payload})
+        write_json_atomic(folder / "result.json", {"title": name, **payload})
         return folder
 
     limits = {k: 1.0 for k in ("A1", "k2", "k3", "k4", "k5", "m")}
@@ -375,7 +375,7 @@ def test_side_by_side_workers_get_disjoint_cpu_shares():
 
 
 def test_usable_cpus_follow_the_affinity_mask(monkeypatch):
-    from accel_jax import _xla
+    from accel_jax import _runtime as _xla
 
     monkeypatch.setattr(_xla.os, "sched_getaffinity", lambda pid: {5, 2}, raising=False)
     assert _xla.usable_cpus() == [2, 5]

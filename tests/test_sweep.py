@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import accel_jax as aj
+from accel_jax.report import show_progress
 
 
 def _one(params, gain):
@@ -57,7 +58,7 @@ def test_sweep_chunks_and_progress_give_the_same_numbers(capsys):
         np.testing.assert_array_equal(out[0], whole[0])
         np.testing.assert_array_equal(out[1], whole[1])
     assert "demo sweep" not in capsys.readouterr().err  # silent unless asked
-    with aj.show_progress(label="test"):
+    with show_progress(label="test"):
         out = aj.sweep(_one, batch, 2.0, in_axes=(0, None), desc="demo sweep")
     np.testing.assert_array_equal(out[0], whole[0])
     assert "test: demo sweep" in capsys.readouterr().err

@@ -14,7 +14,7 @@ What is kind-specific (the nominal model, the effects, the localisation) lives i
 module per kind (`step.py`; `vibration` and `noise` follow the same pattern); this module
 holds the interface they implement and the ranking, verdict and held-out logic they share.
 
-Adding an effect is one small class: subclass the kind's effect base (e.g. `StepEffect`),
+Adding an effect is one small class: subclass the kind's effect base (e.g. `AbstractStepEffect`),
 set `name`, `parameter_names`, `units`, implement `initial_guess`, `physical` and the one
 hook it changes, and decorate it with `register_effect`.
 """
@@ -26,6 +26,7 @@ import dataclasses
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
 import numpy as np
 
 SIGNIFICANCE = 10.0
@@ -77,6 +78,15 @@ class AbstractEffect(eqx.Module):
     @abc.abstractmethod
     def physical(self, z, context) -> dict[str, float]:
         """The physical values (unit in each key's name) of the scaled parameters z."""
+
+
+def require_float64(why: str) -> None:
+    """Raise the one clear `ValueError` a diagnosis gives when x64 is off (`why`: what
+    float32 would lose)."""
+    if not jax.config.jax_enable_x64:
+        raise ValueError(
+            f"diagnose needs float64: call jax.config.update('jax_enable_x64', True) first ({why})."
+        )
 
 
 def register_effect(cls: type) -> type:

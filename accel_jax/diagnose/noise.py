@@ -67,6 +67,7 @@ from .base import (
     ljung_box,
     rank_candidates,
     register_effect,
+    require_float64,
 )
 
 HELD_OUT_FRACTION = 1 / 3
@@ -85,7 +86,7 @@ NESTED = {"exp_cosine": "gauss_markov", "gauss_markov": "random_walk"}
 
 STARTS = 8
 """Whittle starts per candidate (the `initial_model` guess and a grid, see
-`NoiseEffect.alternative_starts`)."""
+`AbstractNoiseEffect.alternative_starts`)."""
 
 WHITTLE_BANDS = 64
 """The Whittle start uses the periodogram averaged over this many frequency bands (the
@@ -112,7 +113,7 @@ class NoiseComponents(eqx.Module):
     walk: jax.Array
 
 
-class NoiseEffect(AbstractEffect):
+class AbstractNoiseEffect(AbstractEffect):
     """An effect on a static record. One hook: `components(z)` gives the processes it adds
     (`NoiseComponents`; zero variance and zero walk at z = 0: the nominal model)."""
 
@@ -145,7 +146,7 @@ class NoiseEffect(AbstractEffect):
 
 
 @register_effect
-class GaussMarkovNoise(NoiseEffect):
+class GaussMarkovNoise(AbstractNoiseEffect):
     """+ Gauss–Markov noise: σ = s₀·z₀, τ_c = Δ·e^{−z₁}."""
 
     name = "gauss_markov"
@@ -171,7 +172,7 @@ class GaussMarkovNoise(NoiseEffect):
 
 
 @register_effect
-class ExpCosineNoise(NoiseEffect):
+class ExpCosineNoise(AbstractNoiseEffect):
     """+ exponential-cosine noise: σ = s₀·z₀, α = e^{z₁}/Δ, β = z₂²/Δ."""
 
     name = "exp_cosine"
@@ -208,7 +209,7 @@ class ExpCosineNoise(NoiseEffect):
 
 
 @register_effect
-class RandomWalkNoise(NoiseEffect):
+class RandomWalkNoise(AbstractNoiseEffect):
     """+ random walk of the level: increment RMS per sample √(qΔ) = s₀·z₀."""
 
     name = "random_walk"
@@ -239,7 +240,7 @@ class RandomWalkNoise(NoiseEffect):
 # --------------------------------------------------------------------------------------
 
 
-def _effects() -> list[NoiseEffect]:
+def _effects() -> list[AbstractNoiseEffect]:
     return [cls() for cls in effect_library("noise").values()]
 
 
@@ -781,11 +782,7 @@ def diagnose_noise(
     **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;
     a `ValueError` otherwise).
     """
-    if not jax.config.jax_enable_x64:
-        raise ValueError(
-            "diagnose needs float64: call jax.config.update('jax_enable_x64', True) first "
-            "(log-likelihoods of thousands of samples are compared to within a unit)."
-        )
+    require_float64("log-likelihoods of thousands of samples are compared to within a unit")
     del nominal
     effects = _effects()
     hosts = [_context(data, effects) for data in datasets]

@@ -3,7 +3,7 @@
 **Nominal model** (the idealised loop each identification method of SPEC.md §1 assumes):
 the linear closed loop with no torquer lag (T_dm = 0), no output filter (T_f = 0), no stop
 contact, a constant external moment and white output noise, simulated exactly by
-`step_model.linear_record`. Refitted: J, μ, c, k_dm as log-normal deviations from the
+`_simulate.sequence.linear_record`. Refitted: J, μ, c, k_dm as log-normal deviations from the
 nominal values, z_i = ln(x_i/x_i⁰)/σ_i, bounded to |z_i| < `REFIT_BOUND` (so a refit stays
 inside its prior by construction) with a standard normal prior on z_i.
 
@@ -14,12 +14,12 @@ record may start in a transient); and the time of every test-voltage change to a
 a sample (within ±1 sample of the sample where `u_test` shows it). The noise floor, with the
 record's ADC quantisation, is measured without the model (`openworld.noise_floor`).
 
-**Effects** (each `StepEffect` changes the model through one hook and is the nominal model
+**Effects** (each `AbstractStepEffect` changes the model through one hook and is the nominal model
 at z = 0):
 
 - `torquer_lag`: T_dm > 0 (inside the loop: changes the overshoot as well as the delay);
 - `output_filter`: T_f > 0 (outside the loop: delays the output only);
-- `stop_saturation`: mechanical stops, upper and lower (`step_model.stop_record`);
+- `stop_saturation`: mechanical stops, upper and lower (`_simulate.sequence.stop_record`);
 - `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
 - `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
   fitted through its one-step prediction errors (an ARMA(1,1) recursion).
@@ -48,7 +48,10 @@ import numpy as np
 
 from .._data import NominalDevice, StepData
 from .._sweep import even_chunk_size, sweep
-from .base import DiagnosisResult
+from .base import DiagnosisResult, require_float64
+from .step_effects import (
+    AbstractStepEffect as AbstractStepEffect,
+)
 from .step_effects import (
     ColoredNoise as ColoredNoise,
 )
@@ -57,9 +60,6 @@ from .step_effects import (
 )
 from .step_effects import (
     OutputFilter as OutputFilter,
-)
-from .step_effects import (
-    StepEffect as StepEffect,
 )
 from .step_effects import (
     StopSaturation as StopSaturation,
@@ -111,11 +111,7 @@ def diagnose_step(datasets: list[StepData], nominal: NominalDevice) -> list[Diag
     **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;
     a `ValueError` otherwise).
     """
-    if not jax.config.jax_enable_x64:
-        raise ValueError(
-            "diagnose needs float64: call jax.config.update('jax_enable_x64', True) first "
-            "(the evidence compares log-likelihoods of ~1e4 to within ~1)."
-        )
+    require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
     effects = step_effects()
     linear = [0] + [i for i, e in enumerate(effects, start=1) if not e.nonlinear]
     nonlinear = [i for i, e in enumerate(effects, start=1) if e.nonlinear]

@@ -3,12 +3,12 @@ nominal loop at zero (`step.py` describes the kind; `step_fit.py` applies the ho
 
 - `torquer_lag`: T_dm > 0 (inside the loop: changes the overshoot as well as the delay);
 - `output_filter`: T_f > 0 (outside the loop: delays the output only);
-- `stop_saturation`: mechanical stops, upper and lower (`step_model.stop_record`);
+- `stop_saturation`: mechanical stops, upper and lower (`_simulate.sequence.stop_record`);
 - `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
 - `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
   fitted through its one-step prediction errors (an ARMA(1,1) recursion).
 
-Adding an effect: subclass `StepEffect`, set `name`, `parameter_names`, `description`,
+Adding an effect: subclass `AbstractStepEffect`, set `name`, `parameter_names`, `description`,
 `starts`, override one hook and `physical`, decorate with `register_effect`.
 """
 
@@ -26,7 +26,7 @@ from .._params import ServoParams
 from .base import AbstractEffect, effect_library, register_effect
 
 
-class StepEffect(AbstractEffect):
+class AbstractStepEffect(AbstractEffect):
     """An effect on a step record. Hooks (each the identity at z = 0; override one):
 
     - `device(params, z, ctx)`: change the loop's `ServoParams` (lags);
@@ -88,38 +88,39 @@ def _lag(z, unit):
     return unit * jnp.maximum(z, 0.0) if isinstance(z, jax.Array) else unit * max(z, 0.0)
 
 
+class _AbstractLag(AbstractStepEffect):
+    """A first-order lag T = lag_unit·max(z, 0) in the `ServoParams` field `lag_field`."""
+
+    lag_field: ClassVar[str]
+    starts = ((1.0,), (5.0,))
+    bounds = (100.0,)
+
+    def device(self, params, z, ctx):
+        lag = _lag(z[0], ctx.lag_unit)
+        return eqx.tree_at(lambda p: getattr(p, self.lag_field), params, lag)
+
+    def physical(self, z, context):
+        return {self.parameter_names[0]: float(_lag(float(z[0]), context["lag_unit"]))}
+
+
 @register_effect
-class TorquerLag(StepEffect):
+class TorquerLag(_AbstractLag):
     """Torquer electrical lag T_dm = lag_unit·max(z, 0) inside the loop."""
 
     name = "torquer_lag"
+    lag_field = "torquer_time_constant"
     parameter_names = ("torquer_time_constant_s",)
     description = "magnetoelectric torquer time constant T_dm inside the loop"
-    starts = ((1.0,), (5.0,))
-    bounds = (100.0,)
-
-    def device(self, params, z, ctx):
-        return eqx.tree_at(lambda p: p.torquer_time_constant, params, _lag(z[0], ctx.lag_unit))
-
-    def physical(self, z, context):
-        return {"torquer_time_constant_s": float(_lag(float(z[0]), context["lag_unit"]))}
 
 
 @register_effect
-class OutputFilter(StepEffect):
+class OutputFilter(_AbstractLag):
     """Output filter T_f = lag_unit·max(z, 0) outside the loop."""
 
     name = "output_filter"
+    lag_field = "filter_time_constant"
     parameter_names = ("filter_time_constant_s",)
     description = "output (amplifier) filter time constant T_f outside the loop"
-    starts = ((1.0,), (5.0,))
-    bounds = (100.0,)
-
-    def device(self, params, z, ctx):
-        return eqx.tree_at(lambda p: p.filter_time_constant, params, _lag(z[0], ctx.lag_unit))
-
-    def physical(self, z, context):
-        return {"filter_time_constant_s": float(_lag(float(z[0]), context["lag_unit"]))}
 
 
 OFFSET_PRIOR = 0.02
@@ -127,7 +128,7 @@ OFFSET_PRIOR = 0.02
 
 
 @register_effect
-class StopSaturation(StepEffect):
+class StopSaturation(AbstractStepEffect):
     """Inelastic mechanical stops at deflection ±h (h = half/|z₀|, symmetric: ±h_max), seen
     through an output offset c = 0.1·scale·z₁ (U_out = v + c): an ADC offset moves both
     stops in the record, and the external moment moves the deflection between them."""
@@ -173,7 +174,7 @@ class StopSaturation(StepEffect):
 
 
 @register_effect
-class DisturbanceDrift(StepEffect):
+class DisturbanceDrift(AbstractStepEffect):
     """External moment drifting linearly; z = 1 moves the settled output ≈ 10 mV over the
     record."""
 
@@ -194,7 +195,7 @@ class DisturbanceDrift(StepEffect):
 
 
 @register_effect
-class ColoredNoise(StepEffect):
+class ColoredNoise(AbstractStepEffect):
     """White + AR(1) (sampled Gauss–Markov) output noise: the AR(1) part's standard
     deviation is λ = max(z₀, 0) times the white part's, its coefficient φ = tanh z₁."""
 
@@ -234,6 +235,6 @@ def _white_share(ratio, phi):
     return 2 / (denominator * (1 + xp.sqrt(1 - 4 * c**2)))
 
 
-def step_effects() -> list[StepEffect]:
+def step_effects() -> list[AbstractStepEffect]:
     """The registered step effects, in registration order."""
     return [cls() for cls in effect_library("step").values()]

@@ -16,8 +16,8 @@ import lineax as lx
 import optimistix as optx
 
 from .._params import ServoParams
+from .._simulate.sequence import linear_record, stop_record
 from .step_effects import step_effects
-from .step_model import linear_record, stop_record
 
 REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
 """ServoParams fields the refit moves, each under its log-normal prior (a field given no

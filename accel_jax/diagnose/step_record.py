@@ -177,7 +177,7 @@ BLOCKS_PER_PERIOD = 30
 """Samples are averaged in blocks of about T/30 (T the nominal loop's time constant; at
 most 10 µs for the reference device): a record sampled at 1 MHz is fitted as the exact
 means of blocks of 10 samples. White noise averages down by √m with the signal kept, and
-the model predicts the block means exactly (`step_model.linear_record`), so little is lost
+the model predicts the block means exactly (`_simulate.sequence.linear_record`), so little is lost
 while the fit handles ~30 points per T however fast the record was sampled."""
 
 

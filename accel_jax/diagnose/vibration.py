@@ -51,6 +51,7 @@ import numpy as np
 import optimistix as optx
 
 from .._data import DataError, NominalDevice, VibrationData
+from .._static import PPM
 from .._vibration import design_matrix
 from . import openworld
 from .base import (
@@ -62,6 +63,7 @@ from .base import (
     ljung_box,
     rank_candidates,
     register_effect,
+    require_float64,
 )
 
 NOMINAL_COEFFICIENTS = ("bias", "scale_factor_error")
@@ -93,13 +95,12 @@ IDENTIFIABLE = 1e-6
 projection on the nominal columns cannot be seen in the table (e.g. k3 with no vibration
 and a_in = ±1 g only, where a³ = a)."""
 
-PPM = 1e-6
 
 FIT_TOLERANCE = 1e-10
 """rtol = atol of the least-squares fits (ppm-scaled coefficients and residuals)."""
 
 
-class VibrationEffect(AbstractEffect):
+class AbstractVibrationEffect(AbstractEffect):
     """An effect on a vibration table: it frees the transfer-function coefficients
     `coefficients` (fields of `StaticTransferFunction`), whose scaled parameters z are
     those coefficients in ppm units (z = 0: the nominal model, exactly). Override
@@ -124,48 +125,43 @@ class VibrationEffect(AbstractEffect):
         return out
 
 
-@register_effect
-class K2(VibrationEffect):
-    """Quadratic nonlinearity k2 a3²: rectifies as k2 (b²/2 + σ²)."""
-
-    name = "k2"
-    coefficients = ("k2",)
-    parameter_names = ("k2_ppm_per_g",)
-    description = "quadratic nonlinearity k2 a3²"
-
-
-@register_effect
-class K3(VibrationEffect):
-    """Cubic nonlinearity k3 a3³: rectifies as k3 (1.5 a b² + 3 a σ²)."""
-
-    name = "k3"
-    coefficients = ("k3",)
-    parameter_names = ("k3_ppm_per_g2",)
-    description = "cubic nonlinearity k3 a3³"
+_POLYNOMIAL_TERMS = {
+    2: ("quadratic", "²", "k2 (b²/2 + σ²)"),
+    3: ("cubic", "³", "k3 (1.5 a b² + 3 a σ²)"),
+    4: ("quartic", "⁴", "k4 (3 a² b² + 0.375 b⁴ + …)"),
+    5: ("quintic", "⁵", "k5 (5 a³ b² + 1.875 a b⁴ + …)"),
+}
+"""Order → (word, superscript, its rectification under a sine a + b sin ωt plus random σ)."""
 
 
-@register_effect
-class K4(VibrationEffect):
-    """Quartic nonlinearity k4 a3⁴: rectifies as k4 (3 a² b² + 0.375 b⁴ + …)."""
+def _polynomial_effect(order: int) -> type:
+    """The effect of the nonlinearity k_n a3ⁿ (n = `order`): one final class per order,
+    registered as `kn`, its parameter in ppm/gⁿ⁻¹."""
+    word, power, rectified = _POLYNOMIAL_TERMS[order]
+    name = f"k{order}"
+    unit = "ppm_per_g" + ("" if order == 2 else str(order - 1))
+    return register_effect(
+        type(
+            f"K{order}",
+            (AbstractVibrationEffect,),
+            {
+                "__doc__": f"{word.capitalize()} nonlinearity {name} a3{power}: rectifies as "
+                f"{rectified}.",
+                "__module__": __name__,
+                "name": name,
+                "coefficients": (name,),
+                "parameter_names": (f"{name}_{unit}",),
+                "description": f"{word} nonlinearity {name} a3{power}",
+            },
+        )
+    )
 
-    name = "k4"
-    coefficients = ("k4",)
-    parameter_names = ("k4_ppm_per_g3",)
-    description = "quartic nonlinearity k4 a3⁴"
 
-
-@register_effect
-class K5(VibrationEffect):
-    """Quintic nonlinearity k5 a3⁵: rectifies as k5 (5 a³ b² + 1.875 a b⁴ + …)."""
-
-    name = "k5"
-    coefficients = ("k5",)
-    parameter_names = ("k5_ppm_per_g4",)
-    description = "quintic nonlinearity k5 a3⁵"
+K2, K3, K4, K5 = (_polynomial_effect(order) for order in (2, 3, 4, 5))
 
 
 @register_effect
-class Asymmetry(VibrationEffect):
+class Asymmetry(AbstractVibrationEffect):
     """Scale-factor asymmetry ½ A1 |a3|: rectifies when the vibration crosses zero."""
 
     name = "asymmetry"
@@ -175,7 +171,7 @@ class Asymmetry(VibrationEffect):
 
 
 @register_effect
-class CrossCoupling(VibrationEffect):
+class CrossCoupling(AbstractVibrationEffect):
     """Cross-coupling m31 a3 a1 + m32 a3 a2: rectifies as ½ m3i b3 bi (in-phase sinusoids).
     Needs the cross-axis vibration columns."""
 
@@ -205,7 +201,7 @@ class CrossCoupling(VibrationEffect):
 # --------------------------------------------------------------------------------------
 
 
-def _effects() -> list[VibrationEffect]:
+def _effects() -> list[AbstractVibrationEffect]:
     return [cls() for cls in effect_library("vibration").values()]
 
 
@@ -668,11 +664,7 @@ def diagnose_vibration(
     **Returns:** one `DiagnosisResult` per table, in order. Float64 (needs x64 enabled;
     a `ValueError` otherwise).
     """
-    if not jax.config.jax_enable_x64:
-        raise ValueError(
-            "diagnose needs float64: call jax.config.update('jax_enable_x64', True) first "
-            "(vibration errors are ppm-level differences of O(1 g) outputs)."
-        )
+    require_float64("vibration errors are ppm-level differences of O(1 g) outputs")
     del nominal
     effects = _effects()
     preps = [_prepare(data, effects) for data in datasets]

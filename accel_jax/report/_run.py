@@ -27,7 +27,7 @@ import jax
 
 from .._io import _atomic_write_bytes
 from .._progress import bar, show_progress
-from .._xla import usable_cpus
+from .._runtime import usable_cpus
 from ._html import REPORT_MARKER, build_report
 
 MARKER = ".accel_jax_run.json"
@@ -126,19 +126,41 @@ def _run_study(
     """Run one study into `folder` (marker first 'unfinished', then 'complete'); return
     its wall time [s]. Runs in the report's process or in a worker process."""
     module = load_study(name, studies_dir)
-    started = time.perf_counter()
-    folder.mkdir(parents=True, exist_ok=True)
-    _write_marker(folder, key, complete=False)
     extra = {}
     if params_fields is not None and "params" in inspect.signature(module.run).parameters:
         from .._params import ServoParams
 
         extra["params"] = ServoParams(**params_fields)
     with show_progress(progress, label=name, position=position):
-        module.run(folder, quick=quick, **extra)
+        _, elapsed = _run_marked(module.run, folder, key, quick, extra)
+    return elapsed
+
+
+def _run_marked(run, folder: Path, key: str, quick: bool, extra: dict) -> tuple[dict, float]:
+    """`run(folder, quick=quick, **extra)` between an 'unfinished' and a 'complete' marker;
+    returns its result and wall time [s]."""
+    started = time.perf_counter()
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_marker(folder, key, complete=False)
+    result = run(folder, quick=quick, **extra)
     elapsed = time.perf_counter() - started
     _write_marker(folder, key, complete=True, seconds=elapsed)
-    return elapsed
+    return result, elapsed
+
+
+def run_study(
+    name: str, run, folder: Path, key: str, *, quick: bool, force: bool, **extra
+) -> tuple[dict, bool]:
+    """One study run from its own script (`report._study.study_main`), with the report's
+    rules: a folder holding the same run (same `key`) is reused, one holding another run is
+    refused unless `force` (`ReportError`). Returns (the result dict, whether cached)."""
+    plan = _plan(folder, key, force)
+    if plan == "cached":
+        return json.loads((folder / "result.json").read_text()), True
+    if plan == "replace":
+        shutil.rmtree(folder)
+    result, _ = _run_marked(run, folder, key, quick, extra)
+    return result, False
 
 
 _WORKER_POSITION: int | None = None

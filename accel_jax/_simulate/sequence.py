@@ -1,7 +1,7 @@
-"""The step diagnosis's model of a record: the closed loop under a piecewise-constant test
-voltage whose changes fall anywhere between samples, from any initial state, with the test
-winding of unknown polarity and gain, an external moment that may drift, and optional
-mechanical stops.
+"""Records of a piecewise-constant test-voltage sequence (the step diagnosis's model of a
+record): the closed loop under a test voltage whose changes fall anywhere between samples,
+from any initial state, with the test winding of unknown polarity and gain, an external
+moment that may drift, and optional mechanical stops.
 
 **State** (6, every entry in volts so that all are O(1)): the deflection as the amplifier
 voltage v = k_dp k_y l θ; the velocity w = k_dp k_y l T θ' (T the loop's time constant);
@@ -40,14 +40,13 @@ the evidence compares log-likelihoods of ~1e4 to within ~1).
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 
 from .._params import ServoParams
 from .._servo import loop_stiffness, time_constant
-from .._simulate import state_space
+from .matrix import expm_minus_identity, power_rows, zoh
+from .state_space import state_space
 
 N_STATES = 6
 """v, w, m, U_f, M̃, r (see the module docstring)."""
@@ -93,58 +92,6 @@ def initial_state(params: ServoParams, drive, moment, rate, dv, dw):
     states at their quasi-static values, the moment drifting at `rate` [V per record]."""
     rest = equilibrium(params, drive, moment)
     return rest + jnp.stack([dv, dw, -dv, dv, 0 * dv, rate + 0 * dv])
-
-
-TAYLOR_TERMS = 8
-"""Taylor terms of `expm_minus_identity` on X/2^s, ‖X/2^s‖₁ ≤ 0.05: error 0.05⁹/9! ≈ 5e-18."""
-
-
-def expm_minus_identity(x):
-    """e^X − I by scaling and squaring in the "minus identity" form: the Taylor series of
-    e^{X/2^s} − I with s the fewest squarings that bring ‖X‖₁/2^s to 0.05, then s times
-    F ← 2F + F² (that is (I + F)² − I). Working with F instead of I + F keeps full relative
-    precision when X is small (a sample step of a loop that is slow against it), and a stiff
-    lag only costs more squarings (a loop with a traced count: forward-mode differentiable,
-    and vmapped batches run to their largest count)."""
-    norm = jnp.max(jnp.sum(jnp.abs(x), axis=0))
-    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.05)), 0, 60).astype(jnp.int32)
-    scaled = x / 2.0 ** s.astype(x.dtype)
-    term = scaled
-    out = scaled
-    for k in range(2, TAYLOR_TERMS + 1):
-        term = term @ scaled / k
-        out = out + term
-    return jax.lax.fori_loop(0, s, lambda _, f: 2 * f + f @ f, out)
-
-
-def zoh(a, b, dt):
-    """(e^{AΔ}, ∫_0^Δ e^{As} ds b) of x' = A x + b u (u held over the step), from the
-    exponential of the augmented matrix [[A, b], [0, 0]]Δ (Van Loan)."""
-    n = a.shape[0]
-    augmented = jnp.zeros((n + 1, n + 1), a.dtype).at[:n, :n].set(a).at[:n, n].set(b)
-    f = expm_minus_identity(augmented * dt)
-    return f[:n, :n] + jnp.eye(n, dtype=a.dtype), f[:n, n]
-
-
-def power_rows(matrix, row, count: int):
-    """[row·M^i for i < count], shape (count, len(row)).
-
-    Blocked: i = kB + j with B ≈ √count; M^j (j < B) and row·M^{kB} by doubling, then one
-    product row·M^{kB}·M^j for all (k, j) — a few small products and one larger one, which
-    stays fast when vmapped and differentiated (a doubling of the rows alone is a long
-    chain of tiny batched products)."""
-    d = matrix.shape[0]
-    levels = max(0, math.ceil(math.log2(max(count, 1)) / 2))
-    n_outer = -(-count // 2**levels)
-    stack, power = jnp.eye(d, dtype=matrix.dtype)[None], matrix
-    for _ in range(levels):
-        stack = jnp.concatenate([stack, stack @ power])
-        power = power @ power
-    outer = row[None, :]
-    for _ in range(max(0, math.ceil(math.log2(n_outer)))):
-        outer = jnp.concatenate([outer, outer @ power])
-        power = power @ power
-    return jnp.einsum("kd,jde->kje", outer[:n_outer], stack).reshape(-1, d)[:count]
 
 
 def _change_split(change_shift):

@@ -1,4 +1,5 @@
-"""The scale-factor study and the report, end to end (quick mode), checked against
+"""The scale_factor_identification study (studies/scale_factor_identification.py): its
+quick run's results, read from the session's shared quick report, checked against
 relations that hold independently of the simulation."""
 
 import importlib.util
@@ -7,10 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 import accel_jax as aj
-from accel_jax.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -34,48 +33,6 @@ def _load_study_module():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-@pytest.mark.slow
-def test_report_has_every_study_and_figure(report_dir, study):
-    from accel_jax.cli import STUDIES
-
-    index = (report_dir / "index.html").read_text()
-    assert len(study["figures"]) >= 3
-    embedded = 0
-    for name in STUDIES:
-        result = json.loads((report_dir.parent / name / "result.json").read_text())
-        assert f'id="{name}"' in index
-        assert result["figures"], name
-        for figure in result["figures"]:
-            assert figure["caption"], (name, figure["file"])
-            assert (report_dir.parent / name / figure["file"]).exists()
-        embedded += len(result["figures"])
-        assert result.get("provenance", {}).get("accel_jax_version"), name
-    assert index.count("data:image/png;base64,") == embedded
-    assert "missing figure" not in index
-
-
-@pytest.mark.slow
-def test_quick_compiles_one_off_work_for_speed_and_says_so(report_dir):
-    """--quick compiles the one-off parts with most XLA optimisations off and records it;
-    the sensing-element fits (run-bound) and every Monte Carlo kernel keep the default."""
-    import jax
-
-    def provenance(name):
-        return json.loads((report_dir.parent / name / "result.json").read_text())["provenance"]
-
-    key = "compiled_with_most_xla_optimisations_off"
-    assert provenance("scale_factor_identification")[key] == (
-        "stop identification, decompositions, gradient checks, fit comparison"
-    )
-    assert provenance("noise_identification")[key] == (
-        "structure selection, Kalman filter, Allan deviation"
-    )
-    for name in ("vibration_compensation", "tolerance_limits", "sim_to_real_validation"):
-        assert provenance(name)["xla_most_optimizations_off"] is True, name
-    assert provenance("sensing_element_ml")["xla_most_optimizations_off"] is False
-    assert jax.config.read("jax_disable_most_optimizations") is False  # nothing leaks
 
 
 @pytest.mark.slow
@@ -160,12 +117,6 @@ def test_dominant_pole_prediction_without_lag_is_gamma_only():
     )
 
 
-def test_report_refuses_bad_option():
-    result = CliRunner().invoke(main, ["report", "--quick", "--out"])
-    assert result.exit_code == 2
-    assert "requires an argument" in result.output
-
-
 def test_user_device_and_its_twin():
     module = _load_study_module()
     ref, ref_ap, label = module._devices(None)
@@ -183,18 +134,3 @@ def test_user_device_and_its_twin():
     assert ape is heavy and float(aj.damping_ratio(osc)) == pytest.approx(
         float(aj.damping_ratio(aj.ServoParams.reference())), rel=1e-12
     )
-
-
-@pytest.mark.slow
-def test_quick_report_studies_ran_on_their_own_cpu_shares(report_dir):
-    """Side by side, each study process is pinned to its share of the CPUs (one core each
-    on a 2-core machine) and its provenance says how many it had."""
-    from accel_jax._xla import usable_cpus
-    from accel_jax.report._run import default_jobs
-
-    n, jobs = len(usable_cpus()), default_jobs(7)
-    shares = {n // jobs, -(-n // jobs)} if jobs > 1 else {n}
-    for folder in report_dir.parent.iterdir():
-        result = folder / "result.json"
-        if folder.is_dir() and result.exists():
-            assert json.loads(result.read_text())["provenance"]["cpus"] in shares, folder.name

@@ -1,16 +1,27 @@
-"""Process-level XLA settings for the entry points (CLI, studies run as scripts, tests).
+"""Process-level settings: the XLA:CPU deadlock workaround (applied at `import accel_jax`),
+XLA log level, compile-time options and the persistent compilation cache.
 
-XLA:CPU in jaxlib 0.10.2 deadlocks intermittently — every thread idle, the caller waiting
-forever — when it runs a vmapped batch of nested `while` loops (a Levenberg–Marquardt fit
-whose residual solves an adaptive diffrax ODE, as in the sensing-element study) with its
+Not part of the public namespace: the entry points (the `accel-jax` CLI, the study
+scripts, the tests, the benchmarks) import what they need from here.
+
+**The deadlock.** XLA:CPU in jaxlib 0.10.2 deadlocks intermittently — every thread idle,
+the caller waiting forever — when it runs a vmapped batch of nested `while` loops (a
+Levenberg–Marquardt fit whose residual solves an adaptive diffrax ODE, as in the
+sensing-element study; the noise study's batched maximum-likelihood fits) with its
 concurrency-optimised scheduler. Seen on the 2-core CPU machine: chunks of 8 to 32 such
 fits hung after compiling in about half of the runs; with the scheduler off, 16 repeated
 runs completed (32 fits in 9 s). The flag only changes how XLA orders independent
-instructions, not what it computes.
+instructions, not what it computes (every result of the test suite and the studies is the
+same with and without it).
 
-The library never changes global settings on import; the entry points call
-`apply_cpu_workarounds()` before JAX starts its backend. A user who runs the batched fits
-from their own script should set the flag themselves (`XLA_FLAGS`).
+So `import accel_jax` adds `CPU_SCHEDULER_FLAG` to `XLA_FLAGS` — the one process-level
+setting the package makes on import — when all of these hold: JAX has not started its
+backend yet (XLA reads `XLA_FLAGS` once, at start-up), the user has not set the option
+themselves (either value is respected), and the user has not opted out with
+`ACCEL_JAX_XLA_WORKAROUND=off`. When JAX had already started its CPU backend without the
+flag, the import warns once instead (nothing can be changed then). This reaches every
+process that can hit the deadlock — the CLI, each study run as a script, a user's own
+script — without a call anyone can forget.
 """
 
 from __future__ import annotations
@@ -22,23 +33,64 @@ from pathlib import Path
 
 CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
+OPT_OUT_ENV = "ACCEL_JAX_XLA_WORKAROUND"
+"""Set to `off` (or `0`, `no`, `false`) to keep `import accel_jax` from touching `XLA_FLAGS`."""
+
 
 def _scheduler_option_set() -> bool:
     """Whether `XLA_FLAGS` already sets the scheduler option (to either value)."""
     return "xla_cpu_enable_concurrency_optimized_scheduler" in os.environ.get("XLA_FLAGS", "")
 
 
-def apply_cpu_workarounds() -> bool:
-    """Add `CPU_SCHEDULER_FLAG` to `XLA_FLAGS` unless the user set that option already.
+def _opted_out() -> bool:
+    return os.environ.get(OPT_OUT_ENV, "").strip().lower() in ("0", "off", "no", "false")
 
-    Effective only before JAX initialises its CPU backend (the first computation); returns
-    whether the environment was changed.
+
+def apply_cpu_workarounds() -> bool:
+    """Add `CPU_SCHEDULER_FLAG` to `XLA_FLAGS` unless the user set that option already or
+    opted out (`ACCEL_JAX_XLA_WORKAROUND=off`).
+
+    Effective only before JAX initialises its backend (the first computation); returns
+    whether the environment was changed. Called by `import accel_jax` (see the module
+    docstring); the entry points need not call it again.
     """
-    if _scheduler_option_set():
+    if _scheduler_option_set() or _opted_out():
         return False
     flags = os.environ.get("XLA_FLAGS", "")
     os.environ["XLA_FLAGS"] = f"{flags} {CPU_SCHEDULER_FLAG}".strip()
     return True
+
+
+def apply_at_import() -> str:
+    """What `import accel_jax` does about the deadlock; returns what happened:
+    `"applied"`, `"user"` (the user set the option or opted out), or `"too_late"` (JAX's
+    backend had started without the flag: a one-time `RuntimeWarning` on the CPU)."""
+    if _scheduler_option_set() or _opted_out():
+        return "user"
+    if _backend_started():
+        _warn_too_late()
+        return "too_late"
+    apply_cpu_workarounds()
+    return "applied"
+
+
+def _warn_too_late() -> None:
+    import warnings
+
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return
+    warnings.warn(
+        "accel_jax was imported after JAX started its CPU backend, so it could not set "
+        f"XLA_FLAGS={CPU_SCHEDULER_FLAG}: jaxlib 0.10.2's concurrency-optimised scheduler "
+        "can deadlock on a vmapped batch of the nested-loop fits (fit_sensing_element, "
+        "the noise maximum-likelihood fits; every thread idle, the call never returns). "
+        "Import accel_jax before the first JAX computation, or set the flag in the "
+        f"environment (or {OPT_OUT_ENV}=off to silence this).",
+        RuntimeWarning,
+        stacklevel=4,
+    )
 
 
 def quiet_xla_logs() -> bool:
@@ -53,34 +105,6 @@ def quiet_xla_logs() -> bool:
     if accel_jax._USER_SET_XLA_LOG_LEVEL:
         return False
     os.environ["TF_CPP_MIN_LOG_LEVEL"] = "3"
-    return True
-
-
-_WARNED = False
-
-
-def warn_if_cpu_scheduler_unsafe(what: str) -> bool:
-    """Warn once per process when `what` (vmapped nested-loop fits) runs on XLA:CPU without
-    `CPU_SCHEDULER_FLAG`: a batch of them can then hang for good, with no error. Reads
-    `XLA_FLAGS` as it is now (the backend read it at start-up). Returns whether it warned."""
-    global _WARNED
-    import warnings
-
-    import jax
-
-    if _WARNED or _scheduler_option_set():
-        return False
-    if jax.default_backend() != "cpu":
-        return False
-    _WARNED = True
-    warnings.warn(
-        f"{what} on XLA:CPU: jaxlib 0.10.2's concurrency-optimised scheduler can deadlock on "
-        "a vmapped batch of these fits (every thread idle, the call never returns). Call "
-        "accel_jax.apply_cpu_workarounds() before the first JAX computation, or set "
-        f"XLA_FLAGS={CPU_SCHEDULER_FLAG} in the environment.",
-        RuntimeWarning,
-        stacklevel=3,
-    )
     return True
 
 

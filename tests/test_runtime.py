@@ -1,6 +1,7 @@
-"""Process-level settings of the entry points (accel_jax/_xla.py): the persistent
-compilation cache the report uses. Each case runs in a fresh interpreter, because JAX's
-cache configuration is process-global."""
+"""Process-level settings (accel_jax/_runtime.py): the XLA:CPU deadlock workaround that
+`import accel_jax` applies, the compile-time options of the quick runs, and the persistent
+compilation cache the report uses. Each case runs in a fresh interpreter, because these
+settings are process-global."""
 
 import os
 import subprocess
@@ -8,11 +9,11 @@ import sys
 
 import pytest
 
-from accel_jax._xla import compilation_cache_dir
+from accel_jax._runtime import CPU_SCHEDULER_FLAG, OPT_OUT_ENV, compilation_cache_dir
 
 _PROGRAM = """
 import sys
-from accel_jax._xla import enable_compilation_cache
+from accel_jax._runtime import enable_compilation_cache
 folder = enable_compilation_cache(sys.argv[1] if len(sys.argv) > 1 else None)
 import jax, jax.numpy as jnp
 f = jax.jit(lambda x: jnp.sin(x) @ jnp.cos(x).T + jnp.linalg.inv(x @ x.T + 3.0 * jnp.eye(8)))
@@ -70,25 +71,58 @@ def test_unwritable_cache_folder_runs_without_it(tmp_path):
     assert _run([str(blocker / "xla")])[1] == "None"
 
 
-def test_unsafe_cpu_scheduler_warns_once(monkeypatch):
-    import jax
+_IMPORT_PROGRAM = """
+import os, sys, warnings
+warnings.simplefilter("error")  # a warning fails the program (exit 1, message on stderr)
+if sys.argv[1] == "late":
+    import jax.numpy as jnp
+    jnp.ones(1).block_until_ready()  # JAX's backend starts before accel_jax is imported
+import accel_jax
+print(accel_jax._XLA_WORKAROUND, os.environ.get("XLA_FLAGS", "-") or "-")
+"""
 
-    from accel_jax import _xla
+
+def _import(mode="early", **env):
+    environment = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", OPT_OUT_ENV)}
+    out = subprocess.run(
+        [sys.executable, "-c", _IMPORT_PROGRAM, mode],
+        capture_output=True,
+        text=True,
+        env={**environment, **env},
+        timeout=120,
+    )
+    return out.returncode, out.stdout.split(" ", 1), out.stderr
+
+
+def test_import_sets_the_deadlock_workaround_before_the_backend_starts():
+    code, (what, flags), _ = _import()
+    assert code == 0 and what == "applied"
+    assert CPU_SCHEDULER_FLAG in flags.split()
+
+
+def test_import_respects_the_users_setting_and_the_opt_out():
+    user = "--xla_cpu_enable_concurrency_optimized_scheduler=true --other=1"
+    code, (what, flags), _ = _import(XLA_FLAGS=user)
+    assert code == 0 and what == "user" and flags.strip() == user
+    code, (what, flags), _ = _import(**{OPT_OUT_ENV: "off"})
+    assert code == 0 and what == "user" and flags.strip() == "-"
+
+
+def test_import_after_the_backend_started_warns_instead():
+    """Too late to set the flag: one RuntimeWarning that says why and what to do."""
+    import jax
 
     if jax.default_backend() != "cpu":
         pytest.skip("the deadlock and the warning concern XLA:CPU only")
-    monkeypatch.setattr(_xla, "_WARNED", False)
-    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
-    with pytest.warns(RuntimeWarning, match="apply_cpu_workarounds"):
-        assert _xla.warn_if_cpu_scheduler_unsafe("fit_sensing_element")
-    assert not _xla.warn_if_cpu_scheduler_unsafe("fit_sensing_element")  # once per process
-    monkeypatch.setattr(_xla, "_WARNED", False)
-    monkeypatch.setenv("XLA_FLAGS", _xla.CPU_SCHEDULER_FLAG)
-    assert not _xla.warn_if_cpu_scheduler_unsafe("fit_sensing_element")
+    code, _, stderr = _import("late")
+    assert code == 1
+    assert "RuntimeWarning" in stderr and "could not set" in stderr and OPT_OUT_ENV in stderr
+    code, (what, _), _ = _import("late", **{OPT_OUT_ENV: "0"})
+    assert code == 0 and what == "user"
 
 
 def test_fast_compile_flags_added_once_respecting_the_user(monkeypatch):
-    import accel_jax._xla as xla
+    import accel_jax._runtime as xla
 
     monkeypatch.setattr(xla, "_backend_started", lambda: False)
     monkeypatch.setenv("XLA_FLAGS", "--other=1")
@@ -108,24 +142,25 @@ def test_fast_compile_flags_added_once_respecting_the_user(monkeypatch):
 
 _FAST_PROGRAM = """
 import sys
-import accel_jax as aj
+from accel_jax._runtime import apply_fast_compile, fast_compile
+from accel_jax.report import provenance
 if sys.argv[1] == "fast":
-    assert aj.apply_fast_compile()
+    assert apply_fast_compile()
 import jax, jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 x = jnp.linspace(0.0, 3.0, 64).reshape(8, 8)
 f = lambda x: jnp.sin(x) @ jnp.cos(x).T + jnp.linalg.inv(x @ x.T + 3.0 * jnp.eye(8))
-with aj.fast_compile(sys.argv[1] == "fast"):
+with fast_compile(sys.argv[1] == "fast"):
     value = float(jax.jit(f)(x).sum())
-    block = aj.provenance(precision="float64")
-after = aj.provenance(precision="float64")["xla_most_optimizations_off"]
+    block = provenance(precision="float64")
+after = provenance(precision="float64")["xla_most_optimizations_off"]
 print(repr(value), block["xla_most_optimizations_off"], after, block["xla_flags"] or "-")
 """
 
 
 def test_fast_compile_gives_the_same_results_and_is_recorded():
     def run(mode):
-        env = {**os.environ, "ACCEL_JAX_CACHE_DIR": "off", "XLA_FLAGS": ""}
+        env = {**os.environ, "ACCEL_JAX_CACHE_DIR": "off", "XLA_FLAGS": "", OPT_OUT_ENV: "off"}
         out = subprocess.run(
             [sys.executable, "-c", _FAST_PROGRAM, mode],
             capture_output=True,

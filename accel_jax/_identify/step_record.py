@@ -5,23 +5,23 @@ test voltage; the paper's methods (SPEC.md §1) use one step. This module picks 
 step, runs the graph-analytic method that fits the response (oscillatory for ξ < 1,
 aperiodic otherwise) and, beside it, the least-squares fit of the whole segment, and states
 every assumption it made. Host-side glue around the jit-compiled estimators of
-`_identify.py`; it computes in the dtype JAX is configured for (the CLI enables float64).
+`accel_jax._identify`; it computes in the dtype JAX is configured for (the CLI enables float64).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._data import DataError, StepData
-from ._identify import (
+from .._data import DataError, StepData
+from .._params import PAPER_GAMMA, ServoParams
+from .._servo import closed_loop_test_gain, relative_error_percent, scale_factor, shape_factor
+from . import (
     IdentificationResult,
     fit_step_response,
     identify_aperiodic,
     identify_oscillatory,
     scale_factor_from_fit,
 )
-from ._params import PAPER_GAMMA, ServoParams
-from ._servo import closed_loop_test_gain, relative_error_percent, scale_factor, shape_factor
 
 # Codes after which the oscillatory method hands the record to the aperiodic one.
 _USE_APERIODIC = (IdentificationResult.not_oscillatory, IdentificationResult.too_few_crossings)

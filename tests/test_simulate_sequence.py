@@ -1,6 +1,6 @@
-"""The step diagnosis's model of a record (accel_jax.diagnose.step_model), checked against
-simulators it does not share code with: `simulate_linear` on a grid 50× finer (sub-sample
-change times), and the SciPy truth simulator of studies/step_truth.py (its own equations,
+"""The record simulator with sub-sample change times (accel_jax._simulate.sequence),
+checked against simulators it does not share code with: `simulate_linear` on a grid 50×
+finer (sub-sample change times), and the SciPy truth simulator of studies/step_truth.py (its own equations,
 stops as exact events)."""
 
 import sys
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import accel_jax as aj
+from accel_jax._simulate.sequence import linear_record, stop_record
 from accel_jax.diagnose.step_effects import step_effects
 from accel_jax.diagnose.step_fit import StepContext, innovation_terms, predict, unpack
-from accel_jax.diagnose.step_model import expm_minus_identity, linear_record, stop_record
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -184,21 +184,6 @@ def test_change_time_derivative_matches_finite_differences():
     # A continuous derivative (C¹) where the change crosses a sample instant.
     below, above = (jax.jacfwd(first_change)(jnp.asarray(x)) for x in (-1e-9, 1e-9))
     np.testing.assert_allclose(below, above, rtol=0, atol=1e-6 * float(jnp.max(jnp.abs(below))))
-
-
-def test_expm_minus_identity_small_and_stiff():
-    from jax.scipy.linalg import expm
-
-    rng = np.random.default_rng(3)
-    for scale in (1e-6, 1e-2, 3.0, 300.0):
-        x = rng.normal(size=(5, 5)) * scale - 2 * scale * np.eye(5)
-        if scale < 1e-3:  # e^X − I without the cancellation of e^X − I: its series
-            exact = x + x @ x / 2 + x @ x @ x / 6
-        else:
-            exact = np.asarray(expm(jnp.asarray(x), max_squarings=64)) - np.eye(5)
-        np.testing.assert_allclose(
-            expm_minus_identity(jnp.asarray(x)), exact, rtol=1e-10, atol=1e-13 * scale
-        )
 
 
 def _context(n_blocks, change_index, change_step):

@@ -1,0 +1,173 @@
+"""`monte_carlo_oscillatory`: simulate and identify a batch of noisy step responses in one
+compiled kernel — `fast_step_response` fused with the output noise and
+`identify_oscillatory`, processed in chunks (`lax.map` over vmapped chunks) so that only
+one chunk of records is alive at a time (GitHub issue 7; speed in `benchmarks/bench.py`)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float, PRNGKeyArray
+
+from .._params import ServoParams, _concrete
+from .._simulate.blocked import _check_noise_dtype, fast_step_response
+from .oscillatory import OscillatoryEstimate, identify_oscillatory
+
+_CHUNK_CPU = 16
+_CHUNK_ACCELERATOR = 4096
+
+
+def default_chunk_size() -> int:
+    """The chunk size `monte_carlo_oscillatory` uses when given none, for the default
+    backend: 16 on CPU (cache-sized), 4096 on a GPU or TPU (occupancy)."""
+    return _CHUNK_CPU if jax.default_backend() == "cpu" else _CHUNK_ACCELERATOR
+
+
+def _batch_size(params: ServoParams, keys) -> int:
+    sizes = {
+        int(jnp.shape(leaf)[0]) for leaf in jax.tree_util.tree_leaves(params) if jnp.ndim(leaf) > 0
+    }
+    if any(jnp.ndim(leaf) == 0 for leaf in jax.tree_util.tree_leaves(params)):
+        raise ValueError(
+            "monte_carlo_oscillatory: every ServoParams field needs a leading batch axis "
+            "(one value per trajectory); broadcast shared values, e.g. with "
+            "eqx.filter_vmap(lambda v: eqx.tree_at(...))(values)."
+        )
+    sizes.add(int(jnp.shape(keys)[0]))
+    if len(sizes) != 1:
+        raise ValueError(
+            f"monte_carlo_oscillatory: params and keys disagree on the batch size: {sorted(sizes)}."
+        )
+    return sizes.pop()
+
+
+@eqx.filter_jit
+def _monte_carlo(params, keys, gain, gamma, ts, test_voltage, *, chunk_size, options, noise_dtype):
+    size = keys.shape[0]
+    n_chunks = -(-size // chunk_size)
+    padded = n_chunks * chunk_size
+
+    def pad_and_chunk(leaf):
+        if padded != size:
+            leaf = jnp.concatenate([leaf, jnp.repeat(leaf[-1:], padded - size, axis=0)])
+        return leaf.reshape((n_chunks, chunk_size) + leaf.shape[1:])
+
+    batch = jax.tree_util.tree_map(pad_and_chunk, (params, keys, gain, gamma))
+
+    def one(device, key, pickoff_amplifier_gain, shape_factor):
+        record = fast_step_response(device, ts, test_voltage, key=key, noise_dtype=noise_dtype)
+        return identify_oscillatory(
+            ts,
+            record,
+            pickoff_amplifier_gain=pickoff_amplifier_gain,
+            shape_factor=shape_factor,
+            throw=False,
+            **dict(options),
+        )
+
+    estimates = jax.lax.map(lambda chunk: jax.vmap(one)(*chunk), batch)
+    return jax.tree_util.tree_map(lambda x: x.reshape((padded,) + x.shape[2:])[:size], estimates)
+
+
+def monte_carlo_oscillatory(
+    params: ServoParams,
+    keys: PRNGKeyArray,
+    ts: Float[ArrayLike, " n"],
+    *,
+    pickoff_amplifier_gain: ArrayLike,
+    shape_factor: ArrayLike,
+    test_voltage: float = 1.0,
+    tail_fraction: float = 0.2,
+    crossing: Literal["linear", "nearest"] = "linear",
+    extremum: Literal["sample", "parabolic"] = "sample",
+    period: Literal["full", "half"] = "full",
+    chunk_size: int | None = None,
+    noise_dtype=jnp.float32,
+) -> OscillatoryEstimate:
+    """Simulate and identify N noisy step responses in one compiled, chunked kernel.
+
+    For trajectory i: the record `fast_step_response(params[i], ts, test_voltage,
+    key=keys[i], noise_dtype=noise_dtype)` (the linear loop from the settled device,
+    output noise ε_i) and its `identify_oscillatory` estimate with k_dp k_y =
+    `pickoff_amplifier_gain[i]`, γ = `shape_factor[i]` and `throw=False`. The answers are
+    those of calling the two functions in turn (the same code on the same record; XLA
+    fuses the kernel differently, so they agree to rounding, ~1e-14). The batch is processed
+    `chunk_size` trajectories at a time (`lax.map` over vmapped chunks), so the memory held
+    is about chunk_size·n·(a few) numbers, whatever N. Recompiles for a new N, n or
+    setting, not for new values.
+
+    Precision: that of the parameters (float64 recommended) for the simulation and the
+    identification. The noise deviates are drawn in float32 by default and widened: ε is
+    ~1e-4 of the step, float32 resolves each deviate to 6e-8 of itself, and the tails are
+    cut at about 5.4 σ instead of 8 σ (a normal puts 1e-7 of its samples beyond). Half the
+    random bits and a cheaper Gaussian transform make the whole kernel faster
+    (`benchmarks/bench.py` measures both).
+    `noise_dtype=jnp.float64` (or `None`) draws exactly what `simulate_linear(...,
+    key=keys[i])` draws.
+
+    **Arguments:**
+
+    - `params`: a batched `ServoParams`, every field of shape (N,).
+    - `keys`: N PRNG keys (shape (N,)), one per trajectory. The key implementation sets
+        the generator. threefry (the default) is exact under vmap and `lax.map`: each
+        trajectory's noise is what `simulate_linear(..., key=keys[i])` draws. With
+        `jax.random.key(seed, impl="rbg")` JAX's CPU generator under vmap draws the chunk
+        from one stream, so the noise of trajectory i depends on `chunk_size` (still
+        i.i.d. N(0, ε²), and reproducible for the same chunking); on this project's CPU
+        it was no faster on the whole kernel (`benchmarks/bench.py` measures both).
+    - `ts`: the uniform sample grid [s], shape (n,), starting at the step.
+    - `pickoff_amplifier_gain`: k_dp k_y [V/m], a scalar or shape (N,).
+    - `shape_factor`: γ, a scalar or shape (N,).
+    - `test_voltage`: U_test [V], a Python float.
+    - `tail_fraction`, `crossing`, `extremum`, `period`: as in `identify_oscillatory`.
+    - `chunk_size`: trajectories per vmapped chunk (a positive int), or `None` for
+        `default_chunk_size()`: 16 on CPU, which keeps a chunk's records (16 × n float64,
+        640 kB at n = 5001) in a core's L2 cache; 4096 on a GPU or TPU, where small chunks
+        leave the device idle.
+    - `noise_dtype`: the dtype the noise deviates are drawn in: `jnp.float32` (default),
+        `jnp.float64` or `None` (the parameters' dtype).
+
+    **Returns:**
+
+    An `OscillatoryEstimate` whose fields have a leading axis N (check `result` per
+    element; failed trajectories carry finite placeholders).
+    """
+    if not isinstance(params, ServoParams):
+        raise ValueError(f"params must be a batched ServoParams, got {type(params).__name__}.")
+    if chunk_size is None:
+        chunk_size = default_chunk_size()
+    if not (isinstance(chunk_size, int) and chunk_size > 0):
+        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}.")
+    concrete_voltage = _concrete(test_voltage)
+    if concrete_voltage is None or concrete_voltage.ndim != 0 or not np.isfinite(concrete_voltage):
+        raise ValueError(f"test_voltage must be a finite Python float [V], got {test_voltage!r}.")
+    size = _batch_size(params, keys)
+    ts = jnp.asarray(ts)
+    if ts.ndim != 1:
+        raise ValueError(f"ts must be 1-D, got shape {ts.shape}.")
+    dtype = jnp.result_type(float, *jax.tree_util.tree_leaves(params), ts)
+    # One dtype, strongly typed: a weakly typed leaf (e.g. from jnp.where with Python
+    # numbers) would otherwise compile a second kernel for the same shapes.
+    params = jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, dtype), params)
+    gain = jnp.broadcast_to(jnp.asarray(pickoff_amplifier_gain, dtype), (size,))
+    gamma = jnp.broadcast_to(jnp.asarray(shape_factor, dtype), (size,))
+    noise_dtype = _check_noise_dtype(noise_dtype)
+    options = dict(tail_fraction=tail_fraction, crossing=crossing, extremum=extremum, period=period)
+    # Validate the record-level settings once, outside the compiled kernel.
+    if not 0.0 < tail_fraction <= 0.5:
+        raise ValueError(f"tail_fraction must be in (0, 0.5], got {tail_fraction!r}.")
+    return _monte_carlo(
+        params,
+        keys,
+        gain,
+        gamma,
+        ts.astype(dtype),
+        float(test_voltage),
+        chunk_size=min(chunk_size, size),
+        options=tuple(sorted(options.items())),
+        noise_dtype=None if noise_dtype is None else noise_dtype.name,
+    )

@@ -1,0 +1,62 @@
+"""Noise models of inertial sensors and their identification (SPEC.md §4).
+
+Chernodarov, Patrikeev & Ivanov identify the noise model of a sensor error from its sample
+autocorrelation: the first-order Gauss-Markov (GM) model by a log-linear rule and the
+exponential-cosine model by its first zero and a log-linear rule. This package implements,
+one concept per module,
+
+- `record`: record validation and the sample autocorrelation (11), by FFT, with what the
+  other modules share (array aliases, the log-parameter clip, `NoiseFitResult`);
+- `models`: the noise models (white, GM, exponential-cosine, random walk, their sums) in
+  exact discrete state-space form, `simulate_noise` and `model_parameters`;
+- `paper`: the paper's rules (15) and (19)-(21);
+- `fit`: beyond the paper, nonlinear least squares on the autocorrelation (optimistix
+  Levenberg-Marquardt) and exact maximum likelihood of the discrete-time state-space form
+  (a Kalman filter, `accel_jax._kalman.kalman_filter`) with confidence intervals from the
+  observed information;
+- `selection`: structure selection among white noise, GM, exponential-cosine, random walk
+  and their sums by an information criterion, with the residual (standardised innovation)
+  autocorrelation and a Ljung-Box test;
+- `allan`: the overlapping Allan deviation and its standard slopes, as a cross-check.
+
+Models are `eqx.Module`s whose fields are positive array leaves (σ [record unit], τ [s],
+α [1/s], β [rad/s], q [unit²/s]); records are 1-D arrays sampled every `sample_interval`
+seconds, in any unit (g, m/s², rad/s): the parameters carry the record's unit.
+
+Precision: float64 for maximum likelihood and structure selection (log-likelihoods of
+thousands of samples are compared to within a few units; the random walk's diffuse prior
+costs six digits); the autocorrelation and the paper's rules follow the record's dtype.
+"""
+
+from .allan import AllanCoefficients as AllanCoefficients
+from .allan import allan_coefficients as allan_coefficients
+from .allan import allan_deviation as allan_deviation
+from .allan import allan_variance_of_model as allan_variance_of_model
+from .fit import _DIFFUSE as _DIFFUSE
+from .fit import NoiseFit as NoiseFit
+from .fit import fit_autocorrelation_least_squares as fit_autocorrelation_least_squares
+from .fit import fit_maximum_likelihood as fit_maximum_likelihood
+from .fit import innovations as innovations
+from .fit import log_likelihood as log_likelihood
+from .models import AbstractNoiseModel as AbstractNoiseModel
+from .models import ExponentialCosine as ExponentialCosine
+from .models import GaussMarkov as GaussMarkov
+from .models import NoiseSum as NoiseSum
+from .models import RandomWalk as RandomWalk
+from .models import WhiteNoise as WhiteNoise
+from .models import model_parameters as model_parameters
+from .models import simulate_noise as simulate_noise
+from .paper import PaperExpCosineFit as PaperExpCosineFit
+from .paper import PaperGaussMarkovFit as PaperGaussMarkovFit
+from .paper import fit_exp_cosine_paper as fit_exp_cosine_paper
+from .paper import fit_gauss_markov_paper as fit_gauss_markov_paper
+from .record import NoiseFitResult as NoiseFitResult
+from .record import autocorrelation as autocorrelation
+from .selection import StructureSelection as StructureSelection
+from .selection import initial_model as initial_model
+from .selection import ljung_box as ljung_box
+from .selection import select_noise_model as select_noise_model
+
+# The top-level names of the noise model's innovations and likelihood (`accel_jax`).
+noise_innovations = innovations
+noise_log_likelihood = log_likelihood

@@ -1,0 +1,86 @@
+"""Tables of vibration tests (one row per shaker/tumble test condition): the columns
+(`TABLE_COLUMNS` and the optional cross-axis amplitudes), their validation
+(`validate_vibration_table`) and CSV reading/writing in the data layer's `vibration`
+format, through `accel_jax._data`'s CSV reader and writer.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .._data import VibrationData, _parse_columns, _read_text, write_csv
+
+TABLE_COLUMNS = ("a_in", "vib_amp", "vib_freq", "vib_rms", "a_out")
+"""Required columns of a `vibration` CSV table: the input-axis acceleration a_in [g], the
+sinusoidal vibration amplitude along the input axis vib_amp [g] and its frequency vib_freq
+[Hz], the RMS of the random vibration vib_rms [g] (0 if none) and the mean indicated
+acceleration a_out [g]. Optional: vib_amp_oa, vib_amp_pa [g], sinusoidal vibration on the
+output and pendulum axes in phase with vib_amp (they make m31, m32 identifiable)."""
+_OPTIONAL_COLUMNS = ("vib_amp_oa", "vib_amp_pa")
+_TABLE_UNITS = {
+    "a_in": "g",
+    "vib_amp": "g",
+    "vib_freq": "Hz",
+    "vib_rms": "g",
+    "a_out": "g",
+    "vib_amp_oa": "g",
+    "vib_amp_pa": "g",
+}
+
+
+def validate_vibration_table(table: dict) -> dict[str, np.ndarray]:
+    """Check a test table (a mapping column → 1-D array) and return float64 NumPy columns.
+
+    Raises ValueError naming the column, the offending value and its unit: missing
+    columns, unequal lengths, non-finite values, negative amplitudes/RMS, non-positive
+    frequency where a sinusoid is applied.
+    """
+    missing = [c for c in TABLE_COLUMNS if c not in table]
+    if missing:
+        raise ValueError(
+            f"vibration table: missing column(s) {missing}; required {list(TABLE_COLUMNS)}."
+        )
+    cols = {
+        c: np.atleast_1d(np.asarray(table[c], dtype=np.float64))
+        for c in TABLE_COLUMNS + tuple(c for c in _OPTIONAL_COLUMNS if c in table)
+    }
+    lengths = {c: v.shape for c, v in cols.items()}
+    if len(set(lengths.values())) != 1 or len(next(iter(lengths.values()))) != 1:
+        raise ValueError(f"vibration table: columns must be 1-D of equal length, got {lengths}.")
+    for c, v in cols.items():
+        bad = ~np.isfinite(v)
+        if c in ("vib_amp", "vib_rms") + _OPTIONAL_COLUMNS:
+            bad |= v < 0
+        if c == "vib_freq":
+            bad |= (cols["vib_amp"] > 0) & ~(v > 0)
+        if np.any(bad):
+            i = int(np.argmax(bad))
+            raise ValueError(
+                f"vibration table: column {c!r} row {i} has {float(v[i])!r} {_TABLE_UNITS[c]}; "
+                "values must be finite, amplitudes/RMS non-negative, frequencies positive "
+                "where a sinusoid is applied."
+            )
+    return cols
+
+
+def read_vibration_table(path) -> dict[str, np.ndarray]:
+    """Read a `vibration` CSV table (header row with the `TABLE_COLUMNS` names, any order,
+    optionally `vib_amp_oa`, `vib_amp_pa`) with the data layer's CSV reader and validate it
+    (`validate_vibration_table`).
+
+    A file that cannot be read or parsed (no such file, missing, unknown or duplicated
+    columns, rows of the wrong length, non-numeric text) raises `accel_jax.DataError` (a
+    `ValueError`) naming the file; bad values raise `validate_vibration_table`'s ValueError.
+    """
+    path = Path(path)
+    _, columns = _parse_columns(_read_text(path), kind="vibration", path=path)
+    return validate_vibration_table(columns)
+
+
+def write_vibration_table(path, table: dict) -> None:
+    """Write a validated test table as CSV (the `vibration` format), with the data layer's
+    writer (`accel_jax.write_csv`: full float64 precision, atomically)."""
+    cols = validate_vibration_table(table)
+    write_csv(path, VibrationData(**cols))

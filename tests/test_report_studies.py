@@ -1,0 +1,95 @@
+"""The report, end to end (quick mode): every study and figure in it, each study script run
+alone in a fresh process to completion, the quick run's compile options, CPU shares."""
+
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from accel_jax.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def report_dir(quick_report):
+    return quick_report
+
+
+@pytest.mark.slow
+def test_report_has_every_study_and_figure(report_dir):
+    from accel_jax.cli import STUDIES
+
+    index = (report_dir / "index.html").read_text()
+    embedded = 0
+    for name in STUDIES:
+        result = json.loads((report_dir.parent / name / "result.json").read_text())
+        assert f'id="{name}"' in index
+        assert result["figures"], name
+        for figure in result["figures"]:
+            assert figure["caption"], (name, figure["file"])
+            assert (report_dir.parent / name / figure["file"]).exists()
+        embedded += len(result["figures"])
+        assert result.get("provenance", {}).get("accel_jax_version"), name
+    assert index.count("data:image/png;base64,") == embedded
+    assert "missing figure" not in index
+
+
+@pytest.mark.slow
+def test_quick_compiles_one_off_work_for_speed_and_says_so(report_dir):
+    """--quick compiles the one-off parts with most XLA optimisations off and records it;
+    the sensing-element fits (run-bound) and every Monte Carlo kernel keep the default."""
+    import jax
+
+    def provenance(name):
+        return json.loads((report_dir.parent / name / "result.json").read_text())["provenance"]
+
+    key = "compiled_with_most_xla_optimisations_off"
+    assert provenance("scale_factor_identification")[key] == (
+        "stop identification, decompositions, gradient checks, fit comparison"
+    )
+    assert provenance("noise_identification")[key] == (
+        "structure selection, Kalman filter, Allan deviation"
+    )
+    for name in ("vibration_compensation", "tolerance_limits", "sim_to_real_validation"):
+        assert provenance(name)["xla_most_optimizations_off"] is True, name
+    assert provenance("sensing_element_ml")["xla_most_optimizations_off"] is False
+    assert jax.config.read("jax_disable_most_optimizations") is False  # nothing leaks
+
+
+def test_report_refuses_bad_option():
+    result = CliRunner().invoke(main, ["report", "--quick", "--out"])
+    assert result.exit_code == 2
+    assert "requires an argument" in result.output
+
+
+def test_each_study_script_runs_alone_to_completion(report_dir):
+    """Every study, run as a user would (`python studies/<name>.py --quick --out DIR` in a
+    fresh process, XLA_FLAGS unset: the deadlock workaround comes from `import accel_jax`),
+    finishes within the fixture's time limit, and the report then reuses its result."""
+    from accel_jax.cli import STUDIES
+
+    status = json.loads((report_dir.parent.parent / "quick_report.done").read_text())
+    scripts = status["study_scripts"]
+    assert sorted(scripts) == sorted(STUDIES)
+    for name, run in scripts.items():
+        assert run["returncode"] == 0, (name, run["seconds"], run["output"])
+        assert "written:" in run["output"], name
+        assert f"[{name}] up to date" in status["output"], name
+
+
+@pytest.mark.slow
+def test_quick_report_studies_ran_on_their_own_cpu_shares(report_dir):
+    """Side by side, each study process is pinned to its share of the CPUs (one core each
+    on a 2-core machine) and its provenance says how many it had. (The fixture runs the
+    study scripts two at a time with the report's own `worker_cpus` shares.)"""
+    from accel_jax._runtime import usable_cpus
+    from accel_jax.report._run import default_jobs
+
+    n, jobs = len(usable_cpus()), default_jobs(7)
+    shares = {n // jobs, -(-n // jobs)} if jobs > 1 else {n}
+    for folder in report_dir.parent.iterdir():
+        result = folder / "result.json"
+        if folder.is_dir() and result.exists():
+            assert json.loads(result.read_text())["provenance"]["cpus"] in shares, folder.name

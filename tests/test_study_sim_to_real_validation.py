@@ -1,0 +1,86 @@
+"""The sim_to_real_validation study (studies/sim_to_real_validation.py): its quick run's
+results, read from the session's shared quick report (each study script run alone in a
+fresh process; see tests/conftest.py)."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import accel_jax as aj
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.slow
+def test_validation_study_quick(quick_report):
+    from helpers import study_result
+
+    tmp_path, saved = study_result(quick_report, "sim_to_real_validation")
+    assert set(saved) >= {
+        "title",
+        "summary",
+        "figures",
+        "assumptions",
+        "provenance",
+        "step",
+        "step_independent",
+    }
+    step = saved["step"]
+    assert step["n_datasets"] == 18 and sum(step["n_per_class"].values()) == 18
+    assert step["false_alarm_rate"] <= 1 / 3
+    assert step["accuracy_incl_cannot_tell_naming_truth"] >= 0.6
+    assert step["false_assurance"] == 0
+    independent = saved["step_independent"]
+    assert independent["n_datasets"] == 9 and independent["false_assurance"] == 0
+    assert independent["out_of_library_unexplained_rate"] >= 2 / 3
+    rows = {row["quantity"] for row in saved["summary"]}
+    assert any("false assurance" in q for q in rows) and any("out-of-library" in q for q in rows)
+    for figure in saved["figures"]:
+        assert (tmp_path / figure["file"]).exists() and figure["caption"]
+
+
+@pytest.mark.slow
+def test_validation_study_vibration_and_noise_quick(quick_report):
+    from helpers import study_result
+
+    module = _load("sim_to_real_validation")
+    tmp_path, saved = study_result(quick_report, "sim_to_real_validation")
+    quick = module.PER_CLASS_QUICK
+    for kind in ("vibration", "noise"):
+        classes = len(module.CLASSES[kind])
+        section = saved[kind]
+        assert section["n_datasets"] == classes * quick[kind]
+        assert set(section["confusion"]) == set(module.CLASSES[kind])
+        csvs = list((tmp_path / "datasets" / kind).glob("*.csv"))
+        assert len(csvs) == classes * quick[kind]
+        assert section["correct_by_snr"]
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert set(truth) == set(module.KINDS)  # every kind the harness draws, blind
+    files = {f["file"] for f in saved["figures"]}
+    assert {"validation_vibration.png", "validation_noise.png"} <= files
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "studies" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_blind_diagnosis_finds_relative_folders_from_any_working_folder(tmp_path, monkeypatch):
+    # The blind child process runs in the repository root; a relative dataset folder given
+    # from elsewhere (`accel-jax report --out out/...` run outside the repository) must still
+    # be found.
+    module = _load("sim_to_real_validation")
+    folder = tmp_path / "datasets" / "noise"
+    folder.mkdir(parents=True)
+    x = np.random.default_rng(0).standard_normal(400) * 1e-4
+    aj.write_csv(folder / "noise_0000.csv", aj.NoiseData(np.arange(400) * 0.01, x))
+    monkeypatch.chdir(tmp_path)
+    answers = module.diagnose_blind([Path("datasets") / "noise"])
+    assert [a["file"] for a in answers["noise"]] == ["noise_0000.csv"]
+    assert answers["noise"][0]["verdict"] == "none"
