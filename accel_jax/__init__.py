@@ -148,7 +148,13 @@ from ._servo import (
     closed_loop_test_gain as closed_loop_test_gain,
 )
 from ._servo import (
+    damping_for_ratio as damping_for_ratio,
+)
+from ._servo import (
     damping_ratio as damping_ratio,
+)
+from ._servo import (
+    dominant_pole_scale_factor as dominant_pole_scale_factor,
 )
 from ._servo import (
     feedback_stiffness as feedback_stiffness,
@@ -207,6 +213,7 @@ from ._simulate import (
 from ._static import COEFFICIENT_UNITS as COEFFICIENT_UNITS
 from ._static import COEFFICIENTS as COEFFICIENTS
 from ._static import MILLI_G as MILLI_G
+from ._static import PASSPORTS as PASSPORTS
 from ._static import PPM as PPM
 from ._static import PPM_UNITS as PPM_UNITS
 from ._static import STANDARD_GRAVITY as STANDARD_GRAVITY
@@ -245,6 +252,7 @@ from ._vibration import VibrationEnvironment as VibrationEnvironment
 from ._vibration import compensate_in_flight as compensate_in_flight
 from ._vibration import design_matrix as design_matrix
 from ._vibration import fit_coefficients as fit_coefficients
+from ._vibration import greedy_test_plan as greedy_test_plan
 from ._vibration import identifiability as identifiability
 from ._vibration import mean_abs_gauss as mean_abs_gauss
 from ._vibration import mean_abs_input as mean_abs_input

@@ -148,3 +148,29 @@ def scale_factor_from_time_constant(
 def relative_error_percent(estimate, truth) -> Float[Array, ""]:
     """δK_a = 100·(K̂_a − K_a)/K̂_a [%], the paper's definition (relative to the estimate)."""
     return 100.0 * (estimate - truth) / estimate
+
+
+def damping_for_ratio(params: ServoParams, ratio) -> Float[Array, ...]:
+    """The damping coefficient μ that gives the loop the damping ratio ξ = `ratio` (eq. (5)
+    solved for μ): μ = 2 ξ √(J (c + k_dm l k_dp k_y)) [N·m·s]; the other constants of
+    `params` unchanged. Vectorised over `ratio`."""
+    return 2 * jnp.asarray(ratio) * jnp.sqrt(params.moment_of_inertia * loop_stiffness(params))
+
+
+def dominant_pole_scale_factor(params: ServoParams, shape_factor, pickoff_amplifier_gain) -> float:
+    """The scale factor K̂_a the oscillatory method (SPEC.md §1, steps (8)-(10)) converges to
+    on a noise-free, finely sampled record of a loop with a torquer lag, predicted without
+    simulating: once the fast real pole of the lag has died out, the record is a damped
+    sinusoid of the dominant pole pair s = −σ ± jω_d, for which the steps return exactly
+    T̂ = 1/|s| (ω from the period, ξ̂ = σ/|s| from A1/A2), so K̂_a = γ k_dp k_y / |s|².
+
+    Host-side (NumPy roots of the test-signal denominator, concrete parameters); the
+    relative error is `relative_error_percent(K̂_a, scale_factor(params))`.
+    """
+    import numpy as np
+
+    _, den = transfer_function_test_signal(params)
+    den = np.asarray(den, dtype=float)
+    roots = np.roots(den[np.argmax(den != 0) :])
+    pair = roots[np.argmax(np.abs(roots.imag))]
+    return float(shape_factor) * float(pickoff_amplifier_gain) / abs(pair) ** 2

@@ -224,3 +224,8 @@ def basic_error(
     """
     err = indicated_acceleration(tf, a3, a1, a2) - (1 + tf.scale_factor_error) * jnp.asarray(a3)
     return err if include_bias else err - tf.bias
+
+
+PASSPORTS = {"AKS-05": StaticTransferFunction.aks05, "AL-1M": StaticTransferFunction.al1m}
+"""The paper's two accelerometers (SPEC.md §3, Table 4) by name: the constructors of their
+passport transfer functions."""

@@ -64,8 +64,8 @@ from accel_jax import (  # noqa: E402
 )
 from accel_jax._runtime import fast_compile  # noqa: E402
 from accel_jax.report import (  # noqa: E402
+    Figures,
     provenance,
-    save_figure_atomic,
     study_main,
     study_run,
     write_json_atomic,
@@ -562,7 +562,7 @@ def _summary_rows(result: dict) -> list[dict]:
 
 
 def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
-    figures = []
+    figures = Figures(out_dir)
     # Recovery distributions.
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     gm = rec["gauss_markov"]
@@ -589,21 +589,17 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
     for ax in axes:
         ax.tick_params(axis="x", labelsize=8)
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "recovery.png")
-    plt.close(fig)
-    figures.append(
-        {
-            "file": "recovery.png",
-            "caption": (
-                f"Parameter recovery over {rec['runs']} simulated records of {rec['samples_per_record']} samples at "
-                f"{DT:g} s: Gauss-Markov σ = {GM_TRUE['sigma']:g}, τ_c = {GM_TRUE['tau']:g} s (left) and "
-                f"exponential-cosine σ = {EC_TRUE['sigma']:g}, α = {EC_TRUE['alpha']:g} /s, β = {EC_TRUE['beta']:g} rad/s "
-                f"(middle, right). Autocorrelation (11) up to lag {rec['max_lag']}. Rule (15) summed to the first "
-                "r_j ≤ 0 (paper) or r_j ≤ 1/e; LS: Levenberg-Marquardt on R_0..R_K; ML: exact likelihood of the "
-                "discrete state-space form. Boxes: quartiles; dashed: truth."
-            ),
-        }
+    figures.save(
+        fig,
+        "recovery.png",
+        (
+            f"Parameter recovery over {rec['runs']} simulated records of {rec['samples_per_record']} samples at "
+            f"{DT:g} s: Gauss-Markov σ = {GM_TRUE['sigma']:g}, τ_c = {GM_TRUE['tau']:g} s (left) and "
+            f"exponential-cosine σ = {EC_TRUE['sigma']:g}, α = {EC_TRUE['alpha']:g} /s, β = {EC_TRUE['beta']:g} rad/s "
+            f"(middle, right). Autocorrelation (11) up to lag {rec['max_lag']}. Rule (15) summed to the first "
+            "r_j ≤ 0 (paper) or r_j ≤ 1/e; LS: Levenberg-Marquardt on R_0..R_K; ML: exact likelihood of the "
+            "discrete state-space form. Boxes: quartiles; dashed: truth."
+        ),
     )
 
     # Autocorrelation fits and residual whiteness (paper's Fig. 3).
@@ -627,23 +623,19 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
     axes[1].set_ylabel("autocorrelation of standardised innovations")
     axes[1].legend()
     axes[1].grid(alpha=0.3)
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "structure_fig3.png")
-    plt.close(fig)
     table = {row["structure"]: row for row in structure["table"]}
-    figures.append(
-        {
-            "file": "structure_fig3.png",
-            "caption": (
-                "Structure identification (cf. paper Fig. 3) on one record of white (σ = 0.3) + exponential-cosine "
-                "noise. Left: sample autocorrelation and the ML fits of the exponential and exponential-cosine "
-                "structures. Right: autocorrelation of each fit's standardised Kalman innovations; the exponential "
-                f"model leaves structure (Ljung-Box p = {table['white+gauss_markov']['ljung_box_p']:.2g}), the "
-                f"exponential-cosine does not (p = {table['white+exp_cosine']['ljung_box_p']:.2g}). Grey band: "
-                f"approximate 95 % band for white residuals (N = {n_rec}). "
-                f"BIC chooses {structure['chosen']}."
-            ),
-        }
+    figures.save(
+        fig,
+        "structure_fig3.png",
+        (
+            "Structure identification (cf. paper Fig. 3) on one record of white (σ = 0.3) + exponential-cosine "
+            "noise. Left: sample autocorrelation and the ML fits of the exponential and exponential-cosine "
+            "structures. Right: autocorrelation of each fit's standardised Kalman innovations; the exponential "
+            f"model leaves structure (Ljung-Box p = {table['white+gauss_markov']['ljung_box_p']:.2g}), the "
+            f"exponential-cosine does not (p = {table['white+exp_cosine']['ljung_box_p']:.2g}). Grey band: "
+            f"approximate 95 % band for white residuals (N = {n_rec}). "
+            f"BIC chooses {structure['chosen']}."
+        ),
     )
 
     # Kalman divergence (paper's Figs. 4 and 5).
@@ -667,21 +659,17 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
         ax.set_ylabel("vertical error δ − δ̂ [µrad]")
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "kalman_fig4_fig5.png")
-    plt.close(fig)
     kal = result["kalman"]
-    figures.append(
-        {
-            "file": "kalman_fig4_fig5.png",
-            "caption": (
-                "Single-channel INS Kalman filter, velocity observations at 1 Hz (one Monte Carlo run shown; "
-                f"percentages over {kal['runs']} runs of {kal['hours']:g} h). Truth: σ_a = 1e-3 m/s², τ_a = 600 s, "
-                "σ_ω = 5e-8 rad/s, τ_ω = 3600 s, velocity noise 0.1 m/s. Left: the filter's sensor models have drift "
-                f"×{WRONG_DRIFT:g} and diffusion ×{WRONG_DIFFUSION:g}; right: σ, τ identified by ML from "
-                f"{kal['identification']['record_hours']:g} h static records of each sensor error."
-            ),
-        }
+    figures.save(
+        fig,
+        "kalman_fig4_fig5.png",
+        (
+            "Single-channel INS Kalman filter, velocity observations at 1 Hz (one Monte Carlo run shown; "
+            f"percentages over {kal['runs']} runs of {kal['hours']:g} h). Truth: σ_a = 1e-3 m/s², τ_a = 600 s, "
+            "σ_ω = 5e-8 rad/s, τ_ω = 3600 s, velocity noise 0.1 m/s. Left: the filter's sensor models have drift "
+            f"×{WRONG_DRIFT:g} and diffusion ×{WRONG_DIFFUSION:g}; right: σ, τ identified by ML from "
+            f"{kal['identification']['record_hours']:g} h static records of each sensor error."
+        ),
     )
 
     # Allan deviation.
@@ -704,21 +692,17 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
     ax.set_ylabel("Allan deviation [rad/s]")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "allan.png")
-    plt.close(fig)
-    figures.append(
-        {
-            "file": "allan.png",
-            "caption": (
-                "Allan deviation (overlapping) of a simulated gyro-drift record at 1 Hz: white noise 1e-6 rad/s per "
-                "sample + Gauss-Markov (2e-7 rad/s, 300 s) + rate random walk (q = 1e-14 rad²/s³). Dotted: the "
-                "fitted standard slopes (−1/2 angle random walk N, +1/2 rate random walk K); dashed: the exact "
-                "Allan deviation of the true model (autocovariance formula plus K²τ/3)."
-            ),
-        }
+    figures.save(
+        fig,
+        "allan.png",
+        (
+            "Allan deviation (overlapping) of a simulated gyro-drift record at 1 Hz: white noise 1e-6 rad/s per "
+            "sample + Gauss-Markov (2e-7 rad/s, 300 s) + rate random walk (q = 1e-14 rad²/s³). Dotted: the "
+            "fitted standard slopes (−1/2 angle random walk N, +1/2 rate random walk K); dashed: the exact "
+            "Allan deviation of the true model (autocovariance formula plus K²τ/3)."
+        ),
     )
-    return figures
+    return figures.entries
 
 
 def main(argv=None) -> int:

@@ -36,8 +36,8 @@ import numpy as np  # noqa: E402
 import accel_jax as aj  # noqa: E402
 from accel_jax._runtime import fast_compile  # noqa: E402
 from accel_jax.report import (  # noqa: E402
+    Figures,
     provenance,
-    save_figure_atomic,
     study_main,
     study_run,
     write_json_atomic,
@@ -216,10 +216,9 @@ def _run_sweep(one, base, field, values, seeds, key, shared_args):
     return _summarise(np.asarray(errors), np.asarray(codes), len(values), seeds)
 
 
-def _damping_for_ratio(base: aj.ServoParams, ratios: np.ndarray) -> np.ndarray:
-    """μ giving damping ratio ξ (eq. 5): μ = 2 ξ sqrt(J (c + k_dm l k_dp k_y))."""
-    k = float(aj.loop_stiffness(base))
-    return 2 * np.asarray(ratios) * np.sqrt(float(base.moment_of_inertia) * k)
+def _mu_for(base: aj.ServoParams, ratios) -> np.ndarray:
+    """μ giving damping ratio ξ (eq. (5) solved for μ; `aj.damping_for_ratio`)."""
+    return np.asarray(aj.damping_for_ratio(base, ratios))
 
 
 # --- the study -------------------------------------------------------------------------
@@ -236,7 +235,7 @@ def _devices(params: aj.ServoParams | None) -> tuple[aj.ServoParams, aj.ServoPar
         False: float(aj.damping_ratio(aj.ServoParams.reference())),
     }[xi < 1]
     twin = eqx.tree_at(
-        lambda p: p.damping, params, jnp.asarray(_damping_for_ratio(params, other), jnp.float64)
+        lambda p: p.damping, params, jnp.asarray(_mu_for(params, other), jnp.float64)
     )
     label = f"user's device (ξ = {xi:.3g}; its twin with ξ = {other:.3g} for the other method)"
     return (params, twin, label) if xi < 1 else (twin, params, label)
@@ -459,15 +458,9 @@ def decompose_oscillatory(ref, gain_true, gain_stops) -> dict:
 
 def dominant_pole_prediction(params, gamma, gain) -> float:
     """δK_a [%] the oscillatory method converges to (noise-free, fine sampling), predicted
-    independently of the simulation: once the fast real pole of the torquer lag has died out,
-    the record is a damped sinusoid of the dominant pole pair s = −σ ± jω_d, for which steps
-    (8)-(10) return exactly T̂ = 1/|s| (ω from the period, ξ̂ = σ/|s| from A1/A2).
-    So K̂_a = γ k_dp k_y / |s|²."""
-    _, den = aj.transfer_function_test_signal(params)
-    den = np.asarray(den, dtype=float)
-    roots = np.roots(den[np.argmax(den != 0) :])
-    pair = roots[np.argmax(np.abs(roots.imag))]
-    estimate = gamma * gain / abs(pair) ** 2
+    independently of the simulation from the dominant pole pair
+    (`aj.dominant_pole_scale_factor`)."""
+    estimate = aj.dominant_pole_scale_factor(params, gamma, gain)
     return 100.0 * (estimate - float(aj.scale_factor(params))) / estimate
 
 
@@ -599,9 +592,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
     out["oscillatory"]["damping_ratio"] = {
         "x": xi.tolist(),
         "record_s": XI_SWEEP_DURATION,
-        **_run_sweep(
-            osc_long, ref, "damping", _damping_for_ratio(ref, xi), seeds, keys[0], (gamma, gain)
-        ),
+        **_run_sweep(osc_long, ref, "damping", _mu_for(ref, xi), seeds, keys[0], (gamma, gain)),
     }
     # The same records (same keys) with ω from the half period 2(t_mid − t1): the crossing
     # t2 is shallow at high ξ, so the paper's t2 − t1 scatters there.
@@ -612,7 +603,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
             _kernel("oscillatory", XI_SWEEP_DURATION, noisy=True, period="half"),
             ref,
             "damping",
-            _damping_for_ratio(ref, xi),
+            _mu_for(ref, xi),
             seeds,
             keys[0],
             (gamma, gain),
@@ -628,7 +619,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
     }
     # Noise-free predictions from the dominant pole pair, beside the Monte Carlo curves.
     for name, field, values in (
-        ("damping_ratio", "damping", _damping_for_ratio(ref, xi)),
+        ("damping_ratio", "damping", _mu_for(ref, xi)),
         ("torquer_time_constant_s", "torquer_time_constant", tdm),
         ("noise_V", "noise_std", noise),
     ):
@@ -674,7 +665,7 @@ def run_sweeps(ref, ref_ap, gain, gamma, seeds, k_osc, k_ap, quick) -> dict:
         return summary
 
     out["aperiodic"]["T1_over_2T2"] = aperiodic_sweep(
-        "damping", _damping_for_ratio(ref_ap, ratio), keys_ap[0], lag_ref
+        "damping", _mu_for(ref_ap, ratio), keys_ap[0], lag_ref
     )
     out["aperiodic"]["T1_over_2T2"]["x"] = ratio.tolist()
     out["aperiodic"]["noise_V"] = aperiodic_sweep("noise_std", noise, keys_ap[1], lag_ref)
@@ -880,7 +871,7 @@ def _panel(ax, s, xlabel, *, logx=False, symlogy=False, ref_key, ref_label, labe
 
 
 def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
-    figures = []
+    figures = Figures(out_dir)
     sw = result["sweeps"]
     osc = sw["oscillatory"]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
@@ -902,26 +893,22 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     _panel(axes[1], osc["noise_V"], "output noise ε [V]", logx=True, symlogy=True, **common)
     _panel(axes[2], osc["torquer_time_constant_s"], "torquer time constant T_dm [s]", **common)
     fig.suptitle("Oscillatory method: δK_a vs ξ, noise, T_dm (cf. paper Fig. 3)")
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "fig3_oscillatory_sweeps.png")
-    plt.close(fig)
-    figures.append(
-        {
-            "file": "fig3_oscillatory_sweeps.png",
-            "caption": (
-                "Oscillatory method, δK_a = 100(K̂_a − K_a)/K̂_a versus damping ratio (a, "
-                f"{XI_SWEEP_DURATION * 1e3:g} ms records), output noise (b, symmetric-log axis) and "
-                f"torquer lag (c, {OSC_DURATION * 1e3:g} ms records); reference device otherwise "
-                "(T_dm = T_f = 1e-5 s, ε = 1e-5 V), γ = m l²/J, k_dp k_y from the stops, "
-                f"{SAMPLE_RATE / 1e6:g} MHz sampling, linear-interpolated crossings, parabolic "
-                "extrema. Markers: mean, bars: std over "
-                f"{result['assumptions']['monte_carlo_seeds_per_point']} noise seeds; dashed: the "
-                "noise-free error predicted from the dominant closed-loop poles (no simulation). "
-                "Red labels: share of records the method could use (none once the undershoot A2 "
-                "is below the noise band, from ξ ≈ 0.85). Squares in (a): the same records with "
-                "ω from the half period between the first two (steep) crossings."
-            ),
-        }
+    figures.save(
+        fig,
+        "fig3_oscillatory_sweeps.png",
+        (
+            "Oscillatory method, δK_a = 100(K̂_a − K_a)/K̂_a versus damping ratio (a, "
+            f"{XI_SWEEP_DURATION * 1e3:g} ms records), output noise (b, symmetric-log axis) and "
+            f"torquer lag (c, {OSC_DURATION * 1e3:g} ms records); reference device otherwise "
+            "(T_dm = T_f = 1e-5 s, ε = 1e-5 V), γ = m l²/J, k_dp k_y from the stops, "
+            f"{SAMPLE_RATE / 1e6:g} MHz sampling, linear-interpolated crossings, parabolic "
+            "extrema. Markers: mean, bars: std over "
+            f"{result['assumptions']['monte_carlo_seeds_per_point']} noise seeds; dashed: the "
+            "noise-free error predicted from the dominant closed-loop poles (no simulation). "
+            "Red labels: share of records the method could use (none once the undershoot A2 "
+            "is below the noise band, from ξ ≈ 0.85). Squares in (a): the same records with "
+            "ω from the half period between the first two (steep) crossings."
+        ),
     )
 
     ap = sw["aperiodic"]
@@ -943,22 +930,18 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     axes[2].plot(s["x"], s["noise_free"], "k:", lw=1)
     axes[2].legend(fontsize=8)
     fig.suptitle("Aperiodic method: δK_a vs T1/2T2, noise, T_dm (cf. paper Fig. 5)")
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "fig5_aperiodic_sweeps.png")
-    plt.close(fig)
-    figures.append(
-        {
-            "file": "fig5_aperiodic_sweeps.png",
-            "caption": (
-                "Aperiodic method (μ = 1.01e-4 N·m·s device, ξ = 2.07), δK_a versus T1/2T2 (a), "
-                "output noise (b) and T_dm with and without the lag compensation (16) (c); "
-                "symmetric-log axes where the spread spans decades. γ = m l²/J, k_dp k_y from the "
-                f"stops, {SAMPLE_RATE / 1e6:g} MHz sampling, {APER_DURATION * 1e3:g} ms records, "
-                f"slope by a Savitzky-Golay local cubic over {APER_SMOOTHING} samples. "
-                "Markers: Monte Carlo mean ± std over noise seeds (ε = 1e-5 V unless swept); "
-                "dashed/dotted: the same identification on the noise-free record."
-            ),
-        }
+    figures.save(
+        fig,
+        "fig5_aperiodic_sweeps.png",
+        (
+            "Aperiodic method (μ = 1.01e-4 N·m·s device, ξ = 2.07), δK_a versus T1/2T2 (a), "
+            "output noise (b) and T_dm with and without the lag compensation (16) (c); "
+            "symmetric-log axes where the spread spans decades. γ = m l²/J, k_dp k_y from the "
+            f"stops, {SAMPLE_RATE / 1e6:g} MHz sampling, {APER_DURATION * 1e3:g} ms records, "
+            f"slope by a Savitzky-Golay local cubic over {APER_SMOOTHING} samples. "
+            "Markers: Monte Carlo mean ± std over noise seeds (ε = 1e-5 V unless swept); "
+            "dashed/dotted: the same identification on the noise-free record."
+        ),
     )
 
     dec = result["decomposition"]["oscillatory"]["dKa_percent"]
@@ -970,19 +953,15 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     ax.invert_yaxis()
     ax.legend()
     ax.grid(alpha=0.3, axis="x")
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "decomposition.png")
-    plt.close(fig)
-    figures.append(
-        {
-            "file": "decomposition.png",
-            "caption": (
-                "Oscillatory δK_a, one cause at a time, from the ideal second-order case (noise-free "
-                "unless marked; 10 MHz unless marked) to the full reference device."
-            ),
-        }
+    figures.save(
+        fig,
+        "decomposition.png",
+        (
+            "Oscillatory δK_a, one cause at a time, from the ideal second-order case (noise-free "
+            "unless marked; 10 MHz unless marked) to the full reference device."
+        ),
     )
-    return figures
+    return figures.entries
 
 
 def main(argv=None) -> int:

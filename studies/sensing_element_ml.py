@@ -54,8 +54,8 @@ from accel_jax import (  # noqa: E402
     state_basis,
 )
 from accel_jax.report import (  # noqa: E402
+    Figures,
     provenance,
-    save_figure_atomic,
     study_main,
     study_run,
     write_json_atomic,
@@ -502,7 +502,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
 
 
 def make_figures(out_dir, result):
-    figures = []
+    figures = Figures(out_dir)
     table = result["error_rms_rad"]
     amps = np.array([float(a) for a in table])
     fig, ax = plt.subplots(figsize=(6.4, 4.6))
@@ -526,20 +526,16 @@ def make_figures(out_dir, result):
     ax.set_ylabel("RMS error of α_P over initial phase [rad]")
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "error_vs_amplitude.png")
-    plt.close(fig)
     assume = result["assumptions"]
-    figures.append(
-        {
-            "file": "error_vs_amplitude.png",
-            "caption": (
-                "RMS over initial phase of the α_P error versus amplitude, noise-free exact-sine "
-                f"records (ω0 = 2π rad/s, δ = {assume['sample_interval_s']} s, K = "
-                f"{assume['record_length_samples']}, ξ = {assume['decay_rate_per_s']} 1/s); dotted: "
-                "with pickoff noise and a Gauss–Markov disturbance (RMS over phases and seeds)."
-            ),
-        }
+    figures.save(
+        fig,
+        "error_vs_amplitude.png",
+        (
+            "RMS over initial phase of the α_P error versus amplitude, noise-free exact-sine "
+            f"records (ω0 = 2π rad/s, δ = {assume['sample_interval_s']} s, K = "
+            f"{assume['record_length_samples']}, ξ = {assume['decay_rate_per_s']} 1/s); dotted: "
+            "with pickoff noise and a Gauss–Markov disturbance (RMS over phases and seeds)."
+        ),
     )
 
     byp = result["error_by_phase_rad"]
@@ -554,15 +550,11 @@ def make_figures(out_dir, result):
     ax.set_title("A = 0.033 rad (2°), noise-free")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "error_vs_phase.png")
-    plt.close(fig)
-    figures.append(
-        {
-            "file": "error_vs_phase.png",
-            "caption": "Signed α_P error versus initial phase at A = 0.033 rad: the bias changes "
-            "sign with phase, so the tables report its RMS over phase.",
-        }
+    figures.save(
+        fig,
+        "error_vs_phase.png",
+        "Signed α_P error versus initial phase at A = 0.033 rad: the bias changes "
+        "sign with phase, so the tables report its RMS over phase.",
     )
 
     sweeps = result["sweeps_at_A_0.033"]
@@ -587,17 +579,13 @@ def make_figures(out_dir, result):
         ax.grid(alpha=0.3, which="both")
     axes[0, 0].legend(fontsize=6)
     fig.suptitle("A = 0.033 rad; other parameters at their nominal values")
-    fig.tight_layout()
-    save_figure_atomic(fig, out_dir / "sweeps.png")
-    plt.close(fig)
-    figures.append(
-        {
-            "file": "sweeps.png",
-            "caption": "RMS α_P error at A = 0.033 rad versus ξ, K, δ (noise-free) and the noise "
-            "level (noise on, RMS over phases and seeds); one parameter varied at a time.",
-        }
+    figures.save(
+        fig,
+        "sweeps.png",
+        "RMS α_P error at A = 0.033 rad versus ξ, K, δ (noise-free) and the noise "
+        "level (noise on, RMS over phases and seeds); one parameter varied at a time.",
     )
-    return figures
+    return figures.entries
 
 
 def main(argv=None) -> int:

@@ -68,7 +68,7 @@ TABLE5 = {
     "AKS-05": (1.000100, 1.000083, 1.000006),
     "AL-1M": (1.001303, 1.001088, 1.000110),
 }
-UNITS = {"AKS-05": StaticTransferFunction.aks05, "AL-1M": StaticTransferFunction.al1m}
+UNITS = aj.PASSPORTS  # the paper's two accelerometers, Table 4
 EFFECTS = ("asymmetry", "k2", "k3", "k4", "k5")
 LABELS = {"asymmetry": "A1", "k2": "k2", "k3": "k3", "k4": "k4", "k5": "k5"}
 UNIT_NAMES = {effect: aj.PPM_UNITS[effect] for effect in EFFECTS}

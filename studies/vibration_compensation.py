@@ -79,7 +79,7 @@ TABLE5 = {  # â(1), â(2), â(3) [g], measured at 1 g with a 2 g, 30 Hz sinusoi
     "AL-1M": [1.001303, 1.001088, 1.000110],
 }
 TABLE5_STEPS = ("no compensation", "after basic-error compensation", "after vibration compensation")
-UNITS = {"AKS-05": StaticTransferFunction.aks05, "AL-1M": StaticTransferFunction.al1m}
+UNITS = aj.PASSPORTS  # the paper's two accelerometers, Table 4
 
 # --- our assumptions ---------------------------------------------------------------------
 TABLE5_A3 = 1.0  # g along IA (the shaker table's gravity)
@@ -421,26 +421,8 @@ def _plan(a, b, s=0.0) -> dict:
 
 
 def _greedy_plan(grid: dict, J: np.ndarray, target_se: np.ndarray, max_rows: int = 30):
-    """Rows of `grid` added one at a time, each maximising log det(JᵀJ) (D-optimal), until
-    every standard error is below its target."""
-    chosen: list[int] = []
-    history = []
-    for _ in range(max_rows):
-        best, best_val = None, -np.inf
-        for i in range(J.shape[0]):
-            M = J[chosen + [i]]
-            val = np.linalg.slogdet(M.T @ M + 1e-12 * np.eye(J.shape[1]))[1]
-            if val > best_val:
-                best, best_val = i, val
-        chosen.append(best)
-        M = J[chosen]
-        if len(chosen) >= J.shape[1] and np.linalg.matrix_rank(M) == J.shape[1]:
-            se = np.sqrt(np.diag(np.linalg.inv(M.T @ M)))
-            history.append(
-                {"rows": len(chosen), "max_se_over_target": float(np.max(se / target_se))}
-            )
-            if np.all(se <= target_se):
-                break
+    """The grid's rows chosen by `aj.greedy_test_plan` (greedy D-optimal), as a table."""
+    chosen, history = aj.greedy_test_plan(J, target_se, max_rows=max_rows)
     return {k: v[chosen] for k, v in grid.items()}, history
 
 

@@ -24,9 +24,10 @@ from accel_jax.diagnose import (
     diagnose,
     diagnose_many,
     effect_library,
+    noise_effects,
+    noise_fit,
     rank_candidates,
 )
-from accel_jax.diagnose import noise as noise_kind
 from accel_jax.diagnose import vibration as vibration_kind
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -241,10 +242,10 @@ def test_noise_filter_matches_the_generic_exact_likelihood():
     c = jnp.asarray(x - x.mean())
     diffuse = 1e6 * float(jnp.mean(c**2))  # `_noise`'s diffuse prior of the level
     white, sc, alpha, beta, q = 0.8, 0.6, 3.0, 20.0, 0.02
-    parts = noise_kind.NoiseComponents(
+    parts = noise_effects.NoiseComponents(
         jnp.asarray(sc**2), jnp.exp(-alpha * DT), jnp.asarray(beta * DT), jnp.asarray(q * DT)
     )
-    _, _, terms = noise_kind.filter_terms(jnp.asarray(white**2), parts, c, diffuse)
+    _, _, terms = noise_fit.filter_terms(jnp.asarray(white**2), parts, c, diffuse)
     reference = log_likelihood(
         aj.NoiseSum(
             (aj.WhiteNoise(white), aj.ExponentialCosine(sc, alpha, beta), aj.RandomWalk(q))
@@ -255,7 +256,7 @@ def test_noise_filter_matches_the_generic_exact_likelihood():
     assert float(jnp.sum(terms[1:])) == pytest.approx(float(reference), rel=1e-10)
     # θ = 0: the block is a Gauss–Markov noise.
     parts = eqx.tree_at(lambda p: p.rotation, parts, jnp.asarray(0.0))
-    _, _, terms = noise_kind.filter_terms(jnp.asarray(white**2), parts, c, diffuse)
+    _, _, terms = noise_fit.filter_terms(jnp.asarray(white**2), parts, c, diffuse)
     reference = log_likelihood(
         aj.NoiseSum((aj.WhiteNoise(white), aj.GaussMarkov(sc, 1 / alpha), aj.RandomWalk(q))), x, DT
     )
@@ -266,13 +267,13 @@ def test_noise_effects_are_nominal_at_zero():
     rng = np.random.default_rng(1)
     c = jnp.asarray(rng.normal(size=300))
     z = jnp.array([0.1, 0.0, -2.0, 0.7])  # ln σ_w, then the slot with the amplitude at 0
-    nominal_white, nominal_parts = noise_kind._components(z, 0)
-    _, _, nominal = noise_kind.filter_terms(nominal_white, nominal_parts, c, 1e6)
+    nominal_white, nominal_parts = noise_fit._components(z, 0)
+    _, _, nominal = noise_fit.filter_terms(nominal_white, nominal_parts, c, 1e6)
     assert len(effect_library("noise")) == 3
     for i in range(1, 4):
-        white, parts = noise_kind._components(z, i)
+        white, parts = noise_fit._components(z, i)
         assert float(parts.variance) == 0.0 and float(parts.walk) == 0.0
-        _, _, terms = noise_kind.filter_terms(white, parts, c, 1e6)
+        _, _, terms = noise_fit.filter_terms(white, parts, c, 1e6)
         np.testing.assert_array_equal(terms, nominal)
 
 

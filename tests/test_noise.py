@@ -251,3 +251,24 @@ def test_model_validation():
         NoiseSum((WhiteNoise(1.0),))
     with pytest.raises(ValueError, match="no autocovariance"):
         RandomWalk(1.0).autocovariance(jnp.arange(3.0))
+
+
+def test_ljung_box_is_the_standard_statistic_with_fitted_parameters_removed():
+    """One Ljung–Box for the library (`aj.ljung_box`, the diagnosis's too): Q from the
+    standard autocorrelation r_k = Σ e_t e_{t−k}/Σ e_t² (checked against a direct sum),
+    χ²(L − p) for p fitted parameters (scipy)."""
+    from scipy import stats
+
+    import accel_jax as aj
+    from accel_jax.diagnose import ljung_box as diagnose_ljung_box
+
+    assert diagnose_ljung_box is aj.ljung_box
+    rng = np.random.default_rng(4)
+    e = rng.normal(size=600) + 3.0
+    result = aj.ljung_box(e, 12, 3)
+    d = e - e.mean()
+    r = [np.sum(d[k:] * d[:-k]) / np.sum(d * d) for k in range(1, 13)]
+    q = 600 * 602 * sum(rk**2 / (600 - k) for k, rk in enumerate(r, start=1))
+    assert result["statistic"] == pytest.approx(q, rel=1e-12)
+    assert result["p_value"] == pytest.approx(stats.chi2.sf(q, 9), rel=1e-8)
+    assert aj.ljung_box(np.ones(100))["p_value"] == 1.0

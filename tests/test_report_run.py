@@ -265,7 +265,8 @@ def test_cli_report_rejects_a_bad_jobs_value(tmp_path, jobs):
     assert not (tmp_path / "r").exists()
 
 
-def test_overview_collects_published_numbers_tolerances_and_validation(tmp_path):
+def test_overview_collects_published_numbers_and_each_studys_own_tables(tmp_path):
+    """The report renders every study's `overview` tables without knowing their schema."""
     from accel_jax.report._html import build_report
 
     def study(name, payload):
@@ -273,7 +274,6 @@ def test_overview_collects_published_numbers_tolerances_and_validation(tmp_path)
         write_json_atomic(folder / "result.json", {"title": name, **payload})
         return folder
 
-    limits = {k: 1.0 for k in ("A1", "k2", "k3", "k4", "k5", "m")}
     dirs = [
         study(
             "scale_factor_identification",
@@ -287,13 +287,30 @@ def test_overview_collects_published_numbers_tolerances_and_validation(tmp_path)
         study(
             "tolerance_limits",
             {
-                "cyclone4": {"paper": limits, "gradient": limits, "table2": {"A1": 445}},
-                "tactical": {"paper": limits, "gradient": limits, "table2": limits},
+                "overview": [
+                    {
+                        "title": "Tolerance limits",
+                        "note": "n",
+                        "columns": ["example", "method", "A1 [ppm]"],
+                        "rows": [
+                            ["Cyclone-4", "paper, Table 2", 445],
+                            ["tactical, short range", "p", 1],
+                        ],
+                    }
+                ]
             },
         ),
         study(
             "sim_to_real_validation",
-            {"noise": {"n_datasets": 130, "accuracy": 0.967, "false_alarm_rate": 0.0}},
+            {
+                "overview": [
+                    {
+                        "title": "blind",
+                        "columns": ["kind", "n", "acc"],
+                        "rows": [["noise", 130, 0.967]],
+                    }
+                ]
+            },
         ),
     ]
     page = build_report(dirs, tmp_path / "report" / "index.html", title="t").read_text()

@@ -34,6 +34,11 @@ def test_report_has_every_study_and_figure(report_dir):
         assert result.get("provenance", {}).get("accel_jax_version"), name
     assert index.count("data:image/png;base64,") == embedded
     assert "missing figure" not in index
+    # The studies' own "At a glance" tables (the report knows no study's schema).
+    overview = index.split('id="overview"')[1].split("<h2")[0]
+    assert "Tolerance limits on the transfer-function coefficients" in overview
+    assert "Cyclone-4" in overview and "445" in overview
+    assert "Sim-to-real diagnosis, checked blind" in overview
 
 
 @pytest.mark.slow

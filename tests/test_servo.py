@@ -140,3 +140,28 @@ def test_construction_does_not_enable_x64_or_change_config():
     before = jax.config.read("jax_enable_x64")
     aj.ServoParams.reference()
     assert jax.config.read("jax_enable_x64") == before
+
+
+@pytest.mark.parametrize("ratio", [0.3, 1.0, 2.5])
+def test_damping_for_ratio_inverts_damping_ratio(ratio):
+    params = aj.ServoParams.reference()
+    mu = aj.damping_for_ratio(params, ratio)
+    twin = eqx.tree_at(lambda p: p.damping, params, mu)
+    assert float(aj.damping_ratio(twin)) == pytest.approx(ratio, rel=1e-12)
+
+
+def test_dominant_pole_scale_factor_against_the_state_space_eigenvalues():
+    """Without a torquer lag the dominant pair is the loop's only pair: K̂_a = K_a with the
+    exact γ. With one, |s|² of the pair from the transfer function's roots equals that of
+    the oscillatory eigenvalue pair of the state-space matrix (an independent route)."""
+    ideal = aj.ServoParams.reference(torquer_time_constant=0.0, filter_time_constant=0.0)
+    gain = float(ideal.pickoff_gain * ideal.amplifier_gain)
+    gamma = float(aj.shape_factor(ideal))
+    estimate = aj.dominant_pole_scale_factor(ideal, gamma, gain)
+    assert estimate == pytest.approx(float(aj.scale_factor(ideal)), rel=1e-12)
+    lagged = aj.ServoParams.reference(torquer_time_constant=1e-5)
+    a, *_ = aj.state_space(lagged)
+    eigenvalues = np.linalg.eigvals(np.asarray(a))
+    pair = eigenvalues[np.argmax(np.abs(eigenvalues.imag))]
+    expected = gamma * gain / abs(pair) ** 2
+    assert aj.dominant_pole_scale_factor(lagged, gamma, gain) == pytest.approx(expected, rel=1e-9)

@@ -54,8 +54,8 @@ from .record import NoiseFitResult as NoiseFitResult
 from .record import autocorrelation as autocorrelation
 from .selection import StructureSelection as StructureSelection
 from .selection import initial_model as initial_model
-from .selection import ljung_box as ljung_box
 from .selection import select_noise_model as select_noise_model
+from .whiteness import ljung_box as ljung_box
 
 # The top-level names of the noise model's innovations and likelihood (`accel_jax`).
 noise_innovations = innovations

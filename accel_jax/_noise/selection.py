@@ -26,6 +26,7 @@ from .models import (
     model_parameters,
 )
 from .record import NoiseFitResult, _sample_interval, _validate_record, autocorrelation
+from .whiteness import ljung_box
 
 DEFAULT_STRUCTURES: tuple[str, ...] = (
     "white",
@@ -83,24 +84,6 @@ def initial_model(structure: str, record: ArrayLike, sample_interval: float) -> 
     dtype = jnp.result_type(float)
     models = [jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), m) for m in models]
     return models[0] if len(models) == 1 else NoiseSum(tuple(models))
-
-
-def ljung_box(standardised: ArrayLike, num_lags: int, num_parameters: int = 0):
-    """Ljung-Box portmanteau test of whiteness on standardised residuals.
-
-    Q = N(N + 2) Σ_{k=1}^{L} ρ_k²/(N − k) ~ χ²(L − p) under whiteness.
-
-    **Returns:** (ρ_1..ρ_L, Q, p-value).
-    """
-    e = jnp.asarray(standardised)
-    n = e.shape[0]
-    R = autocorrelation(e, num_lags)
-    rho = R[1:] / R[0]
-    k = jnp.arange(1, num_lags + 1)
-    q = n * (n + 2) * jnp.sum(rho**2 / (n - k))
-    dof = max(num_lags - num_parameters, 1)
-    p_value = jax.scipy.special.gammaincc(dof / 2, q / 2)
-    return rho, q, p_value
 
 
 class StructureSelection(eqx.Module):
@@ -173,9 +156,9 @@ def select_noise_model(
         init = initial_model(structure, x, dt)
         fit = _fit_ml_jit(init, x, dt, max_steps)
         standardised, _ = _innovations_jit(fit.model, x, dt)
-        rho, q, p = ljung_box(standardised[1:], residual_lags, fit.num_parameters)
+        whiteness = ljung_box(standardised[1:], residual_lags, fit.num_parameters)
         fits[structure] = fit
-        rhos[structure] = rho
+        rhos[structure] = np.asarray(whiteness["autocorrelation"])
         rows.append(
             {
                 "structure": structure,
@@ -184,8 +167,8 @@ def select_noise_model(
                 "aic": float(fit.aic),
                 "bic": float(fit.bic),
                 "converged": bool(fit.result == NoiseFitResult.successful),
-                "ljung_box_Q": float(q),
-                "ljung_box_p": float(p),
+                "ljung_box_Q": whiteness["statistic"],
+                "ljung_box_p": whiteness["p_value"],
                 "parameters": model_parameters(fit.model),
             }
         )

@@ -49,6 +49,7 @@ from .fitting import CoefficientFit as CoefficientFit
 from .fitting import Identifiability as Identifiability
 from .fitting import design_matrix as design_matrix
 from .fitting import fit_coefficients as fit_coefficients
+from .fitting import greedy_test_plan as greedy_test_plan
 from .fitting import identifiability as identifiability
 from .fitting import predict_table as predict_table
 from .paper import ASYMMETRY_RANDOM_FACTOR as ASYMMETRY_RANDOM_FACTOR

@@ -262,3 +262,55 @@ def fit_coefficients(
         residual_rms=jnp.sqrt(jnp.mean(r**2)),
         result=sol.result,
     )
+
+
+def greedy_test_plan(
+    design: np.ndarray, target_standard_error: np.ndarray, *, max_rows: int = 30
+) -> tuple[list[int], list[dict]]:
+    """A test plan for `fit_coefficients`: rows of a candidate grid chosen one at a time,
+    each maximising log det(JᵀJ) of the rows so far (greedy D-optimal design), until every
+    coefficient's standard error √diag((JᵀJ)⁻¹) is at or below its target.
+
+    **Arguments:**
+
+    - `design`: J, the candidate rows' design matrix (`design_matrix` of the grid), shape
+        (rows, coefficients), in the units of the fit (e.g. ppm per unit noise σ).
+    - `target_standard_error`: the largest acceptable standard error per coefficient, in
+        units of the noise σ (shape (coefficients,)).
+    - `max_rows`: the most rows chosen.
+
+    **Returns:** (the chosen row indices in order — a row may repeat, i.e. a repeated
+    test — and the history: after each row that makes J full rank, the largest standard
+    error over its target). Host-side NumPy; a tiny ridge (1e-12) keeps log det finite
+    while fewer rows than coefficients are chosen.
+    """
+    design = np.asarray(design, dtype=float)
+    target = np.asarray(target_standard_error, dtype=float)
+    if design.ndim != 2 or target.shape != (design.shape[1],):
+        raise ValueError(
+            f"greedy_test_plan: design must be (rows, coefficients) and the targets one per "
+            f"coefficient; got {design.shape} and {target.shape}."
+        )
+    n_coefficients = design.shape[1]
+    chosen: list[int] = []
+    history = []
+    for _ in range(max_rows):
+        best, best_value = None, -np.inf
+        for i in range(design.shape[0]):
+            rows = design[chosen + [i]]
+            value = np.linalg.slogdet(rows.T @ rows + 1e-12 * np.eye(n_coefficients))[1]
+            if value > best_value:
+                best, best_value = i, value
+        chosen.append(best)
+        rows = design[chosen]
+        if len(chosen) >= n_coefficients and np.linalg.matrix_rank(rows) == n_coefficients:
+            standard_error = np.sqrt(np.diag(np.linalg.inv(rows.T @ rows)))
+            history.append(
+                {
+                    "rows": len(chosen),
+                    "max_se_over_target": float(np.max(standard_error / target)),
+                }
+            )
+            if np.all(standard_error <= target):
+                break
+    return chosen, history

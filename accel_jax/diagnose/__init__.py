@@ -48,9 +48,9 @@ from .base import (
 )
 from .dispatch import diagnose as diagnose
 from .dispatch import diagnose_many as diagnose_many
-from .noise import AbstractNoiseEffect as AbstractNoiseEffect
 from .noise import diagnose_noise as diagnose_noise
+from .noise_effects import AbstractNoiseEffect as AbstractNoiseEffect
 from .step import AbstractStepEffect as AbstractStepEffect
 from .step import diagnose_step as diagnose_step
-from .vibration import AbstractVibrationEffect as AbstractVibrationEffect
 from .vibration import diagnose_vibration as diagnose_vibration
+from .vibration_effects import AbstractVibrationEffect as AbstractVibrationEffect

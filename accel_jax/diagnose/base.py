@@ -29,6 +29,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from .._noise.whiteness import ljung_box as ljung_box
+
 SIGNIFICANCE = 10.0
 """Evidence (2 ln Bayes factor, on the BIC scale) an effect needs over the nominal model to
 be named: 10 is "very strong" on Kass & Raftery's scale (odds ≈ 150 : 1)."""
@@ -308,24 +310,6 @@ def held_out_gap(
         "noise_floor_rms": float(np.sqrt(noise_floor)),
         "n_held_out": int(n),
     }
-
-
-def ljung_box(residual: np.ndarray, lags: int = 20) -> dict[str, float]:
-    """Ljung–Box whiteness test of a residual: Q = n(n+2) Σ_{k=1..h} ρ_k²/(n−k), which is
-    χ²_h for white noise. Returns the statistic, the lags and the p-value (float64)."""
-    from jax.scipy.special import gammaincc
-
-    x = np.asarray(residual, dtype=np.float64)
-    x = x - x.mean()
-    n = x.shape[0]
-    lags = int(min(lags, n // 4))
-    denominator = np.dot(x, x)
-    if denominator == 0:
-        return {"statistic": 0.0, "lags": lags, "p_value": 1.0}
-    rho = np.array([np.dot(x[k:], x[:-k]) / denominator for k in range(1, lags + 1)])
-    q = float(n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, lags + 1))))
-    p_value = float(gammaincc(lags / 2.0, q / 2.0))
-    return {"statistic": q, "lags": lags, "p_value": p_value, "autocorrelation": rho.tolist()}
 
 
 # --------------------------------------------------------------------------------------

@@ -115,80 +115,26 @@ def _published_table(results: dict[str, dict]) -> str:
     )
 
 
-_LIMITS = ("A1", "k2", "k3", "k4", "k5", "m")
-_LIMIT_UNITS = ("ppm", "ppm/g", "ppm/g²", "ppm/g³", "ppm/g⁴", "ppm/g")
-
-
-def _tolerance_table(result: dict) -> str:
-    """Table 2 of SPEC.md §3: the paper's limits, ours by its method, ours by gradients."""
-    cases = [("Cyclone-4", result.get("cyclone4"))]
-    tactical = result.get("tactical")
-    if tactical:
-        cases.append(("tactical, short range", tactical))
-        if tactical.get("long_range"):
-            cases.append(("tactical, long range", tactical["long_range"]))
-    head = "<tr><th>example</th><th>method</th>" + "".join(
-        f"<th>{k} [{u}]</th>" for k, u in zip(_LIMITS, _LIMIT_UNITS, strict=True)
-    )
-    rows = []
-    for label, case in cases:
-        if not case:
+def _overview_tables(name: str, tables) -> str:
+    """A study's own "At a glance" tables (`result["overview"]`: a list of {"title",
+    "note", "columns", "rows"}), rendered the same way for every study: the report knows
+    no study's result schema."""
+    parts = []
+    for table in tables if isinstance(tables, list) else []:
+        rows = table.get("rows") or []
+        if not rows:
             continue
-        for method, key in (
-            ("paper, Table 2", "table2"),
-            ("paper's method (ours)", "paper"),
-            ("gradient (ours)", "gradient"),
-        ):
-            values = case.get(key, {})
-            rows.append(
-                f"<tr><td>{html.escape(label)}</td><td>{html.escape(method)}</td>"
-                + "".join(f"<td>{_fmt(values.get(k, ''))}</td>" for k in _LIMITS)
-                + "</tr>"
-            )
-    if not rows:
-        return ""
-    return (
-        "<h3>Tolerance limits on the transfer-function coefficients (admissible |k|)</h3>"
-        '<p>See <a href="#tolerance_limits">tolerance_limits</a> for which Table 2 entries '
-        "reproduce and why the others do not.</p>"
-        f"<table>{head}</tr>{''.join(rows)}</table>"
-    )
-
-
-def _sim_to_real_table(result: dict) -> str:
-    """The blind validation of the gap diagnosis, one row per kind of record."""
-    rows = []
-    labels = {"step_independent": "step (independent simulator, other conventions)"}
-    for kind in ("step", "step_independent", "vibration", "noise"):
-        section = result.get(kind)
-        if not isinstance(section, dict) or "n_datasets" not in section:
-            continue
-        assurance = section.get("false_assurance")
-        cells = [
-            labels.get(kind, kind),
-            section.get("n_datasets"),
-            section.get("accuracy"),
-            section.get("accuracy_incl_cannot_tell_naming_truth"),
-            section.get("false_alarm_rate"),
-            section.get("median_gap_shrink"),
-            section.get("out_of_library_unexplained_rate", "–"),
-            "–" if assurance is None else f"{assurance} of {section.get('none_verdicts')}",
-        ]
-        rows.append("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in cells) + "</tr>")
-    if not rows:
-        return ""
-    head = (
-        "<tr><th>kind</th><th>blind datasets</th><th>named correctly</th>"
-        "<th>… or cannot_tell naming the truth</th><th>false alarms</th>"
-        "<th>median held-out gap shrink</th><th>outside the library: unexplained</th>"
-        "<th>false assurance (none with a true gap ≥ 3 floors)</th></tr>"
-    )
-    return (
-        "<h3>Sim-to-real diagnosis, checked blind</h3>"
-        "<p>Targets (issue 6): ≥ 0.90 named, ≤ 0.05 false alarms, median shrink ≥ 0.5. "
-        'Details in <a href="#sim_to_real_validation">sim_to_real_validation</a>.</p>'
-        f"<table>{head}{''.join(rows)}</table>"
-    )
+        head = "".join(f"<th>{html.escape(str(c))}</th>" for c in table.get("columns", []))
+        body = "".join(
+            "<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in row) + "</tr>" for row in rows
+        )
+        link = f'<a href="#{html.escape(name)}">{html.escape(name)}</a>'
+        parts.append(
+            f"<h3>{html.escape(str(table.get('title', name)))}</h3>"
+            f"<p>{html.escape(str(table.get('note', '')))} Details in {link}.</p>"
+            f"<table><tr>{head}</tr>{body}</table>"
+        )
+    return "".join(parts)
 
 
 def _overview(study_dirs: list[Path]) -> str:
@@ -199,10 +145,7 @@ def _overview(study_dirs: list[Path]) -> str:
         except (OSError, ValueError):
             continue
     parts = [_published_table(results)]
-    if "tolerance_limits" in results:
-        parts.append(_tolerance_table(results["tolerance_limits"]))
-    if "sim_to_real_validation" in results:
-        parts.append(_sim_to_real_table(results["sim_to_real_validation"]))
+    parts += [_overview_tables(name, result.get("overview")) for name, result in results.items()]
     body = "".join(p for p in parts if p)
     return f'<h2 id="overview">At a glance</h2>{body}' if body else ""
 
