@@ -1,8 +1,11 @@
 """accel_jax: a JAX differentiable model of servo (pendulum compensating) accelerometers.
 
-The public API is re-exported here; modules starting with an underscore are private.
-The library never changes JAX's global configuration: enable float64 yourself
-(`jax.config.update("jax_enable_x64", True)`) where a computation needs it — the studies do.
+The public API (models, algorithms, results) is re-exported here; modules starting with
+an underscore are private; file writing, provenance and the study plumbing are under
+`accel_jax.report`. The library never changes JAX's configuration: enable float64 yourself
+(`jax.config.update("jax_enable_x64", True)`) where a computation needs it — the studies
+do. The one process-level setting made on import is the XLA:CPU deadlock workaround below
+(`ACCEL_JAX_XLA_WORKAROUND=off` opts out). The code's map: docs/architecture.md.
 """
 
 import os as _os

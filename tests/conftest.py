@@ -34,11 +34,27 @@ _QUICK_ORDER = (
 _SCRIPT_TIMEOUT_S = 900  # a study that hangs (the XLA:CPU deadlock) fails instead
 
 
+def _popen_pinned(command, cpus, **options):
+    """`subprocess.Popen` of a process pinned to `cpus` (None: not pinned). The child
+    inherits the calling thread's CPU mask, set here for the call and restored after — not
+    a `preexec_fn`, which would make Python fork a multithreaded (JAX) process."""
+    import subprocess
+
+    pinned = cpus is not None and hasattr(os, "sched_setaffinity")
+    before = os.sched_getaffinity(0) if pinned else None
+    if pinned:
+        os.sched_setaffinity(0, cpus)
+    try:
+        return subprocess.Popen(command, stderr=subprocess.STDOUT, **options)
+    finally:
+        if pinned:
+            os.sched_setaffinity(0, before)
+
+
 def _run_study_scripts(root: Path, names, jobs: int = 2) -> dict:
     """Run each study as a user would — `python studies/<name>.py --quick --out ROOT/<name>`
     in a fresh process — `jobs` at a time, each pinned to its share of the CPUs as the
     report's workers are. Returns {name: {"returncode", "seconds", "output"}}."""
-    import subprocess
     import sys
     import time
 
@@ -55,13 +71,7 @@ def _run_study_scripts(root: Path, names, jobs: int = 2) -> dict:
             share = worker_cpus(slot, jobs, usable_cpus())
             log = open(root / f"{name}.log", "w+")  # noqa: SIM115
             command = [sys.executable, str(studies_dir / f"{name}.py"), "--quick"]
-            proc = subprocess.Popen(
-                [*command, "--out", str(root / name)],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                env=env,
-                preexec_fn=(lambda s=share: os.sched_setaffinity(0, s)) if share else None,
-            )
+            proc = _popen_pinned([*command, "--out", str(root / name)], share, stdout=log, env=env)
             running[name] = (proc, slot, log, time.monotonic())
         time.sleep(0.5)
         for name, (proc, slot, log, started) in list(running.items()):

@@ -22,9 +22,8 @@ from accel_jax._identify import (
     inflection_time_ratio,
     pickoff_gain_from_stops,
     scale_factor_from_fit,
-    second_order_step,
 )
-from accel_jax._simulate.modal import _third_order_step
+from accel_jax._simulate.modal import _third_order_step, second_order_step
 
 R = IdentificationResult
 # The reference device (SPEC.md §1): T ≈ 2.90e-4 s, ξ ≈ 0.52; aperiodic ξ ≈ 2.07.
