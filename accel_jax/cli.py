@@ -7,6 +7,14 @@ from pathlib import Path
 
 import click
 
+_FILE = click.Path(dir_okay=False, path_type=Path)
+
+
+def _file_option(flag: str, dest: str, help: str):
+    """An option naming a file (not a folder), default none."""
+    return click.option(flag, dest, type=_FILE, default=None, help=help)
+
+
 STUDIES = (
     "scale_factor_identification",
     "sensing_element_ml",
@@ -95,12 +103,10 @@ def main(ctx):
     help="Keep compiled XLA programs on disk ($ACCEL_JAX_CACHE_DIR, default "
     "~/.cache/accel_jax/xla) so that later runs skip most of the compilation.",
 )
-@click.option(
+@_file_option(
     "--params",
     "params_file",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Your device (TOML: ServoParams fields, value or {value, uncertainty}) for the "
+    "Your device (TOML: ServoParams fields, value or {value, uncertainty}) for the "
     "studies of the closed loop; default the SPEC.md reference device.",
 )
 def report(
@@ -259,12 +265,10 @@ def _read_psd(path: Path):
     help="RMS of the random vibration on every axis [g] (fully correlated, as the paper's "
     "cross-coupling limit assumes). Or give --psd.",
 )
-@click.option(
+@_file_option(
     "--psd",
     "psd_file",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Random vibration as band PSDs: CSV with f_low,f_high,psd[,eta] (Hz, Hz, g²/Hz, 1); "
+    "Random vibration as band PSDs: CSV with f_low,f_high,psd[,eta] (Hz, Hz, g²/Hz, 1); "
     "σ by the paper's formula sqrt((1/n) Σ η S Δf) (SPEC.md §3).",
 )
 @click.option(
@@ -274,12 +278,10 @@ def _read_psd(path: Path):
     show_default=True,
     help="Check a unit's passport coefficients (Table 4) against the limits.",
 )
-@click.option(
+@_file_option(
     "--json",
     "json_out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Also write the limits as JSON here.",
+    "Also write the limits as JSON here.",
 )
 @click.option("--force", is_flag=True, help="Replace an existing --json file.")
 def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out, force):
@@ -388,13 +390,11 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 
 
 @main.command()
-@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
+@click.argument("file", type=_FILE)
+@_file_option(
     "--params",
     "params_file",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); gives "
+    "Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); gives "
     "k_dp·k_y, γ, T_f and T_dm. Default: the SPEC.md reference device.",
 )
 @click.option(
@@ -411,12 +411,10 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     show_default=True,
     help="Shape factor γ in K_a = γ T² k_dp k_y: 'exact' (m l²/J), 'paper' (3/4) or a number.",
 )
-@click.option(
+@_file_option(
     "--json",
     "json_out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Also write the result as JSON here.",
+    "Also write the result as JSON here.",
 )
 @click.option("--force", is_flag=True, help="Replace an existing --json file.")
 def identify(file: Path, params_file, method, gamma, json_out, force):
@@ -475,34 +473,28 @@ def identify(file: Path, params_file, method, gamma, json_out, force):
 
 
 @main.command()
-@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("file", type=_FILE)
 @click.option(
     "--kind",
     type=click.Choice(["step", "vibration", "noise"]),
     default=None,
     help="Force the kind of record (default: inferred from the CSV columns).",
 )
-@click.option(
+@_file_option(
     "--params",
     "params_file",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); "
+    "Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); "
     "default the SPEC.md reference device with J, μ, c, k_dm known to ±5 %.",
 )
-@click.option(
+@_file_option(
     "--json",
     "json_out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Write the diagnosis as JSON here.",
+    "Write the diagnosis as JSON here.",
 )
-@click.option(
+@_file_option(
     "--plot",
     "plot_out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
+    "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
 )
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
 def diagnose(file: Path, kind, params_file, json_out, plot_out, force):

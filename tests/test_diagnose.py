@@ -16,7 +16,7 @@ from scipy import stats
 
 import accel_jax as aj
 from accel_jax._data import StepData, write_csv
-from accel_jax._simulate.sequence import linear_record
+from accel_jax._simulate.sequence import SequenceInputs, linear_record
 from accel_jax.cli import main
 from accel_jax.diagnose import (
     CandidateFit,
@@ -392,7 +392,9 @@ def test_torquer_lag_and_output_filter_fit_a_step_record_exactly_alike():
     index, steps, shift = jnp.array([500, 2000]), jnp.array([2.0, -2.0]), jnp.zeros(2)
 
     def record(params):
-        return linear_record(params, 5e-6, 3000, -1.0, 1.0, 0.1, 0.0, 0.0, 0.0, index, steps, shift)
+        return linear_record(
+            params, 5e-6, 3000, SequenceInputs(-1.0, 1.0, 0.1, 0.0, 0.0, 0.0, index, steps, shift)
+        )
 
     y_lag, y_filter = record(lagged), record(filtered)
     # Same record to rounding, though the two loops differ by a damping shift of ~6.6 %...

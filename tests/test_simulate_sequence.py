@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import accel_jax as aj
-from accel_jax._simulate.sequence import linear_record, stop_record
+from accel_jax._simulate.sequence import SequenceInputs, linear_record, stop_record
 from accel_jax.diagnose.step_effects import step_effects
 from accel_jax.diagnose.step_fit import StepContext, innovation_terms, predict, unpack
 
@@ -39,7 +39,7 @@ def _still_device():
     or initial offsets, the test sequence with its sub-sample shifts."""
     zeros = (0.0, 0.0, 0.0, 0.0)
     changes = (jnp.asarray(INDEX), jnp.asarray(STEPS), jnp.asarray(_shifts()))
-    return (IDEAL, DT, N, LEVELS[0], 1.0, *zeros, *changes)
+    return (IDEAL, DT, N, SequenceInputs(LEVELS[0], 1.0, *zeros, *changes))
 
 
 def _record(params, shift, *, moment=1e-6, rate=3e-7, gain=1.0, block=1, n=N):
@@ -48,15 +48,17 @@ def _record(params, shift, *, moment=1e-6, rate=3e-7, gain=1.0, block=1, n=N):
             params,
             DT,
             n // block,
-            LEVELS[0],
-            gain,
-            moment / KDM,
-            rate / KDM,
-            0.0,
-            0.0,
-            jnp.asarray(INDEX),
-            jnp.asarray(STEPS),
-            jnp.asarray(shift),
+            SequenceInputs(
+                LEVELS[0],
+                gain,
+                moment / KDM,
+                rate / KDM,
+                0.0,
+                0.0,
+                jnp.asarray(INDEX),
+                jnp.asarray(STEPS),
+                jnp.asarray(shift),
+            ),
             block=block,
             duration=DT * (N - 1),
         )
@@ -98,15 +100,17 @@ def test_block_means_are_exact_and_the_block_size_may_be_traced():
             params,
             DT,
             500,
-            LEVELS[0],
-            1.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            jnp.asarray(INDEX),
-            jnp.asarray(STEPS),
-            jnp.asarray(shift),
+            SequenceInputs(
+                LEVELS[0],
+                1.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                jnp.asarray(INDEX),
+                jnp.asarray(STEPS),
+                jnp.asarray(shift),
+            ),
             block=m,
             max_block=16,
             duration=DT * (N - 1),
@@ -164,15 +168,9 @@ def test_change_time_derivative_matches_finite_differences():
             IDEAL,
             DT,
             4000,
-            LEVELS[0],
-            1.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            jnp.asarray(INDEX),
-            jnp.asarray(STEPS),
-            shift,
+            SequenceInputs(
+                LEVELS[0], 1.0, 0.0, 0.0, 0.0, 0.0, jnp.asarray(INDEX), jnp.asarray(STEPS), shift
+            ),
         )
 
     for d in (-0.4, 0.3, 1.7):  # on either side of the sample where u_test shows it

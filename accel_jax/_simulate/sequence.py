@@ -40,6 +40,8 @@ the evidence compares log-likelihoods of ~1e4 to within ~1).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -94,6 +96,30 @@ def initial_state(params: ServoParams, drive, moment, rate, dv, dw):
     return rest + jnp.stack([dv, dw, -dv, dv, 0 * dv, rate + 0 * dv])
 
 
+class SequenceInputs(NamedTuple):
+    """What a record's simulation takes besides the device and the sampling: the test
+    voltage sequence and the state the record starts from.
+
+    - `first_level`: U_test at t_0 [V];
+    - `gain`: g, the test winding's signed gain;
+    - `moment`: M̃ = M/k_dm [V], the external moment; `rate`: r, its change over the
+      record [V];
+    - `dv`, `dw`: the initial displacement from equilibrium of v and w [V];
+    - `change_index` (J,) int, `change_step` ΔU_j [V] (0 pads), `change_shift` δ_j (J,) in
+      samples: change j at t_{i_j} + δ_j Δ.
+    """
+
+    first_level: object
+    gain: object
+    moment: object
+    rate: object
+    dv: object
+    dw: object
+    change_index: object
+    change_step: object
+    change_shift: object
+
+
 def _change_split(change_shift):
     """For a change at t_i + δΔ (any real δ): the offset o of the first sample it reaches,
     i + o (the first t_k > t_i + δΔ), and ρ/Δ ∈ (0, 1], the part of a sample step it has
@@ -107,15 +133,7 @@ def linear_record(
     params: ServoParams,
     dt,
     n: int,
-    first_level,
-    gain,
-    moment,
-    rate,
-    dv,
-    dw,
-    change_index,
-    change_step,
-    change_shift,
+    sequence: SequenceInputs,
     *,
     block=1,
     max_block: int = 1,
@@ -131,15 +149,15 @@ def linear_record(
     has acted before s and ζ' its state at the next block boundary; the initial
     displacement is the source at s = 0.
 
-    **Arguments:** `params` (its `external_moment` is ignored: `moment`), `dt` Δ [s], `n`
-    (static) the number of outputs, `first_level` U_test at t_0 [V], `gain` g, the test
-    winding's signed gain, `moment` M̃ [V], `rate` r [V per record], `dv`, `dw` the initial
-    displacement [V], `change_index` (J,) int, `change_step` ΔU_j [V] (0 pads),
-    `change_shift` δ_j (J,) in samples; `block` m (may be traced: records sampled at
-    different rates share one compiled program) and `max_block` (static) the largest m
-    it may take (a Python int m raises it as needed); `duration` [s] the record's length
-    that r refers to (default (n·m − 1)Δ). jit/vmap/grad-safe; float64.
+    **Arguments:** `params` (its `external_moment` is ignored: the sequence's `moment`),
+    `dt` Δ [s], `n` (static) the number of outputs, `sequence` the record's `SequenceInputs`
+    (test voltage, winding gain, moment, initial state); `block` m (may be traced:
+    records sampled at different rates share one compiled program) and `max_block`
+    (static) the largest m it may take (a Python int m raises it as needed); `duration`
+    [s] the record's length that r refers to (default (n·m − 1)Δ). jit/vmap/grad-safe;
+    float64.
     """
+    (first_level, gain, moment, rate, dv, dw, change_index, change_step, change_shift) = sequence
     m = block
     if isinstance(m, int) and m > max_block:
         max_block = m
@@ -211,15 +229,7 @@ def stop_record(
     params: ServoParams,
     dt,
     n: int,
-    first_level,
-    gain,
-    moment,
-    rate,
-    dv,
-    dw,
-    change_index,
-    change_step,
-    change_shift,
+    sequence: SequenceInputs,
     stop_high,
     stop_low,
     *,
@@ -230,6 +240,7 @@ def stop_record(
     v = `stop_low` [V] (stop_low < stop_high; far away for none), stepped sample by sample:
     at the samples (m = 1) or as the means of n blocks of `block` = m samples (m may be
     traced). Arguments otherwise as `linear_record`. Meant for T_dm = T_f = 0 (U_out = v)."""
+    (first_level, gain, moment, rate, dv, dw, change_index, change_step, change_shift) = sequence
     m = block
     duration = dt * (n * m - 1) if duration is None else duration
     a, b, c = loop_system(params, duration)

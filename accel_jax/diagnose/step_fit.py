@@ -16,7 +16,7 @@ import lineax as lx
 import optimistix as optx
 
 from .._params import ServoParams
-from .._simulate.sequence import linear_record, stop_record
+from .._simulate.sequence import SequenceInputs, linear_record, stop_record
 from .step_effects import step_effects
 
 REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
@@ -152,10 +152,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
 
 
 def predict(m, ctx, n, nonlinear: bool):
-    args = (
-        m["params"],
-        ctx.dt,
-        n,
+    sequence = SequenceInputs(
         ctx.first_level,
         m["gain"],
         m["moment"],
@@ -166,6 +163,7 @@ def predict(m, ctx, n, nonlinear: bool):
         ctx.change_step,
         m["shift"],
     )
+    args = (m["params"], ctx.dt, n, sequence)
     if not nonlinear:
         record = linear_record(
             *args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration
