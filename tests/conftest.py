@@ -7,7 +7,7 @@ import os  # noqa: E402
 import accel_jax  # noqa: F401  (applies the XLA:CPU deadlock workaround; see _runtime.py)
 
 # Hermetic timings: the report's persistent compilation cache stays off in the tests unless
-# the caller chose a folder (tests/test_xla.py checks the cache itself in a subprocess).
+# the caller chose a folder (tests/test_runtime.py checks the cache itself in a subprocess).
 os.environ.setdefault("ACCEL_JAX_CACHE_DIR", "off")
 
 import jax  # noqa: E402
