@@ -1,7 +1,8 @@
 """The sim-to-real diagnosis of step records (accel_jax.diagnose.step and its modules,
-with the shared base: evidence, held-out gap, Ljung-Box) and its CLI command, checked on records of the independent SciPy truth simulator
-(studies/step_truth.py: its own loop equations and conventions, never the diagnosis's
-model): every verdict, every nuisance, the domain check."""
+with the shared base: evidence, held-out gap, Ljung-Box) and its CLI command, checked on
+records of the independent SciPy truth simulator (studies/step_truth.py: its own loop
+equations and conventions, never the diagnosis's model): every verdict, every nuisance,
+the domain check."""
 
 import json
 import sys
