@@ -97,6 +97,7 @@ from ._ml_estimate import ml_estimate as ml_estimate
 from ._ml_estimate import state_basis as state_basis
 from ._noise import AbstractNoiseModel as AbstractNoiseModel
 from ._noise import AllanCoefficients as AllanCoefficients
+from ._noise import AllanDeviation as AllanDeviation
 from ._noise import ExponentialCosine as ExponentialCosine
 from ._noise import GaussMarkov as GaussMarkov
 from ._noise import NoiseFit as NoiseFit
@@ -109,6 +110,7 @@ from ._noise import StructureSelection as StructureSelection
 from ._noise import WhiteNoise as WhiteNoise
 from ._noise import allan_coefficients as allan_coefficients
 from ._noise import allan_deviation as allan_deviation
+from ._noise import allan_deviation_intervals as allan_deviation_intervals
 from ._noise import allan_variance_of_model as allan_variance_of_model
 from ._noise import autocorrelation as autocorrelation
 from ._noise import fit_autocorrelation_least_squares as fit_autocorrelation_least_squares

@@ -272,3 +272,51 @@ def test_ljung_box_is_the_standard_statistic_with_fitted_parameters_removed():
     assert result["statistic"] == pytest.approx(q, rel=1e-12)
     assert result["p_value"] == pytest.approx(stats.chi2.sf(q, 9), rel=1e-8)
     assert aj.ljung_box(np.ones(100))["p_value"] == 1.0
+
+
+def test_allan_deviation_intervals_are_allantools_and_cover_the_truth():
+    """The ADEV intervals are allantools' own (noise identification, Greenhall EDF, χ²) on
+    the same data, and on white records (true ADEV σ_x √(Δ/τ)) the ±1σ intervals contain
+    the truth about 68 % of the time (20 records × 10 octaves; binomial 3σ band, widened
+    for the octaves' correlation within a record)."""
+    import allantools
+
+    import accel_jax as aj
+
+    dt, sigma = 0.01, 2e-3
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=20000) * sigma
+    adev = aj.allan_deviation_intervals(x, dt)
+    identified = ~np.isnan(adev.alpha)  # where allantools can tell the noise (≥ ~30 clusters)
+    assert identified.sum() >= 8
+    for m, dev, lo, hi in zip(
+        np.rint(adev.taus[identified] / dt).astype(int),
+        adev.deviation[identified],
+        adev.lower[identified],
+        adev.upper[identified],
+        strict=True,
+    ):
+        ref = allantools.confidence_interval_noiseID(x, dev, m, dev_type="oadev", data_type="freq")
+        assert (lo, hi) == pytest.approx(ref, rel=1e-12)
+    _, oadev, _, _ = allantools.oadev(x, rate=1 / dt, data_type="freq", taus=adev.taus)
+    np.testing.assert_allclose(adev.deviation, oadev, rtol=1e-10)
+    covered = total = 0
+    for seed in range(20):
+        x = np.random.default_rng(100 + seed).normal(size=20000) * sigma
+        a = aj.allan_deviation_intervals(x, dt)
+        truth = sigma * np.sqrt(dt / a.taus)
+        covered += int(np.sum((a.lower <= truth) & (truth <= a.upper)))
+        total += truth.size
+    assert 0.55 <= covered / total <= 0.80, covered / total
+    assert np.all(np.isnan(a.alpha) | (a.alpha == 0))  # white FM wherever identified
+
+
+def test_allan_deviation_intervals_bad_input():
+    import accel_jax as aj
+
+    with pytest.raises(ValueError, match="too short"):
+        aj.allan_deviation_intervals(np.random.default_rng(0).normal(size=12), 0.01)
+    with pytest.raises(ValueError, match="confidence"):
+        aj.allan_deviation_intervals(
+            np.random.default_rng(0).normal(size=1000), 0.01, confidence=1.5
+        )

@@ -17,7 +17,9 @@ one concept per module,
 - `selection`: structure selection among white noise, GM, exponential-cosine, random walk
   and their sums by an information criterion, with the residual (standardised innovation)
   autocorrelation and a Ljung-Box test;
-- `allan`: the overlapping Allan deviation and its standard slopes, as a cross-check.
+- `allan`: the overlapping Allan deviation and its standard slopes, as a cross-check;
+  `allan_intervals`: the ADEV with χ² confidence intervals from equivalent degrees of
+  freedom (allantools' noise identification and Greenhall EDF).
 
 Models are `eqx.Module`s whose fields are positive array leaves (σ [record unit], τ [s],
 α [1/s], β [rad/s], q [unit²/s]); records are 1-D arrays sampled every `sample_interval`
@@ -32,6 +34,8 @@ from .allan import AllanCoefficients as AllanCoefficients
 from .allan import allan_coefficients as allan_coefficients
 from .allan import allan_deviation as allan_deviation
 from .allan import allan_variance_of_model as allan_variance_of_model
+from .allan_intervals import AllanDeviation as AllanDeviation
+from .allan_intervals import allan_deviation_intervals as allan_deviation_intervals
 from .fit import _DIFFUSE as _DIFFUSE
 from .fit import NoiseFit as NoiseFit
 from .fit import fit_autocorrelation_least_squares as fit_autocorrelation_least_squares
