@@ -975,8 +975,8 @@ def main(argv=None) -> int:
             return {}, {}
         try:
             params = aj.read_params_toml(args.params).params
-        except aj.DataError as error:
-            sys.exit(f"{args.params}: {error}")
+        except aj.DataError as error:  # its message names the file
+            raise ValueError(str(error)) from None
         fields = {k: float(v) for k, v in params.as_dict().items()}
         return {"params": params}, {"params": fields}
 

@@ -1397,7 +1397,7 @@ def main(argv=None) -> int:
         kinds = tuple(k for k in args.kinds.split(",") if k)
         unknown = [k for k in kinds if k not in KINDS]
         if unknown:
-            sys.exit(f"unknown kind(s) {unknown}; choose from {list(KINDS)}")
+            raise ValueError(f"unknown kind(s) {unknown}; choose from {list(KINDS)}")
         run_kwargs = {"kinds": kinds, "per_class": args.per_class, "large": args.large}
         defaults = {"kinds": KINDS, "per_class": None, "large": False}
         key = {k: v for k, v in run_kwargs.items() if v != defaults[k]}

@@ -98,3 +98,31 @@ def test_quick_report_studies_ran_on_their_own_cpu_shares(report_dir):
         result = folder / "result.json"
         if folder.is_dir() and result.exists():
             assert json.loads(result.read_text())["provenance"]["cpus"] in shares, folder.name
+
+
+def test_study_script_bad_option_or_foreign_folder_is_one_line_and_exit_2(tmp_path):
+    """A study's command line: a bad option value, or an --out folder that holds something
+    else, is one line on stderr, exit status 2, no traceback, nothing written."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent / "studies"
+
+    def run(script, *args):
+        return subprocess.run(
+            [sys.executable, str(root / script), *args],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+
+    out = run("sim_to_real_validation.py", "--kinds", "bogus", "--out", str(tmp_path / "v"))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "unknown kind(s) ['bogus']" in out.stderr and not (tmp_path / "v").exists()
+    foreign = tmp_path / "t5"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    out = run("table5_gap.py", "--out", str(foreign))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "not written by accel-jax report" in out.stderr
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]

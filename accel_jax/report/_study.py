@@ -100,8 +100,9 @@ def study_main(
     holding another run), plus the study's own (`add_arguments`). `options(args)` returns
     `(run_kwargs, key_options)`: keyword arguments for `run` and the values that make a run
     different from the report's default one (they enter the cache key; empty for the
-    report's own settings). Prints the summary (`summary(result)` or each summary row);
-    a bad option or folder is one line on stderr and exit status 2.
+    report's own settings); it raises `ValueError` for a bad value. Prints the summary
+    (`summary(result)` or each summary row); a bad option or folder is one line on stderr
+    and exit status 2.
     """
     from .._runtime import apply_fast_compile, enable_compilation_cache, quiet_xla_logs
     from ._run import ReportError, cache_key, run_study
@@ -129,7 +130,11 @@ def study_main(
     # As `accel-jax report`: the process runs in float64 (the key records it), so a study
     # run here and one run by the report are the same run.
     jax.config.update("jax_enable_x64", True)
-    run_kwargs, key_options = options(args) if options is not None else ({}, {})
+    try:
+        run_kwargs, key_options = options(args) if options is not None else ({}, {})
+    except ValueError as error:  # a bad option value: one line, as argparse's own errors
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        return 2
     key = cache_key(name, study_file, {"quick": bool(args.quick), **key_options})
     try:
         result, cached = run_study(
