@@ -24,3 +24,18 @@ def test_study_quick(quick_report):
     assert kal["identified"]["fraction_outside_3sigma"] < 0.02
     for figure in saved["figures"]:
         assert (tmp_path / figure["file"]).exists() and figure["caption"]
+
+
+@pytest.mark.slow
+def test_study_allan_intervals(quick_report):
+    """The Allan figure's ±1σ EDF intervals bracket each ADEV point and contain the true
+    model's exact ADEV at most τ (nominal 68 % each; the τ of one record are correlated)."""
+    import numpy as np
+    from helpers import study_result
+
+    _, saved = study_result(quick_report, "noise_identification")
+    allan = saved["allan"]
+    band = allan["interval_1sigma_rad_per_s"]
+    adev = np.asarray(allan["adev_rad_per_s"])
+    assert np.all(np.asarray(band["lower"]) <= adev) and np.all(adev <= np.asarray(band["upper"]))
+    assert band["n_taus"] == adev.size and band["true_adev_inside"] >= adev.size / 2
