@@ -10,24 +10,24 @@ from pathlib import Path
 
 import numpy as np
 
-from .._data import VibrationData, _parse_columns, _read_text, write_csv
+from .._data import (
+    COLUMNS,
+    OPTIONAL_COLUMNS,
+    UNITS,
+    VibrationData,
+    _parse_columns,
+    _read_text,
+    write_csv,
+)
 
-TABLE_COLUMNS = ("a_in", "vib_amp", "vib_freq", "vib_rms", "a_out")
+TABLE_COLUMNS = COLUMNS["vibration"]
 """Required columns of a `vibration` CSV table: the input-axis acceleration a_in [g], the
 sinusoidal vibration amplitude along the input axis vib_amp [g] and its frequency vib_freq
 [Hz], the RMS of the random vibration vib_rms [g] (0 if none) and the mean indicated
 acceleration a_out [g]. Optional: vib_amp_oa, vib_amp_pa [g], sinusoidal vibration on the
 output and pendulum axes in phase with vib_amp (they make m31, m32 identifiable)."""
-_OPTIONAL_COLUMNS = ("vib_amp_oa", "vib_amp_pa")
-_TABLE_UNITS = {
-    "a_in": "g",
-    "vib_amp": "g",
-    "vib_freq": "Hz",
-    "vib_rms": "g",
-    "a_out": "g",
-    "vib_amp_oa": "g",
-    "vib_amp_pa": "g",
-}
+_OPTIONAL_COLUMNS = OPTIONAL_COLUMNS["vibration"]
+_TABLE_UNITS = UNITS  # column → unit, as for every CSV record
 
 
 def validate_vibration_table(table: dict) -> dict[str, np.ndarray]:
