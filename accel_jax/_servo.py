@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-from ._params import ServoParams
+from ._params import ServoParams, _concrete
 
 
 def loop_stiffness(params: ServoParams) -> Float[Array, ""]:
@@ -153,7 +154,11 @@ def relative_error_percent(estimate, truth) -> Float[Array, ""]:
 def damping_for_ratio(params: ServoParams, ratio) -> Float[Array, ...]:
     """The damping coefficient μ that gives the loop the damping ratio ξ = `ratio` (eq. (5)
     solved for μ): μ = 2 ξ √(J (c + k_dm l k_dp k_y)) [N·m·s]; the other constants of
-    `params` unchanged. Vectorised over `ratio`."""
+    `params` unchanged. Vectorised over `ratio`; a concrete negative or non-finite ratio
+    raises `ValueError`."""
+    concrete = _concrete(ratio)
+    if concrete is not None and not np.all(np.isfinite(concrete) & (concrete >= 0)):
+        raise ValueError(f"damping_for_ratio: ratio must be finite and ≥ 0, got {concrete!r}.")
     return 2 * jnp.asarray(ratio) * jnp.sqrt(params.moment_of_inertia * loop_stiffness(params))
 
 
@@ -164,13 +169,17 @@ def dominant_pole_scale_factor(params: ServoParams, shape_factor, pickoff_amplif
     sinusoid of the dominant pole pair s = −σ ± jω_d, for which the steps return exactly
     T̂ = 1/|s| (ω from the period, ξ̂ = σ/|s| from A1/A2), so K̂_a = γ k_dp k_y / |s|².
 
-    Host-side (NumPy roots of the test-signal denominator, concrete parameters); the
+    Host-side (NumPy roots of the test-signal denominator, concrete parameters); a loop
+    without an oscillatory pair raises `ValueError`. The
     relative error is `relative_error_percent(K̂_a, scale_factor(params))`.
     """
-    import numpy as np
-
     _, den = transfer_function_test_signal(params)
     den = np.asarray(den, dtype=float)
     roots = np.roots(den[np.argmax(den != 0) :])
     pair = roots[np.argmax(np.abs(roots.imag))]
+    if pair.imag == 0:
+        raise ValueError(
+            "dominant_pole_scale_factor: the loop has no oscillatory pole pair (ξ ≥ 1 with "
+            "these lags), so the oscillatory method does not apply."
+        )
     return float(shape_factor) * float(pickoff_amplifier_gain) / abs(pair) ** 2

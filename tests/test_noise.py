@@ -320,3 +320,12 @@ def test_allan_deviation_intervals_bad_input():
         aj.allan_deviation_intervals(
             np.random.default_rng(0).normal(size=1000), 0.01, confidence=1.5
         )
+
+
+def test_ljung_box_refuses_non_finite_or_tiny_residuals():
+    import accel_jax as aj
+
+    with pytest.raises(ValueError, match="non-finite"):
+        aj.ljung_box(np.array([1.0, np.nan, 2.0] * 50))
+    with pytest.raises(ValueError, match="at least 4"):
+        aj.ljung_box(np.array([1.0, 2.0]))

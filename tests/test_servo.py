@@ -165,3 +165,11 @@ def test_dominant_pole_scale_factor_against_the_state_space_eigenvalues():
     pair = eigenvalues[np.argmax(np.abs(eigenvalues.imag))]
     expected = gamma * gain / abs(pair) ** 2
     assert aj.dominant_pole_scale_factor(lagged, gamma, gain) == pytest.approx(expected, rel=1e-9)
+
+
+def test_damping_for_ratio_and_dominant_pole_refuse_impossible_input():
+    with pytest.raises(ValueError, match="ratio must be finite and ≥ 0"):
+        aj.damping_for_ratio(aj.ServoParams.reference(), -0.5)
+    aperiodic = aj.ServoParams.reference_aperiodic()
+    with pytest.raises(ValueError, match="no oscillatory pole pair"):
+        aj.dominant_pole_scale_factor(aperiodic, 0.75, 2e6)

@@ -514,3 +514,10 @@ def test_greedy_test_plan_first_rows_are_the_brute_force_d_optimum_and_meet_the_
     assert dets[chosen[2]] >= best / 3
     with pytest.raises(ValueError, match="one per"):
         greedy_test_plan(design, np.ones(2))
+
+
+def test_greedy_test_plan_refuses_a_design_that_cannot_identify_the_coefficients():
+    with pytest.raises(ValueError, match="cannot identify all 2"):
+        greedy_test_plan(np.ones((5, 2)), np.ones(2))
+    with pytest.raises(ValueError, match="finite"):
+        greedy_test_plan(np.full((5, 2), np.nan), np.ones(2))

@@ -18,12 +18,18 @@ def ljung_box(residual, lags: int = 20, num_parameters: int = 0) -> dict:
     **Returns:** `{"statistic": Q, "lags": L, "p_value": P(χ² > Q), "autocorrelation":
     [r_1, …, r_L]}` as Python floats. Host-side NumPy in float64 (the p-value from JAX's
     regularised incomplete gamma function, evaluated in float64 whatever the global
-    setting); a constant residual gives Q = 0, p = 1.
+    setting); a constant residual gives Q = 0, p = 1. A non-finite or shorter-than-4 residual
+    raises `ValueError`.
     """
     import jax
     from jax.scipy.special import gammaincc
 
     x = np.asarray(residual, dtype=np.float64)
+    if x.ndim != 1 or x.size < 4 or not np.all(np.isfinite(x)):
+        raise ValueError(
+            "ljung_box: the residual must be a finite 1-D series of at least 4 samples, got "
+            f"shape {x.shape}" + ("" if np.all(np.isfinite(x)) else " with non-finite values") + "."
+        )
     x = x - x.mean()
     n = x.shape[0]
     lags = int(min(lags, n // 4))

@@ -291,7 +291,17 @@ def greedy_test_plan(
             f"greedy_test_plan: design must be (rows, coefficients) and the targets one per "
             f"coefficient; got {design.shape} and {target.shape}."
         )
+    if not (np.all(np.isfinite(design)) and np.all(np.isfinite(target)) and np.all(target > 0)):
+        raise ValueError(
+            "greedy_test_plan: the design must be finite and the targets finite and positive."
+        )
     n_coefficients = design.shape[1]
+    if np.linalg.matrix_rank(design) < n_coefficients:
+        raise ValueError(
+            f"greedy_test_plan: the candidate rows cannot identify all {n_coefficients} "
+            f"coefficients (design rank {np.linalg.matrix_rank(design)}); add rows that move "
+            "the missing ones (e.g. other input levels or vibration amplitudes)."
+        )
     chosen: list[int] = []
     history = []
     for _ in range(max_rows):
