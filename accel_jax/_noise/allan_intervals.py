@@ -43,7 +43,8 @@ class AllanDeviation:
     **Fields** (arrays over τ): `taus` [s]; `deviation` σ(τ) [record unit]; `lower`,
     `upper` the interval at `confidence`; `edf` the equivalent degrees of freedom; `alpha`
     the identified power-law exponent (`ALPHA_NAMES`; NaN where too few samples to tell,
-    then white FM is assumed for the EDF); `n_samples` the record's length.
+    then white FM is assumed for the EDF; below −2, drift-like, the EDF is random-walk FM's);
+    `n_samples` the record's length.
     """
 
     taus: np.ndarray
@@ -106,7 +107,10 @@ def allan_deviation_intervals(
         except NotImplementedError:  # too few clusters at this τ for the lag-1 test
             a = 0
             alpha.append(math.nan)
-        e = float(allantools.edf_greenhall(alpha=a, d=2, m=m, N=n, overlapping=True))
+        # The ADEV (d = 2) is defined for α > −3 (Greenhall's algorithm asserts α + 2d > 1):
+        # a steeper identified noise (drift-like, α ≤ −3) takes the EDF of random-walk FM.
+        a_edf = min(max(a, -2), 2)
+        e = float(allantools.edf_greenhall(alpha=a_edf, d=2, m=m, N=n, overlapping=True))
         lo, hi = allantools.confidence_interval(dev, e, confidence)
         edf.append(e)
         lower.append(float(lo))
