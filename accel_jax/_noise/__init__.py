@@ -19,7 +19,13 @@ one concept per module,
   autocorrelation and a Ljung-Box test;
 - `allan`: the overlapping Allan deviation and its standard slopes, as a cross-check;
   `allan_intervals`: the ADEV with χ² confidence intervals from equivalent degrees of
-  freedom (allantools' noise identification and Greenhall EDF).
+  freedom (allantools' noise identification and Greenhall EDF); `allan_terms`: the IEEE
+  Std 952/1554 noise terms (Q, N, B, K, R) of an ADEV by weighted non-negative least
+  squares, with parametric-bootstrap intervals and a rule for which terms the data
+  support.
+- `export`: an identified accelerometer noise model (`AccelNoiseTerms`) in kalibr's
+  imu.yaml, gnss-ins-sim's error dictionary and IEEE 952/1293 units, with the √Δt, √2 and
+  60 conversions between continuous densities and per-sample σ.
 
 Models are `eqx.Module`s whose fields are positive array leaves (σ [record unit], τ [s],
 α [1/s], β [rad/s], q [unit²/s]); records are 1-D arrays sampled every `sample_interval`
@@ -36,6 +42,26 @@ from .allan import allan_deviation as allan_deviation
 from .allan import allan_variance_of_model as allan_variance_of_model
 from .allan_intervals import AllanDeviation as AllanDeviation
 from .allan_intervals import allan_deviation_intervals as allan_deviation_intervals
+from .allan_terms import AllanTerms as AllanTerms
+from .allan_terms import fit_allan_terms as fit_allan_terms
+from .export import AccelNoiseTerms as AccelNoiseTerms
+from .export import density_to_discrete as density_to_discrete
+from .export import density_to_one_sided_asd as density_to_one_sided_asd
+from .export import density_to_vrw as density_to_vrw
+from .export import discrete_to_density as discrete_to_density
+from .export import discrete_to_gauss_markov as discrete_to_gauss_markov
+from .export import discrete_to_random_walk as discrete_to_random_walk
+from .export import gauss_markov_to_discrete as gauss_markov_to_discrete
+from .export import kalibr_yaml as kalibr_yaml
+from .export import micro_g_to_si as micro_g_to_si
+from .export import one_sided_asd_to_density as one_sided_asd_to_density
+from .export import random_walk_to_discrete as random_walk_to_discrete
+from .export import si_to_micro_g as si_to_micro_g
+from .export import to_gnss_ins_sim as to_gnss_ins_sim
+from .export import to_ieee as to_ieee
+from .export import to_kalibr as to_kalibr
+from .export import unit_to_si as unit_to_si
+from .export import vrw_to_density as vrw_to_density
 from .fit import _DIFFUSE as _DIFFUSE
 from .fit import NoiseFit as NoiseFit
 from .fit import fit_autocorrelation_least_squares as fit_autocorrelation_least_squares
@@ -59,6 +85,9 @@ from .record import autocorrelation as autocorrelation
 from .selection import StructureSelection as StructureSelection
 from .selection import initial_model as initial_model
 from .selection import select_noise_model as select_noise_model
+from .sensor import SensorNoiseSelection as SensorNoiseSelection
+from .sensor import detect_quantization as detect_quantization
+from .sensor import select_sensor_noise as select_sensor_noise
 from .whiteness import ljung_box as ljung_box
 
 # The top-level names of the noise model's innovations and likelihood (`accel_jax`).

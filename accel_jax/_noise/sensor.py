@@ -1,0 +1,453 @@
+"""Effects real sensors show in a static record, found by forward selection.
+
+`select_sensor_noise` starts from the nominal model (white noise about a constant level)
+and adds, one at a time, the effect whose evidence is largest, while it is significant:
+
+- stochastic (fitted by the Whittle likelihood of `accel_jax._noise.spectral`):
+  `gauss_markov`, `exp_cosine`, `random_walk`, `flicker` (bias instability, exact 1/f
+  spectrum), `bandlimit` (the sensor's output low-pass, 2nd-order Butterworth);
+- deterministic: `sinusoid` (a periodic line; added again for each further line, up to
+  `MAX_LINES`) and `startup_transient` (a warm-up a e^{−t/τ} at the start of the record);
+- `quantization`: the output lies on an ADC grid of step q (found from the values, not
+  from the spectrum: the grid's white noise q²/12 is indistinguishable from white noise
+  there). It is named when the grid noise is at least `QUANTIZATION_SHARE` of the white
+  variance; a finer grid is reported as the record's resolution only.
+
+**Evidence** of an addition: 2 ln B ≈ 2 Δ ln L − k ln J on the training part (the first
+2/3 of the record; J its number of periodogram bins, k the effect's parameter count), and
+it is added only when it is at least `EVIDENCE` and the held-out part's (last third)
+Whittle likelihood rises too. **Explained fraction** after each step: the share of the
+nominal model's excess Whittle deviance on the held-out part, Σ (r − ln r − 1) − γJ with
+r = I/f (zero in expectation for the right model), that the model removes. What the final
+model leaves is **unexplained** when its held-out excess deviance stands more than
+`UNEXPLAINED_Z` standard errors (√((π²/6 − 1) J)) above zero.
+
+Float64, host-driven (NumPy); the fits are one jitted, vmapped Whittle fit per record
+length (`accel_jax._noise.spectral`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import spectral
+from .record import _sample_interval, _validate_record
+
+EVIDENCE = 10.0
+"""2 ln B an effect needs to be added ("strong" on the Kass–Raftery scale)."""
+
+MAX_LINES = 4
+MAX_STEPS = 8
+QUANTIZATION_SHARE = 0.01
+"""The grid's noise q²/12 must be at least this share of the record's short-term variance
+(half the variance of its first difference) to be named."""
+
+UNEXPLAINED_Z = 4.0
+HELD_OUT_SLACK = 1.0
+"""A start-up transient may lower the held-out log-likelihood by at most this much (it is
+absent there; its refit of the stationary part may move it by sampling error)."""
+HELD_OUT_FRACTION = 1 / 3
+EULER_GAMMA = 0.5772156649015329
+DEVIANCE_VARIANCE = math.pi**2 / 6 - 1
+
+PARAMETER_COUNT = {
+    "gauss_markov": 2,
+    "exp_cosine": 3,
+    "random_walk": 1,
+    "flicker": 1,
+    "bandlimit": 1,
+    "sinusoid": 3,
+    "startup_transient": 2,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorNoiseSelection:
+    """What `select_sensor_noise` found.
+
+    **Fields:** `effects` the named effects in the order added (`quantization` last when
+    named); `unexplained` whether the final model leaves a significant held-out misfit;
+    `steps` one dict per forward step (the model, its 2 ln B, held-out gain and the
+    explained fraction); `parameters` the final model's physical parameters by effect;
+    `held_out` the final model's held-out deviance test; `quantization` the grid found (or
+    None); `verdict` the effects joined by '+' ('none' when nothing is named and nothing
+    is left, 'unexplained' alone when nothing is named but the misfit stays).
+    """
+
+    effects: tuple
+    unexplained: bool
+    steps: list
+    parameters: dict
+    held_out: dict
+    quantization: dict | None
+    sample_interval: float
+    n_samples: int
+
+    @property
+    def verdict(self) -> str:
+        names = list(self.effects)
+        if self.unexplained:
+            names.append("unexplained")
+        return "+".join(names) if names else "none"
+
+
+# --------------------------------------------------------------------------------------
+# Quantisation grid
+# --------------------------------------------------------------------------------------
+
+
+def detect_quantization(x: np.ndarray) -> dict | None:
+    """The ADC grid the values lie on: the smallest spacing q₀ of the distinct values,
+    accepted when every distinct value sits within q₀/10 of a multiple of it from the
+    lowest, and refined by least squares of the values on their grid indices. None when the
+    values are continuous (more than half of them distinct) or fit no grid."""
+    x = np.asarray(x, np.float64)
+    u = np.unique(x)
+    if u.size < 3 or u.size > x.size // 2:
+        return None
+    scale = max(float(np.max(np.abs(u))), 1e-300)
+    gaps = np.diff(u)
+    gaps = gaps[gaps > 1e-12 * scale]
+    if gaps.size == 0:
+        return None
+    q0 = float(np.min(gaps))
+    k = np.round((u - u[0]) / q0)
+    if np.max(np.abs(u - u[0] - k * q0)) > 0.1 * q0:
+        return None
+    design = np.stack([np.ones_like(k), k], axis=1)
+    (offset, q), *_ = np.linalg.lstsq(design, u, rcond=None)
+    misfit = float(np.max(np.abs(design @ np.array([offset, q]) - u)))
+    return {"step": float(q), "offset": float(offset), "levels": int(u.size), "misfit": misfit}
+
+
+# --------------------------------------------------------------------------------------
+# Deterministic components
+# --------------------------------------------------------------------------------------
+
+
+def _line_design(t, f):
+    return np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t), np.ones_like(t)], 1)
+
+
+def _fit_line(r: np.ndarray, t: np.ndarray, f0: float, width: float) -> dict:
+    """A sinusoid at the frequency near f0 (±width) that best fits r (least squares of
+    cos, sin and a constant; the frequency by a grid then golden-section search on the
+    projection, which least squares maximises)."""
+    r = r - np.mean(r)
+
+    def fit(f):
+        c, s = np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t)
+        c, s = c - np.mean(c), s - np.mean(s)
+        gram = np.array([[c @ c, c @ s], [c @ s, s @ s]])
+        rhs = np.array([c @ r, s @ r])
+        coef = np.linalg.solve(gram, rhs)
+        return float(coef @ rhs), coef
+
+    grid = np.linspace(f0 - width, f0 + width, 21)
+    values = [fit(f)[0] for f in grid]
+    i = int(np.argmax(values))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    golden = (math.sqrt(5) - 1) / 2
+    for _ in range(30):
+        c, d = hi - golden * (hi - lo), lo + golden * (hi - lo)
+        if fit(c)[0] > fit(d)[0]:
+            hi = d
+        else:
+            lo = c
+    f = 0.5 * (lo + hi)
+    _, coef = fit(f)
+    return {"frequency_Hz": float(f), "cos": float(coef[0]), "sin": float(coef[1])}
+
+
+def _line_signal(line: dict, t: np.ndarray) -> np.ndarray:
+    w = 2 * np.pi * line["frequency_Hz"] * t
+    return line["cos"] * np.cos(w) + line["sin"] * np.sin(w)
+
+
+def _fit_transient(r: np.ndarray, t: np.ndarray, dt: float) -> dict:
+    """a e^{−t/τ} + c fitted to r by least squares over a grid of τ (2Δ to a quarter of
+    the span); beyond 2¹⁵ samples on block means (a transient longer than a block is smooth
+    across it, one shorter is fitted on the first 2¹⁵ samples as they are)."""
+    t0 = t - t[0]
+    candidates = []
+    head = min(r.size, 1 << 15)
+    candidates.append((r[:head], t0[:head]))
+    if r.size > head:
+        block = int(math.ceil(r.size / head))
+        usable = r.size // block * block
+        candidates.append(
+            (r[:usable].reshape(-1, block).mean(1), t0[:usable].reshape(-1, block).mean(1))
+        )
+    best = None
+    span = t0[-1]
+    for rr, tt in candidates:
+        for tau in np.geomspace(2 * dt, max(span / 4, 3 * dt), 60):
+            if tau > 4 * tt[-1]:
+                continue
+            e = np.exp(-tt / tau)
+            e0, ones = e - e.mean(), rr - rr.mean()
+            denom = float(e0 @ e0)
+            if denom <= 0:
+                continue
+            amp = float(e0 @ ones) / denom
+            # the residual sum of squares over the whole record: the part not covered
+            # by rr is unchanged by a transient that has decayed there
+            gain = amp * float(e0 @ ones)
+            if best is None or gain > best[0]:
+                best = (gain, float(tau), amp)
+    return {"time_constant_s": best[1], "amplitude": best[2]}
+
+
+def _transient_signal(transient: dict, t: np.ndarray) -> np.ndarray:
+    return transient["amplitude"] * np.exp(-(t - t[0]) / transient["time_constant_s"])
+
+
+# --------------------------------------------------------------------------------------
+# The forward selection
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class _Model:
+    names: tuple
+    lines: tuple
+    transient: dict | None
+    z: np.ndarray
+    train: float
+    held: float
+    converged: bool
+
+
+class _Record:
+    def __init__(self, x, dt):
+        self.x = x
+        self.dt = dt
+        self.n = x.size
+        self.split = int(round((1 - HELD_OUT_FRACTION) * self.n))
+        self.t = np.arange(self.n) * dt
+        self.variance = float(np.var(np.diff(x[: self.split]))) / 2
+        self._grams = {}
+
+    def residual(self, lines, transient):
+        r = self.x - np.mean(self.x[: self.split])
+        for line in lines:
+            r = r - _line_signal(line, self.t)
+        if transient is not None:
+            r = r - _transient_signal(transient, self.t)
+        return r
+
+    def grams(self, lines, transient):
+        key = repr((lines, transient))
+        if key not in self._grams:
+            r = self.residual(lines, transient)
+            self._grams[key] = (
+                spectral.periodogram(r[: self.split]),
+                spectral.periodogram(r[self.split :]),
+            )
+        return self._grams[key]
+
+
+def _evaluate(record, floor, names, lines, transient, parent=None) -> _Model:
+    train, held = record.grams(lines, transient)
+    parent_z, parent_names = (parent.z, parent.names) if parent is not None else (None, ())
+    z, log_lik, ok = spectral.fit_structure(
+        list(names), train, floor, record.variance, parent_z, parent_names
+    )
+    mask = jnp.asarray(spectral._mask(names))
+    held_lik = float(spectral.log_likelihood(jnp.asarray(z), mask, held, jnp.asarray(floor)))
+    return _Model(tuple(names), tuple(lines), transient, z, log_lik, held_lik, ok)
+
+
+def _held_out_deviance(record, floor, model: _Model) -> dict:
+    r = record.residual(model.lines, model.transient)[record.split :]
+    gram = spectral.periodogram(r, banded=False)
+    mask = jnp.asarray(spectral._mask(model.names))
+    _, dev = spectral.deviance_terms(jnp.asarray(model.z), mask, gram, jnp.asarray(floor))
+    dev = np.asarray(dev)
+    excess = float(np.sum(dev) - EULER_GAMMA * dev.size)
+    return {
+        "excess_deviance": excess,
+        "z": excess / math.sqrt(DEVIANCE_VARIANCE * dev.size),
+        "bins": int(dev.size),
+    }
+
+
+def _standardised_peak(record, floor, model: _Model):
+    """The largest standardised periodogram ordinate I/f of the training residual (full
+    resolution): where a line would be."""
+    r = record.residual(model.lines, model.transient)[: record.split]
+    gram = spectral.periodogram(r, banded=False)
+    mask = jnp.asarray(spectral._mask(model.names))
+    ratio, _ = spectral.deviance_terms(jnp.asarray(model.z), mask, gram, jnp.asarray(floor))
+    ratio = np.array(ratio)
+    # Not the lowest bins: a drift there is a line's impostor.
+    ratio[:2] = 0
+    j = int(np.argmax(ratio))
+    m = r.size - 1
+    return float(np.asarray(gram.omega)[j] / (2 * np.pi * record.dt)), 1 / (m * record.dt)
+
+
+def _physical(model: _Model, dt: float, floor: float) -> dict:
+    z = model.z
+    out = {"white_sigma": math.sqrt(math.exp(z[0]))}
+    if "gauss_markov" in model.names:
+        out["gauss_markov"] = {
+            "sigma": math.sqrt(math.exp(z[1])),
+            "correlation_time_s": math.exp(z[2]) * dt,
+        }
+    if "exp_cosine" in model.names:
+        out["exp_cosine"] = {
+            "sigma": math.sqrt(math.exp(z[3])),
+            "decay_rate_per_s": math.exp(z[4]) / dt,
+            "angular_frequency_rad_per_s": math.exp(z[5]) / dt,
+        }
+    if "random_walk" in model.names:
+        out["random_walk"] = {"intensity_per_s": math.exp(z[6]) / dt}
+    if "flicker" in model.names:
+        b = math.sqrt(math.exp(z[7]))
+        out["flicker"] = {
+            "bias_instability_B": b,
+            "allan_floor": b * math.sqrt(2 * math.log(2) / math.pi),
+        }
+    if "bandlimit" in model.names:
+        corner = float(jax.nn.sigmoid(z[8])) * math.pi / 2
+        out["bandlimit"] = {"corner_Hz": corner / (math.pi * dt)}
+    if model.lines:
+        out["sinusoid"] = [
+            {
+                "frequency_Hz": line["frequency_Hz"],
+                "amplitude": math.hypot(line["cos"], line["sin"]),
+            }
+            for line in model.lines
+        ]
+    if model.transient is not None:
+        out["startup_transient"] = dict(model.transient)
+    out["post_filter_floor_variance"] = floor
+    return out
+
+
+def select_sensor_noise(
+    record, sample_interval: float, *, evidence: float = EVIDENCE, max_lines: int = MAX_LINES
+) -> SensorNoiseSelection:
+    """Forward selection of the effects a static record shows (module docstring).
+
+    **Arguments:** `record` x (n ≥ 64 samples, any unit); `sample_interval` Δ [s];
+    `evidence` the 2 ln B an addition needs; `max_lines` the most periodic lines.
+
+    **Returns:** a `SensorNoiseSelection`. Parameters are in the record's unit. Bad input
+    raises `ValueError`.
+    """
+    with jax.enable_x64(True):
+        x = np.asarray(_validate_record("select_sensor_noise", record, min_samples=64), np.float64)
+        _sample_interval("select_sensor_noise", sample_interval)
+        dt = float(sample_interval)
+        rec = _Record(x, dt)
+        grid = detect_quantization(x)
+        floor = grid["step"] ** 2 / 12 if grid else 1e-9 * rec.variance
+        model = _evaluate(rec, floor, (), (), None)
+        nominal_dev = _held_out_deviance(rec, floor, model)
+        steps = [
+            {
+                "model": "white",
+                "added": None,
+                "evidence": 0.0,
+                "held_out_gain": 0.0,
+                "explained_fraction": 0.0,
+                "held_out_z": nominal_dev["z"],
+            }
+        ]
+        j_train = float(spectral.periodogram(rec.x[: rec.split]).n_bins)
+        for _ in range(MAX_STEPS):
+            trials = []
+            for name in spectral.COMPONENTS:
+                if name not in model.names:
+                    names = (*model.names, name)
+                    trials.append(
+                        (name, _evaluate(rec, floor, names, model.lines, model.transient, model))
+                    )
+            if len(model.lines) < max_lines:
+                f0, width = _standardised_peak(rec, floor, model)
+                r = rec.residual(model.lines, model.transient)
+                line = _fit_line(r[: rec.split], rec.t[: rec.split], f0, width)
+                lines = (*model.lines, line)
+                trials.append(
+                    ("sinusoid", _evaluate(rec, floor, model.names, lines, model.transient, model))
+                )
+            if model.transient is None:
+                r = rec.residual(model.lines, None)
+                transient = _fit_transient(r[: rec.split], rec.t[: rec.split], dt)
+                trials.append(
+                    (
+                        "startup_transient",
+                        _evaluate(rec, floor, model.names, model.lines, transient, model),
+                    )
+                )
+            scored = [
+                (2 * (m.train - model.train) - PARAMETER_COUNT[name] * math.log(j_train), name, m)
+                for name, m in trials
+            ]
+            scored.sort(key=lambda s: -s[0])
+            accepted = None
+            for score, name, m in scored:
+                if score < evidence:
+                    break
+                # A start-up transient is localised in the training part: the held-out
+                # part can only tell that it costs nothing there.
+                slack = HELD_OUT_SLACK if name == "startup_transient" else 0.0
+                if m.held > model.held - slack:
+                    accepted = (score, name, m)
+                    break
+            if accepted is None:
+                break
+            score, name, new = accepted
+            dev = _held_out_deviance(rec, floor, new)
+            fraction = (
+                min(max(1 - dev["excess_deviance"] / nominal_dev["excess_deviance"], 0.0), 1.0)
+                if nominal_dev["excess_deviance"] > 0
+                else 0.0
+            )
+            steps.append(
+                {
+                    "model": "+".join(["white", *_named(new)]),
+                    "added": name,
+                    "evidence": float(score),
+                    "held_out_gain": float(new.held - model.held),
+                    "explained_fraction": float(fraction),
+                    "held_out_z": dev["z"],
+                }
+            )
+            model = new
+        final = _held_out_deviance(rec, floor, model)
+        effects = _named(model)
+        params = _physical(model, dt, floor)
+        quantization = None
+        if grid is not None:
+            share = grid["step"] ** 2 / 12 / rec.variance
+            quantization = {**grid, "noise_share_of_white": float(share)}
+            if share >= QUANTIZATION_SHARE:
+                effects.append("quantization")
+                params["quantization"] = {"step": grid["step"]}
+        return SensorNoiseSelection(
+            effects=tuple(effects),
+            unexplained=bool(final["z"] > UNEXPLAINED_Z),
+            steps=steps,
+            parameters=params,
+            held_out=final,
+            quantization=quantization,
+            sample_interval=dt,
+            n_samples=int(x.size),
+        )
+
+
+def _named(model: _Model) -> list:
+    names = list(model.names)
+    if model.lines:
+        names.append("sinusoid")
+    if model.transient is not None:
+        names.append("startup_transient")
+    return names

@@ -1,0 +1,372 @@
+"""The spectral model of a real sensor's static record and its Whittle likelihood.
+
+A static record x_k (k = 0..n−1, every Δ seconds) of a real sensor is modelled as
+
+    x_k = ℓ_k + Σ_lines A cos(2π f k Δ + φ) + a e^{−kΔ/τ_s} + h * (w + g + e + c)_k + p_k
+
+with a level ℓ that may walk (random walk of increment variance qΔ per sample), periodic
+lines, a start-up transient, and the sensor's output low-pass h (the bandlimit) applied to
+the white noise w, a Gauss–Markov noise g, an exponential-cosine noise e and a flicker
+(1/f, bias-instability) noise c, plus a white floor p after the filter (the quantisation
+noise q²/12 of the output's ADC grid, when one is found). Each extension is exactly the
+nominal model (white noise about a constant level) at zero.
+
+The stochastic part is fitted by the Whittle likelihood of the first difference
+y_k = x_k − x_{k−1} (the difference removes the level and makes the random walk white),
+whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 cos ω, is
+
+    f_y(ω) = λ(ω) [H(ω) (σ_w² + f_g(ω) + f_e(ω) + f_c(ω)) + p] + H(ω) qΔ,
+
+- Gauss–Markov (σ_g, ρ = e^{−Δ/τ_c}): f_g = σ_g² (1 − ρ²) / |1 − ρ e^{−iω}|²;
+- exponential-cosine (σ_e, ρ = e^{−αΔ}, θ = βΔ): f_e = σ_e²/2 [P(ω − θ) + P(ω + θ)],
+  P(u) = (1 − ρ²)/(1 − 2ρ cos u + ρ²) (the exact spectrum of R_k = σ_e² ρ^|k| cos kθ);
+- flicker: f_c = B²/|ω|, the exact 1/f spectrum (no sum-of-Gauss–Markov approximation is
+  needed in the frequency domain). B is the IEEE Std 952 bias-instability coefficient: the
+  two-sided rate PSD is S(f) = B²/(2π|f|), so f_c(ω) = S(ω/2πΔ)/Δ = B²/|ω|, and the Allan
+  deviation's floor is √(2 ln 2/π)·B = 0.664 B;
+- bandlimit: a second-order Butterworth low-pass (bilinear transform) of corner f_b,
+  H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))⁴) — exactly 1 at f_b = the Nyquist frequency.
+
+The Whittle log-likelihood of the periodogram I_j of y at ω_j = 2πj/m is
+−Σ_j [ln f_y(ω_j) + I_j/f_y(ω_j)]; records longer than `FULL_RESOLUTION` bins use it on
+geometric bands of bins (ratio `BAND_RATIO`), which makes one evaluation cost the same for
+10⁴ and 10⁶ samples. Float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+COMPONENTS = ("gauss_markov", "exp_cosine", "random_walk", "flicker", "bandlimit")
+"""The stochastic extensions, in the order of their slots in the parameter vector."""
+
+N_PARAMS = 9
+"""z = [ln σ_w², ln σ_g², ln τ_c/Δ, ln σ_e², ln αΔ, ln θ, ln qΔ, ln B², logit(f_b/f_N)]."""
+
+SLOTS = {
+    "gauss_markov": (1, 2),
+    "exp_cosine": (3, 4, 5),
+    "random_walk": (6,),
+    "flicker": (7,),
+    "bandlimit": (8,),
+}
+
+FULL_RESOLUTION = 1 << 11
+"""Up to this many periodogram bins the Whittle likelihood uses every bin."""
+
+BAND_RATIO = 1.003
+"""Beyond `FULL_RESOLUTION` bins: the first 256 bins singly, then geometric bands of this
+width ratio, each entering as c (ln f̄ + Ī/f̄) with Ī the band's mean periodogram and f̄ the
+expected periodogram at the band's mean frequency (exact where the spectrum is flat across
+the band: the model's narrowest feature, a resonance of quality `MAX_QUALITY`, is wider than
+a band; checked against the full-resolution likelihood in the tests)."""
+
+BANDED_GRID = 1 << 17
+"""Grid of the debiasing correction for banded (long) records."""
+
+MAX_QUALITY = 300.0
+"""The exponential-cosine noise's decay per sample is αΔ = e^{z₄} + θ/`MAX_QUALITY`: a
+resonance sharper than β/α = 300 is a periodic line (the `sinusoid` effect), and the
+banded likelihood could not resolve it."""
+
+STEPS = 128
+TOLERANCE = 1e-8
+
+
+def _mask(names) -> np.ndarray:
+    mask = np.zeros(N_PARAMS)
+    mask[0] = 1.0
+    for name in names:
+        for i in SLOTS[name]:
+            mask[i] = 1.0
+    return mask
+
+
+def _parts(z, mask, omega, floor):
+    """(stationary part λ(H·coloured + p), random-walk part H·qΔ) of f_y at |ω| ≤ π."""
+    on = mask > 0
+    white = jnp.exp(z[0])
+    cos = jnp.cos(omega)
+    lam = 2 - 2 * cos
+    rho_g = jnp.exp(-jnp.exp(-z[2]))
+    gm = jnp.exp(z[1]) * (1 - rho_g**2) / (1 - 2 * rho_g * cos + rho_g**2)
+    theta = jnp.exp(z[5])
+    rho_e = jnp.exp(-(jnp.exp(z[4]) + theta / MAX_QUALITY))
+
+    def poisson(u):
+        return (1 - rho_e**2) / (1 - 2 * rho_e * jnp.cos(u) + rho_e**2)
+
+    ec = jnp.exp(z[3]) / 2 * (poisson(omega - theta) + poisson(omega + theta))
+    safe = jnp.where(omega > 0, omega, 1.0)
+    flicker = jnp.where(omega > 0, jnp.exp(z[7]) / safe, 0.0)
+    corner = jax.nn.sigmoid(z[8]) * (math.pi / 2)  # π f_b Δ ∈ (0, π/2)
+    ratio = jnp.tan(jnp.minimum(omega, math.pi * (1 - 1e-12)) / 2) / jnp.tan(corner)
+    gain = jnp.where(on[8], 1 / (1 + ratio**4), 1.0)
+    coloured = white + jnp.where(on[1], gm, 0.0) + jnp.where(on[3], ec, 0.0)
+    coloured = coloured + jnp.where(on[7], flicker, 0.0)
+    walk = jnp.where(on[6], jnp.exp(z[6]), 0.0)
+    return lam * (gain * coloured + floor), gain * walk
+
+
+def spectrum(z, mask, omega, floor):
+    """f_y(ω) of the differenced record (module docstring) at parameters z with the slots
+    that `mask` switches on; `floor` the post-filter white variance p."""
+    stationary, walk = _parts(z, mask, omega, floor)
+    return stationary + walk
+
+
+def expected_periodogram(z, mask, gram, floor):
+    """E I_j of the model for the tapered periodogram: the debiased Whittle likelihood's
+    f̄ (Sykulski et al., Biometrika 2019), Σ_h c(h) γ_y(h) e^{−iω_j h} with c the taper's
+    normalised autocorrelation (1 − |h|/m untapered), computed as f_y(ω_j) −
+    Σ_h (1 − c(h)) γ_y(h) e^{−iω_j h}. The correction matters where f_y is small next to
+    the record's variance over m: at the lowest frequencies of a differenced record
+    (untapered white noise: exactly 2σ² cos ω/m, far above λσ² there) and beyond a steep
+    low-pass, where the periodogram is leakage. γ_y comes from f_y on a grid of `gram.grid`
+    points, the power of two ≥ 2m (every lag of the record; f̄ interpolated to the Fourier
+    frequencies), at most 2^17 (longer records: the correction's lags truncated at 2^16).
+    The random walk's part of y is white and needs none."""
+    stationary, walk = _parts(z, mask, gram.bins, floor)
+    size = gram.grid
+    w = 2 * jnp.pi * jnp.arange(size) / size
+    folded = jnp.minimum(w, 2 * jnp.pi - w)
+    on_grid, _ = _parts(z, mask, folded, floor)
+    gamma = jnp.real(jnp.fft.ifft(on_grid))
+    correction = -jnp.real(jnp.fft.fft(gram.lag_weight * gamma))[: size // 2 + 1]
+    d = jnp.interp(gram.bins, w[: size // 2 + 1], correction)
+    per_bin = stationary + walk + d
+    if gram.bins.shape == gram.omega.shape:  # full resolution
+        return per_bin
+    return jax.ops.segment_sum(per_bin, gram.band, gram.omega.shape[0]) / gram.count
+
+
+class Periodogram(eqx.Module):
+    """The periodogram of a differenced record, possibly on bands: mean ω, mean I and the
+    number of bins per entry."""
+
+    omega: jax.Array
+    power: jax.Array
+    count: jax.Array
+    lag_weight: jax.Array
+    bins: jax.Array
+    band: jax.Array
+    length: int = eqx.field(static=True)
+
+    @property
+    def grid(self) -> int:
+        return self.lag_weight.shape[0]
+
+    @property
+    def n_bins(self) -> float:
+        return float(jnp.sum(self.count))
+
+
+TAPER = 0.2
+"""The periodogram tapers y with a Tukey (split cosine bell) window, cosine over 10 % at
+each end: its leakage falls off fast, so a steep low-pass's stop band and the lowest
+frequencies of a differenced record keep their information (the untapered end effect
+2σ²/m swamps λσ² below j ≈ √m/4), for about a tenth of the samples' weight."""
+
+
+def _lag_weight(taper: np.ndarray, size: int) -> np.ndarray:
+    """1 − c(h) on a circular grid of `size` lags, c the taper's normalised autocorrelation
+    (lags beyond size/2 dropped)."""
+    m = taper.size
+    full = np.fft.irfft(np.abs(np.fft.rfft(taper, 2 * m)) ** 2, 2 * m)[:m]
+    c = full / full[0]
+    half = size // 2
+    lags = np.arange(size)
+    lags = np.minimum(lags, size - lags)
+    weight = np.ones(size)
+    inside = lags < min(m, half + 1)
+    weight[inside] = 1 - c[lags[inside]]
+    if size < 2 * m:
+        weight[~inside] = 0.0  # truncated: the correction's lags stop at size/2
+    else:
+        weight[~inside] = 1.0  # beyond the record's lags c = 0
+    return weight
+
+
+def _grid(m: int, taper: np.ndarray) -> int:
+    """The correction's grid: the power of two ≥ 2m (every lag of the record) for records
+    up to 2^14 differences; beyond, the smallest power of two ≥ 2^13 whose half-length lag
+    has 1 − c(h) ≤ 0.01 (the taper makes 1 − c grow as h² over the taper's length, so the
+    correction's weight at longer lags is small), at most `BANDED_GRID`."""
+    full = 1 << (2 * m - 1).bit_length()
+    if m <= 1 << 14:
+        return full
+    c = np.fft.irfft(np.abs(np.fft.rfft(taper, 2 * m)) ** 2, 2 * m)[:m]
+    c = c / c[0]
+    size = 1 << 13
+    while size < min(full, BANDED_GRID) and 1 - c[size // 2] > 0.01:
+        size *= 2
+    return min(size, full, BANDED_GRID)
+
+
+def periodogram(x: np.ndarray, *, banded: bool | None = None) -> Periodogram:
+    """Tapered periodogram I_j = |Σ w_k y_k e^{−iω_j k}|²/Σ w_k² of y = diff(x) (m samples,
+    demeaned, `TAPER`), j = 1..⌈m/2⌉ − 1 (no zero or Nyquist bin), banded (the first 256
+    bins singly, then geometric bands) when there are more than `FULL_RESOLUTION` bins (or
+    when `banded` says so)."""
+    from scipy.signal.windows import tukey
+
+    y = np.diff(np.asarray(x, np.float64))
+    m = y.size
+    taper = tukey(m, TAPER)
+    y = y - np.sum(taper * y) / np.sum(taper)
+    power = np.abs(np.fft.rfft(taper * y)[1:]) ** 2 / np.sum(taper**2)
+    omega = 2 * np.pi * np.arange(1, power.size + 1) / m
+    if m % 2 == 0:  # the Nyquist bin is real: its I/f is χ²₁, not χ²₂/2; leave it out
+        power, omega = power[:-1], omega[:-1]
+    if banded is None:
+        banded = power.size > FULL_RESOLUTION
+    if not banded:
+        weight = _lag_weight(taper, _grid(m, taper))
+        omega = jnp.asarray(omega)
+        index = jnp.arange(power.size)
+        return Periodogram(
+            omega, jnp.asarray(power), jnp.ones(power.size), jnp.asarray(weight), omega, index, m
+        )
+    single = min(256, power.size)
+    edges = [0, *range(1, single + 1)]
+    while edges[-1] < power.size:
+        edges.append(max(edges[-1] + 1, int(math.ceil(edges[-1] * BAND_RATIO))))
+    edges[-1] = power.size
+    edges = np.asarray(edges)
+    counts = np.diff(edges).astype(np.float64)
+    sums_p = np.add.reduceat(power, edges[:-1])
+    sums_w = np.add.reduceat(omega, edges[:-1])
+    weight = _lag_weight(taper, _grid(m, taper))
+    centre = jnp.asarray(sums_w / counts)
+    return Periodogram(
+        centre,
+        jnp.asarray(sums_p / counts),
+        jnp.asarray(counts),
+        jnp.asarray(weight),
+        centre,
+        jnp.arange(counts.size),
+        m,
+    )
+
+
+def whittle(z, mask, gram: Periodogram, floor):
+    """The Whittle log-likelihood of the (banded) periodogram."""
+    f = expected_periodogram(z, mask, gram, floor)
+    return -jnp.sum(gram.count * (jnp.log(f) + gram.power / f))
+
+
+@eqx.filter_jit
+def deviance_terms(z, mask, gram: Periodogram, floor):
+    """Per entry: r = I/f and the Whittle deviance r − ln r − 1 (its mean is Euler's γ =
+    0.5772 per bin and its variance π²/6 − 1 under the model, for single bins)."""
+    r = gram.power / expected_periodogram(z, mask, gram, floor)
+    return r, r - jnp.log(r) - 1
+
+
+N_STARTS = 4
+"""Starts per structure, fitted as one vmapped batch (one compilation for every
+structure of a record: the structure is the `mask` argument)."""
+
+
+@eqx.filter_jit
+def _fit_all(z0s, mask, gram, floor):
+    return jax.vmap(lambda z0: _fit(z0, mask, gram, floor))(z0s)
+
+
+def _fit(z0, mask, gram, floor):
+    n = jnp.sum(gram.count)
+
+    def loss(z, _):
+        z = jnp.where(mask > 0, z, z0)
+        return -whittle(z, mask, gram, floor) / n
+
+    solver = optx.BFGS(rtol=TOLERANCE, atol=TOLERANCE)
+    sol = optx.minimise(loss, solver, z0, max_steps=STEPS, throw=False)
+    z = jnp.where(mask > 0, sol.value, z0)
+    return z, whittle(z, mask, gram, floor), sol.result == optx.RESULTS.successful
+
+
+@eqx.filter_jit
+def log_likelihood(z, mask, gram, floor):
+    """`whittle`, jitted."""
+    return whittle(z, mask, gram, floor)
+
+
+@eqx.filter_jit
+def information(z, mask, gram, floor):
+    """The observed information −∂² ln L/∂z² (for the intervals of the final model)."""
+    return -jax.hessian(lambda u: whittle(u, mask, gram, floor))(z)
+
+
+def starts(names, variance: float, new=None) -> list[np.ndarray]:
+    """Starting points for a structure: the record's variance for the white slot and a
+    small grid over the time scale of each correlated component in `new` (default: all
+    of `names`; the Whittle likelihood can have several maxima in τ_c, β or the corner)."""
+    base = np.zeros(N_PARAMS)
+    base[0] = math.log(variance)
+    base[1] = math.log(0.5 * variance)
+    base[2] = math.log(10.0)
+    base[3] = math.log(0.5 * variance)
+    base[4] = math.log(0.05)
+    base[5] = math.log(0.3)
+    base[6] = math.log(1e-3 * variance)
+    base[7] = math.log(0.1 * variance)
+    base[8] = 1.0
+    out = [base]
+    grids = {
+        "gauss_markov": [(2, math.log(t)) for t in (2.0, 50.0, 500.0)],
+        "exp_cosine": [
+            (slot, value)
+            for theta in (0.05, 1.0, 2.5)
+            for slot, value in ((5, math.log(theta)), (4, math.log(theta / 6)))
+        ],
+        "bandlimit": [(8, v) for v in (-2.0, 0.0, 3.0)],
+        "random_walk": [(6, math.log(v * variance)) for v in (1e-5, 1e-1)],
+        "flicker": [(7, math.log(v * variance)) for v in (1e-3, 1.0)],
+    }
+    for name in names if new is None else new:
+        if name == "exp_cosine":
+            pairs = grids[name]
+            for k in range(0, len(pairs), 2):
+                z = base.copy()
+                for slot, value in pairs[k : k + 2]:
+                    z[slot] = value
+                out.append(z)
+            continue
+        for slot, value in grids[name]:
+            z = base.copy()
+            z[slot] = value
+            out.append(z)
+    return out
+
+
+def fit_structure(
+    names, gram: Periodogram, floor: float, variance: float, parent=None, parent_names=()
+):
+    """Maximum Whittle likelihood of the structure `names` (a subset of `COMPONENTS` on top
+    of white noise): the best of `starts`, run as one vmapped batch of `N_STARTS`. With
+    `parent` (the fit of the structure `parent_names` ⊂ `names`), every start also carries
+    the parent's optimum in the parent's slots, so the extended fit starts where the nested
+    one ended (and cannot end below it but by a failed search).
+
+    Returns (z, log-likelihood, converged)."""
+    mask = jnp.asarray(_mask(names))
+    new = [n for n in names if n not in parent_names] if parent is not None else None
+    candidates = starts(names, variance, new)
+    if parent is not None:
+        inherited = _mask(parent_names) > 0
+        candidates = [np.where(inherited, np.asarray(parent), c) for c in candidates]
+    candidates = (candidates * N_STARTS)[:N_STARTS]
+    z, log_lik, ok = (
+        np.asarray(a)
+        for a in _fit_all(jnp.asarray(np.stack(candidates)), mask, gram, jnp.asarray(floor))
+    )
+    log_lik = np.where(np.isfinite(log_lik), log_lik, -np.inf)
+    i = int(np.argmax(log_lik))
+    return z[i], float(log_lik[i]), bool(ok[i])

@@ -1,0 +1,192 @@
+"""The real-sensor noise effects (`accel_jax._noise.spectral`, `accel_jax._noise.sensor`):
+the debiased Whittle likelihood against Monte Carlo, banded against full resolution, the
+flicker convention against the Allan deviation, the quantisation grid, the forward
+selection on records drawn by the independent truth generator (studies/noise_truth.py),
+and the Whittle fit against the exact time-domain likelihood."""
+
+import math
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import accel_jax as aj
+from accel_jax._noise import spectral
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import noise_truth  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def _z(white, gm=None, corner_fraction=None):
+    z = np.zeros(spectral.N_PARAMS)
+    z[0] = math.log(white**2)
+    names = []
+    if gm is not None:
+        z[1], z[2] = math.log(gm[0] ** 2), math.log(gm[1])
+        names.append("gauss_markov")
+    if corner_fraction is not None:
+        z[8] = math.log(corner_fraction / (1 - corner_fraction))
+        names.append("bandlimit")
+    return jnp.asarray(z), jnp.asarray(spectral._mask(names))
+
+
+@pytest.mark.parametrize("case", ["white", "gauss_markov", "bandlimit"])
+def test_expected_periodogram_matches_monte_carlo(case):
+    """The debiased Whittle's E I_j (taper, differencing, leakage) against the mean
+    periodogram of 400 records of the truth generator: within 5 Monte Carlo standard
+    errors (+1 %) in every frequency decile, where the plain spectrum f_y misses the
+    lowest bin."""
+    rng = np.random.default_rng(0)
+    n, dt, reps = 1024, 0.01, 400
+    truth = {"white": 1.0}
+    z, mask = _z(1.0)
+    if case == "gauss_markov":
+        truth["gauss_markov"] = (2.0, 0.2)
+        z, mask = _z(1.0, gm=(2.0, 20.0))
+    elif case == "bandlimit":
+        truth["bandlimit"] = 15.0
+        z, mask = _z(1.0, corner_fraction=15.0 / 50.0)
+    grams = [spectral.periodogram(noise_truth.record(rng, n, dt, truth)) for _ in range(reps)]
+    mean = np.mean([np.asarray(g.power) for g in grams], axis=0)
+    gram = grams[0]
+    expected = np.asarray(spectral.expected_periodogram(z, mask, gram, 0.0))
+    plain = np.asarray(spectral.spectrum(z, mask, gram.omega, 0.0))
+    ratio = mean / expected
+    for part in np.array_split(np.arange(ratio.size), 10):
+        # I/E I is about Exp(1): the mean of reps × |part| of them has SE 1/√(reps |part|)
+        se = 1 / math.sqrt(reps * part.size)
+        assert abs(np.mean(ratio[part]) - 1) < 5 * se + 0.01, (case, part[0])
+    # the lowest bin: the plain spectrum is off (the end effect of the difference, which
+    # the taper reduces but does not remove)
+    assert mean[0] / plain[0] > 1.5 or case == "bandlimit"
+
+
+def test_banded_likelihood_agrees_with_full_resolution():
+    rng = np.random.default_rng(1)
+    x = noise_truth.record(rng, 30000, 0.01, {"white": 1e-3, "gauss_markov": (1e-3, 0.1)})
+    full = spectral.periodogram(x, banded=False)
+    banded = spectral.periodogram(x, banded=True)
+    assert banded.omega.size < full.omega.size / 5
+    z, mask = _z(1e-3, gm=(1e-3, 10.0))
+    other, _ = _z(1.2e-3, gm=(0.8e-3, 20.0))
+    d_full = float(spectral.whittle(z, mask, full, 0.0) - spectral.whittle(other, mask, full, 0.0))
+    d_band = float(
+        spectral.whittle(z, mask, banded, 0.0) - spectral.whittle(other, mask, banded, 0.0)
+    )
+    assert d_band == pytest.approx(d_full, rel=0.02)
+
+
+def test_flicker_convention_matches_the_allan_floor():
+    """B of the model (per-sample spectral density B²/ω, IEEE two-sided S = B²/2π|f|) gives
+    the ADEV floor √(2 ln 2/π)·B: checked on the truth generator's flicker, averaged."""
+    rng = np.random.default_rng(2)
+    b, dt = 1.0, 0.01
+    taus = []
+    for _ in range(20):
+        x = noise_truth.flicker(rng, 2**16, dt, b)
+        _, dev = aj.allan_deviation(x, dt, [64, 128, 256])
+        taus.append(np.asarray(dev))
+    floor = np.sqrt(np.mean(np.square(taus), axis=0))
+    assert floor == pytest.approx(math.sqrt(2 * math.log(2) / math.pi) * b, rel=0.08)
+
+
+def test_detect_quantization():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=5000) * 2e-3 + 0.98
+    assert aj.detect_quantization(x) is None
+    q, offset = 3.33e-3, 1.1e-4
+    grid = aj.detect_quantization(np.round((x - offset) / q) * q + offset)
+    assert grid["step"] == pytest.approx(q, rel=1e-9)
+    # a record printed with 5 decimals lies on a 1e-5 grid (σ is 200 steps): found, and
+    # reported as the record's resolution, not named as an effect
+    printed = np.round(x, 5)
+    assert aj.detect_quantization(printed)["step"] == pytest.approx(1e-5, rel=1e-6)
+    found = aj.select_sensor_noise(printed[:4000], 0.01)
+    assert "quantization" not in found.effects
+    assert found.quantization["noise_share_of_white"] < 1e-3
+
+
+def test_select_white_record_is_none():
+    rng = np.random.default_rng(4)
+    x = noise_truth.record(rng, 6000, 0.005, {"white": 3e-4, "level": -0.97})
+    found = aj.select_sensor_noise(x, 0.005)
+    assert found.verdict == "none", found.steps
+    assert found.steps[0]["model"] == "white"
+
+
+def test_select_composite_record():
+    """Line + quantisation + sensor low-pass + flicker, as a real MEMS record shows them:
+    each named, the line's frequency within 1 %, the grid's step within 5 %."""
+    rng = np.random.default_rng(5)
+    truth = {
+        "white": 5e-3,
+        "lines": [(0.56, 1.5e-3)],
+        "quantization": 3.3e-3,
+        "bandlimit": 20.0,
+        "flicker": 1e-3,
+        "level": 1.0,
+    }
+    found = aj.select_sensor_noise(noise_truth.record(rng, 20000, 0.01, truth), 0.01)
+    assert {"sinusoid", "quantization", "bandlimit", "flicker"} <= set(found.effects)
+    line = found.parameters["sinusoid"][0]["frequency_Hz"]
+    assert line == pytest.approx(0.56, rel=0.01)
+    assert found.quantization["step"] == pytest.approx(3.3e-3, rel=0.05)
+    assert found.parameters["bandlimit"]["corner_Hz"] == pytest.approx(20.0, rel=0.1)
+    fractions = [s["explained_fraction"] for s in found.steps]
+    assert fractions == sorted(fractions)  # each step explains more
+
+
+def test_outside_the_library_is_unexplained():
+    """A square wave (a switching regulator's ripple; no library effect, its harmonics
+    beyond `max_lines`) is not passed off as white noise."""
+    rng = np.random.default_rng(6)
+    n, dt = 8000, 0.01
+    t = np.arange(n) * dt
+    x = 1e-3 * rng.normal(size=n) + 2e-3 * np.sign(np.sin(2 * np.pi * 3.7 * t))
+    found = aj.select_sensor_noise(x, dt, max_lines=1)
+    assert found.verdict != "none"
+    assert found.unexplained
+
+
+def test_whittle_agrees_with_exact_likelihood():
+    """The Whittle fit of white + Gauss–Markov against the exact time-domain likelihood
+    (Kalman filter, `fit_maximum_likelihood`) on one 6000-sample record: the parameters
+    agree within 10 %."""
+    rng = np.random.default_rng(7)
+    dt = 0.01
+    x = noise_truth.record(rng, 6000, dt, {"white": 1e-3, "gauss_markov": (1.5e-3, 0.08)})
+    found = aj.select_sensor_noise(x, dt)
+    assert found.effects == ("gauss_markov",)
+    start = aj.NoiseSum((aj.WhiteNoise(1e-3), aj.GaussMarkov(1e-3, 0.05)))
+    split = int(round(2 / 3 * x.size))  # the selection fits the training part
+    exact = aj.fit_maximum_likelihood(start, x[:split] - x[:split].mean(), dt)
+    white, gm = exact.model.components
+    whittle = found.parameters
+    assert whittle["white_sigma"] == pytest.approx(float(white.sigma), rel=0.1)
+    assert whittle["gauss_markov"]["sigma"] == pytest.approx(float(gm.sigma), rel=0.1)
+    assert whittle["gauss_markov"]["correlation_time_s"] == pytest.approx(
+        float(gm.correlation_time), rel=0.1
+    )
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (np.array([1.0, np.nan] * 50), "finite"),
+        (np.ones(20), "samples"),
+    ],
+)
+def test_bad_input(bad, match):
+    with pytest.raises(ValueError, match=match):
+        aj.select_sensor_noise(bad, 0.01)
+    with pytest.raises(ValueError, match="sample_interval"):
+        aj.select_sensor_noise(np.random.default_rng(0).normal(size=100), -1.0)
