@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -527,6 +529,128 @@ def diagnose(file: Path, kind, params_file, json_out, plot_out, force):
     if plot_out is not None:
         save_plot(result, plot_out)
         click.echo(f"plot written: {plot_out}")
+
+
+@main.command()
+@click.argument("file", type=_FILE)
+@_file_option("--json", "json_out", "Write the analysis as JSON here.")
+@_file_option(
+    "--plot",
+    "plot_out",
+    "Draw the Allan deviation with its ±1σ bands and the fitted IEEE terms, and the "
+    "effects found step by step (PNG) here.",
+)
+@click.option(
+    "--export",
+    "export_format",
+    type=click.Choice(["kalibr", "gnss-ins-sim", "ieee"]),
+    default=None,
+    help="Print the identified model in this format (kalibr: imu.yaml accelerometer "
+    "entries; gnss-ins-sim: its IMU error dictionary; ieee: IEEE Std 952/1293 names).",
+)
+@click.option(
+    "--confidence",
+    type=click.FloatRange(0.5, 0.999),
+    default=0.95,
+    show_default=True,
+    help="Confidence of the IEEE terms' intervals (parametric bootstrap).",
+)
+@click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
+def noise(file: Path, json_out, plot_out, export_format, confidence, force):
+    """Analyse a static record: Allan deviation, IEEE noise terms, effects, exports.
+
+    FILE is a noise CSV (header t,a_out; seconds and g; uniform sampling). Prints the
+    IEEE terms (Q, N, B, K, R) with their intervals (a term the data do not support is
+    given as an upper bound only), the effects the record shows (quantisation, periodic
+    lines, low-pass, flicker, Gauss-Markov, exponential-cosine, random walk, start-up
+    transient; what they leave is 'unexplained'), and the export.
+    """
+    _writable(json_out, force, "--json")
+    _writable(plot_out, force, "--plot")
+    import jax
+
+    # Whittle log-likelihoods of up to 10^6 samples compared to within a unit: float64.
+    jax.config.update("jax_enable_x64", True)
+    from ._data import DataError, read_csv
+    from ._io import write_json_atomic
+    from ._noise import analysis, export
+
+    try:
+        data = read_csv(file, kind="noise")
+        result = analysis.analyse_static_record(
+            data.a_out, data.sample_period, unit="g", confidence=confidence
+        )
+    except (DataError, ValueError) as error:
+        raise click.ClickException(str(error)) from None
+    terms, selection = result["terms"], result["selection"]
+    click.echo(
+        f"{data.a_out.size} samples at {1 / data.sample_period:.6g} Hz "
+        f"({data.a_out.size * data.sample_period:.6g} s)"
+    )
+    click.echo(f"IEEE noise terms ({terms.confidence:.0%} intervals; method in --json):")
+    for name, entry in terms.terms.items():
+        unit = entry["unit"].replace("u", "g")  # the record's unit
+        if entry["supported"]:
+            click.echo(
+                f"  {name} = {entry['value']:.4g} {unit} "
+                f"[{entry['lower']:.3g}, {entry['upper']:.3g}]"
+            )
+        elif entry["upper"] > 0:
+            click.echo(f"  {name}: not supported by the data (< {entry['upper']:.3g} {unit})")
+        else:
+            click.echo(f"  {name}: not supported by the data (its whole interval is below 0)")
+    if "sinusoid" in selection.effects or "bandlimit" in selection.effects:
+        click.echo(
+            "  (the five terms describe the ADEV alone: the periodic lines and the low-pass "
+            "found below also shape it, mostly as B and N)"
+        )
+    click.echo(f"effects: {selection.verdict}")
+    for step in selection.steps[1:]:
+        click.echo(
+            f"  + {step['added']}: 2 ln B = {step['evidence']:.1f}, explained "
+            f"{step['explained_fraction']:.1%} of the held-out excess"
+        )
+    if selection.unexplained:
+        click.echo(
+            f"  unexplained: the held-out spectrum stays {selection.held_out['z']:.1f} standard "
+            "errors above the final model's"
+        )
+    if selection.quantization is not None:
+        click.echo(f"  output grid: step {selection.quantization['step']:.4g} g")
+    if export_format is not None:
+        t = result["export_terms"]
+        if export_format == "kalibr":
+            if t.random_walk is None:
+                # kalibr needs a random walk > 0: the data's upper bound, said so
+                bound = terms.terms["K"]["upper"] if "K" in terms.terms else 0.0
+                if not bound > 0:
+                    raise click.ClickException(
+                        "kalibr needs accelerometer_random_walk > 0 and the record gives no "
+                        "bound on K (choose --export gnss-ins-sim or ieee)."
+                    )
+                t = dataclasses.replace(t, random_walk=bound)
+                click.echo(
+                    f"note: K is not supported by the data; kalibr gets its {terms.confidence:.0%}"
+                    f" upper bound {bound:.3g} g/√s (conservative)"
+                )
+            click.echo(export.kalibr_yaml(t))
+        elif export_format == "gnss-ins-sim":
+            click.echo(json.dumps(export.to_gnss_ins_sim(t), indent=1, default=_plain))
+        else:
+            click.echo(json.dumps(export.to_ieee(t), indent=1, default=_plain))
+    if json_out is not None:
+        payload = {"source": str(file), **analysis.analysis_to_json(result)}
+        write_json_atomic(json_out, payload)
+        click.echo(f"json written: {json_out}")
+    if plot_out is not None:
+        analysis.plot_analysis(result, plot_out, title=str(file))
+        click.echo(f"plot written: {plot_out}")
+
+
+def _plain(value):
+    import numpy as np
+
+    return np.asarray(value).tolist()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,95 @@
+"""The `accel-jax noise` subcommand: a static record end to end (ADEV, IEEE terms, effects,
+exports) and its refusals."""
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import accel_jax as aj
+from accel_jax.cli import main
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import noise_truth  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def noise_csv(tmp_path_factory):
+    # 100 Hz, 160 s: white 2 mg + a random walk of the bias (K = 5e-4 g/√s, its ADEV
+    # above the white one from τ ≈ 0.7 s) + an output grid of 2.5 mg, level ≈ −1 g.
+    rng = np.random.default_rng(11)
+    n, dt = 16000, 0.01
+    x = noise_truth.record(
+        rng, n, dt, {"white": 2e-3, "random_walk": 2.5e-7, "quantization": 2.5e-3, "level": -1}
+    )
+    path = tmp_path_factory.mktemp("noise") / "static.csv"
+    aj.write_csv(path, aj.NoiseData(np.arange(n) * dt, x))
+    return path
+
+
+def test_noise_command_reports_terms_effects_and_exports(noise_csv, tmp_path):
+    runner = CliRunner()
+    out_json, out_png = tmp_path / "n.json", tmp_path / "n.png"
+    result = runner.invoke(
+        main,
+        [
+            "noise",
+            str(noise_csv),
+            "--json",
+            str(out_json),
+            "--plot",
+            str(out_png),
+            "--export",
+            "gnss-ins-sim",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "IEEE noise terms" in result.output and "effects: " in result.output
+    saved = json.loads(out_json.read_text())
+    assert {"random_walk", "quantization"} <= set(saved["effects"]["effects"])
+    assert saved["effects"]["quantization"]["step"] == pytest.approx(2.5e-3, rel=0.05)
+    n_term, k_term = (saved["ieee_terms"]["terms"][k] for k in "NK")
+    assert n_term["supported"] and k_term["supported"]
+    assert n_term["lower"] <= n_term["value"] <= n_term["upper"]
+    # the white density σ_w √Δt, σ_w² = white + the grid's q²/12: within its interval
+    # widened by 5 % (the grid's noise is white only approximately)
+    sigma = math.sqrt(2e-3**2 + 2.5e-3**2 / 12)
+    assert 0.95 * n_term["lower"] <= sigma * math.sqrt(0.01) <= 1.05 * n_term["upper"]
+    # K = √q = 5e-4 g/√s within its interval
+    assert k_term["lower"] <= math.sqrt(2.5e-7) <= k_term["upper"]
+    assert out_png.stat().st_size > 10_000
+    # gnss-ins-sim's accel_vrw [m/s/√h] is 60 × N [m/s²/√Hz] (N in g·√s × 9.80665)
+    exported, _ = json.JSONDecoder().raw_decode(result.output[result.output.index("{") :])
+    assert exported["accel_vrw"][0] == pytest.approx(60 * 9.80665 * n_term["value"], rel=1e-9)
+    # a second run does not replace the JSON unasked
+    again = runner.invoke(main, ["noise", str(noise_csv), "--json", str(out_json)])
+    assert again.exit_code != 0 and "--force" in again.output
+
+
+@pytest.mark.parametrize("fmt", ["kalibr", "ieee"])
+def test_noise_command_other_exports(noise_csv, fmt):
+    result = CliRunner().invoke(main, ["noise", str(noise_csv), "--export", fmt])
+    assert result.exit_code == 0, result.output
+    if fmt == "kalibr":
+        assert "accelerometer_noise_density:" in result.output
+        assert "update_rate: 100.0" in result.output
+    else:
+        assert "velocity random walk" in result.output
+
+
+def test_noise_command_bad_input(tmp_path):
+    runner = CliRunner()
+    missing = runner.invoke(main, ["noise", str(tmp_path / "none.csv")])
+    assert missing.exit_code != 0 and "Traceback" not in missing.output
+    step = tmp_path / "step.csv"
+    step.write_text("t,u_test,u_out\n0,0,0\n1,1,1\n")
+    wrong = runner.invoke(main, ["noise", str(step)])
+    assert wrong.exit_code != 0 and "Error" in wrong.output
+    short = tmp_path / "short.csv"
+    short.write_text("t,a_out\n" + "".join(f"{k * 0.01},{np.sin(k)}\n" for k in range(40)))
+    few = runner.invoke(main, ["noise", str(short)])
+    assert few.exit_code != 0 and "at least" in few.output and "Traceback" not in few.output
