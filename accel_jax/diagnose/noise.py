@@ -52,7 +52,7 @@ import numpy as np
 from .._data import DataError, NoiseData, NominalDevice
 from .._noise import initial_model
 from .._sweep import even_chunk_size, sweep
-from . import openworld
+from . import noise_sensor, openworld
 from .base import (
     NESTED_LEVEL,
     CandidateFit,
@@ -65,6 +65,8 @@ from .base import (
 )
 from .noise_effects import _SLOT, STARTS
 from .noise_fit import _bands, _effects, _fit_record
+
+EXACT_LIMIT = noise_sensor.EXACT_LIMIT
 
 HELD_OUT_FRACTION = 1 / 3
 """The last third of the record is held out."""
@@ -449,7 +451,11 @@ def diagnose_noise(
     record vmapped, in chunks of `BATCH_CHUNK` records): Whittle start and exact maximum
     likelihood on the first 2/3 of each record, evidence (2 ln B, BIC scale) against white
     noise, the held-out gap on the last third, and the localisation of the white-noise
-    residual in frequency, lag and time.
+    residual in frequency, lag and time. The effects real sensors show beyond those three
+    noises (output grid, lines, low-pass, flicker, start-up transient) come from the forward
+    selection of `noise_sensor.py`, which alone diagnoses records longer than `EXACT_LIMIT`
+    samples; every result carries the Allan deviation with ±1σ intervals
+    (`where["allan"]`).
 
     **Arguments:**
 
@@ -463,10 +469,11 @@ def diagnose_noise(
     require_float64("log-likelihoods of thousands of samples are compared to within a unit")
     del nominal
     effects = _effects()
-    hosts = [_context(data, effects) for data in datasets]
+    exact = [i for i, d in enumerate(datasets) if np.asarray(d.a_out).size <= EXACT_LIMIT]
+    hosts = {i: _context(datasets[i], effects) for i in exact}
     results: list[DiagnosisResult | None] = [None] * len(datasets)
     groups: dict[tuple[int, int], list[int]] = {}
-    for i, host in enumerate(hosts):
+    for i, host in hosts.items():
         groups.setdefault((host["normalised"].size, host["split"]), []).append(i)
     candidates = jnp.arange(1 + len(effects))
     for (n, split), indices in groups.items():
@@ -489,4 +496,19 @@ def diagnose_noise(
         outputs = [np.asarray(o) for o in outputs]
         for j, i in enumerate(indices):
             results[i] = _postprocess(datasets[i], hosts[i], effects, [o[j] for o in outputs])
+    # Beyond the three noises: the forward selection where the exact verdict leaves it open,
+    # on a coarse output grid, and alone on long records (noise_sensor.py).
+    for i, data in enumerate(datasets):
+        x = np.asarray(data.a_out, dtype=np.float64)
+        dt = float(data.sample_period)
+        if results[i] is None:
+            try:
+                selection = noise_sensor.run_selection(x, dt)
+            except ValueError as error:
+                raise DataError(f"noise record: {error}") from None
+            results[i] = noise_sensor.from_selection(x, np.asarray(data.t), dt, selection, _welch)
+            results[i].notes = [*results[i].notes, *getattr(data, "notes", ())]
+        elif noise_sensor.needs_selection(x, results[i].verdict):
+            results[i] = noise_sensor.combine(results[i], noise_sensor.run_selection(x, dt))
+        results[i].where["allan"] = noise_sensor.allan_summary(x, dt)
     return results

@@ -30,7 +30,10 @@ def figure(result: DiagnosisResult):
         matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    if result.kind == "noise":  # two more panels: the Allan deviation and the effects' steps
+        fig, axes = plt.subplots(2, 3, figsize=(17, 8))
+    else:
+        fig, axes = plt.subplots(2, 2, figsize=(12, 8))
     drawers = {"step": _step_panels, "vibration": _vibration_panels, "noise": _noise_panels}
     drawers[result.kind](result, axes)
     _ranking_panel(result, axes[1, 1])
@@ -145,17 +148,25 @@ def _noise_panels(result: DiagnosisResult, axes) -> None:
     ax.legend(fontsize=8)
 
     ax = axes[0, 1]
-    ax.plot(t, tr["innovations_before"] * 1e6, lw=0.5, color="C0", label="white (nominal)")
-    label = f"with {tr['best_name']}" if tr["best_name"] != "nominal" else "(no effect chosen)"
-    ax.plot(t, tr["innovations_after"] * 1e6, lw=0.5, color="C2", label=label)
-    ax.axvspan(split_t, t[-1], color="0.9", zorder=-1)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("one-step prediction error [µg]")
-    ax.set_title(
-        f"held-out gap {result.gap['before'] * 1e6:.3g} → {result.gap['after'] * 1e6:.3g} µg "
-        f"(shrink {result.gap['shrink']:.2f})"
-    )
-    ax.legend(fontsize=8)
+    if "innovations_before" in tr:
+        ax.plot(t, tr["innovations_before"] * 1e6, lw=0.5, color="C0", label="white (nominal)")
+        label = f"with {tr['best_name']}" if tr["best_name"] != "nominal" else "(no effect chosen)"
+        ax.plot(t, tr["innovations_after"] * 1e6, lw=0.5, color="C2", label=label)
+        ax.axvspan(split_t, t[-1], color="0.9", zorder=-1)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("one-step prediction error [µg]")
+        ax.set_title(
+            f"held-out gap {result.gap['before'] * 1e6:.3g} → {result.gap['after'] * 1e6:.3g} µg "
+            f"(shrink {result.gap['shrink']:.2f})"
+        )
+        ax.legend(fontsize=8)
+    else:  # a long record, diagnosed by the Whittle selection alone: no one-step errors
+        ax.axis("off")
+        ax.text(0, 0.5, "\n".join(_wrap(result.reason, 60)), fontsize=8, va="center")
+        ax.set_title("why (forward selection)")
+
+    _allan_panel(result, axes[0, 2])
+    _steps_panel(result, axes[1, 2])
 
     ax = axes[1, 0]
     spectrum = result.where["frequency"]
@@ -169,6 +180,43 @@ def _noise_panels(result: DiagnosisResult, axes) -> None:
     ax.legend(fontsize=8)
 
 
+def _wrap(text: str, width: int) -> list:
+    import textwrap
+
+    return textwrap.wrap(text, width)
+
+
+def _allan_panel(result: DiagnosisResult, ax) -> None:
+    allan = result.where.get("allan")
+    if not allan:
+        ax.axis("off")
+        return
+    tau, adev = np.asarray(allan["tau_s"]), np.asarray(allan["adev_g"])
+    lo, hi = np.asarray(allan["lower_1sigma_g"]), np.asarray(allan["upper_1sigma_g"])
+    ax.errorbar(tau, adev * 1e6, yerr=[(adev - lo) * 1e6, (hi - adev) * 1e6], fmt="o", ms=3)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("τ [s]")
+    ax.set_ylabel("Allan deviation [µg]")
+    ax.set_title("overlapping ADEV, ±1σ (EDF) intervals")
+
+
+def _steps_panel(result: DiagnosisResult, ax) -> None:
+    sensor = result.where.get("sensor_effects")
+    if not sensor:
+        ax.axis("off")
+        ax.set_title("forward selection: not needed (the exact verdict is clear)", fontsize=9)
+        return
+    steps = sensor["steps"]
+    ax.bar(range(len(steps)), [st["explained_fraction"] for st in steps], color="C2")
+    ax.set_xticks(
+        range(len(steps)), [st["added"] or "white" for st in steps], rotation=30, ha="right"
+    )
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("explained fraction (held-out deviance)")
+    ax.set_title("\n".join(_wrap(f"effects added: {sensor['verdict']}", 50)), fontsize=9)
+
+
 def _ranking_panel(result: DiagnosisResult, ax) -> None:
     names = [r["effect"] for r in result.ranking]
     evidence = np.array([r["evidence"] for r in result.ranking], dtype=float)
@@ -180,7 +228,7 @@ def _ranking_panel(result: DiagnosisResult, ax) -> None:
     verdict = result.verdict
     if verdict == "cannot_tell":
         verdict += f" ({' / '.join(result.tied)})"
-    ax.set_title(f"ranking — verdict: {verdict}")
+    ax.set_title("\n".join(_wrap(f"ranking — verdict: {verdict}", 50)), fontsize=9)
     ax.legend(fontsize=8)
 
 
