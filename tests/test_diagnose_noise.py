@@ -202,15 +202,49 @@ def test_real_mems_record_and_a_line_the_library_does_not_model():
     assert clean.verdict == "none", clean.summary()
     assert clean.remaining_gap["over_floor"] <= 1.0
     # A 1.5 mg line at 0.56 Hz (1 % of the variance): no noise that cannot whiten it is named
-    # for it. Either the narrow-band exp-cosine whitens it (then at the line's frequency) or
-    # the verdict is `unexplained` with the line reported.
-    assert lined.verdict in ("exp_cosine", "unexplained"), lined.summary()
+    # for it. The exact one-effect diagnosis leaves it unexplained (or a narrow-band
+    # exp-cosine whitens it), and the forward selection names the line, at its frequency.
+    assert lined.verdict in ("exp_cosine", "sinusoid"), lined.summary()
     if lined.verdict == "exp_cosine":
         params = next(e for e in lined.ranking if e["effect"] == "exp_cosine")["params"]
         assert params["period_s"] == pytest.approx(1 / 0.56, rel=0.02)
     else:
-        line = lined.remaining_gap["periodic_line"]
-        assert line["frequency_Hz"] == pytest.approx(0.56, rel=0.01)
+        found = lined.where["sensor_effects"]["parameters"]["sinusoid"][0]
+        assert found["frequency_Hz"] == pytest.approx(0.56, rel=0.01)
+        assert found["amplitude"] == pytest.approx(1.5e-3, rel=0.2)
+    assert clean.where["allan"]["tau_s"][0] == pytest.approx(t[1] - t[0])
+
+
+def test_composite_and_long_records(tmp_path):
+    """Beyond the three library noises: a record on a coarse output grid with a line gets
+    the composite verdict of the forward selection; a record longer than the exact limit
+    is diagnosed by the selection alone (named, plotted, JSON)."""
+    import sys
+
+    from accel_jax.diagnose import noise_sensor
+    from accel_jax.diagnose.report import save_plot, write_json
+
+    sys.path.insert(0, str(ROOT / "studies"))
+    import noise_truth
+
+    rng = np.random.default_rng(21)
+    n = 6000
+    x = noise_truth.record(
+        rng, n, DT, {"white": 2e-3, "lines": [(2.2, 1e-3)], "quantization": 3e-3, "level": 1}
+    )
+    composite = diagnose(NoiseData(np.arange(n) * DT, x))
+    assert set(composite.verdict.split("+")) >= {"sinusoid", "quantization"}, composite.summary()
+    assert composite.where["sensor_effects"]["quantization"]["step"] == pytest.approx(3e-3, 0.05)
+    n = noise_sensor.EXACT_LIMIT + 5000
+    x = noise_truth.record(rng, n, DT, {"white": 2e-3, "gauss_markov": (2e-3, 0.1), "level": -1})
+    long = diagnose(NoiseData(np.arange(n) * DT, x))
+    assert long.verdict == "gauss_markov", long.summary()
+    assert "forward selection alone" in long.notes[0]
+    gm = long.where["sensor_effects"]["parameters"]["gauss_markov"]
+    assert gm["correlation_time_s"] == pytest.approx(0.1, rel=0.15)
+    save_plot(long, tmp_path / "long.png")
+    write_json(long, tmp_path / "long.json")
+    assert json.loads((tmp_path / "long.json").read_text())["verdict"] == "gauss_markov"
 
 
 @pytest.mark.slow
