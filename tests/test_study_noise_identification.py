@@ -39,3 +39,16 @@ def test_study_allan_intervals(quick_report):
     adev = np.asarray(allan["adev_rad_per_s"])
     assert np.all(np.asarray(band["lower"]) <= adev) and np.all(adev <= np.asarray(band["upper"]))
     assert band["n_taus"] == adev.size and band["true_adev_inside"] >= adev.size / 2
+    # The IEEE terms: the white N and the random walk K of the truth inside their 95 %
+    # bootstrap intervals; every term either supported with value ∈ [lower, upper] or an
+    # upper bound only.
+    ieee = allan["ieee_terms"]
+    for name, truth in (("N", ieee["white_N_true"]), ("K", ieee["rate_random_walk_K_true"])):
+        term = ieee["terms"][name]
+        assert term["supported"] and term["lower"] <= truth <= term["upper"], (name, term)
+    for term in ieee["terms"].values():
+        if term["supported"]:
+            assert term["lower"] <= term["value"] <= term["upper"]
+        else:
+            assert term["value"] is None and term["upper"] >= 0
+    assert len(ieee["model_adev_rad_per_s"]) == adev.size
