@@ -188,5 +188,7 @@ def test_whittle_agrees_with_exact_likelihood():
 def test_bad_input(bad, match):
     with pytest.raises(ValueError, match=match):
         aj.select_sensor_noise(bad, 0.01)
+    with pytest.raises(ValueError, match="no noise"):
+        aj.select_sensor_noise(np.arange(200.0) * 1e-3, 0.01)
     with pytest.raises(ValueError, match="sample_interval"):
         aj.select_sensor_noise(np.random.default_rng(0).normal(size=100), -1.0)

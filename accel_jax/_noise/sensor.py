@@ -361,6 +361,11 @@ def select_sensor_noise(
         _sample_interval("select_sensor_noise", sample_interval)
         dt = float(sample_interval)
         rec = _Record(x, dt)
+        if not rec.variance > (1e-10 * float(np.max(np.abs(x)))) ** 2:
+            raise ValueError(
+                "select_sensor_noise: the record's first differences are constant over its "
+                "training part (a pure ramp or a staircase of one step): no noise to model."
+            )
         grid = detect_quantization(x)
         floor = grid["step"] ** 2 / 12 if grid else 1e-9 * rec.variance
         model = _evaluate(rec, floor, (), (), None)
