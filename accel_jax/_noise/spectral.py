@@ -67,7 +67,7 @@ expected periodogram at the band's mean frequency (exact where the spectrum is f
 the band: the model's narrowest feature, a resonance of quality `MAX_QUALITY`, is wider than
 a band; checked against the full-resolution likelihood in the tests)."""
 
-BANDED_GRID = 1 << 17
+MID_GRID = 1 << 15
 """Grid of the debiasing correction for banded (long) records."""
 
 MAX_QUALITY = 300.0
@@ -130,7 +130,8 @@ def expected_periodogram(z, mask, gram, floor):
     (untapered white noise: exactly 2σ² cos ω/m, far above λσ² there) and beyond a steep
     low-pass, where the periodogram is leakage. γ_y comes from f_y on a grid of `gram.grid`
     points, the power of two ≥ 2m (every lag of the record; f̄ interpolated to the Fourier
-    frequencies), at most 2^17 (longer records: the correction's lags truncated at 2^16).
+    frequencies) for records up to 2^14 differences, else at most 2^15 (`_grid`: the
+    correction's lags truncated where the taper leaves them little weight).
     The random walk's part of y is white and needs none."""
     stationary, walk = _parts(z, mask, gram.bins, floor)
     size = gram.grid
@@ -197,16 +198,18 @@ def _grid(m: int, taper: np.ndarray) -> int:
     """The correction's grid: the power of two ≥ 2m (every lag of the record) for records
     up to 2^14 differences; beyond, the smallest power of two ≥ 2^13 whose half-length lag
     has 1 − c(h) ≤ 0.01 (the taper makes 1 − c grow as h² over the taper's length, so the
-    correction's weight at longer lags is small), at most `BANDED_GRID`."""
+    correction's weight at longer lags is small), at most `MID_GRID` (the correction's lags
+    then stop at 2^14: the autocovariance of a differenced short-memory or flicker noise is
+    negligible there)."""
     full = 1 << (2 * m - 1).bit_length()
     if m <= 1 << 14:
         return full
     c = np.fft.irfft(np.abs(np.fft.rfft(taper, 2 * m)) ** 2, 2 * m)[:m]
     c = c / c[0]
     size = 1 << 13
-    while size < min(full, BANDED_GRID) and 1 - c[size // 2] > 0.01:
+    while size < min(full, MID_GRID) and 1 - c[size // 2] > 0.01:
         size *= 2
-    return min(size, full, BANDED_GRID)
+    return min(size, full, MID_GRID)
 
 
 def periodogram(x: np.ndarray, *, banded: bool | None = None) -> Periodogram:
