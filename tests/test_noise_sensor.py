@@ -192,3 +192,17 @@ def test_bad_input(bad, match):
         aj.select_sensor_noise(np.arange(200.0) * 1e-3, 0.01)
     with pytest.raises(ValueError, match="sample_interval"):
         aj.select_sensor_noise(np.random.default_rng(0).normal(size=100), -1.0)
+
+
+def test_a_linear_drift_is_not_none():
+    """The first difference makes a ramp a constant that no periodogram sees: a 20 mg drift
+    over the record (10 σ) is caught in the time domain and left `unexplained`, never
+    `none`; the same record without it stays `none`."""
+    rng = np.random.default_rng(9)
+    n, dt = 8000, 0.01
+    t = np.arange(n) * dt
+    white = -1 + 2e-3 * rng.normal(size=n)
+    drifting = aj.select_sensor_noise(white + 0.02 * t / t[-1], dt)
+    assert drifting.unexplained and drifting.verdict != "none"
+    assert drifting.held_out["drift"]["slope_per_s"] == pytest.approx(0.02 / t[-1], rel=0.1)
+    assert aj.select_sensor_noise(white, dt).verdict == "none"

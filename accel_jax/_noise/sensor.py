@@ -451,11 +451,17 @@ def select_sensor_noise(
             if share >= QUANTIZATION_SHARE:
                 effects.append("quantization")
                 params["quantization"] = {"step": grid["step"]}
-        bursts = _bursts(rec.residual(model.lines, model.transient), dt)
+        residual = rec.residual(model.lines, model.transient)
+        bursts = _bursts(residual, dt)
         final["bursts"] = bursts
+        # The first difference makes a linear drift a constant, which the periodogram never
+        # sees: test it in the time domain unless a wandering level was named.
+        drift = _drift(residual, dt)
+        final["drift"] = drift
+        drifting = drift["t"] > DRIFT_T and not {"random_walk", "flicker"} & set(effects)
         return SensorNoiseSelection(
             effects=tuple(effects),
-            unexplained=bool(final["z"] > UNEXPLAINED_Z or bursts),
+            unexplained=bool(final["z"] > UNEXPLAINED_Z or bursts or drifting),
             steps=steps,
             parameters=params,
             held_out=final,
@@ -496,6 +502,24 @@ def _bursts(r: np.ndarray, dt: float) -> list:
             }
         )
     return out
+
+
+DRIFT_T = 8.0
+DRIFT_BLOCKS = 32
+
+
+def _drift(r: np.ndarray, dt: float) -> dict:
+    """The least-squares slope of `DRIFT_BLOCKS` block means against time and its t value
+    against their own scatter about the line (blocks much longer than the noise's
+    correlation: a stationary noise gives |t| ≲ 4, a ramp of a few σ over the record
+    |t| in the tens)."""
+    usable = r.size // DRIFT_BLOCKS * DRIFT_BLOCKS
+    means = r[:usable].reshape(DRIFT_BLOCKS, -1).mean(1)
+    centre = (np.arange(DRIFT_BLOCKS) - (DRIFT_BLOCKS - 1) / 2) * usable / DRIFT_BLOCKS * dt
+    slope = float(centre @ (means - means.mean()) / (centre @ centre))
+    scatter = means - means.mean() - slope * centre
+    se = math.sqrt(float(scatter @ scatter) / (DRIFT_BLOCKS - 2) / float(centre @ centre))
+    return {"slope_per_s": slope, "t": abs(slope) / se if se > 0 else math.inf}
 
 
 def _named(model: _Model) -> list:

@@ -103,6 +103,12 @@ def _describe(sel: SensorNoiseSelection) -> str:
             f". {len(bursts)} impulsive event(s) (first differences beyond 8 robust σ; at "
             f"{at}; peak {max(b['peak'] for b in bursts):.3g} g) that no Gaussian effect makes"
         )
+    drift = held.get("drift")
+    if drift and sel.unexplained and drift["t"] > 8.0 and not bursts and held["z"] <= 4.0:
+        text += (
+            f". The level drifts {drift['slope_per_s']:.3g} g/s ({drift['t']:.0f} standard "
+            "errors over block means), which no named effect makes"
+        )
     if held["z"] > 4.0:
         text += (
             f". What it leaves is unexplained: the held-out spectrum stays {held['z']:.1f} "
