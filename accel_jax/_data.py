@@ -413,9 +413,12 @@ class NominalDevice(eqx.Module):
     uncertainty: dict = eqx.field(static=True)
 
     @classmethod
-    def reference(cls) -> NominalDevice:
-        """The SPEC.md reference device with J, μ, c, k_dm known to ±5 %."""
-        return cls(ServoParams.reference(), dict(UNCERTAIN_BY_DEFAULT))
+    def reference(cls, **overrides) -> NominalDevice:
+        """The reference device (Raspopov's values, T_dm = T_f = 10 µs) with J, μ, c, k_dm
+        known to ±5 %. Any value can be overridden by keyword (taken as known), e.g.
+        `NominalDevice.reference(torquer_time_constant=0.0, filter_time_constant=0.0)` for
+        the idealised loop the identification methods assume."""
+        return cls(ServoParams.reference(**overrides), dict(UNCERTAIN_BY_DEFAULT))
 
 
 def _load_toml(text: str):

@@ -509,7 +509,14 @@ def generate_noise(truths: list[dict], seed: int) -> list[NoiseData]:
 # The blind diagnosis and the scoring
 # --------------------------------------------------------------------------------------
 
-_DIAGNOSE_CODE = """
+NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
+"""The nominal device the diagnosis is given (as a user gives a data sheet with --params):
+the reference device with the lags of the truths' devices, T_dm = T_f = 0. A lag effect is
+a departure from these."""
+
+_DIAGNOSE_CODE = (
+    f"NOMINAL_LAGS = {NOMINAL_LAGS!r}\n"
+    + """
 import json, sys, pathlib, signal
 signal.signal(signal.SIGINT, lambda *_: sys.exit(130))  # Ctrl-C: quiet exit, no traceback
 import accel_jax  # applies the XLA:CPU deadlock workaround (accel_jax._runtime)
@@ -518,12 +525,15 @@ enable_compilation_cache()  # $ACCEL_JAX_CACHE_DIR as the parent process had it
 import jax
 jax.config.update("jax_enable_x64", True)
 from accel_jax import read_csv
+from accel_jax._data import NominalDevice
 from accel_jax.diagnose import diagnose_many
 out = pathlib.Path(sys.argv[1])
+# The device's data sheet, as a user gives it: the reference device with ideal lags.
+nominal = NominalDevice.reference(**NOMINAL_LAGS)
 answer = {}
 for folder in map(pathlib.Path, sys.argv[2:]):
     files = sorted(folder.glob("*.csv"))
-    results = diagnose_many([read_csv(f) for f in files])
+    results = diagnose_many([read_csv(f) for f in files], nominal)
     answer[folder.name] = [
         {"file": f.name, "verdict": r.verdict, "tied": r.tied, "gap": r.gap,
          "reason": r.reason, "explained_fraction": r.explained_fraction,
@@ -534,6 +544,7 @@ for folder in map(pathlib.Path, sys.argv[2:]):
         for f, r in zip(files, results)]
 out.write_text(json.dumps(answer, default=float))
 """
+)
 
 
 def diagnose_blind(folders: list[Path]) -> dict[str, list[dict]]:
@@ -920,6 +931,8 @@ def _assumptions(kind) -> dict:
             },
             "right_answers": "none for no effect, the effect's name (or cannot_tell naming it) "
             "in the library, unexplained outside it",
+            "nominal_device_given": "the reference device with T_dm = T_f = 0 (the truths' "
+            "devices without a lag effect); J, μ, c, k_dm under a 5 % prior",
             "held_out": STEP_HELD_OUT,
         }
     if kind == "step":
@@ -928,6 +941,8 @@ def _assumptions(kind) -> dict:
             "segments_V": [p * STEP_VOLTAGE for p in PATTERN],
             "segment_s": SEGMENT / SAMPLE_RATE,
             "held_out": STEP_HELD_OUT,
+            "nominal_device_given": "the reference device with T_dm = T_f = 0 (the truths' "
+            "devices without a lag effect); J, μ, c, k_dm under a 5 % prior",
             "noise_std_V_log_uniform": list(NOISE_RANGE),
             "device_prior": "J, μ, c, k_dm log-normal 5 % (truncated at 2σ) about the reference",
             "external_moment_Nm_uniform": list(MOMENT_RANGE),

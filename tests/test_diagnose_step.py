@@ -56,6 +56,9 @@ def _record(seed, *, device=None, **record):
         "mu": 2.54e-5 * 0.96,
         "c": 3.02e-4 * 1.05,
         "k_dm": 9.23e-6 * 0.97,
+        # The reference device's own lags (the default nominal takes them as known).
+        "T_dm": 1e-5,
+        "T_f": 1e-5,
     }
     dev = step_truth.Device(**{**values, **(device or {})})
     t, u, y = step_truth.simulate(dev, rec, rng=rng)
@@ -117,6 +120,46 @@ def test_none_on_clean_records_whatever_the_conventions(diagnosed):
     for field, value in truth.items():  # the refit moves the ~1σ-off values toward the truth
         entry = result.refit["parameters"][field]
         assert abs(entry["refitted"] / value - 1) < abs(entry["nominal"] / value - 1)
+
+
+def test_the_default_device_as_given_is_none_and_its_lags_are_known():
+    """A record of `ServoParams.reference()` itself (T_dm = T_f = 10 µs), simulated by the
+    library as the README shows, diagnosed against the default nominal: nothing is missing.
+    The same record against a nominal that claims ideal lags is told apart (the lags are
+    departures from the nominal device, never silently zeroed); a device whose torquer lag
+    is 3× the data sheet's names the lag with a credible refit of J, μ, c, k_dm."""
+    import jax
+
+    from accel_jax._data import NominalDevice
+
+    ts = np.arange(1200) / 100e3
+    u = np.repeat(np.array([0.0, 1.0, 0.0, -1.0, 1.0, 0.0]) * 2.0, 200)
+    rng = np.random.default_rng(4)
+
+    def record(**values):
+        params = aj.ServoParams.reference(**values)
+        y = aj.simulate_linear(params, jnp.asarray(ts), jnp.asarray(u), key=jax.random.key(0))
+        return StepData(ts, u, np.asarray(y) + 3e-4 * rng.normal(size=ts.size))
+
+    default, slow = record(), record(torquer_time_constant=3e-5)
+    as_given, slow_lag = diagnose_many([default, slow])
+    assert as_given.verdict == "none", as_given.summary()
+    assert "T_dm 10 µs, T_f 10 µs" in as_given.refit["description"]
+    for entry in as_given.refit["parameters"].values():
+        assert abs(entry["shift_sigma"]) < 2
+    named = slow_lag.verdict == "torquer_lag" or (
+        slow_lag.verdict == "cannot_tell" and "torquer_lag" in slow_lag.tied
+    )
+    assert named, slow_lag.summary()
+    assert slow_lag.refit["model"] in [*slow_lag.tied, "torquer_lag"]
+    for entry in slow_lag.refit["parameters"].values():  # the device, not a compensation
+        assert abs(entry["shift_sigma"]) < 3, slow_lag.summary()
+    lag = _entry(slow_lag, "torquer_lag")["params"]
+    assert lag["torquer_time_constant_s"] == pytest.approx(3e-5, rel=0.15)
+    assert lag["nominal_torquer_time_constant_s"] == pytest.approx(1e-5)
+    ideal = NominalDevice.reference(torquer_time_constant=0.0, filter_time_constant=0.0)
+    claimed_ideal = diagnose_many([default], ideal)[0]
+    assert claimed_ideal.verdict != "none", claimed_ideal.summary()
 
 
 def test_nuisances_are_fitted_not_assumed(diagnosed):

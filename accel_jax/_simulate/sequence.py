@@ -90,10 +90,18 @@ def equilibrium(params: ServoParams, drive, moment):
 
 def initial_state(params: ServoParams, drive, moment, rate, dv, dw):
     """The state at the first sample: at rest under the first drive, displaced by dv [V]
-    in deflection and dw [V] in velocity (a record that starts in a transient), the lag
-    states at their quasi-static values, the moment drifting at `rate` [V per record]."""
+    in deflection and dw [V] in velocity (a record that starts in a transient), the moment
+    drifting at `rate` [V per record].
+
+    The lag states follow the displacement to first order in their time constants: the
+    torquer's M̃ = g·U − v + T_dm·v̇ and the filter's U_f = v − T_f·v̇ (v̇ = w/T in the scaled
+    velocity w), the solutions of T_dm·Ṁ̃ = g·U − v − M̃ and T_f·U̇_f = v − U_f along the
+    transient, exact to O((T_lag/T)²). With ideal lags they are the quasi-static values."""
     rest = equilibrium(params, drive, moment)
-    return rest + jnp.stack([dv, dw, -dv, dv, 0 * dv, rate + 0 * dv])
+    rate_v = dw / time_constant(params)
+    torquer = -dv + params.torquer_time_constant * rate_v
+    output = dv - params.filter_time_constant * rate_v
+    return rest + jnp.stack([dv, dw, torquer, output, 0 * dv, rate + 0 * dv])
 
 
 class SequenceInputs(NamedTuple):

@@ -1,11 +1,12 @@
 """The `step` kind: a closed-loop test-signal record, its nominal model and its effects.
 
-**Nominal model** (the idealised loop each identification method of SPEC.md §1 assumes):
-the linear closed loop with no torquer lag (T_dm = 0), no output filter (T_f = 0), no stop
-contact, a constant external moment and white output noise, simulated exactly by
-`_simulate.sequence.linear_record`. Refitted: J, μ, c, k_dm as log-normal deviations from the
-nominal values, z_i = ln(x_i/x_i⁰)/σ_i, bounded to |z_i| < `REFIT_BOUND` (so a refit stays
-inside its prior by construction) with a standard normal prior on z_i.
+**Nominal model**: the user's device as given (`NominalDevice`: its torquer lag T_dm and
+output filter T_f taken as known, 0 for the idealised loop the identification methods
+assume) in the linear closed loop with no stop contact, a constant external moment and
+white output noise, simulated exactly by `_simulate.sequence.linear_record`. Refitted: J,
+μ, c, k_dm as log-normal deviations from the nominal values, z_i = ln(x_i/x_i⁰)/σ_i,
+bounded to |z_i| < `REFIT_BOUND` (so a refit stays inside its prior by construction) with a
+standard normal prior on z_i.
 
 **Nuisances** (fitted in every model, never reported as physics): the test winding's
 polarity (from the settled levels) and gain (log-normal, 10 %); the output offset (the
@@ -17,8 +18,10 @@ record's ADC quantisation, is measured without the model (`openworld.noise_floor
 **Effects** (each `AbstractStepEffect` changes the model through one hook and is the nominal model
 at z = 0):
 
-- `torquer_lag`: T_dm > 0 (inside the loop: changes the overshoot as well as the delay);
-- `output_filter`: T_f > 0 (outside the loop: delays the output only);
+- `torquer_lag`: T_dm other than the nominal device's (inside the loop: changes the
+  overshoot as well as the delay);
+- `output_filter`: T_f other than the nominal device's (outside the loop: delays the output
+  only);
 - `stop_saturation`: mechanical stops, upper and lower (`_simulate.sequence.stop_record`);
 - `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
 - `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),

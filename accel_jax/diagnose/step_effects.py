@@ -1,8 +1,10 @@
 """The effects of the `step` kind: each an extension of the nominal loop that is exactly the
 nominal loop at zero (`step.py` describes the kind; `step_fit.py` applies the hooks).
 
-- `torquer_lag`: T_dm > 0 (inside the loop: changes the overshoot as well as the delay);
-- `output_filter`: T_f > 0 (outside the loop: delays the output only);
+- `torquer_lag`: T_dm other than the nominal device's (inside the loop: changes the
+  overshoot as well as the delay);
+- `output_filter`: T_f other than the nominal device's (outside the loop: delays the output
+  only);
 - `stop_saturation`: mechanical stops, upper and lower (`_simulate.sequence.stop_record`);
 - `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
 - `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
@@ -81,31 +83,43 @@ class AbstractStepEffect(AbstractEffect):
         return np.asarray(self.starts[0])
 
 
-def _lag(z, unit):
-    """T = unit·max(z, 0): 0 for z ≤ 0. A fit that wants no lag ends on the flat side
+def _lag(nominal, z, unit):
+    """T = max(T₀ + unit·z, 0): the nominal device's lag T₀ moved by unit·z, never below 0.
+    With T₀ = 0 this is unit·max(z, 0): a fit that wants no lag ends on the flat side
     instead of creeping towards a double zero (T ∝ z² converged slowly there), and the
-    lag's first-order effect keeps the fit well conditioned for small T."""
-    return unit * jnp.maximum(z, 0.0) if isinstance(z, jax.Array) else unit * max(z, 0.0)
+    lag's first-order effect keeps the fit well conditioned for small T. With T₀ > 0 the
+    departure may take either sign (a device faster than its data sheet)."""
+    if isinstance(z, jax.Array) or isinstance(nominal, jax.Array):
+        return jnp.maximum(nominal + unit * z, 0.0)
+    return max(nominal + unit * z, 0.0)
 
 
 class _AbstractLag(AbstractStepEffect):
-    """A first-order lag T = lag_unit·max(z, 0) in the `ServoParams` field `lag_field`."""
+    """A first-order lag in the `ServoParams` field `lag_field`: the nominal device's value
+    T₀ (taken as known; 0 for an ideal loop) plus a departure, T = max(T₀ + lag_unit·z, 0).
+    At z = 0 it is the nominal device exactly."""
 
     lag_field: ClassVar[str]
     starts = ((1.0,), (5.0,))
     bounds = (100.0,)
 
     def device(self, params, z, ctx):
-        lag = _lag(z[0], ctx.lag_unit)
+        lag = _lag(getattr(params, self.lag_field), z[0], ctx.lag_unit)
         return eqx.tree_at(lambda p: getattr(p, self.lag_field), params, lag)
 
     def physical(self, z, context):
-        return {self.parameter_names[0]: float(_lag(float(z[0]), context["lag_unit"]))}
+        nominal = float(context["nominal_lags"][self.lag_field])
+        value = float(_lag(nominal, float(z[0]), context["lag_unit"]))
+        return {
+            self.parameter_names[0]: value,
+            "nominal_" + self.parameter_names[0]: nominal,
+            "change_s": value - nominal,
+        }
 
 
 @register_effect
 class TorquerLag(_AbstractLag):
-    """Torquer electrical lag T_dm = lag_unit·max(z, 0) inside the loop."""
+    """Torquer electrical lag T_dm inside the loop, departing from the nominal device's."""
 
     name = "torquer_lag"
     lag_field = "torquer_time_constant"
@@ -115,7 +129,7 @@ class TorquerLag(_AbstractLag):
 
 @register_effect
 class OutputFilter(_AbstractLag):
-    """Output filter T_f = lag_unit·max(z, 0) outside the loop."""
+    """Output filter T_f outside the loop, departing from the nominal device's."""
 
     name = "output_filter"
     lag_field = "filter_time_constant"

@@ -56,7 +56,7 @@ class StepContext(eqx.Module):
     is per this); `first_level` U_test at the first sample [V];
     `polarity` ±1 of
     the test winding; `sigma_ref` [V] the residual scale (the noise floor); `scale` [V] of
-    the offset and initial-state parameters; `lag_unit` [s] the lag per z² (3 % of the
+    the offset and initial-state parameters; `lag_unit` [s] the lag departure per unit z (3 % of the
     nominal T); `mid`, `half` [V] the middle and half range of the training output (where
     the stops start); `change_index` (J,), `change_step` ΔU (J,) [V] (0 pads),
     `held_out_change` (J,) 1 for changes in the held-out part; `train`, `test` masks of the
@@ -83,12 +83,11 @@ class StepContext(eqx.Module):
 
 
 def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:
+    """The nominal device with J, μ, c, k_dm moved by z (in units of their prior σ). Every
+    other value is the nominal device's as given, its lags T_dm and T_f included: the lag
+    effects are departures from those (`step_effects._AbstractLag`)."""
     values = [getattr(base, f) * jnp.exp(prior_sigma[i] * z[i]) for i, f in enumerate(REFIT_FIELDS)]
-    params = eqx.tree_at(lambda p: [getattr(p, f) for f in REFIT_FIELDS], base, values)
-    zero = jnp.zeros_like(base.damping)
-    return eqx.tree_at(
-        lambda p: (p.torquer_time_constant, p.filter_time_constant), params, (zero, zero)
-    )
+    return eqx.tree_at(lambda p: [getattr(p, f) for f in REFIT_FIELDS], base, values)
 
 
 def _barrier(w, bound):

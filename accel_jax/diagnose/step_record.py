@@ -310,6 +310,10 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "dt": dt * m,
         "duration": dt * (n_blocks * m - 1),
         "torquer_gain": float(base.torquer_gain),
+        "nominal_lags": {
+            "torquer_time_constant": float(base.torquer_time_constant),
+            "filter_time_constant": float(base.filter_time_constant),
+        },
     }
     linear = [e for e in effects if not e.nonlinear]
     nonlinear = [e for e in effects if e.nonlinear]

@@ -477,19 +477,68 @@ def _reason(decision, nominal_fit, by_name, entries, prep, predictable, remainin
     return "; ".join(parts) + "."
 
 
-def _refit_report(nominal, nominal_fit, by_name, shown, prep, sigma, verdict):
+def _parameter_shifts(nominal, fit, prep) -> dict:
     parameters = {}
     for j, field in enumerate(REFIT_FIELDS):
         if prep["prior_sigma"][j] == 0:
             continue
         value0 = float(getattr(nominal.params, field))
-        value = value0 * math.exp(prep["prior_sigma"][j] * nominal_fit["z"][j])
+        value = value0 * math.exp(prep["prior_sigma"][j] * fit["z"][j])
         parameters[field] = {
             "nominal": value0,
             "refitted": value,
             "shift_relative": value / value0 - 1,
-            "shift_sigma": float(nominal_fit["z"][j]),
+            "shift_sigma": float(fit["z"][j]),
         }
+    return parameters
+
+
+KNOWN_FIELDS = (
+    ("torquer_time_constant", "T_dm"),
+    ("filter_time_constant", "T_f"),
+    ("pendulum_mass", "m"),
+    ("pendulum_length", "l"),
+    ("pickoff_gain", "k_dp"),
+    ("amplifier_gain", "k_y"),
+)
+"""Values of the nominal device the step diagnosis takes as known (never refitted), as
+listed in its summary (the lags: an effect is a departure from them)."""
+
+
+def _known_values(nominal, prep) -> dict:
+    known = {}
+    for field, symbol in KNOWN_FIELDS:
+        known[field] = {"symbol": symbol, "value": float(getattr(nominal.params, field))}
+    refitted = {
+        f: float(prep["prior_sigma"][j])
+        for j, f in enumerate(REFIT_FIELDS)
+        if prep["prior_sigma"][j]
+    }
+    for j, field in enumerate(REFIT_FIELDS):
+        if not prep["prior_sigma"][j]:
+            known[field] = {"symbol": field, "value": float(getattr(nominal.params, field))}
+    return {"known": known, "refitted_prior_relative_sigma": refitted}
+
+
+def _known_text(nominal) -> str:
+    lags = ", ".join(
+        f"{symbol} {time_text(float(getattr(nominal.params, field)))}"
+        if float(getattr(nominal.params, field)) > 0
+        else f"{symbol} 0"
+        for field, symbol in KNOWN_FIELDS[:2]
+    )
+    return f"taken as known from the nominal device: {lags} (a lag effect departs from these)"
+
+
+def _refit_report(nominal, nominal_fit, by_name, shown, prep, sigma, verdict):
+    """The refit as the summary shows it: the device's values under the model the verdict
+    names (or the first of a tie; the nominal model when it names none), and beside them
+    the nominal model's own refit, labelled as such: the refit a model without the effect
+    needs is not the device's state."""
+    model_fit = by_name.get(shown) if shown else None
+    if model_fit is None or model_fit.get("z") is None:
+        model_fit = nominal_fit
+    parameters = _parameter_shifts(nominal, model_fit, prep)
     w = nominal_fit["w"]
     ctx_scale = float(prep["ctx"].scale)
     shifts = np.clip(w[_I_TIMING:], -TIMING_LIMIT, TIMING_LIMIT)[: prep["change_index"].size]
@@ -498,6 +547,10 @@ def _refit_report(nominal, nominal_fit, by_name, shown, prep, sigma, verdict):
     rms_refit = float(np.sqrt(np.mean(nominal_fit["error"] ** 2)))
     refit = {
         "parameters": parameters,
+        "model": shown if model_fit is not nominal_fit else "nominal",
+        "nominal_model_parameters": _parameter_shifts(nominal, nominal_fit, prep),
+        "nominal_model_out_of_prior": nominal_fit["out_of_prior"],
+        "nominal_device": _known_values(nominal, prep),
         "converged": nominal_fit["converged"],
         "credible": nominal_fit["plausible"],
         "out_of_prior": nominal_fit["out_of_prior"],
@@ -516,7 +569,8 @@ def _refit_report(nominal, nominal_fit, by_name, shown, prep, sigma, verdict):
         "rms_after_refit_V": rms_refit,
         "gap_closed_by_refit": 1 - rms_refit / rms_prior if rms_prior > 0 else 0.0,
         "description": "J, μ, c, k_dm refitted under their prior; the nuisances (test winding "
-        "polarity and gain, offset, initial state, change times) fitted in every model",
+        "polarity and gain, offset, initial state, change times) fitted in every model; "
+        + _known_text(nominal),
     }
     scale_factors = {}
     for label, fit in (
