@@ -399,10 +399,31 @@ class DiagnosisResult:
         moved = [
             f"{k} {v['shift_relative']:+.2%} ({v['shift_sigma']:+.1f}σ)" for k, v in shifts.items()
         ]
+        model = self.refit.get("model")
         if moved:
-            lines.append("refit: " + ", ".join(moved))
+            label = f"refit (with {model})" if model and model != "nominal" else "refit"
+            lines.append(f"{label}: " + ", ".join(moved))
+        alone = self.refit.get("nominal_model_parameters")
+        if model and model != "nominal" and alone:
+            wide = [
+                f"{k} {v['shift_relative']:+.2%} ({v['shift_sigma']:+.1f}σ)"
+                for k, v in alone.items()
+                if abs(v["shift_sigma"]) >= 2
+            ]
+            if wide:
+                verdict = (
+                    "not credible" if self.refit.get("nominal_model_out_of_prior") else "strained"
+                )
+                lines.append(
+                    "without the effect the nominal model would need "
+                    + ", ".join(wide)
+                    + f" ({verdict}: a compensation, not the device's state)"
+                )
         if self.refit.get("description"):
             lines.append("refit: " + self.refit["description"])
+        model = self.refit.get("model_parameters")
+        if model:
+            lines.append(_model_line(model))
         if self.refit.get("parameter_error"):
             lines.append("the refit closes the gap: a parameter error, not missing physics")
         gap = self.gap
@@ -420,3 +441,21 @@ class DiagnosisResult:
             )
         lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)
+
+
+def _model_line(model: dict) -> str:
+    """One line of a fitted model's parameters with their intervals (noise kind)."""
+    from .._format import interval, seconds
+
+    parts = []
+    for entry in model["parameters"].values():
+        unit = entry["unit"]
+        if unit == "s":
+            text = seconds(entry["value"])
+            if "low" in entry:
+                text += f" [{seconds(entry['low'])}, {seconds(entry['high'])}]"
+        else:
+            text = interval(entry["value"], entry.get("low"), entry.get("high"), unit)
+        parts.append(f"{entry['symbol']} = {text}")
+    level = f"{model['level']:.0%} intervals" if "note" not in model else model["note"]
+    return f"model ({model['model']}; {level}): " + ", ".join(parts)

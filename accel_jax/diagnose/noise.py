@@ -64,7 +64,7 @@ from .base import (
     require_float64,
 )
 from .noise_effects import _SLOT, STARTS
-from .noise_fit import _bands, _effects, _fit_record
+from .noise_fit import _bands, _effects, _fit_record, model_intervals
 
 EXACT_LIMIT = noise_sensor.EXACT_LIMIT
 
@@ -331,12 +331,23 @@ def _postprocess(data: NoiseData, host: dict, effects, outputs) -> DiagnosisResu
         "parameter_error": False,
         "converged": bool(converged[0]),
         "description": (
-            f"white noise σ_w = {white_sigma:.4g} g about the level {host['level']:.9g} g "
-            "(fitted on the training part)"
+            f"the nominal model (white noise alone) has σ_w = {white_sigma:.4g} g about the "
+            f"level {host['level']:.7g} g (fitted on the training part)"
         ),
     }
-    where = _localise(residual, nus[0], white_sigma, host)
     chosen_index = names.index(chosen)
+    # The numbers a Kalman filter needs: the shown model's parameters with intervals.
+    model = model_intervals(
+        zs[chosen_index],
+        host["normalised"],
+        split,
+        jnp.asarray(chosen_index),
+        effects[chosen_index - 1] if chosen_index else None,
+        context,
+    )
+    model["model"] = "white" if chosen_index == 0 else f"white+{chosen}"
+    refit["model_parameters"] = model
+    where = _localise(residual, nus[0], white_sigma, host)
     traces = {
         "t": np.asarray(data.t),
         "measured": x,
