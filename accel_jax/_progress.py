@@ -1,14 +1,16 @@
 """Progress bars for long work, off unless the caller asks (the CLI does).
 
 Library code reports progress through `bar`; nothing is printed unless a caller has
-entered `show_progress()`, so tests and user scripts stay quiet. Bars come from tqdm
-(written to stderr, with rate and estimated time left).
+entered `show_progress()`, so tests and user scripts stay quiet, and nothing unless stderr
+is a terminal: a redirected stderr (a log file, CI) gets no cursor codes. Bars come from
+tqdm (written to stderr, with rate and estimated time left).
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
+import sys
 from collections.abc import Iterator
 
 from tqdm.auto import tqdm
@@ -45,14 +47,27 @@ def progress_enabled() -> bool:
     return _ENABLED.get()
 
 
+def on_terminal(stream=None) -> bool:
+    """Whether `stream` (default: the current stderr) is a terminal: bars are drawn only
+    there (their carriage returns and cursor moves garble a log file)."""
+    stream = sys.stderr if stream is None else stream
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
 def bar(total: int, desc: str, unit: str = "it"):
-    """A tqdm bar when progress is enabled, else a silent one with the same methods."""
+    """A tqdm bar when progress is enabled and stderr is a terminal, else a silent one with
+    the same methods."""
     label = _LABEL.get()
+    stream = sys.stderr
     return tqdm(
         total=total,
         desc=f"{label}: {desc}" if label else desc,
         unit=unit,
-        disable=not progress_enabled(),
+        file=stream,
+        disable=not (progress_enabled() and on_terminal(stream)),
         leave=False,
         dynamic_ncols=True,
         position=_POSITION.get(),

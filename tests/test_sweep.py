@@ -1,5 +1,6 @@
 """The sharded sweep: same numbers on 1 and on several (simulated) devices."""
 
+import io
 import os
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 
 import accel_jax as aj
+from accel_jax import _progress
 from accel_jax.report import show_progress
 
 
@@ -48,7 +50,7 @@ def test_weak_and_strong_batches_share_one_compilation():
     assert np.all(np.diff(np.asarray(b)) != 0)  # the swept field did reach the kernel
 
 
-def test_sweep_chunks_and_progress_give_the_same_numbers(capsys):
+def test_sweep_chunks_and_progress_give_the_same_numbers(capsys, monkeypatch):
     mus = jnp.linspace(1e-5, 2e-4, 13)
     batch = eqx.filter_vmap(lambda mu: aj.ServoParams.reference(damping=mu))(mus)
     whole = aj.sweep(_one, batch, 2.0, in_axes=(0, None))
@@ -58,12 +60,41 @@ def test_sweep_chunks_and_progress_give_the_same_numbers(capsys):
         np.testing.assert_array_equal(out[0], whole[0])
         np.testing.assert_array_equal(out[1], whole[1])
     assert "demo sweep" not in capsys.readouterr().err  # silent unless asked
+    with show_progress(label="test"):  # asked, but stderr is not a terminal: no bars
+        aj.sweep(_one, batch, 2.0, in_axes=(0, None), desc="demo sweep")
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(_progress, "on_terminal", lambda stream=None: True)
     with show_progress(label="test"):
         out = aj.sweep(_one, batch, 2.0, in_axes=(0, None), desc="demo sweep")
     np.testing.assert_array_equal(out[0], whole[0])
     assert "test: demo sweep" in capsys.readouterr().err
     with pytest.raises(ValueError, match="chunk_size"):
         aj.sweep(_one, batch, 2.0, in_axes=(0, None), chunk_size=0)
+
+
+def test_progress_bars_only_on_a_terminal(tmp_path):
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    closed = io.StringIO()
+    closed.close()
+    assert _progress.on_terminal(Terminal()) and not _progress.on_terminal(io.StringIO())
+    assert not _progress.on_terminal(closed) and not _progress.on_terminal(object())
+    # A redirected stderr (a log file) gets no carriage returns or cursor codes.
+    log = tmp_path / "log.txt"
+    code = textwrap.dedent(
+        """
+        from accel_jax._progress import bar, show_progress
+        with show_progress(label="x"):
+            with bar(5, "work") as b:
+                for _ in range(5):
+                    b.update()
+        """
+    )
+    with log.open("w") as stderr:
+        subprocess.run([sys.executable, "-c", code], stderr=stderr, check=True)
+    assert log.read_text() == ""
 
 
 def test_sweep_bad_input():
