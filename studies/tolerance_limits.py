@@ -536,6 +536,14 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     return result
 
 
+def _status(explanation: str) -> str:
+    """reproduced; explained (not reproduced, and the study shows the paper's slip that
+    reproduces it); or differs."""
+    if explanation.startswith("reproduced"):
+        return "reproduced"
+    return "explained" if "reproduced by" in explanation else "differs"
+
+
 def _summary(r) -> list:
     rows = []
     for label, block in (
@@ -552,6 +560,7 @@ def _summary(r) -> list:
                     "note": f"gradient (paper shares, mean a3) {block['gradient'][lim]:.4g}, "
                     f"worst over profile {block['gradient_worst_over_profile'][lim]:.4g}; "
                     + block["explanation"][lim],
+                    "status": _status(block["explanation"][lim]),
                 }
             )
     t1 = r["table1_random_vibration"]
@@ -578,6 +587,11 @@ def _summary(r) -> list:
                 "quantity": f"AKS-05 batch yield, {label} (|δ_V| ≤ δ* over the whole profile)",
                 "ours": round(y["yield_worst_over_profile"], 4),
                 "paper": "'practically all'" if name == "cyclone4" else "",
+                **(
+                    {"status": "reproduced" if y["yield_worst_over_profile"] >= 0.9 else "differs"}
+                    if name == "cyclone4"
+                    else {}
+                ),
                 "note": f"at the mean a3: {y['yield_at_mean_a3']:.4f}; inside the paper's "
                 f"limit box: {y['fraction_inside_paper_limit_box']:.3f}",
             }

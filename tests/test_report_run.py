@@ -1,7 +1,9 @@
 """The report runner: caching/resume by inputs and code, and never deleting unasked."""
 
+import html
 import json
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -399,3 +401,64 @@ def test_usable_cpus_follow_the_affinity_mask(monkeypatch):
     monkeypatch.delattr(_xla.os, "sched_getaffinity", raising=False)
     monkeypatch.setattr(_xla.os, "cpu_count", lambda: None)
     assert _xla.usable_cpus() == [0]
+
+
+def test_first_screen_status_quick_banner_and_glossary(tmp_path):
+    """The first screen answers: each published number's status (reproduced / explained /
+    differs, targets met / missed) with a count, the rows that differ listed; a quick run
+    says so on top and on every figure; the glossary closes the page and the README
+    carries every term of it."""
+    from accel_jax.report._glossary import GLOSSARY
+    from accel_jax.report._html import build_report, row_status
+
+    assert row_status({"ours": 0.1358, "paper": "0.141"}) == "reproduced"  # within 5 %
+    assert row_status({"ours": "0.2328 ± 0.0201", "paper": "0.141"}) == "differs"
+    assert row_status({"ours": "1.09 ± 0.94", "paper": "0.682"}) == "reproduced"  # spread
+    assert row_status({"ours": 0.23, "paper": 0.141, "explanation": "γ = 3/4"}) == "explained"
+    assert row_status({"ours": 0.63, "paper": 0.9, "target": "≥"}) == "missed"
+    assert row_status({"ours": 0.0, "paper": 0.05, "target": "≤"}) == "met"
+    assert row_status({"ours": 1.0, "paper": "—"}) is None
+    assert row_status({"ours": 0.3, "paper": "'practically all'", "status": "differs"}) == (
+        "differs"
+    )
+    folder = tmp_path / "scale_factor_identification"
+    (folder).mkdir()
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1])
+    fig.savefig(folder / "f.png")
+    plt.close(fig)
+    write_json_atomic(
+        folder / "result.json",
+        {
+            "title": "t",
+            "summary": [
+                {"quantity": "δK_a exact", "ours": 0.1358, "paper": "0.141"},
+                {"quantity": "Table 3 mean |δ_V|", "ours": 0.245, "paper": 1.417},
+                {"quantity": "strict naming", "ours": 0.63, "paper": 0.9, "target": "≥"},
+                {"quantity": "false alarms", "ours": 0.0, "paper": 0.05, "target": "≤"},
+                {"quantity": "γ = 3/4", "ours": 0.2328, "paper": 0.141, "explanation": "γ"},
+            ],
+            "figures": [{"file": "f.png", "caption": "a figure"}],
+        },
+    )
+    page = build_report([folder], tmp_path / "r" / "index.html", title="t", quick=True)
+    text = page.read_text()
+    first = text.split("Published numbers and targets beside ours")[0]
+    assert "Status of 5 published numbers and targets" in first
+    for count in ("1 reproduced", "1 explained", "1 differs", "1 met", "1 missed"):
+        assert count in first, count
+    assert "Table 3 mean |δ_V|" in first and "strict naming" in first  # flagged rows
+    assert "false alarms" not in first  # a met target is not flagged
+    assert "Quick run" in text.split("<ul>")[0]  # the banner before the contents
+    assert "[quick run: reduced statistics]</b> a figure" in text
+    glossary = text.split('id="glossary"')[1]
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    for term, _ in GLOSSARY:
+        assert html.escape(term) in glossary and f"**{term}**" in readme, term
+    full = build_report([folder], tmp_path / "r2" / "index.html", title="t").read_text()
+    assert "Quick run" not in full and "[quick run" not in full

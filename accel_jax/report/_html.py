@@ -12,9 +12,13 @@ from __future__ import annotations
 import base64
 import html
 import json
+import math
+import re
 from pathlib import Path
 
+from .._format import number
 from .._io import _atomic_write_bytes
+from ._glossary import GLOSSARY
 
 # Written into every index.html, so a later run knows the file is ours to replace.
 REPORT_MARKER = "<!-- written by accel-jax report -->"
@@ -32,12 +36,86 @@ figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { font-size: 0.9em; color: #444; margin-top: .4em; }
 details { margin: 1em 0; }
 pre { background: #f6f6f6; padding: .8em; overflow-x: auto; font-size: 0.8em; }
+.banner { background: #fff4d6; border: 1px solid #e0b84c; padding: .6em 1em; }
+.st-reproduced, .st-met { color: #1b6e2d; font-weight: 600; }
+.st-explained { color: #7a5b00; font-weight: 600; }
+.st-differs, .st-missed { color: #a4161a; font-weight: 600; }
+dl.glossary dt { font-weight: 600; margin-top: .4em; }
+dl.glossary dd { margin-left: 1.5em; }
 """
+
+STATUSES = ("reproduced", "explained", "differs", "met", "missed")
+"""The status of a number beside a published one or a target (see `row_status`)."""
+
+TOLERANCE = 0.05
+"""Relative difference within which a number reproduces a published one, unless the row
+states its own `tolerance` (or a spread: `ours` written as "mean ± std")."""
+
+_PLUS_MINUS = re.compile(r"^\s*([-+0-9.eE]+)\s*±\s*([0-9.eE+-]+)")
+
+
+def _as_number(value):
+    """A float, or (mean, spread) from "mean ± std", or None when not a number."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int | float):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, str):
+        match = _PLUS_MINUS.match(value)
+        if match:
+            try:
+                return float(match.group(1)), float(match.group(2))
+            except ValueError:
+                return None
+        try:
+            return float(value)
+        except ValueError:
+            return None
+    return None
+
+
+def row_status(row: dict) -> str | None:
+    """The status of a summary row: its own `status` when the study states one; else, for
+    a row with a published value or target: a target (`target` "≥" or "≤") met or missed;
+    a number reproduced when within `tolerance` (relative, default `TOLERANCE`) or within
+    two spreads of a "mean ± std"; explained when it differs and the row carries an
+    `explanation`; differs otherwise. None for a row with nothing to compare with."""
+    if row.get("status"):
+        return str(row["status"])
+    paper = row.get("paper")
+    if not _has_paper_value(paper):
+        return None
+    ours, theirs = _as_number(row.get("ours")), _as_number(paper)
+    if ours is None or theirs is None or isinstance(theirs, tuple):
+        return None
+    spread = 0.0
+    if isinstance(ours, tuple):
+        ours, spread = ours
+    target = row.get("target")
+    if target == "≥":
+        return "met" if ours >= theirs else "missed"
+    if target == "≤":
+        return "met" if ours <= theirs else "missed"
+    tolerance = float(row.get("tolerance", TOLERANCE))
+    close = abs(ours - theirs) <= max(tolerance * abs(theirs), 2 * spread)
+    if close:
+        return "reproduced"
+    return "explained" if row.get("explanation") else "differs"
+
+
+def _status_cell(status: str | None) -> str:
+    if status is None:
+        return "<td></td>"
+    return f'<td class="st-{html.escape(status)}">{html.escape(status)}</td>'
 
 
 def _fmt(value) -> str:
+    if value is None:
+        return "—"
     if isinstance(value, float):
-        return f"{value:.6g}"
+        return html.escape(number(value))
+    if isinstance(value, list) and all(isinstance(v, int | float) for v in value):
+        return html.escape(", ".join(number(v) for v in value))
     if isinstance(value, dict | list):
         return html.escape(json.dumps(value))
     return html.escape(str(value))
@@ -50,7 +128,7 @@ def _kv_table(mapping: dict) -> str:
     return f"<table>{rows}</table>"
 
 
-def _study_section(study_dir: Path) -> str:
+def _study_section(study_dir: Path, *, quick: bool = False) -> str:
     result = json.loads((study_dir / "result.json").read_text())
     title = result.get("title", study_dir.name)
     parts = [f'<h2 id="{html.escape(study_dir.name)}">{html.escape(title)}</h2>']
@@ -58,11 +136,15 @@ def _study_section(study_dir: Path) -> str:
         parts.append(f"<p>{html.escape(result['description'])}</p>")
     summary = result.get("summary", [])
     if summary:
-        head = "<tr><th>quantity</th><th>accel_jax</th><th>paper</th><th>note</th></tr>"
+        head = (
+            "<tr><th>quantity</th><th>accel_jax</th><th>paper / target</th><th>status</th>"
+            "<th>note</th></tr>"
+        )
         rows = "".join(
             "<tr>"
             + "".join(f"<td>{_fmt(row.get(k, ''))}</td>" for k in ("quantity", "ours", "paper"))
-            + f"<td>{html.escape(str(row.get('note', '')))}</td></tr>"
+            + _status_cell(row_status(row))
+            + f"<td>{html.escape(_note(row))}</td></tr>"
             for row in summary
         )
         parts.append(f"<table>{head}{rows}</table>")
@@ -74,7 +156,8 @@ def _study_section(study_dir: Path) -> str:
         data = base64.b64encode(png.read_bytes()).decode()
         parts.append(
             f'<figure><img alt="{html.escape(figure["file"])}" src="data:image/png;base64,{data}">'
-            f"<figcaption>{html.escape(figure.get('caption', ''))}</figcaption></figure>"
+            f"<figcaption>{'<b>[quick run: reduced statistics]</b> ' if quick else ''}"
+            f"{html.escape(figure.get('caption', ''))}</figcaption></figure>"
         )
     if result.get("assumptions"):
         parts.append("<h3>Assumptions</h3>" + _kv_table(result["assumptions"]))
@@ -92,27 +175,76 @@ def _has_paper_value(value) -> bool:
     return value is not None and str(value).strip() not in ("", "—", "-")
 
 
+def _note(row: dict) -> str:
+    note = str(row.get("note", "") or "")
+    if row.get("explanation"):
+        note = f"{row['explanation']}. {note}" if note else str(row["explanation"])
+    return note
+
+
+def _published_rows(results: dict[str, dict]) -> list[tuple[str, dict, str | None]]:
+    return [
+        (name, row, row_status(row))
+        for name, result in results.items()
+        for row in result.get("summary", [])
+        if _has_paper_value(row.get("paper")) or row.get("status")
+    ]
+
+
+def _status_summary(results: dict[str, dict]) -> str:
+    """The first screen: how many published numbers and targets are reproduced, explained
+    or differ, and the rows that differ or miss, each with its study's reason."""
+    rows = _published_rows(results)
+    counts = {s: sum(1 for _, _, st in rows if st == s) for s in STATUSES}
+    compared = sum(counts.values())
+    if not compared:
+        return ""
+    items = ", ".join(f'<span class="st-{s}">{counts[s]} {s}</span>' for s in STATUSES if counts[s])
+    flagged = [
+        f'<li><a href="#{html.escape(name)}">{html.escape(name)}</a>: '
+        f"{html.escape(str(row.get('quantity', '')))} — ours {_fmt(row.get('ours'))}, "
+        f"paper / target {_fmt(row.get('paper'))} "
+        f'(<span class="st-{st}">{st}</span>)</li>'
+        for name, row, st in rows
+        if st in ("differs", "missed")
+    ]
+    parts = [f"<p><b>Status of {compared} published numbers and targets:</b> {items}.</p>"]
+    if flagged:
+        parts.append(
+            "<p>Where we differ from the paper or miss a target (each study's section "
+            f"says why):</p><ul>{''.join(flagged)}</ul>"
+        )
+    return "".join(parts)
+
+
 def _published_table(results: dict[str, dict]) -> str:
     """Every summary row that has a published value, beside ours, study by study."""
-    rows = []
-    for name, result in results.items():
-        for row in result.get("summary", []):
-            if _has_paper_value(row.get("paper")):
-                rows.append(
-                    f'<tr><td><a href="#{html.escape(name)}">{html.escape(name)}</a></td>'
-                    + "".join(f"<td>{_fmt(row.get(k, ''))}</td>" for k in ("quantity", "ours"))
-                    + f"<td>{_fmt(row.get('paper'))}</td>"
-                    + f"<td>{html.escape(str(row.get('note', '')))}</td></tr>"
-                )
+    rows = [
+        f'<tr><td><a href="#{html.escape(name)}">{html.escape(name)}</a></td>'
+        + "".join(f"<td>{_fmt(row.get(k, ''))}</td>" for k in ("quantity", "ours"))
+        + f"<td>{_fmt(row.get('paper'))}</td>"
+        + _status_cell(status)
+        + f"<td>{html.escape(_note(row))}</td></tr>"
+        for name, row, status in _published_rows(results)
+    ]
     if not rows:
         return ""
     head = "<tr><th>study</th><th>quantity</th><th>accel_jax</th><th>paper / target</th>"
-    head += "<th>note</th></tr>"
+    head += "<th>status</th><th>note</th></tr>"
     return (
         "<h3>Published numbers and targets beside ours</h3>"
-        "<p>Each study's own section gives the assumptions behind its numbers.</p>"
+        "<p>Each study's own section gives the assumptions behind its numbers. Status: "
+        f"reproduced within {TOLERANCE:.0%} (or the row's own tolerance or spread), explained "
+        "(differs, for a cause the study shows), differs, or a target met / missed.</p>"
         f"<table>{head}{''.join(rows)}</table>"
     )
+
+
+def _glossary() -> str:
+    items = "".join(
+        f"<dt>{html.escape(term)}</dt><dd>{html.escape(meaning)}</dd>" for term, meaning in GLOSSARY
+    )
+    return f'<h2 id="glossary">Glossary</h2><dl class="glossary">{items}</dl>'
 
 
 def _overview_tables(name: str, tables) -> str:
@@ -144,22 +276,43 @@ def _overview(study_dirs: list[Path]) -> str:
             results[d.name] = json.loads((d / "result.json").read_text())
         except (OSError, ValueError):
             continue
-    parts = [_published_table(results)]
+    parts = [_status_summary(results), _published_table(results)]
     parts += [_overview_tables(name, result.get("overview")) for name, result in results.items()]
     body = "".join(p for p in parts if p)
     return f'<h2 id="overview">At a glance</h2>{body}' if body else ""
 
 
-def build_report(study_dirs: list[Path], out_file: Path, *, title: str) -> Path:
-    """Write `out_file` (HTML) from the given study output folders, atomically."""
-    toc = '<li><a href="#overview">At a glance</a></li>' + "".join(
-        f'<li><a href="#{html.escape(d.name)}">{html.escape(d.name)}</a></li>' for d in study_dirs
+QUICK_BANNER = (
+    "Quick run: every number and figure below comes from reduced statistics (fewer "
+    "seeds, records and grid points) and is not the published comparison; run "
+    "`make report` (or `accel-jax report` without --quick) for the full one."
+)
+
+
+def build_report(
+    study_dirs: list[Path], out_file: Path, *, title: str, quick: bool = False
+) -> Path:
+    """Write `out_file` (HTML) from the given study output folders, atomically. A quick
+    run (`quick`) carries a banner, and every figure's caption says it is from reduced
+    statistics."""
+    toc = (
+        '<li><a href="#overview">At a glance</a></li>'
+        + "".join(
+            f'<li><a href="#{html.escape(d.name)}">{html.escape(d.name)}</a></li>'
+            for d in study_dirs
+        )
+        + '<li><a href="#glossary">Glossary</a></li>'
     )
-    body = _overview(study_dirs) + "\n".join(_study_section(d) for d in study_dirs)
+    body = (
+        _overview(study_dirs)
+        + "\n".join(_study_section(d, quick=quick) for d in study_dirs)
+        + _glossary()
+    )
+    banner = f'<p class="banner">{html.escape(QUICK_BANNER)}</p>' if quick else ""
     page = (
         f"<!doctype html>{REPORT_MARKER}<html><head><meta charset='utf-8'>"
         f"<title>{html.escape(title)}</title>"
-        f"<style>{_STYLE}</style></head><body><h1>{html.escape(title)}</h1>"
+        f"<style>{_STYLE}</style></head><body><h1>{html.escape(title)}</h1>{banner}"
         f"<ul>{toc}</ul>{body}</body></html>"
     )
     _atomic_write_bytes(out_file, page.encode())

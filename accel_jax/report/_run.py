@@ -306,7 +306,9 @@ def run_report(
                 overall.update(1)
         else:
             _run_parallel(todo, task, jobs, echo, overall)
-    return build_report([root / name for name in studies], index, title=REPORT_TITLE)
+    return build_report(
+        [root / name for name in studies], index, title=REPORT_TITLE, quick=bool(quick)
+    )
 
 
 REPORT_TITLE = "accel_jax design-study report"
