@@ -109,7 +109,8 @@ def main(ctx):
     "--params",
     "params_file",
     "Your device (TOML: ServoParams fields, value or {value, uncertainty}) for the "
-    "studies of the closed loop; default the SPEC.md reference device.",
+    "studies of the closed loop; default the reference device (Raspopov's values, "
+    "T_dm = T_f = 10 µs).",
 )
 def report(
     out_dir: Path,
@@ -196,6 +197,47 @@ def info():
         click.echo(f"  shape factor γ=ml²/J  = {float(aj.shape_factor(params)):.6g}")
 
 
+def _out_option(command: str):
+    """`--out DIR`: everything the command writes goes under DIR (created if missing)."""
+    return click.option(
+        "--out",
+        "out_dir",
+        type=click.Path(file_okay=False, dir_okay=True, path_type=Path),
+        default=None,
+        help=f"Write everything under this folder: {command}.json, {command}.png and "
+        f"{command}.txt (the printed summary); a relative --json or --plot goes under it too.",
+    )
+
+
+def _route(out_dir: Path | None, command: str, **paths) -> dict:
+    """The output paths with `--out DIR`: a path not given becomes DIR/<command>.<ext>, a
+    relative one goes under DIR, an absolute one stays; plus `text`, DIR/<command>.txt.
+    Without --out the paths are as given (and no text file)."""
+    if out_dir is None:
+        return {**paths, "text": None}
+    if out_dir.exists() and not out_dir.is_dir():
+        raise click.BadParameter(f"{out_dir} is a file, not a folder.", param_hint="--out")
+    extension = {"json_out": "json", "plot_out": "png"}
+    routed = {}
+    for key, path in paths.items():
+        if path is None:
+            routed[key] = out_dir / f"{command}.{extension[key]}"
+        else:
+            routed[key] = path if path.is_absolute() else out_dir / path
+    routed["text"] = out_dir / f"{command}.txt"
+    return routed
+
+
+def _write_text(path: Path | None, text: str, what: str = "summary") -> None:
+    if path is None:
+        return
+    from ._io import _atomic_write_bytes
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_write_bytes(path, (text.rstrip("\n") + "\n").encode())
+    click.echo(f"{what} written: {path}")
+
+
 def _writable(path: Path | None, force: bool, option: str) -> None:
     """Refuse to replace an existing output file unless --force (no user file is lost)."""
     if path is not None and path.exists() and not force:
@@ -242,7 +284,13 @@ def _read_psd(path: Path):
 
 
 @main.command()
-@click.option("--budget", type=float, required=True, help="Admissible vibration error δ* [g].")
+@click.option(
+    "--budget",
+    type=float,
+    required=True,
+    help="Admissible vibration error δ* [g], 0 < δ* ≤ 1 g (the paper's Cyclone-4: 5e-4, "
+    "i.e. 0.5 mg).",
+)
 @click.option(
     "--mean-accel",
     type=float,
@@ -271,14 +319,16 @@ def _read_psd(path: Path):
     "--psd",
     "psd_file",
     "Random vibration as band PSDs: CSV with f_low,f_high,psd[,eta] (Hz, Hz, g²/Hz, 1); "
-    "σ by the paper's formula sqrt((1/n) Σ η S Δf) (SPEC.md §3).",
+    "σ by the paper's formula sqrt((1/n) Σ η S Δf) (the vibration-error paper). "
+    "Example: examples/bands.csv.",
 )
 @click.option(
     "--unit",
     type=click.Choice(["none", "aks05", "al1m"]),
     default="none",
     show_default=True,
-    help="Check a unit's passport coefficients (Table 4) against the limits.",
+    help="Check a unit's passport coefficients (Table 4) against the gradient limits, and "
+    "its total vibration error δ_V at a3 against δ*.",
 )
 @_file_option(
     "--json",
@@ -290,8 +340,10 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     """Admissible nonlinearity coefficients A1, k2..k5, m for a vibration environment.
 
     Limits by the paper's fixed budget shares (SPEC.md §3, eqs. 7-15) and by exact
-    sensitivities (jax.grad of the vibration error, same shares), in ppm units. Example
-    (the paper's Cyclone-4): --budget 5e-4 --mean-accel 2 --sine 1.2 1.2 0.5 --rms 1.4
+    sensitivities (jax.grad of the vibration error, same shares), in ppm units. With --unit,
+    each passport coefficient is judged against the gradient limit, and the unit's total
+    vibration error δ_V at the mean a3 against δ*. Example (the paper's Cyclone-4):
+    --budget 5e-4 --mean-accel 2 --sine 1.2 1.2 0.5 --psd examples/bands.csv --unit aks05
     """
     import math
 
@@ -301,15 +353,25 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     jax.config.update("jax_enable_x64", True)
     from ._io import write_json_atomic
     from ._static import PPM_UNITS, StaticTransferFunction
-    from ._tolerance import TOLERANCED, ToleranceScenario, gradient_limits, paper_limits
+    from ._tolerance import (
+        TOLERANCED,
+        ToleranceScenario,
+        error_contributions,
+        gradient_limits,
+        paper_limits,
+    )
     from ._vibration import VibrationEnvironment
 
+    # A vibration-error budget above 1 g is a unit slip (mg or ppm typed as g): refused.
+    max_budget = 1.0
     _writable(json_out, force, "--json")
     if rms is not None and psd_file is not None:
         raise click.UsageError("give the random vibration by --rms or by --psd, not both.")
-    if not (math.isfinite(budget) and budget > 0):
+    if not (math.isfinite(budget) and 0 < budget <= max_budget):
         raise click.BadParameter(
-            f"{budget!r} g; the budget must be positive.", param_hint="--budget"
+            f"{budget!r}; the budget must be positive and at most {max_budget:g} g: it is the "
+            "admissible vibration error δ* in g (e.g. 5e-4 for 0.5 mg).",
+            param_hint="--budget",
         )
     if not (math.isfinite(mean_accel) and mean_accel != 0):
         raise click.BadParameter(
@@ -317,14 +379,34 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
             "divide by it).",
             param_hint="--mean-accel",
         )
-    source = "none"
+    if not all(math.isfinite(b) and b >= 0 for b in sine):
+        raise click.BadParameter(
+            f"{' '.join(repr(b) for b in sine)} g; the amplitudes (OA PA IA) must be finite "
+            "and non-negative, e.g. 1.2 1.2 0.5.",
+            param_hint="--sine",
+        )
+    if not (math.isfinite(sine_freq) and sine_freq > 0):
+        raise click.BadParameter(
+            f"{sine_freq!r} Hz; the frequency must be finite and positive.",
+            param_hint="--sine-freq",
+        )
+    if rms is not None and not (math.isfinite(rms) and rms >= 0):
+        raise click.BadParameter(
+            f"{rms!r} g; the RMS must be finite and non-negative.", param_hint="--rms"
+        )
+    source = "none given"
     sigma = 0.0
     if psd_file is not None:
         spectrum = _read_psd(psd_file)
         sigma = float(spectrum.rms(paper=True))
-        source = f"{psd_file} ({len(spectrum.psd)} bands, paper's σ formula)"
+        source = f"{psd_file}: {len(spectrum.psd)} bands, paper's σ formula"
     elif rms is not None:
         sigma, source = rms, "--rms"
+    if sigma == 0 and not any(sine):
+        raise click.UsageError(
+            "no vibration given (every limit would be unbounded): give --sine amplitudes, "
+            "--rms or --psd."
+        )
     try:
         env = VibrationEnvironment(
             sine_amplitude=sine,
@@ -338,7 +420,10 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     paper = paper_limits(scenario)
     grad = gradient_limits(scenario)
     passport = {"aks05": StaticTransferFunction.aks05, "al1m": StaticTransferFunction.al1m}
-    unit_ppm = passport[unit]().as_ppm() if unit != "none" else {}
+    device = passport[unit]() if unit != "none" else None
+    unit_ppm = device.as_ppm() if device is not None else {}
+    # Each coefficient's signed part s_k·k of the unit's δ_V at a3; they add up to δ_V.
+    parts = error_contributions(device, env, mean_accel) if device is not None else {}
     rows = {}
     for name in TOLERANCED:
         row = {
@@ -352,23 +437,79 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
             value = abs(unit_ppm.get(name, 0.0))
             row["passport"] = value
             row["within"] = bool(value <= row["gradient_paper_shares"])
+            row["vibration_error_part_g"] = float(parts[name])
         rows[name] = row
+    total = float(sum(parts.values())) if parts else None
+    total_within = total is not None and abs(total) <= budget
+
+    from ._format import number
+
+    def num(value, width=10):  # 4 significant figures; ∞ where a term has no sensitivity
+        return f"{number(value):>{width}}"
+
+    axes = ("OA", "PA", "IA")
+    amplitudes = ", ".join(f"{axis} {b:g}" for axis, b in zip(axes, sine, strict=True))
+    click.echo(f"budget δ* = {budget:g} g, mean a3 = {mean_accel:g} g")
+    click.echo(f"vibration: sine {amplitudes} g at {sine_freq:g} Hz (in phase)")
+    click.echo(f"           random σ = {sigma:.4g} g on every axis ({source})")
+    click.echo("limits on |coefficient|, in each row's unit (column unit):")
+    click.echo("  paper     the paper's fixed budget shares and closed forms, eqs. (13), (15)")
     click.echo(
-        f"δ* = {budget:g} g, a3 = {mean_accel:g} g, sine (OA, PA, IA) = {sine} g at "
-        f"{sine_freq:g} Hz, random σ = {sigma:.4g} g ({source})"
+        f"  gradient  the paper's share of δ* over the exact sensitivity |∂δ_V/∂k| at "
+        f"a3 = {mean_accel:g} g (jax.grad)"
     )
-    header = f"{'coefficient':<11} {'paper method':>13} {'gradient':>12} {'full budget':>12}"
-    click.echo(header + (f" {unit + ' passport':>16}" if unit_ppm else "") + "  unit")
+    click.echo("  full δ*   δ* over |∂δ_V/∂k|: that coefficient alone using the whole budget")
+    if unit_ppm:
+        # (Worded without "EXCEEDS", which marks only a coefficient over its limit.)
+        click.echo(
+            f"check: |{unit} passport coefficient| against the gradient limit (not the paper "
+            "column): ok or over it"
+        )
+        click.echo("δ_V part: ∂δ_V/∂k · k, that coefficient's share of the unit's δ_V at a3 [g]")
+    header = f"{'coef':<5}{'unit':<7}{'paper':>10}{'gradient':>10}{'full δ*':>10}"
+    if unit_ppm:
+        header += f"{unit + ' |k|':>11}{'δ_V part [g]':>14}  check"
+    click.echo(header)
     for name, row in rows.items():
         line = (
-            f"{name:<11} {row['paper_method']:>13.4g} {row['gradient_paper_shares']:>12.4g} "
-            f"{row['gradient_full_budget']:>12.4g}"
+            f"{'A1' if name == 'asymmetry' else name:<5}{row['unit']:<7}"
+            f"{num(row['paper_method'])}{num(row['gradient_paper_shares'])}"
+            f"{num(row['gradient_full_budget'])}"
         )
         if unit_ppm:
             mark = "ok" if row["within"] else "EXCEEDS"
-            line += f" {row['passport']:>9.4g} {mark:>7}"
-        click.echo(f"{line}  {row['unit']}")
+            line += f"{num(row['passport'], 11)}{num(row['vibration_error_part_g'], 14)}  {mark}"
+        click.echo(line)
+    if total is None:
+        click.echo(
+            "total vibration error δ_V: no device coefficients given (--unit aks05 or al1m "
+            "checks a passport's total against δ*)"
+        )
+    else:
+        click.echo(
+            f"{unit} passport: Table 4 of the vibration-error paper ('Improving the accuracy "
+            "of a navigation accelerometer in rocket flight'), which gives no m31, m32 (taken "
+            "as 0)"
+        )
+        click.echo(
+            f"δ_V: the exact shift of the mean output at a3 = {mean_accel:g} g, the sum of the "
+            "parts above"
+        )
+        click.echo(
+            f"total vibration error δ_V = {total:.3g} g against the budget δ* = {budget:g} g: "
+            f"{'within' if total_within else 'EXCEEDS'}"
+        )
     if json_out is not None:
+        check = {}
+        if total is not None:
+            check = {
+                "unit_check": {
+                    "passport": unit,
+                    "judged_against": "gradient_paper_shares",
+                    "total_vibration_error_g": total,
+                    "within_budget": total_within,
+                }
+            }
         write_json_atomic(
             json_out,
             {
@@ -379,8 +520,10 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
                 "random_rms_g": sigma,
                 "random_source": source,
                 "limits_ppm": rows,
+                **check,
                 "assumptions": {
-                    "paper_method": "fixed budget shares, eqs. (13), (15) (SPEC.md §3)",
+                    "paper_method": "fixed budget shares, eqs. (13), (15) of the "
+                    "vibration-error paper",
                     "gradient": "exact sensitivities by jax.grad of the vibration error at "
                     "the mean a3, the paper's share per coefficient",
                     "random_vibration": "Gaussian, same σ on every axis, fully correlated",
@@ -397,7 +540,7 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     "--params",
     "params_file",
     "Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); gives "
-    "k_dp·k_y, γ, T_f and T_dm. Default: the SPEC.md reference device.",
+    "k_dp·k_y, γ, T_f and T_dm. Default: the reference device (Raspopov's values).",
 )
 @click.option(
     "--method",
@@ -418,24 +561,37 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
     "json_out",
     "Also write the result as JSON here.",
 )
-@click.option("--force", is_flag=True, help="Replace an existing --json file.")
-def identify(file: Path, params_file, method, gamma, json_out, force):
+@_file_option(
+    "--plot",
+    "plot_out",
+    "Draw measured vs fitted model (graph method's t1, t2, A1, A2 marked), the residual in "
+    "its ±2σ noise band and its autocorrelation (PNG) here.",
+)
+@_out_option("identify")
+@click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
+def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir, force):
     """Identify the scale factor K_a from your own test-signal step record.
 
     FILE is a CSV with a header row and columns t [s], u_test [V], u_out [V] (uniform
     sampling, u_test held between samples). The first change of u_test is used. Prints the
     paper's graph-analytic estimate (SPEC.md §1) and a least-squares fit of the whole
-    response with its uncertainty, each against the nominal device's K_a.
+    response: each parameter against the nominal device with its σ, the fit percentage and
+    NRMSE as MATLAB's compare defines them, and a Ljung-Box test of the residual's whiteness.
     """
+    paths = _route(out_dir, "identify", json_out=json_out, plot_out=plot_out)
+    json_out, plot_out = paths["json_out"], paths["plot_out"]
+    _writable(json_out, force, "--json")  # refused before the work, not after it
+    _writable(plot_out, force, "--plot")
+    _writable(paths["text"], force, "--out")
     import jax
 
     # δK_a at the 0.1 % level and crossing times to 1e-9 s are below float32 resolution.
     jax.config.update("jax_enable_x64", True)
     from ._data import DataError, NominalDevice, read_csv, read_params_toml
+    from ._identify import report
     from ._identify.step_record import identify_step_record
-    from ._io import write_json_atomic
+    from ._io import save_figure_atomic, write_json_atomic
 
-    _writable(json_out, force, "--json")
     try:
         gamma_value = gamma if gamma in ("exact", "paper") else float(gamma)
     except ValueError:
@@ -448,30 +604,16 @@ def identify(file: Path, params_file, method, gamma, json_out, force):
         result = identify_step_record(data, nominal.params, method=method, gamma=gamma_value)
     except DataError as error:
         raise click.ClickException(str(error)) from None
-    graph, fit, seg = result["graph"], result["fit"], result["segment"]
-    click.echo(
-        f"step of {seg['test_step_V']:+.4g} V at t = {seg['step_time_s']:.6g} s, "
-        f"{seg['samples']} samples at {seg['sample_rate_Hz']:.6g} Hz"
-    )
-    click.echo(f"nominal K_a = {result['nominal']['scale_factor']:.6g} V/(m/s²)")
-    click.echo(f"{graph['method']}:")
-    click.echo(
-        f"  T = {graph['time_constant_s']:.6g} s, ξ = {graph['damping_ratio']:.4g}, "
-        f"K̂_a = {graph['scale_factor']:.6g} V/(m/s²), δK_a = {graph['dKa_percent']:+.4f} %"
-    )
-    if "failed" in fit:
-        click.echo(f"least-squares fit failed: {fit['failed']}")
-    else:
-        click.echo(f"{fit['method']}:")
-        click.echo(
-            f"  T = {fit['time_constant_s']:.6g} ± {fit['time_constant_std_s']:.2g} s, "
-            f"ξ = {fit['damping_ratio']:.4g}, T_dm = {fit['torquer_time_constant_s']:.3g} s, "
-            f"K̂_a = {fit['scale_factor']:.6g} ± {fit['scale_factor_std']:.2g} V/(m/s²), "
-            f"δK_a = {fit['dKa_percent']:+.4f} ± {fit['dKa_std_percent']:.4f} %"
-        )
+    click.echo(report.summary(result))
+    _write_text(paths["text"], report.summary(result))
     if json_out is not None:
-        write_json_atomic(json_out, {"source": str(file), **result})
+        # The traces (the record and the model, sample by sample) stay out of the JSON.
+        payload = {k: v for k, v in result.items() if k != "traces"}
+        write_json_atomic(json_out, {"source": str(file), **payload})
         click.echo(f"json written: {json_out}")
+    if plot_out is not None:
+        save_figure_atomic(report.figure(result, title=str(file)), plot_out)
+        click.echo(f"plot written: {plot_out}")
 
 
 @main.command()
@@ -486,7 +628,8 @@ def identify(file: Path, params_file, method, gamma, json_out, force):
     "--params",
     "params_file",
     "Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); "
-    "default the SPEC.md reference device with J, μ, c, k_dm known to ±5 %.",
+    "default the reference device (Raspopov's values, T_dm = T_f = 10 µs, taken as "
+    "known) with J, μ, c, k_dm known to ±5 %.",
 )
 @_file_option(
     "--json",
@@ -498,11 +641,18 @@ def identify(file: Path, params_file, method, gamma, json_out, force):
     "plot_out",
     "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
 )
+@_out_option("diagnosis")
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
-def diagnose(file: Path, kind, params_file, json_out, plot_out, force):
+def diagnose(file: Path, kind, params_file, json_out, plot_out, out_dir, force):
     """Diagnose the sim-to-real gap of one experiment (CSV, SI units, header row)."""
+    paths = _route(out_dir, "diagnosis", json_out=json_out, plot_out=plot_out)
+    json_out, plot_out = paths["json_out"], paths["plot_out"]
+    paths = _route(out_dir, "identify", json_out=json_out, plot_out=plot_out)
+    json_out, plot_out = paths["json_out"], paths["plot_out"]
     _writable(json_out, force, "--json")  # refused before the work, not after it
     _writable(plot_out, force, "--plot")
+    _writable(paths["text"], force, "--out")
+    _writable(paths["text"], force, "--out")
     import jax
 
     # Evidence compares log-likelihoods of ~1e4 to within ~1: float64.
@@ -518,6 +668,7 @@ def diagnose(file: Path, kind, params_file, json_out, plot_out, force):
     except DataError as error:
         raise click.ClickException(str(error)) from None
     click.echo(result.summary())
+    _write_text(paths["text"], result.summary())
     if params_file is not None and data.kind != "step":
         click.echo(
             f"note: --params is not used by the {data.kind} diagnosis (its nominal model "
@@ -555,8 +706,9 @@ def diagnose(file: Path, kind, params_file, json_out, plot_out, force):
     show_default=True,
     help="Confidence of the IEEE terms' intervals (parametric bootstrap).",
 )
+@_out_option("noise")
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
-def noise(file: Path, json_out, plot_out, export_format, confidence, force):
+def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, force):
     """Analyse a static record: Allan deviation, IEEE noise terms, effects, exports.
 
     FILE is a noise CSV (header t,a_out; seconds and g; uniform sampling). Prints the
@@ -565,8 +717,25 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, force):
     lines, low-pass, flicker, Gauss-Markov, exponential-cosine, random walk, start-up
     transient; what they leave is 'unexplained'), and the export.
     """
-    _writable(json_out, force, "--json")
-    _writable(plot_out, force, "--plot")
+    paths = _route(out_dir, "noise", json_out=json_out, plot_out=plot_out)
+    json_out, plot_out = paths["json_out"], paths["plot_out"]
+    export_out = None
+    if out_dir is not None and export_format is not None:
+        suffix = {"kalibr": "imu.yaml", "gnss-ins-sim": "gnss_ins_sim.json", "ieee": "ieee.json"}
+        export_out = out_dir / f"noise_{suffix[export_format]}"
+    for path, option in (
+        (json_out, "--json"),
+        (plot_out, "--plot"),
+        (paths["text"], "--out"),
+        (export_out, "--out"),
+    ):
+        _writable(path, force, option)
+    printed: list[str] = []
+
+    def say(text: str = "") -> None:
+        printed.append(text)
+        click.echo(text)
+
     import jax
 
     # Whittle log-likelihoods of up to 10^6 samples compared to within a unit: float64.
@@ -583,40 +752,40 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, force):
     except (DataError, ValueError) as error:
         raise click.ClickException(str(error)) from None
     terms, selection = result["terms"], result["selection"]
-    click.echo(
+    say(
         f"{data.a_out.size} samples at {1 / data.sample_period:.6g} Hz "
         f"({data.a_out.size * data.sample_period:.6g} s)"
     )
-    click.echo(f"IEEE noise terms ({terms.confidence:.0%} intervals; method in --json):")
+    say(f"IEEE noise terms ({terms.confidence:.0%} intervals; method in --json):")
     for name, entry in terms.terms.items():
         unit = entry["unit"].replace("u", "g")  # the record's unit
         if entry["supported"]:
-            click.echo(
+            say(
                 f"  {name} = {entry['value']:.4g} {unit} "
                 f"[{entry['lower']:.3g}, {entry['upper']:.3g}]"
             )
         elif entry["upper"] > 0:
-            click.echo(f"  {name}: not supported by the data (< {entry['upper']:.3g} {unit})")
+            say(f"  {name}: not supported by the data (< {entry['upper']:.3g} {unit})")
         else:
-            click.echo(f"  {name}: not supported by the data (its whole interval is below 0)")
+            say(f"  {name}: not supported by the data (its whole interval is below 0)")
     if "sinusoid" in selection.effects or "bandlimit" in selection.effects:
-        click.echo(
+        say(
             "  (the five terms describe the ADEV alone: the periodic lines and the low-pass "
             "found below also shape it, mostly as B and N)"
         )
-    click.echo(f"effects: {selection.verdict}")
+    say(f"effects: {selection.verdict}")
     for step in selection.steps[1:]:
-        click.echo(
+        say(
             f"  + {step['added']}: 2 ln B = {step['evidence']:.1f}, explained "
             f"{step['explained_fraction']:.1%} of the held-out excess"
         )
     if selection.unexplained:
-        click.echo(
+        say(
             f"  unexplained: the held-out spectrum stays {selection.held_out['z']:.1f} standard "
             "errors above the final model's"
         )
     if selection.quantization is not None:
-        click.echo(f"  output grid: step {selection.quantization['step']:.4g} g")
+        say(f"  output grid: step {selection.quantization['step']:.4g} g")
     if export_format is not None:
         t = result["export_terms"]
         if export_format == "kalibr":
@@ -629,15 +798,20 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, force):
                         "bound on K (choose --export gnss-ins-sim or ieee)."
                     )
                 t = dataclasses.replace(t, random_walk=bound)
-                click.echo(
+                say(
                     f"note: K is not supported by the data; kalibr gets its {terms.confidence:.0%}"
                     f" upper bound {bound:.3g} g/√s (conservative)"
                 )
-            click.echo(export.kalibr_yaml(t))
+            exported = export.kalibr_yaml(t)
         elif export_format == "gnss-ins-sim":
-            click.echo(json.dumps(export.to_gnss_ins_sim(t), indent=1, default=_plain))
+            exported = json.dumps(export.to_gnss_ins_sim(t), indent=1, default=_plain)
         else:
-            click.echo(json.dumps(export.to_ieee(t), indent=1, default=_plain))
+            exported = json.dumps(export.to_ieee(t), indent=1, default=_plain)
+        if export_out is None:
+            say(exported)
+        else:
+            _write_text(export_out, exported, what=f"{export_format} export")
+    _write_text(paths["text"], "\n".join(printed))
     if json_out is not None:
         payload = {"source": str(file), **analysis.analysis_to_json(result)}
         write_json_atomic(json_out, payload)

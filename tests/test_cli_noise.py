@@ -71,14 +71,31 @@ def test_noise_command_reports_terms_effects_and_exports(noise_csv, tmp_path):
 
 
 @pytest.mark.parametrize("fmt", ["kalibr", "ieee"])
-def test_noise_command_other_exports(noise_csv, fmt):
-    result = CliRunner().invoke(main, ["noise", str(noise_csv), "--export", fmt])
-    assert result.exit_code == 0, result.output
-    if fmt == "kalibr":
-        assert "accelerometer_noise_density:" in result.output
-        assert "update_rate: 100.0" in result.output
-    else:
+def test_noise_command_other_exports(noise_csv, fmt, tmp_path):
+    if fmt == "ieee":
+        result = CliRunner().invoke(main, ["noise", str(noise_csv), "--export", fmt])
+        assert result.exit_code == 0, result.output
         assert "velocity random walk" in result.output
+        return
+    # --out DIR: everything under DIR, nothing replaced unasked.
+    out = tmp_path / "out"
+    args = ["noise", str(noise_csv), "--export", fmt, "--out", str(out)]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == [
+        "noise.json",
+        "noise.png",
+        "noise.txt",
+        "noise_imu.yaml",
+    ]
+    exported = (out / "noise_imu.yaml").read_text()
+    assert "accelerometer_noise_density:" in exported and "update_rate: 100.0" in exported
+    assert "accelerometer_noise_density:" not in result.output  # in the file, not printed
+    assert "IEEE noise terms" in (out / "noise.txt").read_text()
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code != 0 and "--force" in again.output
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
 def test_noise_command_bad_input(tmp_path):

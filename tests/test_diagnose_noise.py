@@ -124,6 +124,41 @@ def test_noise_effect_named_and_recovered(noise_results, case, name, truth, tole
     assert result.gap["after"] < result.gap["before"]
 
 
+def test_fitted_model_intervals_cover_the_truth():
+    """The numbers a Kalman filter needs, with 95 % intervals from the observed
+    information: simulate 24 white + Gauss–Markov records, diagnose them, and count how
+    often each interval holds the truth. Calibrated intervals hold it 95 % of the time:
+    "at most 5 misses of 24" then fails with probability 0.1 % (binomial). It is a check
+    against gross errors (a variance instead of a standard deviation, a missing factor n):
+    intervals 1.5× too narrow (coverage 81 %) still pass it with probability 0.7."""
+    truth = {"white_sigma_g": WHITE, "sigma_g": 1.5 * WHITE, "correlation_time_s": 0.1}
+    model = aj.NoiseSum(
+        (aj.WhiteNoise(truth["white_sigma_g"]), aj.GaussMarkov(truth["sigma_g"], 0.1))
+    )
+    results = diagnose_many([_record(model, seed=500 + i) for i in range(24)])
+    hits = {name: 0 for name in truth}
+    counted = 0
+    for result in results:
+        fitted = result.refit["model_parameters"]
+        if fitted["model"] != "white+gauss_markov":
+            continue
+        counted += 1
+        for name, value in truth.items():
+            entry = fitted["parameters"][name]
+            assert entry["low"] < entry["value"] < entry["high"]
+            hits[name] += entry["low"] <= value <= entry["high"]
+        rate = fitted["parameters"]["rate_per_s"]
+        tau = fitted["parameters"]["correlation_time_s"]
+        assert rate["value"] * tau["value"] == pytest.approx(1.0)
+        assert rate["low"] * tau["high"] == pytest.approx(1.0)
+    assert counted >= 20, [r.verdict for r in results]
+    for name, hit in hits.items():
+        assert hit >= counted - 5, (name, hit, counted)
+    named = next(r for r in results if r.verdict == "gauss_markov")
+    line = next(x for x in named.summary().splitlines() if x.startswith("model ("))
+    assert "95% intervals" in line and "τ_c = " in line and "σ_w = " in line
+
+
 def test_noise_residual_localised(noise_results):
     _, colored = noise_results["exp_cosine"]
     _, walk = noise_results["random_walk"]
@@ -178,11 +213,21 @@ def test_cli_on_a_noise_record(noise_results, tmp_path):
     )
     assert result.exit_code == 0, result.output
     assert "verdict: gauss_markov" in result.output
+    assert "model (white+gauss_markov; 95% intervals): σ = " in result.output
     doc = json.loads(out_json.read_text())
     assert set(doc) >= SCHEMA and doc["kind"] == "noise" and doc["verdict"] == "gauss_markov"
     assert set(doc["gap"]) >= {"metric", "before", "after", "shrink"}
     assert {"frequency", "whiteness", "time"} <= set(doc["where"])
     assert out_png.stat().st_size > 10_000
+    # --out DIR: json, plot and the printed summary under DIR; a relative --json goes there.
+    out = tmp_path / "out"
+    args = ["diagnose", str(csv), "--kind", "noise", "--out", str(out), "--json", "d.json"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == ["d.json", "diagnosis.png", "diagnosis.txt"]
+    assert "verdict: gauss_markov" in (out / "diagnosis.txt").read_text()
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code != 0 and "--force" in again.output
 
 
 def _mpu6050():

@@ -91,7 +91,7 @@ def test_studies_and_notebooks_use_only_the_public_api():
 # foundations and lower layers only; within the foundations and within the entry points
 # freely, within the estimation layer only as listed.
 _LAYERS = {
-    "foundations": ("_params", "_checks", "_data", "_io", "_progress", "_runtime"),
+    "foundations": ("_params", "_checks", "_data", "_format", "_io", "_progress", "_runtime"),
     "models": ("_servo", "_static", "_pendulum"),
     "simulation": ("_simulate",),
     "estimation": (
@@ -106,7 +106,7 @@ _LAYERS = {
     "diagnosis": ("diagnose",),
     "entry": ("cli", "report", ""),
 }
-_SAME_LAYER = {("_noise", "_kalman"), ("_tolerance", "_vibration")}
+_SAME_LAYER = {("_noise", "_kalman"), ("_tolerance", "_vibration"), ("_identify", "_noise")}
 # Upward imports inside functions, each for one name: the package version for provenance,
 # and whether the user set XLA's log level before `import accel_jax`.
 _UPWARD = {("_io", ""): "__version__", ("_runtime", ""): "_USER_SET_XLA_LOG_LEVEL"}

@@ -4,17 +4,31 @@ A measured test-signal record (`StepData`: t, u_test, u_out) may hold several ch
 test voltage; the paper's methods (SPEC.md §1) use one step. This module picks the first
 step, runs the graph-analytic method that fits the response (oscillatory for ξ < 1,
 aperiodic otherwise) and, beside it, the least-squares fit of the whole segment, and states
-every assumption it made. Host-side glue around the jit-compiled estimators of
-`accel_jax._identify`; it computes in the dtype JAX is configured for (the CLI enables float64).
+every assumption it made, with the fit's quality as System Identification Toolbox users
+read it (fit percentage, NRMSE, residual whiteness) and each fitted parameter against its
+nominal value. Host-side glue around the jit-compiled estimators of `accel_jax._identify`;
+it computes in the dtype JAX is configured for (the CLI enables float64).
+`accel_jax._identify.report` turns the result into text and a figure.
 """
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._data import DataError, StepData
+from .._noise.whiteness import ljung_box
 from .._params import PAPER_GAMMA, ServoParams
-from .._servo import closed_loop_test_gain, relative_error_percent, scale_factor, shape_factor
+from .._servo import (
+    closed_loop_test_gain,
+    damping_ratio,
+    relative_error_percent,
+    scale_factor,
+    shape_factor,
+    time_constant,
+)
+from .._simulate.modal import _third_order_step
 from . import (
     IdentificationResult,
     fit_step_response,
@@ -31,6 +45,13 @@ _USE_APERIODIC = (IdentificationResult.not_oscillatory, IdentificationResult.too
 _SAVGOL_WINDOW = 101
 
 METHODS = ("auto", "oscillatory", "aperiodic")
+
+# The residual whiteness test: Ljung-Box over this many lags (as `diagnose` uses it), white
+# when its p-value is at least this level.
+WHITENESS_LAGS = 20
+WHITENESS_LEVEL = 0.05
+# The tail of the segment (as the methods' `tail_fraction`) whose spread is the noise σ.
+_TAIL_FRACTION = 0.2
 
 
 def _first_step(data: StepData) -> tuple[int, int, float, float]:
@@ -55,6 +76,103 @@ def _reason(code) -> str:
     return IdentificationResult[code]
 
 
+@jax.jit
+def _fitted_response(ts, step_time, time_constant, damping, torquer, fraction, filter_tc, g, u0):
+    """The order-3 fit's model output U0 + G s(t) on the record's grid [V] (`StepFit`)."""
+    shape = _third_order_step(ts, step_time, time_constant, damping, torquer, fraction, filter_tc)
+    return u0 + g * shape
+
+
+def _extremum_times(ts, u_out, steady_state, direction, t1, t2) -> tuple[float, float]:
+    """Times of the overshoot A1 and the undershoot A2 the oscillatory method read: the
+    largest deviation from U_ss either way between the crossings t1 and t2 (one period,
+    which holds one extremum of each sign)."""
+    inside = (ts > t1) & (ts < t2)
+    if not np.any(inside):
+        return float("nan"), float("nan")
+    deviation = np.where(inside, direction * (u_out - steady_state), 0.0)
+    return float(ts[np.argmax(deviation)]), float(ts[np.argmin(deviation)])
+
+
+def _quality(u_out, model, n_tail) -> dict:
+    """The fit's quality as the System Identification Toolbox reports it: `compare`'s fit
+    percentage and `goodnessOfFit`'s NRMSE (both over the whole segment), the residual's
+    rms against the noise σ, and the Ljung-Box test of the residual's whiteness.
+
+    The noise σ does not come from the fit: it is the spread of successive differences of
+    the settled tail, std(Δu)/√2, which the slow remainder of the ringing does not inflate
+    as the tail's own standard deviation would (a reference-device record 4 ms after the
+    step still rings at 5e-4 of the step: a tail std of 2.6e-4 V against 1e-5 V of noise).
+    Correlated noise has smaller differences than spread, so its residual stands out of a
+    ±2σ band drawn with this σ.
+    """
+    residual = u_out - model
+    nrmse = float(np.linalg.norm(residual) / np.linalg.norm(u_out - u_out.mean()))
+    test = ljung_box(residual, lags=WHITENESS_LAGS)
+    return {
+        "fit_percent": 100.0 * (1.0 - nrmse),
+        "nrmse": nrmse,
+        "residual_rms_V": float(np.sqrt(np.mean(residual**2))),
+        "noise_std_V": float(np.std(np.diff(u_out[-n_tail:])) / np.sqrt(2.0)),
+        "whiteness": {
+            "test": "Ljung-Box",
+            "statistic": test["statistic"],
+            "lags": test["lags"],
+            "p_value": test["p_value"],
+            "level": WHITENESS_LEVEL,
+            "white": bool(test["p_value"] >= WHITENESS_LEVEL),
+            "autocorrelation": test["autocorrelation"],
+            "band_95": 1.959963984540054 / np.sqrt(residual.size),
+        },
+    }
+
+
+def _parameter_rows(fit, k_fit, k_std, params: ServoParams, test_step: float) -> list[dict]:
+    """One row per parameter the order-3 fit estimates (T, ξ, T_dm, G, U0) or reports (K_a):
+    its nominal value (None where the device does not fix one), estimate, σ from the fit's
+    covariance, and the shift (estimate − nominal)/σ. SI units, named in `unit`."""
+    std = np.sqrt(np.diag(np.asarray(fit.covariance, dtype=np.float64)))
+    rows = [
+        ("T", "time constant, eq. (4)", "s", time_constant(params), fit.time_constant, std[0]),
+        ("ξ", "damping ratio, eq. (5)", "1", damping_ratio(params), fit.damping_ratio, std[1]),
+        (
+            "T_dm",
+            "torquer time constant",
+            "s",
+            params.torquer_time_constant,
+            fit.torquer_time_constant,
+            std[2],
+        ),
+        (
+            "G",
+            "step gain K_test·ΔU_test",
+            "V",
+            closed_loop_test_gain(params) * test_step,
+            fit.gain,
+            std[3],
+        ),
+        ("U0", "pre-step level", "V", None, fit.offset, std[4]),
+        ("K_a", "scale factor γ T² k_dp k_y", "V/(m/s²)", scale_factor(params), k_fit, k_std),
+    ]
+    out = []
+    for name, description, unit, nominal, estimate, sigma in rows:
+        nominal = None if nominal is None else float(nominal)
+        estimate, sigma = float(estimate), float(sigma)
+        usable = nominal is not None and np.isfinite(sigma) and sigma > 0
+        out.append(
+            {
+                "name": name,
+                "description": description,
+                "unit": unit,
+                "nominal": nominal,
+                "estimate": estimate,
+                "std": sigma,
+                "shift_in_std": (estimate - nominal) / sigma if usable else None,
+            }
+        )
+    return out
+
+
 def identify_step_record(
     data: StepData,
     params: ServoParams,
@@ -73,10 +191,17 @@ def identify_step_record(
         `"oscillatory"` or `"aperiodic"`.
     - `gamma`: `"exact"` (m l²/J of `params`), `"paper"` (3/4) or a number.
 
-    **Returns:** a dict (JSON-ready) with the segment used, the graph-analytic estimate
-    (`graph`: method, T or T1..T4, ξ, K̂_a and δK_a against the nominal K_a), the order-3
-    least-squares fit (`fit`: T, ξ, T_dm, K̂_a ± σ, δK_a), the nominal values and the
-    assumptions. Raises `DataError` when the record cannot be used, with the reason.
+    **Returns:** a dict with the segment used; the graph-analytic estimate (`graph`:
+    method, T or T1..T4, ξ, K̂_a and δK_a against the nominal K_a, and what it read off the
+    record: U_ss and the crossings t1, t2 and extrema A1, A2 (oscillatory) or the inflection
+    (aperiodic)); the order-3 least-squares fit (`fit`: T, ξ, T_dm, G, U0, K̂_a ± σ, δK_a,
+    `parameters` (each against its nominal value, shift in σ) and `quality` (fit percentage
+    and NRMSE as MATLAB's `compare` and `goodnessOfFit` define them, the residual's rms,
+    the noise σ of the settled tail, and the Ljung-Box whiteness test of the residual));
+    the nominal values; the assumptions; and `traces` (NumPy arrays of the segment: `t_s`,
+    `u_out_V` and, when the fit succeeded, `model_V`, for `report.figure`). All but
+    `traces` is JSON-ready; the CLI's JSON leaves `traces` out. Raises `DataError` when
+    the record cannot be used, with the reason.
     """
     if method not in METHODS:
         raise DataError(f"method must be one of {METHODS}, got {method!r}.")
@@ -111,12 +236,24 @@ def identify_step_record(
         )
         code = osc.result
         if code == IdentificationResult.successful:
+            steady, t1, t2 = float(osc.steady_state), float(osc.t1), float(osc.t2)
+            before = u_out[ts < step_time]
+            initial = before.mean() if before.size else u_out[0]
+            direction = 1.0 if steady >= initial else -1.0
+            time_a1, time_a2 = _extremum_times(ts, u_out, steady, direction, t1, t2)
             graph = {
-                "method": "oscillatory (SPEC.md §1, steps (7)-(10))",
+                "method": "oscillatory (Mironov, Fominov & Maletin, steps (7)-(10))",
                 "time_constant_s": float(osc.time_constant),
                 "damping_ratio": float(osc.damping_ratio),
-                "period_s": float(osc.t2 - osc.t1),
+                "period_s": t2 - t1,
                 "scale_factor": float(osc.scale_factor),
+                "steady_state_V": steady,
+                "crossing_t1_s": t1,
+                "crossing_t2_s": t2,
+                "overshoot_A1_V": float(osc.overshoot),
+                "overshoot_A1_time_s": time_a1,
+                "undershoot_A2_V": float(osc.undershoot),
+                "undershoot_A2_time_s": time_a2,
             }
         else:
             tried.append(("oscillatory", code))
@@ -138,7 +275,8 @@ def identify_step_record(
             before = "".join(f"{m} method: {_reason(c)}; " for m, c in tried)
             raise DataError(f"{before}aperiodic method: {_reason(ape.result)}")
         graph = {
-            "method": "aperiodic (SPEC.md §1, steps 1-10 with the lag correction (16))",
+            "method": "aperiodic (Mironov, Fominov & Maletin, steps 1-10 with the lag "
+            "correction (16))",
             "T1_s": float(ape.t1),
             "T2_s": float(ape.t2),
             "T3_s": float(ape.t3),
@@ -147,20 +285,44 @@ def identify_step_record(
             "damping_ratio": float(ape.damping_ratio),
             "lag_correction_s": lag,
             "scale_factor": float(ape.scale_factor),
+            "steady_state_V": float(ape.steady_state),
+            "inflection_time_s": step_time + float(ape.inflection_time_measured),
+            "max_slope_V_per_s": float(ape.max_slope),
         }
     graph["dKa_percent"] = percent(graph["scale_factor"])
 
+    feedback_fraction = float(closed_loop_test_gain(params))
+    filter_tc = float(params.filter_time_constant)
     fit = fit_step_response(
         ts,
         u_out,
         order=3,
         step_time=step_time,
-        feedback_fraction=float(closed_loop_test_gain(params)),
-        filter_time_constant=float(params.filter_time_constant),
+        feedback_fraction=feedback_fraction,
+        filter_time_constant=filter_tc,
         throw=False,
     )
+    traces = {"t_s": ts, "u_out_V": u_out}
     if fit.result == IdentificationResult.successful:
         k_fit, k_std = scale_factor_from_fit(fit, gain, gamma_value)
+        model = _fitted_response(
+            jnp.asarray(ts),
+            *(
+                jnp.asarray(x, ts.dtype)
+                for x in (
+                    step_time,
+                    fit.time_constant,
+                    fit.damping_ratio,
+                    fit.torquer_time_constant,
+                    feedback_fraction,
+                    filter_tc,
+                    fit.gain,
+                    fit.offset,
+                )
+            ),
+        )
+        traces["model_V"] = np.asarray(model, dtype=np.float64)
+        n_tail = max(4, int(round(_TAIL_FRACTION * ts.size)))
         fit_out = {
             "method": "least squares, order 3 (T, ξ, T_dm; known T_f), Levenberg-Marquardt",
             "time_constant_s": float(fit.time_constant),
@@ -173,6 +335,13 @@ def identify_step_record(
             "scale_factor_std": float(k_std),
             "dKa_percent": percent(k_fit),
             "dKa_std_percent": float(100 * k_std / k_fit),
+            "torquer_time_constant_std_s": float(np.sqrt(fit.covariance[2, 2])),
+            "gain_V": float(fit.gain),
+            "offset_V": float(fit.offset),
+            "known_feedback_fraction": feedback_fraction,
+            "known_filter_time_constant_s": filter_tc,
+            "parameters": _parameter_rows(fit, k_fit, k_std, params, test_step),
+            "quality": _quality(u_out, traces["model_V"], n_tail),
         }
     else:
         fit_out = {"failed": _reason(fit.result)}
@@ -189,6 +358,9 @@ def identify_step_record(
         "fit": fit_out,
         "nominal": {
             "scale_factor": nominal,
+            "time_constant_s": float(time_constant(params)),
+            "damping_ratio": float(damping_ratio(params)),
+            "torquer_time_constant_s": float(params.torquer_time_constant),
             "pickoff_amplifier_gain_V_per_m": gain,
             "shape_factor": gamma_value,
         },
@@ -201,5 +373,12 @@ def identify_step_record(
             "gamma": str(gamma),
             "k_dp_k_y": "from the nominal device (eq. 11 needs a ±U_test stop test)",
             "precision": "float64" if ts.dtype == np.float64 else str(ts.dtype),
+            "fit_percent": "MATLAB compare: 100 (1 − ‖y − ŷ‖/‖y − mean(y)‖) over the segment",
+            "nrmse": "MATLAB goodnessOfFit 'NRMSE': ‖y − ŷ‖/‖y − mean(y)‖ (0 is perfect)",
+            "noise_std": "std(Δu)/√2, successive differences of the last 20 % of the "
+            "segment (settled)",
+            "whiteness": f"Ljung-Box over {WHITENESS_LAGS} lags of the residual y − ŷ, no "
+            f"degrees of freedom removed for the fit; white when p ≥ {WHITENESS_LEVEL:g}",
         },
+        "traces": traces,
     }
