@@ -33,6 +33,7 @@ from pathlib import Path
 import equinox as eqx
 import numpy as np
 
+from ._format import precise
 from ._io import _atomic_write_bytes
 from ._params import REFERENCE_VALUES, ServoParams
 
@@ -219,7 +220,7 @@ def _check_time(t: np.ndarray, where: str) -> tuple[np.ndarray, list[str]]:
         i = int(bad[0])
         raise DataError(
             f"{where}: time must increase strictly; row {i + 3} has "
-            f"t = {float(t[i + 1])!r} s after t = {float(t[i])!r} s."
+            f"t = {precise(float(t[i + 1]))} s after t = {precise(float(t[i]))} s."
         )
     k = np.arange(t.size, dtype=np.float64)
     step, start = np.polyfit(k, t, 1)
@@ -235,8 +236,8 @@ def _check_time(t: np.ndarray, where: str) -> tuple[np.ndarray, list[str]]:
             f"{where}: sampling must be uniform; row {worst + 2} is "
             f"{float(deviation[worst] / step):.3g} sample intervals off the uniform grid "
             f"(more than {JITTER_LIMIT:.0%}; the spacing between rows {i + 2} and {i + 3} is "
-            f"{float(spacing[i])!r} s, the mean {float(step)!r} s). Resample the record onto "
-            "a uniform grid."
+            f"{precise(float(spacing[i]))} s, the mean {precise(float(step))} s). Resample the "
+            "record onto a uniform grid."
         )
     note = (
         f"timestamps deviate from a uniform grid by up to {deviation[worst] / step:.1%} of "
@@ -268,7 +269,8 @@ def validate(data: Dataset, *, path=None) -> Dataset:
         if bad.size:
             i = int(bad[0])
             raise DataError(
-                f"{where}: column {column!r} row {i + 2} is {float(values[i])!r} {UNITS[column]}; "
+                f"{where}: column {column!r} row {i + 2} is {precise(float(values[i]))} "
+                f"{UNITS[column]}; "
                 "every value must be a finite number."
             )
     notes = list(getattr(data, "notes", ()))
@@ -283,12 +285,13 @@ def validate(data: Dataset, *, path=None) -> Dataset:
             if bad.size:
                 i = int(bad[0])
                 raise DataError(
-                    f"{where}: column {column!r} row {i + 2} is {float(arrays[column][i])!r} "
+                    f"{where}: column {column!r} row {i + 2} is "
+                    f"{precise(float(arrays[column][i]))} "
                     f"{UNITS[column]}; it must be non-negative."
                 )
     if kind == "step" and np.ptp(arrays["u_test"]) == 0:
         raise DataError(
-            f"{where}: u_test is constant ({float(arrays['u_test'][0])!r} V); a step record "
+            f"{where}: u_test is constant ({precise(float(arrays['u_test'][0]))} V); a step record "
             "needs at least one change of the test voltage."
         )
     if kind in ("step", "noise"):
@@ -462,7 +465,7 @@ def parse_params_toml(text: str, *, path=None) -> NominalDevice:
                 u = _number(entry["uncertainty"], f"{name}.uncertainty", where)
                 if not 0 <= u <= _MAX_UNCERTAINTY:
                     raise DataError(
-                        f"{where}: {name}.uncertainty = {u!r} (relative); it must lie in "
+                        f"{where}: {name}.uncertainty = {precise(u)} (relative); it must lie in "
                         f"[0, {_MAX_UNCERTAINTY}]."
                     )
                 uncertainty[name] = u

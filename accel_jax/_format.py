@@ -48,6 +48,16 @@ def number(value, significant: int = SIGNIFICANT) -> str:
     return f"{mantissa}e{int(exponent)}"
 
 
+def precise(value) -> str:
+    """A value to 10 significant figures, for messages that quote a number back to its
+    writer (a time stamp, a cell of their file): ``1.3``, not ``1.2999999999999998``, while
+    two nearby time stamps stay distinct."""
+    value = float(value)
+    if not math.isfinite(value):
+        return repr(value)  # nan, inf, -inf: as the file wrote it
+    return number(value, 10)
+
+
 def seconds(value, significant: int = 3) -> str:
     """A time in the natural unit: ``25 µs``, ``1.2 ms``, ``3.4 s`` (``—`` for None/NaN).
 

@@ -349,6 +349,8 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 
     import jax
 
+    from ._format import number
+
     # Limits are ratios of O(1e-4 g) budgets to exact sensitivities: float64 for ppm.
     jax.config.update("jax_enable_x64", True)
     from ._io import write_json_atomic
@@ -369,13 +371,13 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
         raise click.UsageError("give the random vibration by --rms or by --psd, not both.")
     if not (math.isfinite(budget) and 0 < budget <= max_budget):
         raise click.BadParameter(
-            f"{budget!r}; the budget must be positive and at most {max_budget:g} g: it is the "
-            "admissible vibration error δ* in g (e.g. 5e-4 for 0.5 mg).",
+            f"{number(budget)}; the budget must be positive and at most {max_budget:g} g: it "
+            "is the admissible vibration error δ* in g (e.g. 5e-4 for 0.5 mg).",
             param_hint="--budget",
         )
     if not (math.isfinite(mean_accel) and mean_accel != 0):
         raise click.BadParameter(
-            f"{mean_accel!r} g; it must be finite and non-zero (the multiplicative limits "
+            f"{number(mean_accel)} g; it must be finite and non-zero (the multiplicative limits "
             "divide by it).",
             param_hint="--mean-accel",
         )
@@ -387,12 +389,12 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
         )
     if not (math.isfinite(sine_freq) and sine_freq > 0):
         raise click.BadParameter(
-            f"{sine_freq!r} Hz; the frequency must be finite and positive.",
+            f"{number(sine_freq)} Hz; the frequency must be finite and positive.",
             param_hint="--sine-freq",
         )
     if rms is not None and not (math.isfinite(rms) and rms >= 0):
         raise click.BadParameter(
-            f"{rms!r} g; the RMS must be finite and non-negative.", param_hint="--rms"
+            f"{number(rms)} g; the RMS must be finite and non-negative.", param_hint="--rms"
         )
     source = "none given"
     sigma = 0.0
@@ -441,8 +443,6 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
         rows[name] = row
     total = float(sum(parts.values())) if parts else None
     total_within = total is not None and abs(total) <= budget
-
-    from ._format import number
 
     def num(value, width=10):  # 4 significant figures; ∞ where a term has no sensitivity
         return f"{number(value):>{width}}"
@@ -647,11 +647,8 @@ def diagnose(file: Path, kind, params_file, json_out, plot_out, out_dir, force):
     """Diagnose the sim-to-real gap of one experiment (CSV, SI units, header row)."""
     paths = _route(out_dir, "diagnosis", json_out=json_out, plot_out=plot_out)
     json_out, plot_out = paths["json_out"], paths["plot_out"]
-    paths = _route(out_dir, "identify", json_out=json_out, plot_out=plot_out)
-    json_out, plot_out = paths["json_out"], paths["plot_out"]
     _writable(json_out, force, "--json")  # refused before the work, not after it
     _writable(plot_out, force, "--plot")
-    _writable(paths["text"], force, "--out")
     _writable(paths["text"], force, "--out")
     import jax
 

@@ -559,7 +559,7 @@ def make_figures(out_dir, result):
 
     sweeps = result["sweeps_at_A_0.033"]
     panels = (
-        ("decay_rate_per_s", "decay rate ξ [1/s]", "symlog"),
+        ("decay_rate_per_s", "decay rate ξ [1/s] (dotted: ξ = 0)", "log0"),
         ("record_length", "record length K [samples]", "linear"),
         ("sample_interval_s", "sample interval δ [s]", "log"),
         ("noise_scale", "noise level [× nominal]", "log"),
@@ -567,13 +567,21 @@ def make_figures(out_dir, result):
     fig, axes = plt.subplots(2, 2, figsize=(9, 7))
     for ax, (name, label, scale) in zip(axes.ravel(), panels, strict=True):
         s = sweeps[name]
-        for est, (style, lab) in styles.items():
-            ax.plot(s["values"], s[est], style, label=lab)
+        values = np.asarray(s["values"], dtype=float)
+        keep = values > 0 if scale == "log0" else np.ones(values.size, bool)
+        for k, (est, (style, lab)) in enumerate(styles.items()):
+            ax.plot(values[keep], np.asarray(s[est])[keep], style, label=lab)
+            if scale == "log0" and not keep.all():
+                # ξ = 0 has no place on a log axis: drawn as a level, not as a symlog tick.
+                ax.axhline(
+                    float(np.asarray(s[est])[~keep][0]),
+                    color=f"C{k}",
+                    ls=":",
+                    lw=0.8,
+                    label=f"{lab} at ξ = 0" if name == panels[0][0] else None,
+                )
         ax.set_yscale("log")
-        if scale == "symlog":
-            ax.set_xscale("symlog", linthresh=1e-3)
-        else:
-            ax.set_xscale(scale)
+        ax.set_xscale("log" if scale == "log0" else scale)
         ax.set_xlabel(label)
         ax.set_ylabel("RMS error of α_P [rad]")
         ax.grid(alpha=0.3, which="both")

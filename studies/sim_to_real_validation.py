@@ -761,19 +761,38 @@ def _confusion_panel(ax, confusion: dict, rows, cols):
     """A confusion matrix drawn as row fractions with the counts written in; the image."""
     matrix = np.array([[confusion[t][v] for v in cols] for t in rows], dtype=float)
     shown = matrix / np.maximum(matrix.sum(1, keepdims=True), 1)
-    im = ax.imshow(shown, cmap="Blues", vmin=0, vmax=1)
-    ax.set_xticks(range(len(cols)), cols, rotation=40, ha="right", fontsize=8)
-    ax.set_yticks(range(len(rows)), rows, fontsize=8)
+    im = ax.imshow(shown, cmap="Blues", vmin=0, vmax=1, aspect="auto")
+    ax.set_xticks(range(len(cols)), cols, rotation=30, ha="right", fontsize=11)
+    ax.set_yticks(range(len(rows)), rows, fontsize=11)
     for i in range(len(rows)):
         for j in range(len(cols)):
             if matrix[i, j]:
-                ax.text(j, i, int(matrix[i, j]), ha="center", va="center", fontsize=8)
+                ax.text(
+                    j,
+                    i,
+                    int(matrix[i, j]),
+                    ha="center",
+                    va="center",
+                    fontsize=12,
+                    color="white" if shown[i, j] > 0.55 else "black",
+                )
     return im
+
+
+def _three_panels():
+    """The confusion matrix across the top (legible at the page width), two panels below."""
+    fig = plt.figure(figsize=(13, 10.5))
+    grid = fig.add_gridspec(2, 2, height_ratios=(1.15, 1))
+    return fig, [
+        fig.add_subplot(grid[0, :]),
+        fig.add_subplot(grid[1, 0]),
+        fig.add_subplot(grid[1, 1]),
+    ]
 
 
 def _figures(out_dir, result, lag_rows):
     figures = Figures(out_dir)
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    fig, axes = _three_panels()
     ax = axes[0]
     im = _confusion_panel(ax, result["step"]["confusion"], EFFECTS, VERDICTS)
     ax.set_xlabel("verdict (blind)")
@@ -817,10 +836,10 @@ def _figures(out_dir, result, lag_rows):
         fig,
         "validation.png",
         (
-            "Blind validation of the step diagnosis. Left: confusion matrix of true effect "
-            "vs blind verdict. Middle: held-out gap shrink (RMS prediction error above the "
+            "Blind validation of the step diagnosis. Top: confusion matrix of true effect "
+            "vs blind verdict. Bottom left: held-out gap shrink (RMS prediction error above the "
             "noise floor, on the held-out segments: every third) where the effect was named "
-            "correctly. Right: verdicts on the lag datasets against the true lag. "
+            "correctly. Bottom right: verdicts on the lag datasets against the true lag. "
             f"Assumptions: {SAMPLE_RATE / 1e3:.0f} kHz, {len(PATTERN)} segments of "
             f"{SEGMENT / SAMPLE_RATE * 1e3:.0f} ms at U_test = ±{STEP_VOLTAGE} V, white noise "
             f"{NOISE_RANGE[0]:.0e}–{NOISE_RANGE[1]:.0e} V, J, μ, c, k_dm drawn from their ±5 % "
@@ -834,7 +853,7 @@ def _kind_figure(out_dir, kind, section, snr_label):
     """Confusion matrix, held-out shrink and naming rate against the SNR of one kind."""
     classes = CLASSES[kind]
     verdict_names = tuple(classes[1:]) + ("none", "cannot_tell")
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    fig, axes = _three_panels()
     ax = axes[0]
     im = _confusion_panel(ax, section["confusion"], classes, verdict_names)
     ax.set_xlabel("verdict (blind)")
@@ -1206,9 +1225,9 @@ def run(
                 {
                     "file": _kind_figure(out_dir, kind, section, SNR_LABEL[kind]),
                     "caption": (
-                        f"Blind validation of the {kind} diagnosis. Left: confusion matrix of true "
-                        "effect vs blind verdict. Middle: held-out gap shrink where the effect was "
-                        "named correctly. Right: naming against the effect's signal-to-noise ratio "
+                        f"Blind validation of the {kind} diagnosis. Top: confusion matrix of true "
+                        "effect vs blind verdict. Bottom left: held-out gap shrink where the effect was "
+                        "named correctly. Bottom right: naming against the effect's signal-to-noise ratio "
                         f"({SNR_LABEL[kind]}); squares: fraction per bin. Magnitudes and noise as in "
                         "the assumptions block."
                     ),

@@ -659,8 +659,12 @@ def make_figures(out_dir, r, scenarios, arrays, samples) -> list:
             ("gradient_worst_over_profile", "gradient, worst over profile"),
         )
         for i, (key, lab) in enumerate(series):
-            ax.bar(x + (i - 1.5) * 0.2, [block[key][c] for c in LIMITS], 0.2, label=lab)
+            values = [block[key][c] for c in LIMITS]
+            bars = ax.bar(x + (i - 1.5) * 0.2, values, 0.2, label=lab)
+            # The values over the bars: on a log axis orders of magnitude look alike.
+            ax.bar_label(bars, [f"{v:.2g}" for v in values], fontsize=6, rotation=90, padding=2)
         ax.set_yscale("log")
+        ax.margins(y=0.25)
         ax.set_xticks(x, [f"{c} [{UNIT[c]}]" for c in LIMITS], rotation=30, ha="right")
         ax.set_ylabel("admissible |coefficient| [ppm units]")
         ax.set_title(title)

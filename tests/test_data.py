@@ -189,3 +189,26 @@ def test_params_toml_values_and_uncertainty(tmp_path):
 def test_bad_params_toml(text, message):
     with pytest.raises(DataError, match=message):
         parse_params_toml(text, path="dev.toml")
+
+
+def test_error_messages_quote_numbers_as_written():
+    """A value quoted back to the user reads 0.3, not 0.30000000000000004 (10 significant
+    figures: two nearby time stamps stay distinct)."""
+    from accel_jax._data import DataError, parse_csv
+    from accel_jax._format import number, percent, precise, seconds
+
+    assert precise(0.1 + 0.2) == "0.3" and precise(1.2999999999999998) == "1.3"
+    assert precise(1.000000001) != precise(1.000000002)
+    assert number(None) == "—" and number(float("nan")) == "—" and number(2.5e-5) == "2.5e-5"
+    assert seconds(2.5e-5) == "25 µs" and seconds(0.0012) == "1.2 ms"
+    assert percent(0.0131) == "+1.31 %"
+    t = np.arange(300) * 0.1  # t[3] = 0.30000000000000004
+    t[4] = 0.299
+    u = np.where(np.arange(300) >= 100, 1.0, 0.0)
+    text = "t,u_test,u_out\n" + "\n".join(
+        f"{a!r},{b!r},{b!r}" for a, b in zip(t.tolist(), u.tolist(), strict=True)
+    )
+    with pytest.raises(DataError) as error:
+        parse_csv(text)
+    message = str(error.value)
+    assert "t = 0.299 s after t = 0.3 s" in message and "0000000" not in message

@@ -307,3 +307,23 @@ def test_cli_on_a_real_record_prints_no_xla_logs(tmp_path):
     assert run.returncode == 0, run.stderr
     assert "verdict: none" in run.stdout
     assert run.stderr.strip() == ""  # nothing from XLA on the user's terminal
+
+
+def test_fitted_model_spectrum_integrates_to_its_variance():
+    """The diagnose figure draws the fitted model's spectrum on the Welch scale (2Δσ² for
+    white noise): over 0 … 1/(2Δ) it integrates to the model's variance, σ_w² + σ²."""
+    from accel_jax.diagnose.report import _model_psd
+
+    dt = 0.01
+    f = np.linspace(0, 0.5 / dt, 200001)
+    for extra in (
+        {"sigma_g": {"value": 3e-5}, "correlation_time_s": {"value": 0.05}},
+        {
+            "sigma_g": {"value": 3e-5},
+            "decay_rate_per_s": {"value": 4.0},
+            "angular_frequency_rad_per_s": {"value": 50.0},
+        },
+    ):
+        model = {"model": "m", "parameters": {"white_sigma_g": {"value": 2e-5}, **extra}}
+        variance = np.trapezoid(_model_psd(model, f, dt), f)
+        assert variance == pytest.approx(2e-5**2 + 3e-5**2, rel=1e-4)

@@ -176,7 +176,7 @@ def rank_candidates(
     not need the extra parameters). The relation is followed transitively.
 
     **Returns:** `(verdict, ranking, tied)`: the ranking is a list of dicts (effect,
-    evidence, significant, held_out_ms, params, converged), best first.
+    evidence, significant, held_out_mean_square, params, converged), best first.
     """
     ranking = []
     for fit in candidates:
@@ -189,7 +189,7 @@ def rank_candidates(
                 "effect": fit.effect,
                 "evidence": float(evidence),
                 "significant": bool(evidence >= significance and improves and fit.converged),
-                "held_out_ms": float(fit.held_out_ms),
+                "held_out_mean_square": float(fit.held_out_ms),
                 "params": dict(fit.params),
                 "converged": bool(fit.converged),
             }
@@ -432,7 +432,16 @@ class DiagnosisResult:
             f"{gap['after']:.3g} ({gap.get('model_after', '')}), shrink {gap['shrink']:.2f} ± "
             f"{gap['shrink_std']:.2f}"
         )
-        lines.append("ranking (evidence = 2 ln B vs nominal):")
+        if self.ranking and all("held_out_gain" in r for r in self.ranking):
+            order = (
+                "in the order the forward selection added them, each 2 ln B over the model before"
+            )
+        else:
+            order = "significant effects first, then by evidence"
+        lines.append(
+            "ranking (evidence = 2 ln B against the nominal model; * = significant: evidence "
+            f"≥ {SIGNIFICANCE:g} and a better held-out prediction; {order}):"
+        )
         for r in self.ranking:
             mark = "*" if r.get("significant") else " "
             lines.append(

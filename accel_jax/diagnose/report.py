@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._format import number
 from .._io import save_figure_atomic, write_json_atomic
 from .base import DiagnosisResult
 
@@ -140,23 +141,26 @@ def _noise_panels(result: DiagnosisResult, axes) -> None:
     t = np.asarray(tr["t"])
     split_t = t[tr["split"]] if tr["split"] < len(t) else t[-1]
     ax = axes[0, 0]
-    ax.plot(t, (np.asarray(tr["measured"]) - tr["level"]) * 1e6, lw=0.5, color="0.4")
+    centred = np.asarray(tr["measured"]) - tr["level"]
+    unit, scale = _g_unit(float(np.std(centred)))
+    ax.plot(t, centred * scale, lw=0.5, color="0.4")
     ax.axvspan(split_t, t[-1], color="0.9", zorder=-1, label="held out")
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("a_out − level [µg]")
+    ax.set_ylabel(f"a_out − level [{unit}]")
     ax.set_title("static record about its level")
     ax.legend(fontsize=8)
 
     ax = axes[0, 1]
     if "innovations_before" in tr:
-        ax.plot(t, tr["innovations_before"] * 1e6, lw=0.5, color="C0", label="white (nominal)")
+        ax.plot(t, tr["innovations_before"] * scale, lw=0.5, color="C0", label="white (nominal)")
         label = f"with {tr['best_name']}" if tr["best_name"] != "nominal" else "(no effect chosen)"
-        ax.plot(t, tr["innovations_after"] * 1e6, lw=0.5, color="C2", label=label)
+        ax.plot(t, tr["innovations_after"] * scale, lw=0.5, color="C2", label=label)
         ax.axvspan(split_t, t[-1], color="0.9", zorder=-1)
         ax.set_xlabel("time [s]")
-        ax.set_ylabel("one-step prediction error [µg]")
+        ax.set_ylabel(f"one-step prediction error [{unit}]")
         ax.set_title(
-            f"held-out gap {result.gap['before'] * 1e6:.3g} → {result.gap['after'] * 1e6:.3g} µg "
+            f"held-out gap {number(result.gap['before'] * scale, 3)} → "
+            f"{number(result.gap['after'] * scale, 3)} {unit} "
             f"(shrink {result.gap['shrink']:.2f})"
         )
         ax.legend(fontsize=8)
@@ -173,17 +177,66 @@ def _noise_panels(result: DiagnosisResult, axes) -> None:
     f = np.asarray(spectrum["frequency_Hz"])[1:]
     psd = np.asarray(spectrum["psd_g2_per_Hz"])[1:]
     ax.loglog(f, psd, color="C0", label="record about its level")
-    ax.axhline(spectrum["noise_floor_g2_per_Hz"], color="k", ls="--", label="white floor 2σ²Δ")
+    model = result.refit.get("model_parameters")
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    fitted = _model_psd(model, f, dt) if model else None
+    if fitted is not None:
+        white = model["parameters"]["white_sigma_g"]["value"]
+        ax.axhline(
+            2 * white**2 * dt,
+            color="k",
+            ls="--",
+            label=f"fitted white floor 2σ_w²Δ ({model['model']})",
+        )
+        if model["model"] != "white":
+            ax.loglog(f, fitted, color="C3", lw=1.2, label=f"fitted model {model['model']}")
+    else:
+        ax.axhline(spectrum["noise_floor_g2_per_Hz"], color="k", ls="--", label="white floor 2σ²Δ")
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("PSD [g²/Hz]")
-    ax.set_title("residual spectrum vs the white-noise floor")
+    ax.set_title("spectrum vs the fitted model")
     ax.legend(fontsize=8)
+
+
+def _model_psd(model: dict, f: np.ndarray, dt: float) -> np.ndarray | None:
+    """One-sided PSD [g²/Hz] of the fitted sampled model (the scale of `_welch`: 2Δσ² for
+    white noise): white + Gauss–Markov (AR(1), ρ = e^{−Δ/τ_c}), exponential-cosine
+    (ρ = e^{−αΔ}, θ = βΔ) or random walk (increments qΔ)."""
+    p = {k: v["value"] for k, v in model["parameters"].items()}
+    if "white_sigma_g" not in p:
+        return None
+    omega = 2 * np.pi * f * dt
+    out = np.full_like(f, 2 * dt * p["white_sigma_g"] ** 2)
+
+    def poisson(x, rho):
+        return (1 - rho**2) / (1 - 2 * rho * np.cos(x) + rho**2)
+
+    if "correlation_time_s" in p and "sigma_g" in p:
+        out = out + 2 * dt * p["sigma_g"] ** 2 * poisson(
+            omega, np.exp(-dt / p["correlation_time_s"])
+        )
+    elif "decay_rate_per_s" in p and "sigma_g" in p:
+        rho, theta = np.exp(-p["decay_rate_per_s"] * dt), p["angular_frequency_rad_per_s"] * dt
+        out = out + dt * p["sigma_g"] ** 2 * (
+            poisson(omega - theta, rho) + poisson(omega + theta, rho)
+        )
+    elif "intensity_g2_per_s" in p:
+        out = out + 2 * dt * p["intensity_g2_per_s"] * dt / (2 - 2 * np.cos(omega))
+    return out
 
 
 def _wrap(text: str, width: int) -> list:
     import textwrap
 
     return textwrap.wrap(text, width)
+
+
+def _g_unit(typical: float) -> tuple[str, float]:
+    """g, mg or µg, whichever puts a typical value between 0.1 and 1000."""
+    for unit, scale in (("g", 1.0), ("mg", 1e3), ("µg", 1e6)):
+        if typical * scale >= 0.1:
+            return unit, scale
+    return "µg", 1e6
 
 
 def _allan_panel(result: DiagnosisResult, ax) -> None:
@@ -193,11 +246,12 @@ def _allan_panel(result: DiagnosisResult, ax) -> None:
         return
     tau, adev = np.asarray(allan["tau_s"]), np.asarray(allan["adev_g"])
     lo, hi = np.asarray(allan["lower_1sigma_g"]), np.asarray(allan["upper_1sigma_g"])
-    ax.errorbar(tau, adev * 1e6, yerr=[(adev - lo) * 1e6, (hi - adev) * 1e6], fmt="o", ms=3)
+    unit, scale = _g_unit(float(np.median(adev)))
+    ax.errorbar(tau, adev * scale, yerr=[(adev - lo) * scale, (hi - adev) * scale], fmt="o", ms=3)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("τ [s]")
-    ax.set_ylabel("Allan deviation [µg]")
+    ax.set_ylabel(f"Allan deviation [{unit}]")
     ax.set_title("overlapping ADEV, ±1σ (EDF) intervals")
 
 
@@ -223,6 +277,13 @@ def _ranking_panel(result: DiagnosisResult, ax) -> None:
     shown = np.sign(evidence) * np.log10(1 + np.abs(evidence))
     colors = ["C2" if r["significant"] else "0.6" for r in result.ranking]
     ax.barh(names[::-1], shown[::-1], color=colors[::-1])
+    # The evidence itself beside each bar: bars on a log scale hide orders of magnitude.
+    for y, (value, length) in enumerate(zip(evidence[::-1], shown[::-1], strict=True)):
+        text = number(value, 3) if np.isfinite(value) else "—"
+        ax.text(
+            length, y, f" {text}", va="center", ha="left" if length >= 0 else "right", fontsize=8
+        )
+    ax.margins(x=0.15)
     ax.axvline(np.log10(1 + 10.0), color="k", ls=":", label="significance (2 ln B = 10)")
     ax.set_xlabel("sign · log10(1 + |2 ln B|) vs nominal")
     verdict = result.verdict

@@ -276,8 +276,8 @@ def evaluate(data, nominal: NominalDevice, prep, fits) -> DiagnosisResult:
                 if nominal_fit["gap_held"] > 0
                 else 0.0
             ),
-            "held_out_ms": fit["ms_held"],
-            "held_out_one_step_ms": fit["ms_held_one_step"],
+            "held_out_mean_square": fit["ms_held"],
+            "held_out_one_step_mean_square": fit["ms_held_one_step"],
             "params": fit["params"],
             "converged": fit["converged"],
             "fit_steps": fit["steps"],

@@ -209,6 +209,29 @@ def _status_summary(results: dict[str, dict]) -> str:
         if st in ("differs", "missed")
     ]
     parts = [f"<p><b>Status of {compared} published numbers and targets:</b> {items}.</p>"]
+    per_study = []
+    for name in dict.fromkeys(n for n, _, _ in rows):
+        own = [(row, st) for n, row, st in rows if n == name and st]
+        if not own:
+            continue
+        tally = ", ".join(
+            f'<span class="st-{s}">{sum(1 for _, st in own if st == s)} {s}</span>'
+            for s in STATUSES
+            if any(st == s for _, st in own)
+        )
+        # The study's headline: its first row, ours against the paper's, with its status.
+        row, st = own[0]
+        head = (
+            f"{html.escape(str(row.get('quantity', '')))}: {_fmt(row.get('ours'))} vs "
+            f"{_fmt(row.get('paper'))}, {st}"
+        )
+        if row.get("explanation"):
+            head += f" — {html.escape(str(row['explanation']))}"
+        per_study.append(
+            f'<li><a href="#{html.escape(name)}">{html.escape(name)}</a> ({tally}): {head}</li>'
+        )
+    if per_study:
+        parts.append(f"<p>By study:</p><ul>{''.join(per_study)}</ul>")
     if flagged:
         parts.append(
             "<p>Where we differ from the paper or miss a target (each study's section "
