@@ -740,10 +740,19 @@ def make_figures(out_dir, r, shaker_samples) -> list:
             )
         )
         for bars in containers:  # the values: the symlog axis compresses 6 to 1000 ppm
-            ax.bar_label(bars, fmt="%.3g", fontsize=6, rotation=90, padding=2)
+            values = [p.get_height() for p in bars.patches]
+            ax.bar_label(
+                bars,
+                [f"{v:.0f}" if abs(v) >= 100 else f"{v:.3g}" for v in values],
+                fontsize=7,
+                rotation=90,
+                padding=2,
+            )
         ax.set_xticks(x, ["â(1)", "â(2)", "â(3)"])
         ax.set_ylabel("residual error â − 1 g [ppm of g]")
         ax.set_yscale("symlog", linthresh=10)
+        low, high = ax.get_ylim()
+        ax.set_ylim(low * 3 if low < 0 else low, high * 8)  # room for the labels
         ax.set_title(name)
         ax.grid(alpha=0.3, axis="y")
     axes[0].legend(fontsize=7)
