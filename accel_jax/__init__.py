@@ -52,10 +52,19 @@ from ._identify import (
     fit_step_response as fit_step_response,
 )
 from ._identify import (
+    identification_figure as identification_figure,
+)
+from ._identify import (
+    identification_summary as identification_summary,
+)
+from ._identify import (
     identify_aperiodic as identify_aperiodic,
 )
 from ._identify import (
     identify_oscillatory as identify_oscillatory,
+)
+from ._identify import (
+    identify_step_record as identify_step_record,
 )
 from ._identify import (
     inflection_time_ratio as inflection_time_ratio,

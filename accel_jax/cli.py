@@ -604,15 +604,15 @@ def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir
         result = identify_step_record(data, nominal.params, method=method, gamma=gamma_value)
     except DataError as error:
         raise click.ClickException(str(error)) from None
-    click.echo(report.summary(result))
-    _write_text(paths["text"], report.summary(result))
+    click.echo(report.identification_summary(result))
+    _write_text(paths["text"], report.identification_summary(result))
     if json_out is not None:
         # The traces (the record and the model, sample by sample) stay out of the JSON.
         payload = {k: v for k, v in result.items() if k != "traces"}
         write_json_atomic(json_out, {"source": str(file), **payload})
         click.echo(f"json written: {json_out}")
     if plot_out is not None:
-        save_figure_atomic(report.figure(result, title=str(file)), plot_out)
+        save_figure_atomic(report.identification_figure(result, title=str(file)), plot_out)
         click.echo(f"plot written: {plot_out}")
 
 

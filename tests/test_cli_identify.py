@@ -201,8 +201,8 @@ def test_report_without_a_fit(records):
     result = identify_step_record(data, aj.ServoParams.reference())
     result["fit"] = {"failed": "The least-squares fit did not converge within max_steps."}
     del result["traces"]["model_V"]
-    text = report.summary(result)
+    text = report.identification_summary(result)
     assert "least-squares fit failed" in text and "δK_a" in text
     assert report.parameter_table(result) == [] and report.damping_note(result) is None
-    figure = report.figure(result, title="no fit")
+    figure = report.identification_figure(result, title="no fit")
     assert len(figure.axes) == 3

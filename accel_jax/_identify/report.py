@@ -189,7 +189,7 @@ def damping_note(result: dict) -> str | None:
     )
 
 
-def summary(result: dict) -> str:
+def identification_summary(result: dict) -> str:
     """The printed result of `accel-jax identify`: segment, nominal K_a, the graph method's
     estimate and what it read off the record, the fit's parameter table, δK_a, the fit's
     quality and whiteness, and the ξ note when the methods disagree."""
@@ -248,7 +248,7 @@ def _volt_scale(magnitude: float) -> tuple[float, str]:
     return 1e-9, "nV"
 
 
-def figure(result: dict, *, title: str | None = None):
+def identification_figure(result: dict, *, title: str | None = None):
     """The `identify --plot` figure, three panels on one page width.
 
     (a) the measured u_out and the fitted model over the segment, with U_ss and what the

@@ -199,7 +199,7 @@ def identify_step_record(
     and NRMSE as MATLAB's `compare` and `goodnessOfFit` define them, the residual's rms,
     the noise σ of the settled tail, and the Ljung-Box whiteness test of the residual));
     the nominal values; the assumptions; and `traces` (NumPy arrays of the segment: `t_s`,
-    `u_out_V` and, when the fit succeeded, `model_V`, for `report.figure`). All but
+    `u_out_V` and, when the fit succeeded, `model_V`, for `identification_figure`). All but
     `traces` is JSON-ready; the CLI's JSON leaves `traces` out. Raises `DataError` when
     the record cannot be used, with the reason.
     """
