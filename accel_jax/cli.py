@@ -179,7 +179,7 @@ def report(
 
 @main.command()
 def info():
-    """Print the closed-form characteristics of the SPEC.md reference device."""
+    """Print the closed-form characteristics of the reference device (Raspopov's values)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -469,7 +469,8 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     gm_ml = rec["gauss_markov"]["maximum_likelihood"]
     ec_ml = rec["exp_cosine"]["maximum_likelihood"]
     result = {
-        "title": "Noise-model identification and the Kalman filter it tunes (SPEC.md §4)",
+        "title": "Noise-model identification and the Kalman filter it tunes (Chernodarov, "
+        "Patrikeev & Ivanov)",
         "gauss_markov": {
             "tau_true": GM_TRUE["tau"],
             "tau_fit": gm_ml["tau_s"]["mean"],

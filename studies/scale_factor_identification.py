@@ -229,7 +229,7 @@ def _devices(params: aj.ServoParams | None) -> tuple[aj.ServoParams, aj.ServoPar
     """The oscillatory and aperiodic devices: the SPEC.md pair, or a user's device and its
     twin with the damping μ changed to the reference pair's other damping ratio."""
     if params is None:
-        return aj.ServoParams.reference(), aj.ServoParams.reference_aperiodic(), "SPEC.md reference"
+        return aj.ServoParams.reference(), aj.ServoParams.reference_aperiodic(), "reference"
     xi = float(aj.damping_ratio(params))
     other = {
         True: float(aj.damping_ratio(aj.ServoParams.reference_aperiodic())),
@@ -321,7 +321,7 @@ def run(
         fits = compare_fit(ref, gain_true, gamma_exact, 8 if quick else 32, k_fit)
 
     result = {
-        "title": "Scale-factor identification from a test-signal step (SPEC.md §1)",
+        "title": "Scale-factor identification from a test-signal step (Mironov, Fominov & Maletin)",
         "dKa_percent": {
             "oscillatory": head["oscillatory_gamma_3_4"]["mean"],
             "aperiodic": head["aperiodic_gamma_3_4_lag_compensated"]["mean"],
@@ -819,12 +819,13 @@ def _summary_rows(result: dict) -> list[dict]:
             "note": "beyond the paper: all samples, γ exact, true k_dp k_y, same noisy records",
         },
     ]
-    if result["assumptions"]["device"] != "SPEC.md reference":
+    if result["assumptions"]["device"] != "reference":
         # The paper's numbers belong to its device; do not set them beside another one's.
         for row in rows:
             if row["paper"] != "—":
                 row["note"] = (
-                    f"paper value {row['paper']} is for the SPEC.md device; " + row["note"]
+                    f"paper value {row['paper']} is for the paper's reference device; "
+                    + row["note"]
                 )
                 row["paper"] = "—"
     return rows
@@ -996,7 +997,7 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
 def main(argv=None) -> int:
     def add_arguments(parser):
         parser.add_argument(
-            "--params", type=Path, default=None, help="device TOML (default: SPEC.md)"
+            "--params", type=Path, default=None, help="device TOML (default: the reference device)"
         )
 
     def options(args):

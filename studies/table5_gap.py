@@ -333,7 +333,7 @@ def run(out_dir: Path, *, quick: bool = False) -> dict:
     units = {name: analyse_unit(name) for name in TABLE5}
     aks, al = units["AKS-05"], units["AL-1M"]
     result = {
-        "title": "The sim-to-real gap of the measured Table 5 (SPEC.md §3, §5)",
+        "title": "The sim-to-real gap of the measured Table 5 (the vibration-error paper)",
         "condition": {"a_in_g": INPUT_G, "sine_amplitude_g": SINE_G, "sine_frequency_Hz": SINE_HZ},
         "units": units,
         "probes_a_b_g": [list(p) for p in PROBES],

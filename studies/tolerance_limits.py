@@ -489,7 +489,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
     tactical["long_range"] = blocks["tactical_long"]
     result = {
         "title": "Tolerance limits on the transfer-function coefficients under flight "
-        "vibration (SPEC.md §3, Tables 1-2)",
+        "vibration (the vibration-error paper, Tables 1-2)",
         "cyclone4": blocks["cyclone4"],
         "tactical": tactical,
         "autodiff_vs_closed_form_max_rel_err": ad["max_rel_err"],
@@ -511,7 +511,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             "8 → 2.2 g over 100 s), 'tactical.long_range' the long one (a3 = 2.2 g, "
             "1.2 + 5e^{-t/60} g over 300 s) — approximations of Fig. 3b",
             "vibration_constant_over_flight": True,
-            "paper_method": "(13), (15) as reconstructed in SPEC.md §3 with the fixed shares "
+            "paper_method": "(13), (15) as reconstructed from the paper with the fixed shares "
             "0.44 (A1, k2, additive k4), 0.22 (m), 0.35 (k3, linear k5), 0.24 (k4 a², k5 a³); "
             "k4 and k5 take the smaller of their two bounds",
             "gradient_method": "'gradient': |k| ≤ share·δ*/|∂δ_V/∂k| with the paper's share "

@@ -553,7 +553,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
 
     result = {
         "title": "Vibration error, shaker test, in-flight compensation and coefficient "
-        "fitting (SPEC.md §3, Tables 3-5)",
+        "fitting (the vibration-error paper, Tables 3-5)",
         **units,
         "table5_explanation": t5_explanation,
         "vibration_error": vib,

@@ -120,7 +120,7 @@ def test_dominant_pole_prediction_without_lag_is_gamma_only():
 def test_user_device_and_its_twin():
     module = _load_study_module()
     ref, ref_ap, label = module._devices(None)
-    assert label == "SPEC.md reference"
+    assert label == "reference"
     device = aj.ServoParams.reference(damping=3.5e-5, stiffness=3.1e-4)
     osc, ape, label = module._devices(device)
     assert osc is device and "user's device" in label
