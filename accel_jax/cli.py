@@ -349,7 +349,7 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 
     import jax
 
-    from ._format import number
+    from ._format import number, precise
 
     # Limits are ratios of O(1e-4 g) budgets to exact sensitivities: float64 for ppm.
     jax.config.update("jax_enable_x64", True)
@@ -371,13 +371,13 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
         raise click.UsageError("give the random vibration by --rms or by --psd, not both.")
     if not (math.isfinite(budget) and 0 < budget <= max_budget):
         raise click.BadParameter(
-            f"{number(budget)}; the budget must be positive and at most {max_budget:g} g: it "
+            f"{precise(budget)}; the budget must be positive and at most {max_budget:g} g: it "
             "is the admissible vibration error δ* in g (e.g. 5e-4 for 0.5 mg).",
             param_hint="--budget",
         )
     if not (math.isfinite(mean_accel) and mean_accel != 0):
         raise click.BadParameter(
-            f"{number(mean_accel)} g; it must be finite and non-zero (the multiplicative limits "
+            f"{precise(mean_accel)} g; it must be finite and non-zero (the multiplicative limits "
             "divide by it).",
             param_hint="--mean-accel",
         )
@@ -389,12 +389,12 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
         )
     if not (math.isfinite(sine_freq) and sine_freq > 0):
         raise click.BadParameter(
-            f"{number(sine_freq)} Hz; the frequency must be finite and positive.",
+            f"{precise(sine_freq)} Hz; the frequency must be finite and positive.",
             param_hint="--sine-freq",
         )
     if rms is not None and not (math.isfinite(rms) and rms >= 0):
         raise click.BadParameter(
-            f"{number(rms)} g; the RMS must be finite and non-negative.", param_hint="--rms"
+            f"{precise(rms)} g; the RMS must be finite and non-negative.", param_hint="--rms"
         )
     source = "none given"
     sigma = 0.0

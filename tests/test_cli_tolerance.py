@@ -194,12 +194,12 @@ def test_without_a_unit_the_total_line_says_why_there_is_none():
         (["--budget", "500"], "in g (e.g. 5e-4"),
         (["--budget", "0"], "budget must be positive"),
         (["--budget", "-1"], "budget must be positive"),
-        (["--budget", "nan"], "at most 1 g"),
+        (["--budget", "nan"], "--budget: nan; the budget"),  # quoted as given, not "—"
         (["--budget", "inf"], "at most 1 g"),
         (["--budget", "5e-4", "--sine", "-1", "1", "1"], "non-negative"),
         (["--budget", "5e-4", "--rms", "1", "--sine-freq", "-30"], "positive"),
         (["--budget", "5e-4", "--rms", "-1"], "non-negative"),
-        (["--budget", "5e-4", "--rms", "nan"], "finite"),
+        (["--budget", "5e-4", "--rms", "nan"], "nan g; the RMS must be finite"),
         (["--budget", "5e-4"], "no vibration given"),
     ],
 )
