@@ -4,7 +4,9 @@ One experiment per CSV file, a header row, SI units (accelerations in g). The ki
 experiment is inferred from the columns:
 
 - `step`: a closed-loop test-signal record — `t` [s], `u_test` [V], `u_out` [V]; uniform
-  sampling, the test voltage held constant between samples;
+  sampling, the test voltage held constant between samples; optionally `a_in` [g], a
+  piecewise-constant acceleration along the input axis (a tilt or a centrifuge step), with
+  or without a test-voltage change;
 - `vibration`: one row per shaker/tumble test condition — `a_in` [g], `vib_amp` [g],
   `vib_freq` [Hz], `vib_rms` [g], `a_out` [g]; optionally `vib_amp_oa`, `vib_amp_pa` [g],
   sinusoidal vibration on the output and pendulum axes in phase with `vib_amp` (they make
@@ -45,13 +47,15 @@ COLUMNS: dict[str, tuple[str, ...]] = {
 """The columns of each kind of record, in the order written by `write_csv`."""
 
 OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {
-    "step": (),
+    "step": ("a_in",),
     "vibration": ("vib_amp_oa", "vib_amp_pa"),
     "noise": (),
 }
 """Columns a record of each kind may have in addition (written after `COLUMNS` when
-present): for `vibration`, the in-phase sinusoidal amplitudes on the output (OA) and pendulum
-(PA) axes [g], which `accel_jax._vibration` uses for the cross-coupling terms m31, m32."""
+present): for `step`, the acceleration along the input axis `a_in` [g] (piecewise
+constant: a tilt or centrifuge step); for `vibration`, the in-phase sinusoidal amplitudes
+on the output (OA) and pendulum (PA) axes [g], which `accel_jax._vibration` uses for the
+cross-coupling terms m31, m32."""
 
 UNITS: dict[str, str] = {
     "t": "s",
@@ -107,12 +111,16 @@ class StepData(eqx.Module):
     - `u_out`: output voltage U_out [V], shape (n,).
     - `notes`: what reading the record changed or assumed (e.g. timestamps taken as their
         uniform grid), for the diagnosis to report.
+    - `a_in`: optional acceleration along the input axis [g], shape (n,), held constant
+        from each sample to the next (a tilt or a centrifuge step); None when the record
+        has no such column.
     """
 
     t: np.ndarray
     u_test: np.ndarray
     u_out: np.ndarray
     notes: tuple = eqx.field(static=True, default=())
+    a_in: np.ndarray | None = None
     kind = "step"
 
     @property
@@ -290,10 +298,17 @@ def validate(data: Dataset, *, path=None) -> Dataset:
                     f"{UNITS[column]}; it must be non-negative."
                 )
     if kind == "step" and np.ptp(arrays["u_test"]) == 0:
-        raise DataError(
-            f"{where}: u_test is constant ({precise(float(arrays['u_test'][0]))} V); a step record "
-            "needs at least one change of the test voltage."
-        )
+        if "a_in" not in arrays:
+            raise DataError(
+                f"{where}: u_test is constant ({precise(float(arrays['u_test'][0]))} V); a step "
+                "record needs at least one change of the test voltage (or an a_in column with "
+                "an acceleration step)."
+            )
+        if np.ptp(arrays["a_in"]) == 0:
+            raise DataError(
+                f"{where}: u_test and a_in are both constant; a step record needs at least one "
+                "change of the test voltage or of the acceleration."
+            )
     if kind in ("step", "noise"):
         return _CLASSES[kind](**arrays, notes=tuple(notes))
     return _CLASSES[kind](**arrays)

@@ -617,7 +617,7 @@ def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir
 
 
 @main.command()
-@click.argument("file", type=_FILE)
+@click.argument("files", nargs=-1, required=True, type=_FILE)
 @click.option(
     "--kind",
     type=click.Choice(["step", "vibration", "noise"]),
@@ -643,8 +643,12 @@ def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir
 )
 @_out_option("diagnosis")
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
-def diagnose(file: Path, kind, params_file, json_out, plot_out, out_dir, force):
-    """Diagnose the sim-to-real gap of one experiment (CSV, SI units, header row)."""
+def diagnose(files: tuple[Path, ...], kind, params_file, json_out, plot_out, out_dir, force):
+    """Diagnose the sim-to-real gap of one experiment (CSV, SI units, header row).
+
+    Several step records of one device (FILES: small steps, stop-level steps, acceleration
+    steps with an a_in column) are diagnosed together: one shared device, per-record
+    nuisances, and with cannot_tell the experiment that would break the tie."""
     paths = _route(out_dir, "diagnosis", json_out=json_out, plot_out=plot_out)
     json_out, plot_out = paths["json_out"], paths["plot_out"]
     _writable(json_out, force, "--json")  # refused before the work, not after it
@@ -658,6 +662,10 @@ def diagnose(file: Path, kind, params_file, json_out, plot_out, out_dir, force):
     from .diagnose import diagnose as run_diagnosis
     from .diagnose.report import save_plot, write_json
 
+    if len(files) > 1:
+        _diagnose_set(files, kind, params_file, json_out, plot_out, paths["text"])
+        return
+    file = files[0]
     try:
         data = read_csv(file, kind=kind)
         nominal = read_params_toml(params_file) if params_file else NominalDevice.reference()
@@ -676,6 +684,42 @@ def diagnose(file: Path, kind, params_file, json_out, plot_out, out_dir, force):
         click.echo(f"json written: {json_out}")
     if plot_out is not None:
         save_plot(result, plot_out)
+        click.echo(f"plot written: {plot_out}")
+
+
+def _diagnose_set(files, kind, params_file, json_out, plot_out, text_out) -> None:
+    """`diagnose A.csv B.csv …`: the joint diagnosis of several step records of one device."""
+    from ._data import DataError, NominalDevice, read_csv, read_params_toml
+    from ._io import save_figure_atomic, write_json_atomic
+    from .diagnose.step_joint import diagnose_step_set, set_figure
+
+    if kind not in (None, "step"):
+        raise click.ClickException(
+            f"several files are diagnosed together only as step records of one device; "
+            f"--kind {kind} takes one file."
+        )
+    if len(set(files)) != len(files):
+        raise click.ClickException("a file is named twice; give each record once.")
+    try:
+        datasets = [read_csv(file) for file in files]
+        kinds = {str(file): d.kind for file, d in zip(files, datasets, strict=True)}
+        if set(kinds.values()) != {"step"}:
+            listed = ", ".join(f"{f} ({k})" for f, k in kinds.items())
+            raise DataError(
+                "several files are diagnosed together only when every one is a step record "
+                f"(t, u_test, u_out[, a_in]) of one device; got {listed}."
+            )
+        nominal = read_params_toml(params_file) if params_file else NominalDevice.reference()
+        result = diagnose_step_set(datasets, nominal, names=[str(f) for f in files])
+    except DataError as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(result.summary())
+    _write_text(text_out, result.summary())
+    if json_out is not None:
+        write_json_atomic(json_out, {"sources": [str(f) for f in files], **result.to_dict()})
+        click.echo(f"json written: {json_out}")
+    if plot_out is not None:
+        save_figure_atomic(set_figure(result), plot_out)
         click.echo(f"plot written: {plot_out}")
 
 

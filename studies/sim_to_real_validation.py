@@ -533,7 +533,9 @@ nominal = NominalDevice.reference(**NOMINAL_LAGS)
 answer = {}
 for folder in map(pathlib.Path, sys.argv[2:]):
     files = sorted(folder.glob("*.csv"))
-    results = diagnose_many([read_csv(f) for f in files], nominal)
+    # recommend=False: the next experiment of a lag tie is the multi-record harness's
+    # (studies/step_set_harness.py); here it would add ~30 s per tie.
+    results = diagnose_many([read_csv(f) for f in files], nominal, recommend=False)
     answer[folder.name] = [
         {"file": f.name, "verdict": r.verdict, "tied": r.tied, "gap": r.gap,
          "reason": r.reason, "explained_fraction": r.explained_fraction,

@@ -12,7 +12,12 @@ import numpy as np
 import pytest
 
 import accel_jax as aj
-from accel_jax._simulate.sequence import SequenceInputs, linear_record, stop_record
+from accel_jax._simulate.sequence import (
+    SequenceInputs,
+    accel_moment,
+    linear_record,
+    stop_record,
+)
 from accel_jax.diagnose.step_effects import step_effects
 from accel_jax.diagnose.step_fit import StepContext, innovation_terms, predict, unpack
 
@@ -134,6 +139,81 @@ def test_linear_record_matches_the_independent_truth_simulator():
     np.testing.assert_allclose(ours, y, rtol=0, atol=1e-10)
     # The u_test column is the voltage sampled at the record's times.
     assert np.all(np.flatnonzero(np.diff(u)) + 1 == INDEX + (_shifts() > 0))
+
+
+def test_acceleration_steps_match_the_independent_truth_simulator():
+    # Input-acceleration steps at sub-sample times (no test-voltage change), both lags: the
+    # truth simulator's m l g₀ a(t) against linear_record's moment jumps ΔM̃ = accel_moment·Δa.
+    lags = dict(torquer_time_constant=3e-5, filter_time_constant=1e-5)
+    params = aj.ServoParams.reference(**lags)
+    accel = np.array([0.3, 1.0, -0.8, 0.0])  # g
+    index, shift = INDEX[:3], _shifts()[:3]
+    n = 4000
+    u_level, moment = 0.5, 1e-6
+    record = step_truth.Record(
+        levels=np.array([u_level]),
+        change_times=np.zeros(0),
+        rate=RATE,
+        n=n,
+        moment=moment,
+        accel_levels=accel,
+        accel_change_times=(index + shift) * DT,
+    )
+    device = step_truth.Device(T_dm=lags["torquer_time_constant"], T_f=lags["filter_time_constant"])
+    t, u, y, a = step_truth.simulate(device, record, rng=np.random.default_rng(0))
+    assert np.all(u == u_level)
+    assert np.all(np.flatnonzero(np.diff(a)) + 1 == index + (shift > 0))
+    per_g = float(accel_moment(params))
+    ours = linear_record(
+        params,
+        DT,
+        n,
+        SequenceInputs(
+            u_level,
+            1.0,
+            moment / float(params.torquer_gain) + per_g * accel[0],
+            0.0,
+            0.0,
+            0.0,
+            jnp.asarray(index),
+            jnp.zeros(index.size),
+            jnp.asarray(shift),
+            per_g * jnp.asarray(np.diff(accel)),
+        ),
+    )
+    assert np.ptp(y) > 1.0  # the steps move the output by volts
+    np.testing.assert_allclose(np.asarray(ours), y, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("effect", ["none", "output_filter"])
+def test_device_sets_hold_the_small_stop_and_acceleration_records(effect):
+    truth = step_truth.draw_device_set(np.random.default_rng(5), effect, accel=True)
+    records = step_truth.make_set(truth, np.random.default_rng(6))
+    assert [r["name"] for r in records] == ["small", "stops", "accel"]
+    d = truth["device"]
+    lags = {"T_dm": d["T_dm"], "T_f": d["T_f"]}
+    if effect == "none":
+        assert lags == {"T_dm": 1e-5, "T_f": 1e-5} and truth["lag_s"] is None
+    else:
+        assert lags == {"T_dm": 1e-5, "T_f": truth["lag_s"]}
+    stop = d["k_dp"] * d["k_y"] * d["h_max"]  # the stop voltage
+    for rec, spec in zip(records, truth["records"], strict=True):
+        assert rec["t"][0] == 0.0 and rec["t"].size == rec["u_out"].size == spec["n"]
+        assert set(np.unique(rec["u_test"])) <= set(spec["levels_V"])
+        swing = np.max(np.abs(spec["output_sign"] * (rec["u_out"] - spec["output_offset_V"])))
+        if rec["name"] == "stops":  # driven onto the stops: a plateau at the stop voltage
+            assert swing == pytest.approx(stop, rel=0.02)
+            plateau = np.abs(np.abs(rec["u_out"] - spec["output_offset_V"]) - stop) < 0.01
+            assert plateau.mean() > 0.3
+        else:
+            assert swing < stop
+        if rec["name"] == "accel":
+            assert np.all(rec["u_test"] == 0.0)
+            assert set(np.unique(rec["a_in"])) == set(spec["accel_levels_g"])
+        else:
+            assert rec["a_in"] is None
+    without = step_truth.draw_device_set(np.random.default_rng(5), "none", accel=False)
+    assert [r["name"] for r in without["records"]] == ["small", "stops"]
 
 
 @pytest.mark.parametrize("stop_over_level", [0.9, 1.2])

@@ -342,6 +342,9 @@ class DiagnosisResult:
     - `remaining_gap`: what remains after it: `V` (or the kind's unit), `noise_floor_…`,
         `over_floor`, `model`, `where` (in words).
     - `reason`: one or two sentences: why this verdict.
+    - `next_experiment`: with a `cannot_tell` that another experiment can break (the step
+        kind's two lags), the experiments a user can run, best first, each with its
+        expected 2 ln B (`step_joint.next_experiments`); else empty.
     """
 
     kind: str
@@ -356,6 +359,7 @@ class DiagnosisResult:
     explained_fraction: float = 0.0
     remaining_gap: dict = dataclasses.field(default_factory=dict)
     reason: str = ""
+    next_experiment: list = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The JSON document of SPEC.md §5's CLI contract (plain numbers and strings)."""
@@ -371,6 +375,7 @@ class DiagnosisResult:
             "where": self.where,
             "refit": self.refit,
             "notes": list(self.notes),
+            **({"next_experiment": self.next_experiment} if self.next_experiment else {}),
         }
 
     def summary(self) -> str:
@@ -447,6 +452,11 @@ class DiagnosisResult:
             lines.append(
                 f" {mark} {r['effect']:<18} evidence {r['evidence']:>10.1f}  "
                 f"shrink {r['gap_shrink']:+.2f}"
+            )
+        for e in self.next_experiment[:3]:
+            lines.append(
+                f"next experiment: {e['description']} (expected 2 ln B ≈ "
+                f"{e['expected_2lnB']:.3g})"
             )
         lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)

@@ -12,10 +12,12 @@ _KINDS = {"step": diagnose_step, "vibration": diagnose_vibration, "noise": diagn
 
 
 def diagnose_many(
-    datasets: list[Dataset], nominal: NominalDevice | None = None
+    datasets: list[Dataset], nominal: NominalDevice | None = None, *, recommend: bool = True
 ) -> list[DiagnosisResult]:
-    """Diagnose several records (same kind) against one nominal device; records of one
-    length are fitted as one batch (one compilation). See `diagnose`."""
+    """Diagnose several records (same kind) against one nominal device, each on its own;
+    records of one length are fitted as one batch (one compilation). See `diagnose`.
+    `recommend` (step records): compute the next experiment for a lag tie. Several step
+    records of one device diagnosed *together*: `step_joint.diagnose_step_set`."""
     if not datasets:
         return []
     kinds = {d.kind for d in datasets}
@@ -25,6 +27,8 @@ def diagnose_many(
     if kind not in _KINDS:
         raise DataError(f"there is no diagnosis of {kind!r} records; available: {sorted(_KINDS)}.")
     nominal = NominalDevice.reference() if nominal is None else nominal
+    if kind == "step":
+        return diagnose_step(list(datasets), nominal, recommend=recommend)
     return _KINDS[kind](list(datasets), nominal)
 
 

@@ -98,7 +98,13 @@ def _run(fn, nominal, preps, indices, guesses_key, candidates, desc):
     return [np.asarray(o) for o in outputs]
 
 
-def diagnose_step(datasets: list[StepData], nominal: NominalDevice) -> list[DiagnosisResult]:
+LAG_PAIR = frozenset({"torquer_lag", "output_filter"})
+"""The tie that another experiment can break (`step_joint.next_experiments`)."""
+
+
+def diagnose_step(
+    datasets: list[StepData], nominal: NominalDevice, *, recommend: bool = True
+) -> list[DiagnosisResult]:
     """Diagnose step records against a nominal device (SPEC.md §5, `step` kind).
 
     Records of one length and test sequence size are fitted together: one compilation, the
@@ -110,6 +116,9 @@ def diagnose_step(datasets: list[StepData], nominal: NominalDevice) -> list[Diag
 
     - `datasets`: validated `StepData` records (e.g. from `read_csv`).
     - `nominal`: the nominal device and its prior (`NominalDevice`).
+    - `recommend`: with a `cannot_tell` between `torquer_lag` and `output_filter`, compute
+        the experiment that would separate them (`result.next_experiment`, from the joint
+        fit of `step_joint`: ~10–60 s per such record on a CPU).
 
     **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;
     a `ValueError` otherwise).
@@ -177,4 +186,23 @@ def diagnose_step(datasets: list[StepData], nominal: NominalDevice) -> list[Diag
                 else f"{', '.join(skipped)} not fitted: the record failed the domain check"
             )
         results.append(evaluate(data, nominal, prep, record_fits))
+    if recommend:
+        for data, result in zip(datasets, results, strict=True):
+            if result.verdict == "cannot_tell" and set(result.tied) == LAG_PAIR:
+                _recommend(result, data, nominal)
     return results
+
+
+def _recommend(result: DiagnosisResult, data: StepData, nominal: NominalDevice) -> None:
+    """Attach the next experiment to a lag tie (the record alone, fitted as a set of one)."""
+    from .step_joint import fit_set, next_experiments, prepare_set
+
+    prepared = prepare_set([data], nominal)
+    fits = fit_set(prepared, nominal)
+    result.next_experiment = next_experiments(prepared, nominal, fits, list(result.tied))
+    if result.next_experiment:
+        best = result.next_experiment[0]
+        result.reason += (
+            f" To separate {result.tied[0]} from {result.tied[1]}: {best['description']} "
+            f"(expected 2 ln B ≈ {best['expected_2lnB']:.3g})."
+        )

@@ -16,7 +16,7 @@ import lineax as lx
 import optimistix as optx
 
 from .._params import ServoParams
-from .._simulate.sequence import SequenceInputs, linear_record, stop_record
+from .._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
 from .step_effects import step_effects
 
 REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
@@ -61,7 +61,9 @@ class StepContext(eqx.Module):
     the stops start); `change_index` (J,), `change_step` ΔU (J,) [V] (0 pads),
     `held_out_change` (J,) 1 for changes in the held-out part; `train`, `test` masks of the
     fitted outputs (block means; 0 on padding); `block` m, samples per block; `max_block`
-    (static) the largest m of the batch.
+    (static) the largest m of the batch; `change_accel` (J,) Δa [g] of the input
+    acceleration at each change and `accel_sign` ±1 the input axis's direction in the
+    record (None: a record without `a_in`).
     """
 
     dt: jax.Array
@@ -80,6 +82,8 @@ class StepContext(eqx.Module):
     test: jax.Array
     block: jax.Array
     max_block: int = eqx.field(static=True, default=1)
+    change_accel: jax.Array | None = None
+    accel_sign: jax.Array | None = None
 
 
 def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:
@@ -150,6 +154,14 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     }
 
 
+def moment_jumps(params, ctx, gain=1.0):
+    """ΔM̃ [V] of the record's acceleration steps (None without `a_in`): Δa·g₀·m·l/k_dm
+    along the record's input axis (`accel_sign`), times the pendulosity's `gain`."""
+    if ctx.change_accel is None:
+        return None
+    return ctx.accel_sign * gain * accel_moment(params) * ctx.change_accel
+
+
 def predict(m, ctx, n, nonlinear: bool):
     sequence = SequenceInputs(
         ctx.first_level,
@@ -161,6 +173,7 @@ def predict(m, ctx, n, nonlinear: bool):
         ctx.change_index,
         ctx.change_step,
         m["shift"],
+        moment_jumps(m["params"], ctx, m.get("accel_gain", 1.0)),
     )
     args = (m["params"], ctx.dt, n, sequence)
     if not nonlinear:

@@ -14,6 +14,7 @@ import numpy as np
 from .._data import DataError, NominalDevice, StepData
 from .._params import ServoParams
 from .._servo import closed_loop_test_gain, damping_ratio, time_constant
+from .._simulate.sequence import accel_moment
 from . import openworld
 from .step_fit import (
     _I_DV,
@@ -63,7 +64,17 @@ def held_out_samples(u_test: np.ndarray) -> tuple[np.ndarray, str]:
     return held, "the last third of the record"
 
 
+def sequence_key(data: StepData) -> np.ndarray:
+    """An array that changes exactly where the record's inputs do: u_test, or u_test +
+    i·a_in (complex) for a record with an acceleration column (`segments` takes either)."""
+    u = np.asarray(data.u_test)
+    if getattr(data, "a_in", None) is None:
+        return u
+    return u + 1j * np.asarray(data.a_in)
+
+
 def segments(u: np.ndarray) -> np.ndarray:
+    """Edges of the constant stretches of `u` (its first sample, each change, its end)."""
     n = u.shape[0]
     return np.concatenate([[0], np.flatnonzero(np.diff(u) != 0) + 1, [n]])
 
@@ -88,7 +99,7 @@ def _domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[list[
     response on the nominal device's time scale. Returns (problems, measurements)."""
     u, y = np.asarray(data.u_test), np.asarray(data.u_out)
     dt = data.sample_period
-    edges = segments(u)
+    edges = segments(sequence_key(data))
     period = float(time_constant(nominal.params))
     settle = max(int(4 * period / dt), 8)
     rows = []
@@ -154,16 +165,20 @@ def time_text(seconds: float) -> str:
     return f"{seconds * 1e9:.3g} ns"
 
 
-def _changes(data: StepData, path=None) -> tuple[np.ndarray, np.ndarray]:
+def _changes(data: StepData, path=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample indices where an input changes, ΔU_test there [V] and Δa_in [g] (zeros
+    without an `a_in` column)."""
     u = np.asarray(data.u_test)
-    index = np.flatnonzero(np.diff(u) != 0) + 1
+    a = np.zeros_like(u) if data.a_in is None else np.asarray(data.a_in)
+    index = np.flatnonzero(np.diff(sequence_key(data)) != 0) + 1
     if index.size > MAX_CHANGES:
+        what = "u_test" if data.a_in is None else "u_test or a_in"
         raise DataError(
-            f"{path or '<data>'}: u_test changes at {index.size} samples; the step diagnosis "
-            f"needs a piecewise-constant test sequence (at most {MAX_CHANGES} changes). Is "
-            "u_test a noisy measurement? Round it to its levels."
+            f"{path or '<data>'}: {what} changes at {index.size} samples; the step diagnosis "
+            f"needs a piecewise-constant input sequence (at most {MAX_CHANGES} changes). Is "
+            "it a noisy measurement? Round it to its levels."
         )
-    return index, u[index] - u[index - 1]
+    return index, u[index] - u[index - 1], a[index] - a[index - 1]
 
 
 BLOCK_BUCKET = 256
@@ -202,7 +217,9 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
             f"step record: u_out is constant ({y[0]:.6g} V) over the whole record; no "
             "response to diagnose (a disconnected or saturated channel?)."
         )
-    index, steps = _changes(data)
+    index, steps, accel_steps = _changes(data)
+    a = None if data.a_in is None else np.asarray(data.a_in)
+    key = sequence_key(data)
     near_change = np.zeros(n, dtype=bool)
     for i in index:
         near_change[max(i - 2, 0) : i + 3] = True
@@ -237,30 +254,41 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "q/√12), without any model",
     }
     problems, domain = _domain(data, nominal, full_floor["sigma"])
-    held_samples, held_rule = held_out_samples(u)
+    held_samples, held_rule = held_out_samples(key)
     # A block is held out when any of its samples is.
     held = held_samples[: n_blocks * m].reshape(n_blocks, m).any(axis=1)
-    edges = segments(u)
-    # Settled levels (last quarter of each segment) against the test voltage: polarity,
-    # gain and offset starts.
-    levels, outputs = [], []
+    edges = segments(key)
+    # Settled levels (last quarter of each segment) against the test voltage (and the
+    # acceleration): polarity, gain and offset starts.
+    levels, accels, outputs = [], [], []
     for start, stop in zip(edges[:-1], edges[1:], strict=True):
         tail = y[stop - max((stop - start) // 4, 1) : stop]
         levels.append(u[start])
+        accels.append(0.0 if a is None else a[start])
         outputs.append(float(np.mean(tail)))
-    levels, outputs = np.asarray(levels), np.asarray(outputs)
+    levels, accels, outputs = np.asarray(levels), np.asarray(accels), np.asarray(outputs)
+    columns = [np.ones_like(levels)]
     if np.ptp(levels) > 0:
-        slope, intercept = np.polyfit(levels, outputs, 1)
-    else:
-        slope, intercept = 1.0, float(np.mean(outputs))
+        columns.append(levels)
+    if np.ptp(accels) > 0:
+        columns.append(accels)
+    coef = np.linalg.lstsq(np.stack(columns, 1), outputs, rcond=None)[0]
+    intercept = float(coef[0])
+    slope = float(coef[1]) if np.ptp(levels) > 0 else 1.0
+    accel_slope = float(coef[-1]) if np.ptp(accels) > 0 else 1.0
     polarity = -1.0 if slope < 0 else 1.0
+    accel_sign = -1.0 if accel_slope < 0 else 1.0
     k_test = float(closed_loop_test_gain(base))
     z_gain = np.log(max(abs(slope), 1e-12) / k_test) / GAIN_SIGMA
     w_gain = float(np.clip(z_gain, -REFIT_BOUND, REFIT_BOUND))
     train_y = yb[~held]
     scale = max(float(np.ptp(train_y)) / 2, 10 * sigma)
-    moment = intercept / k_test
-    dv = (y[0] - (intercept + slope * u[0])) / k_test
+    first_accel = 0.0 if a is None else float(a[0])
+    # The moment at the first sample: the external moment and the first acceleration level
+    # (each later acceleration step is a source of its own).
+    moment = (intercept + (0.0 if a is None else accel_slope * first_accel)) / k_test
+    first_output = intercept + slope * u[0] + (0.0 if a is None else accel_slope * first_accel)
+    dv = (y[0] - first_output) / k_test
     # Padded shapes (blocks to a multiple of BLOCK_BUCKET, changes to a multiple of 4, m to
     # a power of two): records of similar length share one compiled program whatever their
     # sample rate. Padding carries zero weight.
@@ -271,10 +299,14 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     change_step = np.zeros(j_padded)
     change_index[: index.size] = index
     change_step[: index.size] = steps
+    change_accel = np.zeros(j_padded)
+    change_accel[: index.size] = accel_steps
     # The changes that start a held-out segment: their times are refitted on it.
     starts_held = np.zeros(j_padded, dtype=bool)
     starts_held[: index.size] = held_samples[index]
-    held_out_change = (starts_held & (change_step != 0)).astype(np.float64)
+    held_out_change = (starts_held & ((change_step != 0) | (change_accel != 0))).astype(
+        np.float64
+    )
     train = np.zeros(n_padded)
     test = np.zeros(n_padded)
     train[:n_blocks] = ~held
@@ -296,6 +328,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         test=jnp.asarray(test),
         block=jnp.asarray(m, dtype=jnp.int32),
         max_block=max_block,
+        change_accel=jnp.asarray(change_accel),
+        accel_sign=jnp.asarray(accel_sign),
     )
     common = np.zeros(_N_FIXED + j_padded)
     common[_I_MOMENT] = moment / scale
@@ -310,6 +344,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "dt": dt * m,
         "duration": dt * (n_blocks * m - 1),
         "torquer_gain": float(base.torquer_gain),
+        "accel_per_g": float(accel_moment(base)),
         "nominal_lags": {
             "torquer_time_constant": float(base.torquer_time_constant),
             "filter_time_constant": float(base.filter_time_constant),
@@ -338,6 +373,10 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "change_index": index,
         "change_block": index // m,
         "change_step": steps,
+        "change_accel": accel_steps,
+        "accel_sign": accel_sign,
+        "accel_slope": accel_slope,
+        "has_accel": a is not None,
         "period": period,
         "group": (n_padded, j_padded, max_block),
         "guesses_linear": _guesses(common, linear, host, nominal_first=True),
