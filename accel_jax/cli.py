@@ -535,7 +535,7 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 
 
 @main.command()
-@click.argument("file", type=_FILE)
+@click.argument("files", nargs=-1, required=True, type=_FILE)
 @_file_option(
     "--params",
     "params_file",
@@ -569,7 +569,7 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 )
 @_out_option("identify")
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
-def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir, force):
+def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, force):
     """Identify the scale factor K_a from your own test-signal step record.
 
     FILE is a CSV with a header row and columns t [s], u_test [V], u_out [V] (uniform
@@ -577,6 +577,10 @@ def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir
     paper's graph-analytic estimate (SPEC.md §1) and a least-squares fit of the whole
     response: each parameter against the nominal device with its σ, the fit percentage and
     NRMSE as MATLAB's compare defines them, and a Ljung-Box test of the residual's whiteness.
+
+    Several FILES of one device: each small-step record is identified as above; a record
+    whose test levels drive the pendulum onto its stops gives k_dp·k_y by eq. (11) from the
+    output's two plateaus and the device's h_max.
     """
     paths = _route(out_dir, "identify", json_out=json_out, plot_out=plot_out)
     json_out, plot_out = paths["json_out"], paths["plot_out"]
@@ -598,6 +602,12 @@ def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir
         raise click.BadParameter(
             f"{gamma!r} is not 'exact', 'paper' or a number.", param_hint="--gamma"
         ) from None
+    if len(files) > 1:
+        _identify_set(files, params_file, method, gamma_value, json_out, paths["text"])
+        if plot_out is not None:
+            click.echo("note: --plot draws one record; with several files it is not drawn")
+        return
+    file = files[0]
     try:
         data = read_csv(file, kind="step")
         nominal = read_params_toml(params_file) if params_file else NominalDevice.reference()
@@ -614,6 +624,53 @@ def identify(file: Path, params_file, method, gamma, json_out, plot_out, out_dir
     if plot_out is not None:
         save_figure_atomic(report.identification_figure(result, title=str(file)), plot_out)
         click.echo(f"plot written: {plot_out}")
+
+
+def _identify_set(files, params_file, method, gamma_value, json_out, text_out) -> None:
+    """`identify A.csv B.csv …`: small-step records by the graph method and the fit,
+    stop-level records by eq. (11)."""
+    from ._data import DataError, NominalDevice, read_csv, read_params_toml
+    from ._identify import report
+    from ._identify.step_record import identify_step_record
+    from ._identify.stops import stop_record_gain
+    from ._io import write_json_atomic
+    from ._servo import closed_loop_test_gain
+
+    if len(set(files)) != len(files):
+        raise click.ClickException("a file is named twice; give each record once.")
+    lines, payload = [], []
+    try:
+        nominal = read_params_toml(params_file) if params_file else NominalDevice.reference()
+        params = nominal.params
+        reach = 0.5 * float(params.pickoff_gain * params.amplifier_gain * params.stop_displacement)
+        k_test = float(closed_loop_test_gain(params))
+        datasets = [read_csv(file, kind="step") for file in files]
+        for file, data in zip(files, datasets, strict=True):
+            if float(abs(data.u_test).max()) * k_test >= reach:
+                stops = stop_record_gain(data, params)
+                lines.append(
+                    f"{file}: stop-level record, eq. (11): k_dp·k_y = "
+                    f"{stops['pickoff_amplifier_gain_V_per_m']:.6g} V/m (nominal "
+                    f"{stops['nominal_V_per_m']:.6g}, {stops['shift_relative']:+.2%}) from "
+                    f"U⁺ = {stops['u_plus_V']:.5g} V, U⁻ = {stops['u_minus_V']:.5g} V, h_max = "
+                    f"{stops['h_max_m']:.4g} m (the device's); output offset "
+                    f"{stops['offset_V']:+.4g} V"
+                )
+                payload.append({"source": str(file), "stops": stops})
+            else:
+                result = identify_step_record(data, params, method=method, gamma=gamma_value)
+                lines.append(f"{file}:\n" + report.identification_summary(result))
+                payload.append(
+                    {"source": str(file), **{k: v for k, v in result.items() if k != "traces"}}
+                )
+    except DataError as error:
+        raise click.ClickException(str(error)) from None
+    text = "\n".join(lines)
+    click.echo(text)
+    _write_text(text_out, text)
+    if json_out is not None:
+        write_json_atomic(json_out, {"records": payload})
+        click.echo(f"json written: {json_out}")
 
 
 @main.command()

@@ -239,3 +239,27 @@ def test_cli_diagnoses_several_files_together_and_refuses_bad_combinations(tmp_p
     wrong.write_text("t,u_test,a_out\n" + "\n".join(f"{i * 1e-6},0,1" for i in range(300)))
     bad = runner.invoke(main, ["diagnose", str(small), str(wrong)])
     assert bad.exit_code != 0 and "wrong.csv" in bad.output and "Traceback" not in bad.output
+
+
+def test_identify_takes_the_stop_level_record_for_the_pickoff_gain(tmp_path):
+    """`identify small.csv stops.csv`: the small step by the graph method, the stop-level
+    record by eq. (11) with the device's h_max (here exact), whatever the recorder's
+    polarity and offset."""
+    device = {"h_max": 1.9e-6}
+    small, stops, one_sided = (tmp_path / f"{n}.csv" for n in ("small", "stops", "one"))
+    write_csv(small, _record(14, [0.0, 2.0], device=device, n=12000))  # one step, settled
+    write_csv(stops, _record(15, STOPS, device=device, offset=0.03))
+    write_csv(one_sided, _record(16, [0.0, 5.5, 0.0], device=device))
+    out = tmp_path / "id.json"
+    runner = CliRunner()
+    result = runner.invoke(main, ["identify", str(small), str(stops), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "eq. (11)" in result.output
+    records = json.loads(out.read_text())["records"]
+    gain = records[1]["stops"]["pickoff_amplifier_gain_V_per_m"]
+    assert gain == pytest.approx(DEVICE["k_dp"] * 8.5, rel=2e-3)
+    assert records[1]["stops"]["offset_V"] == pytest.approx(0.03, abs=2e-3)
+    assert "K_a" in records[0] or "scale_factor" in json.dumps(records[0])
+    bad = runner.invoke(main, ["identify", str(small), str(one_sided)])
+    assert bad.exit_code != 0 and "Traceback" not in bad.output
+    assert "does not reach that stop" in bad.output
