@@ -455,8 +455,7 @@ class DiagnosisResult:
             )
         for e in self.next_experiment[:3]:
             lines.append(
-                f"next experiment: {e['description']} (expected 2 ln B ≈ "
-                f"{e['expected_2lnB']:.3g})"
+                f"next experiment: {e['description']} (expected 2 ln B ≈ {e['expected_2lnB']:.3g})"
             )
         lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)

@@ -304,9 +304,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     # The changes that start a held-out segment: their times are refitted on it.
     starts_held = np.zeros(j_padded, dtype=bool)
     starts_held[: index.size] = held_samples[index]
-    held_out_change = (starts_held & ((change_step != 0) | (change_accel != 0))).astype(
-        np.float64
-    )
+    held_out_change = (starts_held & ((change_step != 0) | (change_accel != 0))).astype(np.float64)
     train = np.zeros(n_padded)
     test = np.zeros(n_padded)
     train[:n_blocks] = ~held
