@@ -238,3 +238,35 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
         float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
     )
     return folder
+
+
+MAP_LIMIT = 30_000
+"""Memory mappings of a process beyond which `bound_compiled_programs` drops its compiled
+programs: every XLA:CPU executable keeps a few mappings, and a long-running process that
+compiles thousands of programs (a test worker, a blind harness diagnosing hundreds of
+records of varying shapes) reaches the kernel's vm.max_map_count (65 530) — then LLVM fails
+with 'Cannot allocate memory' and the process segfaults in a later compile."""
+
+
+def memory_mappings() -> int:
+    """The number of this process's memory mappings (0 where /proc is not available)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+def bound_compiled_programs(limit: int = MAP_LIMIT) -> bool:
+    """Drop this process's compiled programs (`jax.clear_caches`) when its memory mappings
+    exceed `limit`; returns whether it did. Later calls recompile (or read the persistent
+    cache, `enable_compilation_cache`)."""
+    if memory_mappings() <= limit:
+        return False
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+    return True

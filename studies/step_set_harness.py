@@ -145,44 +145,56 @@ def _followup(truth_set: dict, experiment: dict, rng) -> dict:
     return record
 
 
-def run(n_sets: int, out_dir: Path, seed: int = 2026, jobs: int = 1) -> dict:
+CHUNK = 10
+"""Sets generated and diagnosed per round; the result is written after each round (a long
+run that is stopped keeps what it scored)."""
+
+
+def run(n_sets: int, out_dir: Path, seed: int = 2026, jobs: int = 1, on_round=None) -> dict:
     rng = np.random.default_rng(seed)
-    truths = []
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
-        set_folders, small_folders = [], []
-        for i in range(n_sets):
-            effect = EFFECTS[i % len(EFFECTS)]
-            truth = step_truth.draw_device_set(rng, effect, accel=bool((i // 3) % 2))
-            records = step_truth.make_set(truth, rng)
-            truths.append(truth)
-            _write(root / "sets" / f"set_{i:04d}", records)
-            _write(root / "small" / f"set_{i:04d}", records[:1])
-            set_folders.append(root / "sets" / f"set_{i:04d}")
-            small_folders.append(root / "small" / f"set_{i:04d}")
-        t0 = time.time()
-        sets = _diagnose("set", set_folders, jobs)
-        t_sets = time.time() - t0
-        t0 = time.time()
-        singles = _diagnose("single", small_folders, jobs)
-        t_single = time.time() - t0
-        follow_folders, follow_truth = [], {}
-        for i, folder in enumerate(small_folders):
-            answer = singles[folder.name]
-            if answer["verdict"] != "cannot_tell" or not answer["next_experiment"]:
-                continue
-            record = _followup(truths[i], answer["next_experiment"][0], rng)
-            truth = dict(truths[i])
-            truth["records"] = [truths[i]["records"][0], record]
-            produced = step_truth.make_set(truth, rng)
-            target = root / "follow" / folder.name
-            _write(target, produced)
-            follow_folders.append(target)
-            follow_truth[folder.name] = truths[i]["effect"]
-        t0 = time.time()
-        follows = _diagnose("set", follow_folders, jobs)
-        t_follow = time.time() - t0
-    return _score(truths, sets, singles, follows, follow_truth, (t_sets, t_single, t_follow))
+    truths, sets, singles, follows, follow_truth = [], {}, {}, {}, {}
+    times = [0.0, 0.0, 0.0]
+    result = {}
+    for first in range(0, n_sets, CHUNK):
+        with tempfile.TemporaryDirectory() as tmp:
+            root = Path(tmp)
+            set_folders, small_folders = [], []
+            for i in range(first, min(first + CHUNK, n_sets)):
+                effect = EFFECTS[i % len(EFFECTS)]
+                truth = step_truth.draw_device_set(rng, effect, accel=bool((i // 3) % 2))
+                records = step_truth.make_set(truth, rng)
+                truths.append(truth)
+                _write(root / "sets" / f"set_{i:04d}", records)
+                _write(root / "small" / f"set_{i:04d}", records[:1])
+                set_folders.append(root / "sets" / f"set_{i:04d}")
+                small_folders.append(root / "small" / f"set_{i:04d}")
+            t0 = time.time()
+            sets.update(_diagnose("set", set_folders, jobs))
+            times[0] += time.time() - t0
+            t0 = time.time()
+            round_singles = _diagnose("single", small_folders, jobs)
+            singles.update(round_singles)
+            times[1] += time.time() - t0
+            follow_folders = []
+            for folder in small_folders:
+                answer = round_singles[folder.name]
+                if answer["verdict"] != "cannot_tell" or not answer["next_experiment"]:
+                    continue
+                i = int(folder.name.split("_")[1])
+                record = _followup(truths[i], answer["next_experiment"][0], rng)
+                truth = dict(truths[i])
+                truth["records"] = [truths[i]["records"][0], record]
+                target = root / "follow" / folder.name
+                _write(target, step_truth.make_set(truth, rng))
+                follow_folders.append(target)
+                follow_truth[folder.name] = truths[i]["effect"]
+            t0 = time.time()
+            follows.update(_diagnose("set", follow_folders, jobs))
+            times[2] += time.time() - t0
+        result = _score(truths, sets, singles, follows, follow_truth, times)
+        if on_round is not None:
+            on_round(result)
+    return result
 
 
 def _score(truths, sets, singles, follows, follow_truth, times) -> dict:
@@ -243,8 +255,7 @@ def main(argv=None) -> int:
         parser.error("--sets must be at least 1")
     if args.jobs < 1:
         parser.error("--jobs must be at least 1")
-    result = run(n, args.out, seed=args.seed, jobs=args.jobs)
-    result["assumptions"] = {
+    assumptions = {
         "truth": "studies/step_truth.py (SciPy DOP853 with exact stop events, not the library)",
         "nominal": "NominalDevice.reference(): T_dm = T_f = 10 µs taken as known, J, μ, c, k_dm ±5 %",
         "records": "small steps (±1.5–2.5 V, 12 ms), stop-level steps (±5–6 V, ~10 ms), "
@@ -254,7 +265,16 @@ def main(argv=None) -> int:
         "seed": args.seed,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "result.json").write_text(json.dumps(result, indent=1, default=float))
+
+    def save(result):
+        result["assumptions"] = assumptions
+        path = args.out / "result.json"
+        partial = path.with_suffix(".json.partial")
+        partial.write_text(json.dumps(result, indent=1, default=float))
+        partial.replace(path)  # whole or not at all
+        print(f"scored {result['n_sets']} sets", flush=True)
+
+    result = run(n, args.out, seed=args.seed, jobs=args.jobs, on_round=save)
     s = result["sets"]
     print(f"sets: {result['n_sets']}")
     for key in ("strictly_named", "lag_confusions", "false_alarms"):

@@ -20,29 +20,15 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-_MAP_LIMIT = 30_000
-"""Memory mappings of a test process beyond which its compiled programs are dropped: every
-XLA:CPU executable keeps ~3 mappings, and a pytest-xdist worker that compiles thousands of
-programs hits the kernel's vm.max_map_count (65 530) — then LLVM fails with 'Cannot
-allocate memory' and the worker segfaults in a later, unrelated compile."""
-
-
-def _mappings() -> int:
-    try:
-        with open("/proc/self/maps", "rb") as maps:
-            return sum(1 for _ in maps)
-    except OSError:  # no /proc (not Linux): nothing to watch
-        return 0
+from accel_jax._runtime import bound_compiled_programs  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
 def _bounded_compiled_programs():
+    # A pytest-xdist worker compiles thousands of programs: past vm.max_map_count LLVM
+    # fails ('Cannot allocate memory') and the worker segfaults (`bound_compiled_programs`).
     yield
-    if _mappings() > _MAP_LIMIT:
-        import gc
-
-        jax.clear_caches()
-        gc.collect()
+    bound_compiled_programs()
 
 
 # Quick-run order of the study scripts: the longest first, so that two side by side finish

@@ -216,8 +216,12 @@ def test_cli_diagnoses_several_files_together_and_refuses_bad_combinations(tmp_p
     write_csv(stops, _record(13, STOPS, device=device))
     runner = CliRunner()
     out = tmp_path / "out.json"
-    result = runner.invoke(main, ["diagnose", str(small), str(stops), "--json", str(out)])
+    plot = tmp_path / "set.png"
+    result = runner.invoke(
+        main, ["diagnose", str(small), str(stops), "--json", str(out), "--plot", str(plot)]
+    )
     assert result.exit_code == 0, result.output
+    assert plot.stat().st_size > 10_000  # one row per record: data, model, residuals
     assert "joint diagnosis of 2 records" in result.output
     assert "verdict: torquer_lag" in result.output
     payload = json.loads(out.read_text())
