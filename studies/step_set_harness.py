@@ -44,17 +44,17 @@ EFFECTS = step_truth.SET_EFFECTS
 _CHILD = """
 import json, sys, pathlib
 import accel_jax
-from accel_jax._runtime import enable_compilation_cache
+from accel_jax._runtime import bound_compiled_programs, enable_compilation_cache
 enable_compilation_cache()  # the three passes share compiled programs
 import jax
 jax.config.update("jax_enable_x64", True)
 from accel_jax import read_csv, NominalDevice
-from accel_jax.diagnose import diagnose_many
-from accel_jax.diagnose.step_joint import diagnose_step_set
+from accel_jax.diagnose import diagnose_many, diagnose_step_set
 mode, out = sys.argv[1], pathlib.Path(sys.argv[2])
 nominal = NominalDevice.reference()
 answer = {}
 for folder in map(pathlib.Path, sys.argv[3:]):
+    bound_compiled_programs()  # many record shapes: stay below vm.max_map_count
     files = sorted(folder.glob("*.csv"))
     data = [read_csv(f) for f in files]
     if mode == "set":

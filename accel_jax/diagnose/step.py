@@ -50,7 +50,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._data import NominalDevice, StepData
-from .._runtime import bound_compiled_programs
 from .._sweep import even_chunk_size, sweep
 from .base import DiagnosisResult, require_float64
 from .step_effects import (
@@ -125,7 +124,6 @@ def diagnose_step(
     a `ValueError` otherwise).
     """
     require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
-    bound_compiled_programs()  # a long run of many records: stay below vm.max_map_count
     effects = step_effects()
     linear = [0] + [i for i, e in enumerate(effects, start=1) if not e.nonlinear]
     nonlinear = [i for i, e in enumerate(effects, start=1) if e.nonlinear]

@@ -53,7 +53,6 @@ import numpy as np
 import optimistix as optx
 
 from .._data import DataError, NominalDevice, StepData
-from .._runtime import bound_compiled_programs
 from .._servo import closed_loop_test_gain
 from .._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
 from . import openworld
@@ -570,7 +569,6 @@ def diagnose_step_set(
     **Returns:** a `SetDiagnosis`. Float64 (x64 must be enabled; `ValueError` otherwise).
     """
     require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
-    bound_compiled_programs()  # a long run of many sets: stay below vm.max_map_count
     nominal = NominalDevice.reference() if nominal is None else nominal
     names = names or [f"#{i + 1}" for i in range(len(datasets))]
     prepared = prepare_set(list(datasets), nominal)
