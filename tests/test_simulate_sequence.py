@@ -338,3 +338,37 @@ def test_innovations_of_white_plus_ar1_noise():
     a = np.asarray(a)[100:]
     assert np.var(a) == pytest.approx(sigma_w**2 / share, rel=0.02)
     assert abs(np.corrcoef(a[1:], a[:-1])[0, 1]) < 0.01
+
+
+@pytest.mark.parametrize("lags", [(3e-5, 1e-5), (1e-5, 3e-5)])
+def test_stop_record_with_lags_releases_where_the_truth_simulator_does(lags):
+    # Stop-level steps (±5.5 V onto stops at 4.04 V) with a lagged torquer and output
+    # filter: after a change the lagged moment keeps the pendulum on the stop for a while,
+    # and the release falls within a sample step. Released at the sample boundary instead,
+    # the record was 12.8 mV off; with the release found within the step, 1.1e-5 V.
+    t_dm, t_f = lags
+    params = aj.ServoParams.reference(
+        torquer_time_constant=t_dm, filter_time_constant=t_f, external_moment=0.0
+    )
+    levels = np.array([0.0, 5.5, -5.5, 5.5, 0.0])
+    times = np.array([1.5003e-3, 3.3007e-3, 5.1002e-3, 6.9009e-3])
+    n = 9000
+    device = step_truth.Device(h_max=float(params.stop_displacement), T_dm=t_dm, T_f=t_f)
+    record = step_truth.Record(levels=levels, change_times=times, rate=RATE, n=n)
+    t, _, y = step_truth.simulate(device, record, rng=np.random.default_rng(0))
+    index = np.searchsorted(t, times, side="right")
+    sequence = SequenceInputs(
+        0.0,
+        1.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        jnp.asarray(index, jnp.int32),
+        jnp.asarray(np.diff(levels)),
+        jnp.asarray((times - t[index]) / DT),
+    )
+    stop = float(params.pickoff_gain * params.amplifier_gain * params.stop_displacement)
+    ours = np.asarray(stop_record(params, DT, n, sequence, stop, -stop))
+    assert np.sum(np.abs(y) > 0.999 * stop) > 0.3 * n  # on the stops for a third of it
+    np.testing.assert_allclose(ours, y, rtol=0, atol=3e-5)
