@@ -17,8 +17,7 @@ record: the refit of J, μ, c, k_dm (log-normal prior, as `step.py`), the lag de
 stop voltage v_stop = k_dp k_y h_max (log-normal, `STOP_SIGMA`), the test winding's gain
 (`step_fit.GAIN_SIGMA`) and the pendulosity's (`ACCEL_SIGMA`). Per record: the polarity of
 the test winding and of the input axis (from the settled levels), the external moment, the
-initial state (deflection, velocity and both lag states: a record may start soon after a
-stop contact), the output offset (seen only on the stops; N(0, `OFFSET_PRIOR`)) and the
+initial state, the output offset (seen only on the stops; N(0, `OFFSET_PRIOR`)) and the
 time of every input change. A record whose test levels can reach the nominal stops is
 simulated with them (`_simulate.sequence.stop_record`), the others exactly
 (`linear_record`). White output noise, each record's floor measured without the model
@@ -110,9 +109,9 @@ TOLERANCE = 1e-7
 # Shared parameters: refit z (4), lag z, stop z, test-gain z, pendulosity z.
 _S_LAG, _S_STOP, _S_GAIN, _S_ACCEL = 4, 5, 6, 7
 N_SHARED = 8
-# Per record: moment, dv, dw, offset, the lag states' departures (2), change times (J).
-_R_MOMENT, _R_DV, _R_DW, _R_OFFSET, _R_LAGS = 0, 1, 2, 3, 4
-_R_TIMING = 6
+# Per record: moment, dv, dw, offset, change times (J).
+_R_MOMENT, _R_DV, _R_DW, _R_OFFSET = 0, 1, 2, 3
+_R_TIMING = 4
 
 
 def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
@@ -165,7 +164,6 @@ def _record_prediction(shared, own, candidate, base, prior_sigma, ctx, n, stop_v
         ctx.change_step,
         jnp.clip(own[_R_TIMING:], -TIMING_LIMIT, TIMING_LIMIT),
         jumps,
-        (ctx.scale * own[_R_LAGS], ctx.scale * own[_R_LAGS + 1]),
     )
     offset = OFFSET_PRIOR * own[_R_OFFSET]
     if on_stops:
@@ -206,7 +204,6 @@ def _penalties(shared, own, candidate, ctx_stack):
             (lag * (1 - used))[None],
             (BARRIER * jnp.maximum(jnp.abs(lag) - LAG_BOUND, 0.0) * used)[None],
             own[:, _R_OFFSET],
-            own[:, _R_LAGS : _R_LAGS + 2].ravel(),  # N(0, 1) in units of the record's scale
             ((timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1] * active).ravel(),
             (timing * (1 - active)).ravel(),
         ]
