@@ -426,16 +426,9 @@ def draw_truth(rng: np.random.Generator, effect: str) -> dict:
     truth = {
         "effect": effect,
         "device": device,
-        "rate": float(rng.choice(RATES)),
         "levels_V": levels,
         "change_times_s": bounds,  # exact times: the DAC runs on its own clock
-        "noise_V": _log_uniform(rng, *NOISE),
-        "adc_step_V": 20.0 / 2 ** int(rng.choice(ADC_BITS)),
-        "output_offset_V": float(rng.uniform(-0.05, 0.05)),
-        "output_sign": float(rng.choice([-1.0, 1.0])),
-        "moment_Nm": float(rng.uniform(-2e-6, 2e-6)),
-        "start": "rest" if rng.uniform() < 0.5 else float(rng.uniform(1e-4, 1e-3)),
-        "start_level_V": float(rng.choice(LEVELS)) * u_max,
+        **_draw_conventions(rng, u_max),  # the same draws, in the same order
         "u_max_V": u_max,
     }
     if effect in ("torquer_lag", "output_filter"):

@@ -382,7 +382,7 @@ class DiagnosisResult:
         """A few lines for a terminal: the verdict and why first."""
         lines = [f"kind: {self.kind}"]
         if self.verdict == "cannot_tell":
-            lines.append(f"verdict: cannot_tell — {self.tied[0]} or {self.tied[1]}")
+            lines.append(verdict_line(self.verdict, self.tied))
         elif self.verdict == "unexplained":
             lines.append("verdict: unexplained — the gap is real and no library effect closes it")
         elif self.verdict == "none":
@@ -459,6 +459,13 @@ class DiagnosisResult:
             )
         lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)
+
+
+def verdict_line(verdict: str, tied) -> str:
+    """`verdict: …` of a summary, naming both effects of a `cannot_tell`."""
+    if verdict == "cannot_tell":
+        return f"verdict: cannot_tell — {tied[0]} or {tied[1]}"
+    return f"verdict: {verdict}"
 
 
 def _model_line(model: dict) -> str:

@@ -55,7 +55,7 @@ from .._data import DataError, NominalDevice, StepData
 from .._servo import closed_loop_test_gain
 from .._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
 from . import openworld
-from .base import INDISTINCT, SIGNIFICANCE, require_float64
+from .base import INDISTINCT, SIGNIFICANCE, require_float64, verdict_line
 from .step_effects import OutputFilter, TorquerLag
 from .step_fit import (
     _I_DV,
@@ -507,10 +507,7 @@ class SetDiagnosis:
 
     def summary(self) -> str:
         lines = [f"kind: step (joint diagnosis of {len(self.records)} records of one device)"]
-        if self.verdict == "cannot_tell":
-            lines.append(f"verdict: cannot_tell — {self.tied[0]} or {self.tied[1]}")
-        else:
-            lines.append(f"verdict: {self.verdict}")
+        lines.append(verdict_line(self.verdict, self.tied))
         lines.append(f"why: {self.reason}")
         for r in self.records:
             stops = ", simulated with the stops" if r["on_stops"] else ""
