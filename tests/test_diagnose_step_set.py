@@ -36,8 +36,12 @@ DEVICE = {
 }
 
 
-def _record(seed, levels, *, device=None, accel=None, noise=4e-4, offset=0.02, n=4500):
-    """A record of the truth simulator: changes off the sample grid, offset, ADC-free."""
+def _record(
+    seed, levels, *, device=None, accel=None, noise=4e-4, offset=0.02, n=4500, start="rest", **kw
+):
+    """A record of the truth simulator: changes off the sample grid, offset, ADC-free;
+    `start` "rest" or the time [s] before the first sample at which its first level was
+    switched on (from `start_level`, a keyword)."""
     rng = np.random.default_rng(seed)
     k = len(levels) if accel is None else len(accel)
     edges = (np.arange(1, k) / k * n + rng.uniform(0, 1, k - 1)) / RATE
@@ -51,6 +55,8 @@ def _record(seed, levels, *, device=None, accel=None, noise=4e-4, offset=0.02, n
         moment=5e-7,
         accel_levels=None if accel is None else np.asarray(accel, float),
         accel_change_times=None if accel is None else edges,
+        start=start,
+        **kw,
     )
     dev = step_truth.Device(**{**DEVICE, **(device or {})})
     columns = step_truth.simulate(dev, rec, rng=rng)
@@ -86,6 +92,21 @@ def test_stop_level_steps_separate_the_lags_and_the_joint_fit_recovers_the_devic
     assert both.shared["pickoff_amplifier_gain_from_stops"] == pytest.approx(
         truth_stop / 1.9e-6, rel=1e-3
     )
+
+
+def test_a_stop_record_that_starts_in_a_long_filters_transient_is_named_in_the_second_stage():
+    # The stop-level record starts 0.5 ms after its first level was switched on from 2.8 V,
+    # with a 50 µs output filter: the filter's state departs from the first-order start
+    # rule (`initial_state`), so with that rule no candidate reaches the floor. The second
+    # stage frees each record's initial lag states and names the filter.
+    device = {"T_f": 5e-5}
+    small = _record(1, SMALL, device=device)
+    stops = _record(2, STOPS, device=device, offset=-0.01, start=5e-4, start_level=2.8)
+    result = sj.diagnose_step_set([small, stops], NOMINAL, recommend=False)
+    assert result.verdict == "output_filter", result.summary()
+    assert any("second stage" in note for note in result.notes)
+    assert all(r["at_floor"] for r in result.records)
+    assert result.shared["filter_time_constant"] == pytest.approx(5e-5, rel=0.01)
 
 
 def test_an_acceleration_step_separates_the_lags():

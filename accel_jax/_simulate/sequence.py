@@ -102,7 +102,7 @@ def equilibrium(params: ServoParams, drive, moment):
     return jnp.stack([v, 0 * v, drive - v, v, moment + 0 * v, 0 * v])
 
 
-def initial_state(params: ServoParams, drive, moment, rate, dv, dw):
+def initial_state(params: ServoParams, drive, moment, rate, dv, dw, lag_states=(0.0, 0.0)):
     """The state at the first sample: at rest under the first drive, displaced by dv [V]
     in deflection and dw [V] in velocity (a record that starts in a transient), the moment
     drifting at `rate` [V per record].
@@ -110,11 +110,13 @@ def initial_state(params: ServoParams, drive, moment, rate, dv, dw):
     The lag states follow the displacement to first order in their time constants: the
     torquer's M̃ = g·U − v + T_dm·v̇ and the filter's U_f = v − T_f·v̇ (v̇ = w/T in the scaled
     velocity w), the solutions of T_dm·Ṁ̃ = g·U − v − M̃ and T_f·U̇_f = v − U_f along the
-    transient, exact to O((T_lag/T)²). With ideal lags they are the quasi-static values."""
+    transient, exact to O((T_lag/T)²). With ideal lags they are the quasi-static values.
+    `lag_states` (M̃, U_f) [V] are added to them: a start whose lag states depart from that
+    rule (a long lag, a start soon after a stop contact) is then described exactly."""
     rest = equilibrium(params, drive, moment)
     rate_v = dw / time_constant(params)
-    torquer = -dv + params.torquer_time_constant * rate_v
-    output = dv - params.filter_time_constant * rate_v
+    torquer = -dv + params.torquer_time_constant * rate_v + lag_states[0]
+    output = dv - params.filter_time_constant * rate_v + lag_states[1]
     return rest + jnp.stack([dv, dw, torquer, output, 0 * dv, rate + 0 * dv])
 
 
@@ -132,6 +134,8 @@ class SequenceInputs(NamedTuple):
     - `change_moment` (J,) [V]: the jump of the external moment M̃ at change j (an
       acceleration step along the input axis, ΔM̃ = m l Δa/k_dm; default none). A change
       may move the test voltage, the moment or both.
+    - `lag_states` (M̃, U_f) [V]: the initial torquer and filter states' departure from
+      their first-order rule (`initial_state`; default none).
     """
 
     first_level: object
@@ -144,6 +148,7 @@ class SequenceInputs(NamedTuple):
     change_step: object
     change_shift: object
     change_moment: object = None
+    lag_states: object = (0.0, 0.0)
 
 
 def _moment_jumps(sequence: SequenceInputs, dtype):
@@ -214,7 +219,7 @@ def linear_record(
     block_map = flow(m * dt)
     mean_row = cumulative[-1] / m  # (1/m) c P_m
     rest = equilibrium(params, gain * first_level, moment)
-    start = initial_state(params, gain * first_level, moment, rate, dv, dw)
+    start = initial_state(params, gain * first_level, moment, rate, dv, dw, sequence.lag_states)
     offset, fraction = _change_split(change_shift)
     first = (change_index + offset).astype(jnp.int32)  # the first sample each change reaches
     q, p = first // m, first % m
@@ -291,7 +296,7 @@ def stop_record(
     interval = change_index + offset - 1
     active = (change_step != 0) | (jumps != 0)
     partial_t, partial_f = jax.vmap(lambda s: zoh(a, b, s))(fraction * dt)
-    start = initial_state(params, gain * first_level, moment, rate, dv, dw)
+    start = initial_state(params, gain * first_level, moment, rate, dv, dw, sequence.lag_states)
 
     held_a = a.at[:2].set(0.0)
     held_b = b.at[:2].set(0.0)

@@ -109,9 +109,11 @@ TOLERANCE = 1e-7
 # Shared parameters: refit z (4), lag z, stop z, test-gain z, pendulosity z.
 _S_LAG, _S_STOP, _S_GAIN, _S_ACCEL = 4, 5, 6, 7
 N_SHARED = 8
-# Per record: moment, dv, dw, offset, change times (J).
+# Per record: moment, dv, dw, offset, change times (J), and in the second stage the initial
+# lag states' departures from their first-order rule (2; `SetLayout.lag_states`).
 _R_MOMENT, _R_DV, _R_DW, _R_OFFSET = 0, 1, 2, 3
 _R_TIMING = 4
+N_LAG_STATES = 2
 
 
 def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
@@ -139,6 +141,12 @@ class SetLayout(eqx.Module):
     n_padded: int = eqx.field(static=True)
     j_padded: int = eqx.field(static=True)
     stops: tuple = eqx.field(static=True)
+    lag_states: bool = eqx.field(static=True, default=False)
+
+    @property
+    def width(self) -> int:
+        """Each record's number of own parameters."""
+        return _R_TIMING + self.j_padded + (N_LAG_STATES if self.lag_states else 0)
 
 
 def _lag_params(params, lag_z, candidate, ctx):
@@ -153,6 +161,11 @@ def _record_prediction(shared, own, candidate, base, prior_sigma, ctx, n, stop_v
     params = _lag_params(params, shared[_S_LAG], candidate, ctx)
     gain = ctx.polarity * jnp.exp(GAIN_SIGMA * shared[_S_GAIN])
     jumps = moment_jumps(params, ctx, jnp.exp(ACCEL_SIGMA * shared[_S_ACCEL]))
+    j = ctx.change_step.shape[-1]
+    lag_states = own[_R_TIMING + j :]
+    lag_states = (
+        (ctx.scale * lag_states[0], ctx.scale * lag_states[1]) if lag_states.size else (0.0, 0.0)
+    )
     sequence = SequenceInputs(
         ctx.first_level,
         gain,
@@ -162,8 +175,9 @@ def _record_prediction(shared, own, candidate, base, prior_sigma, ctx, n, stop_v
         ctx.scale * own[_R_DW],
         ctx.change_index,
         ctx.change_step,
-        jnp.clip(own[_R_TIMING:], -TIMING_LIMIT, TIMING_LIMIT),
+        jnp.clip(own[_R_TIMING : _R_TIMING + j], -TIMING_LIMIT, TIMING_LIMIT),
         jumps,
+        lag_states,
     )
     offset = OFFSET_PRIOR * own[_R_OFFSET]
     if on_stops:
@@ -184,16 +198,17 @@ def _record_prediction(shared, own, candidate, base, prior_sigma, ctx, n, stop_v
     return out + offset
 
 
-def _split(x, n_records, j_padded):
+def _split(x, n_records, layout):
     shared = x[:N_SHARED]
-    own = x[N_SHARED:].reshape(n_records, _R_TIMING + j_padded)
+    own = x[N_SHARED:].reshape(n_records, layout.width)
     return shared, own
 
 
 def _penalties(shared, own, candidate, ctx_stack):
     lag = shared[_S_LAG]
     used = (candidate != 0).astype(shared.dtype)
-    timing = own[:, _R_TIMING:]
+    j = ctx_stack.change_step.shape[-1]
+    timing = own[:, _R_TIMING : _R_TIMING + j]
     active = ((ctx_stack.change_step != 0) | (ctx_stack.change_accel != 0)).astype(shared.dtype)
     return jnp.concatenate(
         [
@@ -204,6 +219,7 @@ def _penalties(shared, own, candidate, ctx_stack):
             (lag * (1 - used))[None],
             (BARRIER * jnp.maximum(jnp.abs(lag) - LAG_BOUND, 0.0) * used)[None],
             own[:, _R_OFFSET],
+            own[:, _R_TIMING + j :].ravel(),  # lag states: N(0, 1) in the record's scale
             ((timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1] * active).ravel(),
             (timing * (1 - active)).ravel(),
         ]
@@ -212,7 +228,7 @@ def _penalties(shared, own, candidate, ctx_stack):
 
 def _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage):
     n_records = ctx_stack.dt.shape[0]
-    shared, own = _split(x, n_records, layout.j_padded)
+    shared, own = _split(x, n_records, layout)
     outs = []
     for r in range(n_records):
         ctx = jax.tree_util.tree_map(lambda leaf, r=r: leaf[r], ctx_stack)
@@ -234,7 +250,7 @@ def _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltag
 
 def _residuals(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight):
     n_records = ctx_stack.dt.shape[0]
-    shared, own = _split(x, n_records, layout.j_padded)
+    shared, own = _split(x, n_records, layout)
     prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
     scaled = (data - prediction) * weight / ctx_stack.sigma_ref[:, None]
     return jnp.concatenate([scaled.ravel(), _penalties(shared, own, candidate, ctx_stack)])
@@ -259,9 +275,7 @@ def _fit(
         x = solution.value
         cost = jnp.sum(fn(x, None) ** 2)
         prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
-        penalties = _penalties(
-            *_split(x, ctx_stack.dt.shape[0], layout.j_padded), candidate, ctx_stack
-        )
+        penalties = _penalties(*_split(x, ctx_stack.dt.shape[0], layout), candidate, ctx_stack)
         return (
             x,
             jnp.where(jnp.isfinite(cost), cost, jnp.inf),
@@ -308,8 +322,9 @@ def prepare_set(datasets: list[StepData], nominal: NominalDevice) -> PreparedSet
     return stack(preps, v_stop)
 
 
-def stack(preps: list[dict], stop_voltage: float) -> PreparedSet:
-    """Prepared records (`prepare` dicts with `on_stops`) as one padded, stacked set."""
+def stack(preps: list[dict], stop_voltage: float, lag_states: bool = False) -> PreparedSet:
+    """Prepared records (`prepare` dicts with `on_stops`) as one padded, stacked set;
+    `lag_states` whether each record's initial lag states are free (`SetLayout`)."""
     n_padded = max(p["group"][0] for p in preps)
     j_padded = max(p["group"][1] for p in preps)
     max_block = max(p["group"][2] for p in preps)
@@ -325,14 +340,17 @@ def stack(preps: list[dict], stop_voltage: float) -> PreparedSet:
         data[r, : p["n"]] = p["u_out"][: p["n"]]
         weight[r, : p["n"]] = 1.0
     layout = SetLayout(
-        n_padded=n_padded, j_padded=j_padded, stops=tuple(p["on_stops"] for p in preps)
+        n_padded=n_padded,
+        j_padded=j_padded,
+        stops=tuple(p["on_stops"] for p in preps),
+        lag_states=lag_states,
     )
     return PreparedSet(preps, layout, ctx, data, weight, stop_voltage)
 
 
 def _start(prepared: PreparedSet) -> np.ndarray:
     """The nominal start: each record's own levels regression (`prepare`'s guesses)."""
-    preps, j = prepared.preps, prepared.layout.j_padded
+    preps = prepared.preps
     shared = np.zeros(N_SHARED)
     linear = [p for p in preps if not p["on_stops"] and np.any(p["change_step"] != 0)]
     if linear:
@@ -341,7 +359,7 @@ def _start(prepared: PreparedSet) -> np.ndarray:
     if accel:
         k = [abs(p["accel_slope"]) / (p["k_test"] * p["host"]["accel_per_g"]) for p in accel]
         shared[_S_ACCEL] = float(np.clip(np.log(np.mean(k)) / ACCEL_SIGMA, -5, 5))
-    own = np.zeros((len(preps), _R_TIMING + j))
+    own = np.zeros((len(preps), prepared.layout.width))
     for r, p in enumerate(preps):
         w = p["guesses_linear"][0, 0]
         own[r, _R_MOMENT] = w[_I_MOMENT]
@@ -349,16 +367,18 @@ def _start(prepared: PreparedSet) -> np.ndarray:
         own[r, _R_DW] = w[_I_DW]
         timing = w[_I_TIMING:]
         own[r, _R_TIMING : _R_TIMING + timing.size] = timing
-        own[r, _R_TIMING + timing.size :] = 0.0
         if p["on_stops"]:
             own[r, _R_DV] = own[r, _R_DW] = 0.0
     return np.concatenate([shared, own.ravel()])
 
 
-def fit_set(prepared: PreparedSet, nominal: NominalDevice, candidates=CANDIDATES, start=None):
+def fit_set(
+    prepared: PreparedSet, nominal: NominalDevice, candidates=CANDIDATES, start=None, starts=None
+):
     """Fit the candidates to the set. Returns one dict per candidate: x, cost, prediction
     (records, blocks), penalties, converged. The nominal is fitted first; each lag starts
-    from its solution with the lag at `LAG_STARTS`."""
+    from its solution with the lag at `LAG_STARTS`. `starts` {candidate: x} instead starts
+    each candidate from its own x (all in one batch, at most `MAX_STEPS`)."""
     names = list(candidates)
     base = nominal.params
     prior_sigma = jnp.asarray(prior_sigma_of(nominal))
@@ -371,9 +391,12 @@ def fit_set(prepared: PreparedSet, nominal: NominalDevice, candidates=CANDIDATES
         jnp.asarray(prepared.data),
         jnp.asarray(prepared.weight),
     )
+    if starts is not None:
+        ids = jnp.asarray([CANDIDATES.index(c) for c in names], jnp.int32)
+        x = jnp.asarray(np.stack([np.asarray(starts[c]) for c in names]))
+        out = _fit(x, ids, *args, MAX_STEPS)
+        return {c: _best(out, [i]) for i, c in enumerate(names)}
     x0 = _start(prepared) if start is None else np.asarray(start)
-    late = x0.copy()
-    late[N_SHARED:] = x0[N_SHARED:]
     fits = {}
     if "nominal" in names:
         starts = np.stack([x0])
@@ -567,6 +590,23 @@ def diagnose_step_set(
     names = names or [f"#{i + 1}" for i in range(len(datasets))]
     prepared = prepare_set(list(datasets), nominal)
     fits = fit_set(prepared, nominal)
+    scores, ranking = _rank(fits, prepared, nominal)
+    notes = []
+    if not any(r["all_at_floor"] for r in ranking):
+        first = min(r["worst_excess_over_floor"] for r in ranking)
+        prepared, fits = release_lag_states(prepared, nominal, fits)
+        scores, ranking = _rank(fits, prepared, nominal)
+        notes.append(
+            "with every record's initial lag states on their first-order rule no candidate "
+            f"brought every record to its floor (best worst record {first:.2f} floors); "
+            "refitted with them free (second stage, `release_lag_states`)"
+        )
+    return _diagnose_prepared(prepared, nominal, fits, scores, ranking, names, notes, recommend)
+
+
+def _rank(fits, prepared: PreparedSet, nominal: NominalDevice):
+    """Each candidate's score (`_score`) and ranking entry: evidence against the nominal
+    (Schwarz: ln n per lag parameter), records at their floor, shared values."""
     scores = {c: _score(fits[c], prepared, nominal) for c in CANDIDATES}
     n_total = scores["nominal"]["n"]
     ranking = []
@@ -586,6 +626,10 @@ def diagnose_step_set(
                 "shared": shared_values(fits[c], prepared, nominal, c),
             }
         )
+    return scores, ranking
+
+
+def _verdict(ranking):
     by = {r["effect"]: r for r in ranking}
     lags = sorted((r for r in ranking if r["effect"] != "nominal"), key=lambda r: -r["evidence"])
     good = [r for r in lags if r["evidence"] >= SIGNIFICANCE and r["all_at_floor"]]
@@ -621,6 +665,12 @@ def diagnose_step_set(
             "excess in its worst record (an effect outside the joint model: run the "
             "single-record diagnosis of each record)"
         )
+    return verdict, tied, reason
+
+
+def _diagnose_prepared(prepared, nominal, fits, scores, ranking, names, notes, recommend):
+    verdict, tied, reason = _verdict(ranking)
+    by = {r["effect"]: r for r in ranking}
     chosen = verdict if verdict in CANDIDATES else (tied[0] if tied else "nominal")
     records = []
     for r, (name, p) in enumerate(zip(names, prepared.preps, strict=True)):
@@ -647,6 +697,7 @@ def diagnose_step_set(
         ranking=ranking,
         records=records,
         shared=by[chosen]["shared"],
+        notes=notes,
         traces=traces,
     )
     if verdict == "cannot_tell" and recommend:
@@ -784,7 +835,7 @@ def expected_evidence(
         preps.append(q)
     added = dict(new.preps[0])
     added["sigma"] = design["noise_V"] / math.sqrt(added["block"])
-    combined = stack(preps + [added], prepared.stop_voltage)
+    combined = stack(preps + [added], prepared.stop_voltage, prepared.layout.lag_states)
     start = _transfer_start(fits[rival]["x"], prepared, combined)
     fit = fit_set(combined, nominal, candidates=[rival], start=start)[rival]
     chi2 = 0.0
@@ -796,15 +847,31 @@ def expected_evidence(
 
 
 def _transfer_start(x, old: PreparedSet, new: PreparedSet) -> np.ndarray:
-    """The rival's fitted parameters as a start for the enlarged set (the new record's own
-    parameters at zero: its changes at the sample boundaries, as simulated)."""
+    """Fitted parameters of `old` as a start for `new` (the same records first, perhaps more
+    of them, more change slots or free lag states): each record's own values carried over
+    section by section, the rest at zero (a new record's changes at the sample boundaries,
+    as simulated; lag states on their first-order rule)."""
     shared = x[:N_SHARED]
-    own_old = x[N_SHARED:].reshape(len(old.preps), -1)
-    j = new.layout.j_padded
-    own = np.zeros((len(new.preps), _R_TIMING + j))
-    width = min(own_old.shape[1], own.shape[1])
-    own[: len(old.preps), :width] = own_old[:, :width]
+    own_old = x[N_SHARED:].reshape(len(old.preps), old.layout.width)
+    own = np.zeros((len(new.preps), new.layout.width))
+    k = len(old.preps)
+    j = min(old.layout.j_padded, new.layout.j_padded)
+    own[:k, : _R_TIMING + j] = own_old[:, : _R_TIMING + j]
+    if old.layout.lag_states and new.layout.lag_states:
+        own[:k, -N_LAG_STATES:] = own_old[:, -N_LAG_STATES:]
     return np.concatenate([shared, own.ravel()])
+
+
+def release_lag_states(prepared: PreparedSet, nominal: NominalDevice, fits: dict):
+    """The second stage: every candidate refitted with each record's initial lag states free
+    (N(0, 1) in the record's scale), from its first-stage solution. A record that starts in
+    a transient soon after a stop contact or an earlier level, with a long lag, departs from
+    the first-order start rule of `initial_state`; the first stage then leaves it above its
+    floor. The second stage nests the first and starts at its optimum, so no candidate's
+    cost can rise. Returns the widened set and its fits."""
+    wide = stack(prepared.preps, prepared.stop_voltage, lag_states=True)
+    starts = {c: _transfer_start(fits[c]["x"], prepared, wide) for c in fits}
+    return wide, fit_set(wide, nominal, candidates=list(fits), starts=starts)
 
 
 def next_experiments(prepared: PreparedSet, nominal, fits, tied) -> list[dict]:
