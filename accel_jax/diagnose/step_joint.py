@@ -31,6 +31,15 @@ floor and no lag is significant; a lag's name when it is significant, leaves eve
 its floor, and beats the other lag by `INDISTINCT`; `cannot_tell` when both do within it;
 `unexplained` when no candidate brings every record to its floor.
 
+**Second stage.** Each record's initial lag states follow its initial deflection and
+velocity by a first-order rule (`_simulate.sequence.initial_state`), exact to
+O((T_lag/T)²). A record that starts in a transient soon after an earlier level or a stop
+contact, with a long lag, departs from it. When no candidate brings every record to its
+floor, every candidate is refitted from its own solution with those states free as well
+(`release_lag_states`; N(0, 1) in the record's scale) and judged again; the note says so.
+The second stage nests the first and starts at its optimum, so it cannot fit worse. (Free
+from the start, the states let the stop-level torquer-lag fit stall far from the floor.)
+
 **Next experiment.** With `cannot_tell`, each experiment of a menu (`experiment_menu`) is
 simulated noise-free from the fitted first candidate and refitted by the second (all
 records together, the new one added): the expected 2 ln B is the misfit that remains,
