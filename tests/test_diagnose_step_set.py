@@ -186,7 +186,7 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
         chi2 = []
         for name in ("torquer_lag", "output_filter"):
             start = sj._transfer_start(fits[name]["x"], prepared, combined)
-            fit = sj.fit_set(combined, NOMINAL, candidates=[name], start=start)[name]
+            fit = sj.fit_set(combined, NOMINAL, candidates=[name], starts={name: start})[name]
             chi2.append(
                 sum(
                     float(

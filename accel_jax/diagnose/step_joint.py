@@ -37,7 +37,8 @@ O((T_lag/T)²). A record that starts in a transient soon after an earlier level 
 contact, with a long lag, departs from it. When no candidate brings every record to its
 floor, every candidate is refitted from its own solution with those states free as well
 (`release_lag_states`; N(0, 1) in the record's scale) and judged again; the note says so.
-The second stage nests the first and starts at its optimum, so it cannot fit worse. (Free
+The second stage nests the first and starts at its solution, so its penalised cost cannot
+rise. (Free
 from the start, the states let the stop-level torquer-lag fit stall far from the floor.)
 
 **Next experiment.** With `cannot_tell`, each experiment of a menu (`experiment_menu`) is
@@ -385,9 +386,10 @@ def fit_set(
     prepared: PreparedSet, nominal: NominalDevice, candidates=CANDIDATES, start=None, starts=None
 ):
     """Fit the candidates to the set. Returns one dict per candidate: x, cost, prediction
-    (records, blocks), penalties, converged. The nominal is fitted first; each lag starts
-    from its solution with the lag at `LAG_STARTS`. `starts` {candidate: x} instead starts
-    each candidate from its own x (all in one batch, at most `MAX_STEPS`)."""
+    (records, blocks), penalties, converged. The nominal is fitted first (from `start`, by
+    default `_start`'s regression); each lag starts from its solution with the lag at
+    `LAG_STARTS`. `starts` {candidate: x} instead starts each candidate from its own x, its
+    lag included (all in one batch, at most `MAX_STEPS`)."""
     names = list(candidates)
     base = nominal.params
     prior_sigma = jnp.asarray(prior_sigma_of(nominal))
@@ -793,8 +795,7 @@ def _simulate_design(fit, prepared: PreparedSet, nominal, candidate, design) -> 
     probe.preps[0]["sigma"] = design["noise_V"]
     ctx = jax.tree_util.tree_map(lambda leaf: leaf[0], probe.ctx)
     shared = jnp.asarray(fit["x"][:N_SHARED])
-    own = np.zeros(_R_TIMING + probe.layout.j_padded)
-    own[_R_TIMING:] = 0.0  # the design's changes at its samples' boundaries (δ = 0)
+    own = np.zeros(probe.layout.width)  # the design's changes at its samples' boundaries
     ctx = dataclasses.replace(ctx, polarity=jnp.asarray(1.0), accel_sign=jnp.asarray(1.0))
     n = probe.layout.n_padded
     out = _record_prediction(
@@ -846,7 +847,7 @@ def expected_evidence(
     added["sigma"] = design["noise_V"] / math.sqrt(added["block"])
     combined = stack(preps + [added], prepared.stop_voltage, prepared.layout.lag_states)
     start = _transfer_start(fits[rival]["x"], prepared, combined)
-    fit = fit_set(combined, nominal, candidates=[rival], start=start)[rival]
+    fit = fit_set(combined, nominal, candidates=[rival], starts={rival: start})[rival]
     chi2 = 0.0
     for r, p in enumerate(combined.preps):
         n = p["n"]
@@ -876,8 +877,9 @@ def release_lag_states(prepared: PreparedSet, nominal: NominalDevice, fits: dict
     (N(0, 1) in the record's scale), from its first-stage solution. A record that starts in
     a transient soon after a stop contact or an earlier level, with a long lag, departs from
     the first-order start rule of `initial_state`; the first stage then leaves it above its
-    floor. The second stage nests the first and starts at its optimum, so no candidate's
-    cost can rise. Returns the widened set and its fits."""
+    floor. The second stage nests the first and starts at its solution, so no candidate's
+    penalised cost can rise (a single record's misfit can). Returns the widened set and its
+    fits."""
     wide = stack(prepared.preps, prepared.stop_voltage, lag_states=True)
     starts = {c: _transfer_start(fits[c]["x"], prepared, wide) for c in fits}
     return wide, fit_set(wide, nominal, candidates=list(fits), starts=starts)
