@@ -210,6 +210,15 @@ def _score(truths, sets, singles, follows, follow_truth, times) -> dict:
     single_ties = [n for n in sorted(singles) if singles[n]["verdict"] == "cannot_tell"]
     with_experiment = [n for n in single_ties if singles[n]["next_experiment"]]
     resolved = [n for n in follows if follows[n]["verdict"] == follow_truth[n]]
+    single_confusion = {e: {} for e in EFFECTS}
+    for n in sorted(singles):
+        e, v = truths[int(n.split("_")[1])]["effect"], singles[n]["verdict"]
+        single_confusion[e][v] = single_confusion[e].get(v, 0) + 1
+    wrong_lag = sum(
+        swap[truths[int(n.split("_")[1])]["effect"]] == singles[n]["verdict"]
+        for n in singles
+        if truths[int(n.split("_")[1])]["effect"] != "none"
+    )
     return {
         "n_sets": len(names),
         "sets": {
@@ -223,6 +232,8 @@ def _score(truths, sets, singles, follows, follow_truth, times) -> dict:
                 v: sum(singles[n]["verdict"] == v for n in singles)
                 for v in sorted({s["verdict"] for s in singles.values()})
             },
+            "confusion": single_confusion,
+            "lag_confusions": int(wrong_lag),
             "cannot_tell": len(single_ties),
             "with_next_experiment": len(with_experiment),
             "ties_resolved_by_the_recommended_record": _rate(len(resolved), len(follows)),
@@ -283,6 +294,8 @@ def main(argv=None) -> int:
     print(f"  confusion (truth → verdict counts): {s['confusion']}")
     single = result["single_small_steps"]
     print(f"single small steps: {single['verdicts']}")
+    print(f"  confusion (truth → verdict counts): {single['confusion']}")
+    print(f"  lag confusions: {single['lag_confusions']}")
     print(
         f"  cannot_tell with a next experiment: {single['with_next_experiment']}/"
         f"{single['cannot_tell']}"
