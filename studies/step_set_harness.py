@@ -210,14 +210,13 @@ def _score(truths, sets, singles, follows, follow_truth, times) -> dict:
     single_ties = [n for n in sorted(singles) if singles[n]["verdict"] == "cannot_tell"]
     with_experiment = [n for n in single_ties if singles[n]["next_experiment"]]
     resolved = [n for n in follows if follows[n]["verdict"] == follow_truth[n]]
+    single_truth = {n: truths[int(n.split("_")[1])]["effect"] for n in singles}
     single_confusion = {e: {} for e in EFFECTS}
     for n in sorted(singles):
-        e, v = truths[int(n.split("_")[1])]["effect"], singles[n]["verdict"]
+        e, v = single_truth[n], singles[n]["verdict"]
         single_confusion[e][v] = single_confusion[e].get(v, 0) + 1
     wrong_lag = sum(
-        swap[truths[int(n.split("_")[1])]["effect"]] == singles[n]["verdict"]
-        for n in singles
-        if truths[int(n.split("_")[1])]["effect"] != "none"
+        swap[e] == singles[n]["verdict"] for n, e in single_truth.items() if e != "none"
     )
     return {
         "n_sets": len(names),
