@@ -243,7 +243,14 @@ def _score(truths, sets, singles, follows, follow_truth, times) -> dict:
         },
         "seconds": {"sets": times[0], "single": times[1], "followup": times[2]},
         "per_set": {
-            n: {"truth": e, "verdict": v} for n, e, v in zip(names, effects, verdicts, strict=True)
+            n: {
+                "truth": e,
+                # the drawn lag (s) against the reference's 10 µs, so that a lag device
+                # diagnosed `none` can be checked for a lag that sits on the nominal
+                "truth_lag_s": truths[int(n.split("_")[1])]["lag_s"],
+                "verdict": v,
+            }
+            for n, e, v in zip(names, effects, verdicts, strict=True)
         },
     }
 
