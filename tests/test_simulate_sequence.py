@@ -340,6 +340,21 @@ def test_innovations_of_white_plus_ar1_noise():
     assert abs(np.corrcoef(a[1:], a[:-1])[0, 1]) < 0.01
 
 
+@pytest.mark.parametrize("n", [1, 15, 17, 257, 4099])
+@pytest.mark.parametrize("theta", [0.0, -0.9, 0.999])
+def test_the_blocked_first_order_filter_is_the_plain_recursion(n, theta):
+    # Lengths that are not a multiple of the block, a negative and a near-unit pole.
+    from accel_jax.diagnose.step_fit import _first_order_filter
+
+    b = np.random.default_rng(n).normal(size=n)
+    loop = np.empty(n)
+    loop[0] = b[0]
+    for k in range(1, n):
+        loop[k] = b[k] + theta * loop[k - 1]
+    a = np.asarray(_first_order_filter(jnp.asarray(b), theta))
+    np.testing.assert_allclose(a, loop, rtol=0, atol=1e-12 * max(1.0, np.max(np.abs(loop))))
+
+
 @pytest.mark.parametrize("lags", [(3e-5, 1e-5), (1e-5, 3e-5)])
 def test_stop_record_with_lags_releases_where_the_truth_simulator_does(lags):
     # Stop-level steps (±5.5 V onto stops at 4.04 V) with a lagged torquer and output

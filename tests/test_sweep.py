@@ -28,6 +28,12 @@ def test_sweep_matches_vmap_single_device():
     ref = eqx.filter_jit(eqx.filter_vmap(_one, in_axes=(0, None)))(batch, 2.0)
     np.testing.assert_array_equal(out[0], ref[0])
     np.testing.assert_array_equal(out[1], ref[1])
+    # A batch of one is run unbatched (a smaller program): the same values and shapes.
+    one = jax.tree_util.tree_map(lambda x: x[4:5], batch)
+    single = aj.sweep(_one, one, 2.0, in_axes=(0, None))
+    assert single[0].shape == (1,) and single[1].shape == (1,)
+    np.testing.assert_array_equal(single[0], ref[0][4:5])
+    np.testing.assert_array_equal(single[1], ref[1][4:5])
 
 
 def _first_pair(params, gain):
