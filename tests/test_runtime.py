@@ -178,3 +178,30 @@ def test_fast_compile_gives_the_same_results_and_is_recorded():
     # Recorded in the provenance while on, and switched back off after the block.
     assert fast[1:] == ("True", "False", "--xla_cpu_use_fusion_emitters=false")
     assert fast[0] == pytest.approx(default[0], rel=1e-12)
+
+
+_CLI_PROGRAM = """
+import os, sys
+from accel_jax.cli import main
+try:
+    main([sys.argv[1], "--help"])
+except SystemExit:
+    pass
+print("FLAGS", os.environ.get("XLA_FLAGS", "-"))
+"""
+
+
+@pytest.mark.parametrize("command", ["diagnose", "report"])
+def test_single_record_commands_compile_with_the_fast_flags(command):
+    # `diagnose` / `identify` / `noise` are compile-bound: the CLI adds FAST_COMPILE_FLAGS
+    # before the backend starts; `report` decides for itself (its --quick run adds them).
+    environment = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", OPT_OUT_ENV)}
+    out = subprocess.run(
+        [sys.executable, "-c", _CLI_PROGRAM, command],
+        capture_output=True,
+        text=True,
+        env={**environment, "ACCEL_JAX_CACHE_DIR": "off"},
+        timeout=120,
+    )
+    flags = out.stdout.rsplit("FLAGS", 1)[1].split()
+    assert ("--xla_cpu_use_fusion_emitters=false" in flags) == (command != "report"), flags
