@@ -212,25 +212,35 @@ def linear_record(
     def flow(time):  # e^{[[A, B], [0, 0]] time}: the unit-input affine flow
         return expm_minus_identity(augmented * time) + eye
 
-    c_aug = jnp.concatenate([c, jnp.zeros(1, dtype)])
-    within = power_rows(flow(dt), c_aug, max(max_block, 1))  # c M^l
-    within = jnp.where((jnp.arange(within.shape[0]) < m)[:, None], within, 0.0)
-    cumulative = jnp.cumsum(within, axis=0)  # c P_{l+1}, constant from l = m − 1 on
-    block_map = flow(m * dt)
-    mean_row = cumulative[-1] / m  # (1/m) c P_m
-    rest = equilibrium(params, gain * first_level, moment)
-    start = initial_state(params, gain * first_level, moment, rate, dv, dw, sequence.lag_states)
     offset, fraction = _change_split(change_shift)
     first = (change_index + offset).astype(jnp.int32)  # the first sample each change reaches
     q, p = first // m, first % m
+    # Every exponential the record needs, as one batch (one instance of the squaring loop
+    # in the program, not four): the sample step M, the block step M^m, and per change its
+    # flow over ρ (to its first sample) and to the next block boundary.
+    times = jnp.concatenate(
+        [jnp.stack([dt, m * dt]).astype(dtype), fraction * dt, (fraction + m - p) * dt]
+    )
+    flows = jax.vmap(flow)(times)
+    count = change_step.shape[0]
+    sample_map, block_map = flows[0], flows[1]
+    to_first, to_boundary = flows[2 : 2 + count], flows[2 + count :]
+
+    c_aug = jnp.concatenate([c, jnp.zeros(1, dtype)])
+    within = power_rows(sample_map, c_aug, max(max_block, 1))  # c M^l
+    within = jnp.where((jnp.arange(within.shape[0]) < m)[:, None], within, 0.0)
+    cumulative = jnp.cumsum(within, axis=0)  # c P_{l+1}, constant from l = m − 1 on
+    mean_row = cumulative[-1] / m  # (1/m) c P_m
+    rest = equilibrium(params, gain * first_level, moment)
+    start = initial_state(params, gain * first_level, moment, rate, dv, dw, sequence.lag_states)
     # A change at τ leaves the state deviation e^{[[A, B], [0, 0]](t − τ)}[ΔM̃ e_M; gΔU] at
     # t ≥ τ: ζ at its first sample (after ρ), ζ' at the next block boundary.
     jumps = jnp.zeros((change_step.shape[0], size), dtype)
     jumps = (
         jumps.at[:, N_STATES].set(gain * change_step).at[:, 4].set(_moment_jumps(sequence, dtype))
     )
-    zeta = jax.vmap(lambda f, u: flow(f * dt) @ u)(fraction, jumps)
-    zeta_next = jax.vmap(lambda f, pp, u: flow((f + m - pp) * dt) @ u)(fraction, p, jumps)
+    zeta = jnp.einsum("jab,jb->ja", to_first, jumps)
+    zeta_next = jnp.einsum("jab,jb->ja", to_boundary, jumps)
     weight = jnp.ones_like(change_step)
     initial = jnp.concatenate([start - rest, jnp.zeros(1, dtype)])
     head = jnp.concatenate(
@@ -251,7 +261,7 @@ def linear_record(
         here = (q == b).astype(dtype)
         return block_map @ z + here @ tail, level + mean_row @ z + here @ head
 
-    _, record = jax.lax.scan(step, jnp.zeros(N_STATES + 1, dtype), jnp.arange(n), unroll=8)
+    _, record = jax.lax.scan(step, jnp.zeros(N_STATES + 1, dtype), jnp.arange(n), unroll=2)
     return record
 
 
