@@ -79,6 +79,7 @@ from .step_fit import (
     REFIT_FIELDS,
     TIMING_LIMIT,
     TIMING_PRIOR,
+    dense_jacobian,
     moment_jumps,
     refitted_device,
 )
@@ -281,11 +282,17 @@ def _fit(
                 x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight
             )
 
-        solution = optx.least_squares(fn, solver, x0, max_steps=max_steps, throw=False)
+        # The Jacobian as a matrix (`dense_jacobian`): one copy of the simulation in the
+        # solver's program instead of its linearisation, materialisation and transpose.
+        solution = optx.least_squares(
+            dense_jacobian(fn), solver, x0, max_steps=max_steps, throw=False
+        )
         x = solution.value
-        cost = jnp.sum(fn(x, None) ** 2)
         prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
         penalties = _penalties(*_split(x, ctx_stack.dt.shape[0], layout), candidate, ctx_stack)
+        # The cost from the same prediction (`_residuals` without a second simulation).
+        scaled = (data - prediction) * weight / ctx_stack.sigma_ref[:, None]
+        cost = jnp.sum(scaled**2) + jnp.sum(penalties**2)
         return (
             x,
             jnp.where(jnp.isfinite(cost), cost, jnp.inf),

@@ -1,0 +1,62 @@
+"""What the step diagnosis's fits take from the solver (accel_jax/diagnose/step_fit.py):
+`dense_jacobian` differentiates as the function does, and an optimistix
+Levenberg–Marquardt solution's state holds the residuals and Jacobian at the returned
+value (the fits read the cost, the Newton decrement and the polishing step from it instead
+of simulating again). Checked on a small nonlinear least-squares problem, converged and
+stopped early."""
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+import pytest
+
+from accel_jax.diagnose.step_fit import _gauss_newton_step, _newton_step, dense_jacobian
+
+T = jnp.linspace(0.0, 3.0, 40)
+
+
+def _residuals(w, scale):
+    # A damped oscillation's amplitude, rate and frequency against data, plus a prior row.
+    y = 1.3 * jnp.exp(-0.7 * T) * jnp.cos(2.1 * T)
+    model = w[0] * jnp.exp(-w[1] * T) * jnp.cos(w[2] * T)
+    return jnp.concatenate([scale * (model - y), 0.1 * w[:1]])
+
+
+def test_dense_jacobian_differentiates_as_the_function_does():
+    with jax.enable_x64(True):
+        w = jnp.array([1.0, 0.5, 2.0])
+        dense = dense_jacobian(_residuals)
+        np.testing.assert_allclose(dense(w, 2.0), _residuals(w, 2.0), rtol=0, atol=0)
+        expected = jax.jacfwd(_residuals)(w, 2.0)
+        np.testing.assert_allclose(jax.jacfwd(dense)(w, 2.0), expected, rtol=1e-14)
+        tangent = jnp.array([0.3, -1.0, 0.2])
+        _, out = jax.jvp(lambda v: dense(v, 2.0), (w,), (tangent,))
+        np.testing.assert_allclose(out, expected @ tangent, rtol=1e-14)
+
+
+@pytest.mark.parametrize("max_steps", [3, 100])
+def test_the_solvers_state_holds_the_residuals_and_jacobian_at_its_value(max_steps):
+    with jax.enable_x64(True):
+        solver = optx.LevenbergMarquardt(
+            rtol=1e-10, atol=1e-10, linear_solver=lx.Normal(lx.Cholesky())
+        )
+
+        @jax.jit
+        def fit(w0):
+            solution = optx.least_squares(
+                dense_jacobian(_residuals), solver, w0, args=2.0, max_steps=max_steps, throw=False
+            )
+            info = solution.state.f_info
+            return solution.value, info.residual, info.jac.as_matrix(), solution.result
+
+        value, r, jac, result = fit(jnp.array([1.0, 0.5, 2.0]))
+        assert (result == optx.RESULTS.successful) == (max_steps == 100)
+        np.testing.assert_allclose(r, _residuals(value, 2.0), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(jac, jax.jacfwd(_residuals)(value, 2.0), rtol=1e-13)
+        # The Newton step from the state is the one from a fresh evaluation.
+        from_state = _newton_step(jac, r, value)
+        fresh = _gauss_newton_step(lambda v: _residuals(v, 2.0), value)
+        for a, b in zip(from_state, fresh, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
