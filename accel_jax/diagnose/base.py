@@ -223,7 +223,7 @@ def _contains(large: str, small: str, nested: dict[str, str]) -> bool:
 def _resolve_nested(first, second, candidates, nested, level) -> str | None:
     """The simpler of two tied effects when one nests the other and the larger's
     likelihood ratio is not significant at `level`; None otherwise."""
-    from jax.scipy.special import gammaincc
+    from scipy.special import gammaincc  # on the host: no program to compile for one number
 
     fits = {fit.effect: fit for fit in candidates}
     for large, small in ((first, second), (second, first)):

@@ -78,10 +78,13 @@ from .step_verdict import evaluate, explains_deterministically, fit_entries
 
 def _run(fn, nominal, preps, indices, guesses_key, candidates, desc):
     """Fit `candidates` of the records `indices` (one length and change count), batched."""
+    # Stacked on the host (NumPy), then moved once: an eager jnp.stack compiles a program
+    # per leaf shape, time a cold single-record diagnosis pays.
     ctx = jax.tree_util.tree_map(
-        lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *(preps[i]["ctx"] for i in indices)
+        lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])),
+        *(preps[i]["ctx"] for i in indices),
     )
-    u_out = jnp.stack([jnp.asarray(preps[i]["u_out"]) for i in indices])
+    u_out = jnp.asarray(np.stack([np.asarray(preps[i]["u_out"]) for i in indices]))
     guesses = jnp.asarray(np.stack([preps[i][guesses_key] for i in indices]))
     outputs = sweep(
         fn,
