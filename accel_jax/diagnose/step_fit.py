@@ -346,8 +346,6 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         # One Gauss–Newton step from the result: its predicted decrease (the Newton
         # decrement) tells whether the fit is at a minimum; taken when it lowers the cost.
         polished, cost, decrement = _newton_step(jacs[best], rs[best], w)
-        better = jnp.sum(residuals(polished, candidate) ** 2) < 2 * cost
-        w = jnp.where(better, polished, w)
         converged = solved[best] | (decrement <= CONVERGED_DECREMENT + 1e-8 * cost)
 
         # The held-out nuisances: the times of the held-out changes, and parameters that an
@@ -359,28 +357,51 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
             nuisance = jnp.where(candidate == i, mask.astype(w.dtype), nuisance)
         free = jnp.concatenate([nuisance, ctx.held_out_change])
 
-        def moved(delta):
-            return w.at[_I_SLOT:].add(free * delta)
+        def moved(base, delta):
+            return base.at[_I_SLOT:].add(free * delta)
 
-        def held_out(delta):
-            _, _, a, _ = error_of(moved(delta), candidate)
-            timing = moved(delta)[_I_TIMING:]
+        def held_out(delta, base):
+            """The held-out residuals at `base` moved by `delta`, and (aux) the training
+            cost Σr² of `residuals` there."""
+            m, _, a, _ = error_of(moved(base, delta), candidate)
+            timing = moved(base, delta)[_I_TIMING:]
             prior = ctx.held_out_change * (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
-            return jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])
+            out = jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])
+            train = jnp.sum((a * ctx.train / ctx.sigma_ref) ** 2) + jnp.sum(m["penalties"] ** 2)
+            return out, (out, train)
 
-        def iterate(_, carry):
-            delta, best_delta, best_cost = carry
-            new, cost, _ = _gauss_newton_step(held_out, delta)
-            better = cost < best_cost
-            return new, jnp.where(better, delta, best_delta), jnp.where(better, cost, best_cost)
+        def refine(base):
+            """A few Gauss–Newton steps of the held-out nuisances from `base`: the best
+            step (one pass more than there are steps: the last only costs the last step's
+            result), and the training cost at `base` (from the first pass)."""
 
-        zero = jnp.zeros_like(w[_I_SLOT:])
-        # One pass more than there are steps: the last only costs the last step's result
-        # (its own step is dropped), so the model appears once in the program, not twice.
-        _, best_delta, _ = jax.lax.fori_loop(
-            0, HELD_OUT_ITERATIONS + 1, iterate, (zero, zero, jnp.inf)
-        )
-        w = moved(best_delta)
+            def iterate(i, carry):
+                delta, best_delta, best_cost, train_at_base = carry
+                jac, (r, train) = jax.jacfwd(held_out, has_aux=True)(delta, base)
+                new, cost, _ = _newton_step(jac, r, delta)
+                better = cost < best_cost
+                return (
+                    new,
+                    jnp.where(better, delta, best_delta),
+                    jnp.where(better, cost, best_cost),
+                    jnp.where(i == 0, train, train_at_base),
+                )
+
+            zero = jnp.zeros_like(base[_I_SLOT:])
+            carry = (zero, zero, jnp.inf, jnp.inf)
+            _, best_delta, _, train_at_base = jax.lax.fori_loop(
+                0, HELD_OUT_ITERATIONS + 1, iterate, carry
+            )
+            return best_delta, train_at_base
+
+        # From the fit and from its polished point at once (one batch of two, so the model
+        # appears once in the program): the polished one is kept when it lowers the
+        # training cost.
+        deltas, train_costs = jax.vmap(refine)(jnp.stack([w, polished]))
+        better = train_costs[1] < 2 * cost
+        w = jnp.where(better, polished, w)
+        best_delta = jnp.where(better, deltas[1], deltas[0])
+        w = moved(w, best_delta)
         # The fitted model and the same model with the device at its prior values (what
         # the refit changed), as one batch of two.
         _, predictions, a, log_v = jax.vmap(error_of, in_axes=(0, None))(
