@@ -130,9 +130,9 @@ N_LAG_STATES = 2
 def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
     """A record's `StepContext` padded to the set's common shapes (zero weight)."""
 
-    def pad(x, size):
-        x = jnp.asarray(x)
-        return jnp.concatenate([x, jnp.zeros(size - x.shape[0], x.dtype)])
+    def pad(x, size):  # on the host: an eager jnp op compiles a program per new shape
+        x = np.asarray(x)
+        return np.concatenate([x, np.zeros(size - x.shape[0], x.dtype)])
 
     return dataclasses.replace(
         ctx,
@@ -347,10 +347,13 @@ def stack(preps: list[dict], stop_voltage: float, lag_states: bool = False) -> P
     max_block = max(p["group"][2] for p in preps)
     ctxs = [_pad_context(p["ctx"], n_padded, j_padded, max_block) for p in preps]
     ctxs = [
-        dataclasses.replace(c, sigma_ref=jnp.asarray(p["sigma"]))
+        dataclasses.replace(c, sigma_ref=np.asarray(p["sigma"], np.float64))
         for c, p in zip(ctxs, preps, strict=True)
     ]
-    ctx = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *ctxs)
+    # Stacked on the host, moved to the device once per leaf.
+    ctx = jax.tree_util.tree_map(
+        lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *ctxs
+    )
     data = np.zeros((len(preps), n_padded))
     weight = np.zeros((len(preps), n_padded))
     for r, p in enumerate(preps):
@@ -794,6 +797,11 @@ def experiment_menu(nominal: NominalDevice, sample_rate: float, noise_V: float) 
     return menu
 
 
+# One program per design shape; run eagerly, the simulation's hundreds of small operations
+# were each compiled on their own (about 5 s of a cold lag-tie diagnosis).
+_record_prediction_compiled = eqx.filter_jit(_record_prediction)
+
+
 def _simulate_design(fit, prepared: PreparedSet, nominal, candidate, design) -> StepData:
     """The design's record as the fitted `candidate` predicts it (noise-free): the set's
     shared values, polarity +1, no offset, at rest at the start."""
@@ -805,7 +813,7 @@ def _simulate_design(fit, prepared: PreparedSet, nominal, candidate, design) -> 
     own = np.zeros(probe.layout.width)  # the design's changes at its samples' boundaries
     ctx = dataclasses.replace(ctx, polarity=jnp.asarray(1.0), accel_sign=jnp.asarray(1.0))
     n = probe.layout.n_padded
-    out = _record_prediction(
+    out = _record_prediction_compiled(
         shared,
         jnp.asarray(own),
         jnp.asarray(CANDIDATES.index(candidate)),
