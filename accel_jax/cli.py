@@ -27,16 +27,17 @@ STUDIES = (
     "table5_gap",
 )
 # Wall time of each study in a full report on a 2-core CPU, two at a time, each process
-# pinned to one core (a cold run at this version) [s]: the report starts the longest first
-# when it runs studies side by side (its order stays STUDIES).
+# pinned to one core (a fresh clone with a cold compilation cache, 2026-11-25) [s]: the
+# report starts the longest first when it runs studies side by side (its order stays
+# STUDIES).
 TYPICAL_SECONDS = {
-    "scale_factor_identification": 104,
-    "sensing_element_ml": 156,
-    "vibration_compensation": 22,
-    "tolerance_limits": 12,
-    "noise_identification": 113,
-    "sim_to_real_validation": 660,  # cold, 2-core CPU, 520 blind records (issue 19)
-    "table5_gap": 2,
+    "scale_factor_identification": 92,
+    "sensing_element_ml": 113,
+    "vibration_compensation": 16,
+    "tolerance_limits": 10,
+    "noise_identification": 79,
+    "sim_to_real_validation": 815,  # 520 blind records (issue 19)
+    "table5_gap": 1,
 }
 
 
