@@ -45,7 +45,6 @@ compares log-likelihoods of ~1e4 to within ~1).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -72,19 +71,14 @@ from .step_effects import (
 )
 from .step_effects import step_effects
 from .step_fit import _I_SLOT, _I_TIMING, BATCH_CHUNK, fit_linear, fit_nonlinear
-from .step_record import prepare, prior_sigma_of
+from .step_record import prepare, prior_sigma_of, stack_on_host
 from .step_verdict import evaluate, explains_deterministically, fit_entries
 
 
 def _run(fn, nominal, preps, indices, guesses_key, candidates, desc):
     """Fit `candidates` of the records `indices` (one length and change count), batched."""
-    # Stacked on the host (NumPy), then moved once: an eager jnp.stack compiles a program
-    # per leaf shape, time a cold single-record diagnosis pays.
-    ctx = jax.tree_util.tree_map(
-        lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])),
-        *(preps[i]["ctx"] for i in indices),
-    )
-    u_out = jnp.asarray(np.stack([np.asarray(preps[i]["u_out"]) for i in indices]))
+    ctx = stack_on_host([preps[i]["ctx"] for i in indices])
+    u_out = stack_on_host([preps[i]["u_out"] for i in indices])
     guesses = jnp.asarray(np.stack([preps[i][guesses_key] for i in indices]))
     outputs = sweep(
         fn,

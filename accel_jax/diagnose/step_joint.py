@@ -83,7 +83,7 @@ from .step_fit import (
     moment_jumps,
     refitted_device,
 )
-from .step_record import prepare, prior_sigma_of, time_text
+from .step_record import prepare, prior_sigma_of, stack_on_host, time_text
 
 CANDIDATES = ("nominal", "torquer_lag", "output_filter")
 """The joint fit's models: the nominal device and the two lags that a small step cannot
@@ -260,9 +260,14 @@ def _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltag
 
 
 def _residuals(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight):
-    n_records = ctx_stack.dt.shape[0]
-    shared, own = _split(x, n_records, layout)
     prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
+    return _misfit(prediction, x, candidate, ctx_stack, layout, data, weight)
+
+
+def _misfit(prediction, x, candidate, ctx_stack, layout, data, weight):
+    """The residuals of a prediction: each record's misfit over its floor, then the
+    penalties (priors and barriers) of x."""
+    shared, own = _split(x, ctx_stack.dt.shape[0], layout)
     scaled = (data - prediction) * weight / ctx_stack.sigma_ref[:, None]
     return jnp.concatenate([scaled.ravel(), _penalties(shared, own, candidate, ctx_stack)])
 
@@ -290,9 +295,8 @@ def _fit(
         x = solution.value
         prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
         penalties = _penalties(*_split(x, ctx_stack.dt.shape[0], layout), candidate, ctx_stack)
-        # The cost from the same prediction (`_residuals` without a second simulation).
-        scaled = (data - prediction) * weight / ctx_stack.sigma_ref[:, None]
-        cost = jnp.sum(scaled**2) + jnp.sum(penalties**2)
+        # The cost from the same prediction (no second simulation).
+        cost = jnp.sum(_misfit(prediction, x, candidate, ctx_stack, layout, data, weight) ** 2)
         return (
             x,
             jnp.where(jnp.isfinite(cost), cost, jnp.inf),
@@ -350,10 +354,7 @@ def stack(preps: list[dict], stop_voltage: float, lag_states: bool = False) -> P
         dataclasses.replace(c, sigma_ref=np.asarray(p["sigma"], np.float64))
         for c, p in zip(ctxs, preps, strict=True)
     ]
-    # Stacked on the host, moved to the device once per leaf.
-    ctx = jax.tree_util.tree_map(
-        lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *ctxs
-    )
+    ctx = stack_on_host(ctxs)
     data = np.zeros((len(preps), n_padded))
     weight = np.zeros((len(preps), n_padded))
     for r, p in enumerate(preps):

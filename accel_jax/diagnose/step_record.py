@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -194,6 +195,15 @@ most 10 µs for the reference device): a record sampled at 1 MHz is fitted as th
 means of blocks of 10 samples. White noise averages down by √m with the signal kept, and
 the model predicts the block means exactly (`_simulate.sequence.linear_record`), so little is lost
 while the fit handles ~30 points per T however fast the record was sampled."""
+
+
+def stack_on_host(trees: list):
+    """Trees of the same structure stacked leaf by leaf along a new first axis: with NumPy
+    on the host, each leaf then moved to the device once (an eager `jnp.stack` compiles a
+    program per leaf shape, time a cold single-record diagnosis pays)."""
+    return jax.tree_util.tree_map(
+        lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *trees
+    )
 
 
 class RecordView(eqx.Module):
