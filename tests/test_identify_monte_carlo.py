@@ -2,6 +2,11 @@
 against `identify_oscillatory` called on the same records, and its float32 noise draws.
 Float64 (tests/conftest.py). Records: 10 ms at 250 kHz (2 501 samples), small batches."""
 
+import os
+import subprocess
+import sys
+import textwrap
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -111,4 +116,55 @@ def test_monte_carlo_default_draws_noise_in_float32():
             pickoff_amplifier_gain=GAIN,
             shape_factor=0.75,
             noise_dtype="float16",
+        )
+
+
+def test_monte_carlo_on_two_simulated_devices_matches_one():
+    # A fresh interpreter: the device count is fixed when JAX starts. The batch (13, not a
+    # multiple of 2 devices × chunks of 4) is split across both devices and each
+    # trajectory's estimate is that of the single-device kernel to rounding.
+    code = textwrap.dedent(
+        """
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        import equinox as eqx, jax.numpy as jnp, numpy as np
+        import accel_jax as aj
+        assert jax.device_count() == 2, jax.devices()
+        size = 13
+        mus = jnp.linspace(1.5e-5, 3.5e-5, size)  # ξ ≈ 0.3 … 0.7
+        devices = eqx.filter_vmap(
+            lambda mu: aj.ServoParams.reference(damping=mu, noise_std=1e-4)
+        )(mus)
+        keys = jax.random.split(jax.random.key(9), size)
+        ts = jnp.arange(2501) / 2.5e5
+        run = lambda d: aj.monte_carlo_oscillatory(
+            devices, keys, ts, pickoff_amplifier_gain=2.125e6, shape_factor=0.75,
+            chunk_size=4, devices=d,
+        )
+        both, one = run(None), run(jax.devices()[:1])
+        assert bool(jnp.all(one.result == aj.IdentificationResult.successful))
+        assert bool(jnp.all(both.result == one.result))
+        for a, b in zip(jax.tree_util.tree_leaves(both), jax.tree_util.tree_leaves(one)):
+            # The per-device program is compiled on its own and fuses differently: the
+            # same numbers to rounding (seen: 1 ulp), not bitwise.
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=0)
+        print("OK", len(both.scale_factor.sharding.device_set))
+        """
+    )
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "OK 2", proc.stdout
+    with pytest.raises(ValueError, match="at least one device"):
+        monte_carlo_oscillatory(
+            drawn_devices(2, 1),
+            jax.random.split(jax.random.key(0), 2),
+            TS,
+            pickoff_amplifier_gain=GAIN,
+            shape_factor=0.75,
+            devices=[],
         )

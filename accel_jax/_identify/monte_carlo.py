@@ -11,6 +11,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from .._params import ServoParams, _concrete
@@ -46,9 +47,14 @@ def _batch_size(params: ServoParams, keys) -> int:
 
 
 @eqx.filter_jit
-def _monte_carlo(params, keys, gain, gamma, ts, test_voltage, *, chunk_size, options, noise_dtype):
+def _monte_carlo(
+    params, keys, gain, gamma, ts, test_voltage, *, chunk_size, options, noise_dtype, devices
+):
     size = keys.shape[0]
-    n_chunks = -(-size // chunk_size)
+    n_dev = len(devices)
+    # Whole chunks on every device: the batch is padded (repeating its last trajectory) to
+    # a multiple of n_dev · chunk_size and each device maps over its own chunks.
+    n_chunks = -(-size // (chunk_size * n_dev)) * n_dev
     padded = n_chunks * chunk_size
 
     def pad_and_chunk(leaf):
@@ -69,7 +75,20 @@ def _monte_carlo(params, keys, gain, gamma, ts, test_voltage, *, chunk_size, opt
             **dict(options),
         )
 
-    estimates = jax.lax.map(lambda chunk: jax.vmap(one)(*chunk), batch)
+    def chunks(local):
+        return jax.lax.map(lambda chunk: jax.vmap(one)(*chunk), local)
+
+    if n_dev > 1:
+        # Each device runs the chunked loop over its share of the chunks (a shard_map over
+        # the chunk axis): the same per-trajectory program, so the same numbers as on one
+        # device to rounding (compiled on its own, it fuses differently: 1 ulp seen).
+        # XLA:CPU's own threading gave the second core of this project's 2-core machine
+        # ~8 %; two CPU devices gave ×1.7 (benchmarks/bench.py).
+        mesh = Mesh(np.asarray(devices), ("batch",))
+        chunks = jax.shard_map(
+            chunks, mesh=mesh, in_specs=PartitionSpec("batch"), out_specs=PartitionSpec("batch")
+        )
+    estimates = chunks(batch)
     return jax.tree_util.tree_map(lambda x: x.reshape((padded,) + x.shape[2:])[:size], estimates)
 
 
@@ -87,6 +106,7 @@ def monte_carlo_oscillatory(
     period: Literal["full", "half"] = "full",
     chunk_size: int | None = None,
     noise_dtype=jnp.float32,
+    devices=None,
 ) -> OscillatoryEstimate:
     """Simulate and identify N noisy step responses in one compiled, chunked kernel.
 
@@ -130,6 +150,11 @@ def monte_carlo_oscillatory(
         leave the device idle.
     - `noise_dtype`: the dtype the noise deviates are drawn in: `jnp.float32` (default),
         `jnp.float64` or `None` (the parameters' dtype).
+    - `devices`: the devices the batch is split across (whole chunks per device), default
+        all of `jax.devices()`: several GPUs, or several CPU devices
+        (`XLA_FLAGS=--xla_force_host_platform_device_count=K`, one per core) with no
+        change to the call. Each trajectory's estimate is the same whatever the devices (to
+        rounding: the per-device program fuses differently).
 
     **Returns:**
 
@@ -160,6 +185,10 @@ def monte_carlo_oscillatory(
     # Validate the record-level settings once, outside the compiled kernel.
     if not 0.0 < tail_fraction <= 0.5:
         raise ValueError(f"tail_fraction must be in (0, 0.5], got {tail_fraction!r}.")
+    devices = tuple(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("devices must name at least one device.")
+    n_dev = len(devices)
     return _monte_carlo(
         params,
         keys,
@@ -167,7 +196,8 @@ def monte_carlo_oscillatory(
         gamma,
         ts.astype(dtype),
         float(test_voltage),
-        chunk_size=min(chunk_size, size),
+        chunk_size=min(chunk_size, -(-size // n_dev)),
+        devices=devices,
         options=tuple(sorted(options.items())),
         noise_dtype=None if noise_dtype is None else noise_dtype.name,
     )
