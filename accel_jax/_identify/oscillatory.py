@@ -19,6 +19,8 @@ from .record import (
     SeriesLike,
     _common_result,
     _fail_if,
+    _first,
+    _last,
     _parabolic_peak,
     _record_arguments,
     _summarise,
@@ -85,7 +87,7 @@ def _crossing(ts, deviation, label, fit_width, k, exists, crossing):
     k = jnp.where(exists, k, 1)
     # The last sample outside the band before k (it lies beyond the near edge: had one
     # been beyond the far edge, the transition would have completed there).
-    a = jnp.max(jnp.where((index < k) & (label != 0), index, 0))
+    a, _ = _last((index < k) & (label != 0))
     return _fit_crossing(ts, deviation, fit_width, a, k, crossing)
 
 
@@ -102,9 +104,9 @@ def _transitions(label):
     """
     index = jnp.arange(label.shape[0], dtype=jnp.int32)
     up = label > 0
-    k1, has_1 = jnp.argmax(up), jnp.any(up)
+    k1, has_1 = _first(up)
     down = (label < 0) & (index > k1) & has_1
-    k2, has_2 = jnp.argmax(down), jnp.any(down)
+    k2, has_2 = _first(down)
     return k1, has_1, k2, has_2
 
 
@@ -125,11 +127,13 @@ def _rising_crossing(ts, deviation, band, fit_width, below, has_below, limit, cr
     index = jnp.arange(n, dtype=jnp.int32)
     rises = jnp.concatenate([(deviation[:-1] < 0) & (deviation[1:] >= 0), jnp.zeros(1, bool)])
     candidate = rises & (index >= below) & (index + 1 < limit)
-    exists = has_below & jnp.any(candidate)
-    j = jnp.where(exists, jnp.argmax(candidate), 1)
-    a = jnp.max(jnp.where((index <= j) & (deviation < -band), index, 0))
+    first, found = _first(candidate)
+    exists = has_below & found
+    j = jnp.where(exists, first, 1)
+    a, _ = _last((index <= j) & (deviation < -band))
     above = (index > j) & (deviation > band)
-    k_far = jnp.where(jnp.any(above), jnp.argmax(above), n - 1)
+    first_above, any_above = _first(above)
+    k_far = jnp.where(any_above, first_above, n - 1)
     k = jnp.minimum(k_far, jnp.minimum(j + 1 + (j - a), n - 1))
     k = jnp.maximum(k, j + 1)
     return _fit_crossing(ts, deviation, fit_width, a, k, crossing), exists
@@ -206,7 +210,8 @@ def _largest_between(ts, signed_deviation, start, stop, extremum):
         y_minus = signed_deviation[jnp.maximum(j - 1, 0)]
         y_plus = signed_deviation[jnp.minimum(j + 1, n - 1)]
         _, peak = _parabolic_peak(y_minus, peak, y_plus)
-    return jnp.where(jnp.any(inside), peak, 0.0)
+    # Some sample inside ⟺ the arg-max (of finite values inside, −∞ outside) is inside.
+    return jnp.where(inside[j], peak, 0.0)
 
 
 @eqx.filter_jit
