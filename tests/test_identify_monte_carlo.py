@@ -168,3 +168,49 @@ def test_monte_carlo_on_two_simulated_devices_matches_one():
             shape_factor=0.75,
             devices=[],
         )
+
+
+@pytest.mark.parametrize("window", [1, 128])
+def test_monte_carlo_fast_path_and_its_fallback_match_identify_oscillatory(monkeypatch, window):
+    # The kernel fits the crossings within ±window samples of each sign change when every
+    # fit of a chunk fits there (128: at least the low-noise chunk) and otherwise identifies the
+    # chunk over the whole record (1: no fit fits). Either way: identify_oscillatory's
+    # estimates, including the ones it fails, with both polarities of the records' noise.
+    from accel_jax._identify import monte_carlo
+
+    monkeypatch.setattr(monte_carlo, "_FIT_WINDOW", window)
+    size = 12
+    noise = jnp.where(jnp.arange(size) < 6, 3e-5, 3e-3)  # the last 6: noise dominates A2
+    devices = eqx.tree_at(lambda p: p.noise_std, drawn_devices(size, 21), noise)
+    keys = jax.random.split(jax.random.key(22), size)
+    fused = monte_carlo_oscillatory(
+        devices, keys, TS, pickoff_amplifier_gain=GAIN, shape_factor=0.75, chunk_size=6
+    )
+    records = jax.vmap(lambda d, k: fast_step_response(d, TS, 1.0, key=k, noise_dtype="float32"))(
+        devices, keys
+    )
+    expected = jax.vmap(
+        lambda u: aj.identify_oscillatory(
+            TS, u, pickoff_amplifier_gain=GAIN, shape_factor=0.75, throw=False
+        )
+    )(records)
+    assert bool(jnp.all(fused.result == expected.result))
+    ok = np.asarray(expected.result == aj.IdentificationResult.successful)
+    assert ok[:6].all()
+    # Which path each chunk took: the fast one needs every fit of the chunk exact.
+    from accel_jax._identify.oscillatory import _oscillatory_estimate
+
+    _, exact = jax.vmap(
+        lambda u: _oscillatory_estimate(
+            TS, u, GAIN, 0.75, TS[0], None, jnp.inf, 500, "linear", "sample", "full", window
+        )
+    )(records)
+    fast_chunks = np.asarray(exact).reshape(2, 6).all(axis=1)
+    assert list(fast_chunks[:1]) == ([True] if window == 128 else [False])
+    for name in ("scale_factor", "t1", "t2", "overshoot", "undershoot", "period"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(fused, name))[ok],
+            np.asarray(getattr(expected, name))[ok],
+            rtol=1e-12,
+            err_msg=name,
+        )

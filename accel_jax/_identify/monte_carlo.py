@@ -5,6 +5,7 @@ one chunk of records is alive at a time (GitHub issue 7; speed in `benchmarks/be
 
 from __future__ import annotations
 
+import functools
 from typing import Literal
 
 import equinox as eqx
@@ -16,7 +17,8 @@ from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from .._params import ServoParams, _concrete
 from .._simulate.blocked import _check_noise_dtype, fast_step_response
-from .oscillatory import OscillatoryEstimate, identify_oscillatory
+from .oscillatory import OscillatoryEstimate, _oscillatory_estimate
+from .record import _validate_record
 
 _CHUNK_CPU = 16
 _CHUNK_ACCELERATOR = 4096
@@ -46,9 +48,27 @@ def _batch_size(params: ServoParams, keys) -> int:
     return sizes.pop()
 
 
+# Half-width [samples] of the crossing fits' windows on the kernel's fast path (see
+# `_oscillatory_estimate`): the transitions of noisy records take a few samples, so a chunk
+# whose every fit fits in it is identified without the whole-record masked passes.
+_FIT_WINDOW = 128
+
+
 @eqx.filter_jit
 def _monte_carlo(
-    params, keys, gain, gamma, ts, test_voltage, *, chunk_size, options, noise_dtype, devices
+    params,
+    keys,
+    gain,
+    gamma,
+    ts,
+    test_voltage,
+    *,
+    chunk_size,
+    options,
+    noise_dtype,
+    devices,
+    n_tail,
+    window,
 ):
     size = keys.shape[0]
     n_dev = len(devices)
@@ -63,20 +83,48 @@ def _monte_carlo(
         return leaf.reshape((n_chunks, chunk_size) + leaf.shape[1:])
 
     batch = jax.tree_util.tree_map(pad_and_chunk, (params, keys, gain, gamma))
+    options = dict(options)
+    no_rail = jnp.asarray(jnp.inf, ts.dtype)
 
-    def one(device, key, pickoff_amplifier_gain, shape_factor):
-        record = fast_step_response(device, ts, test_voltage, key=key, noise_dtype=noise_dtype)
-        return identify_oscillatory(
+    def record(device, key):
+        return fast_step_response(device, ts, test_voltage, key=key, noise_dtype=noise_dtype)
+
+    def identify(u, pickoff_amplifier_gain, shape_factor, window):
+        # identify_oscillatory(ts, u, ..., throw=False) with the options: step at ts[0], U_ss
+        # from the tail, no saturation level (the arguments were checked by the caller).
+        return _oscillatory_estimate(
             ts,
-            record,
-            pickoff_amplifier_gain=pickoff_amplifier_gain,
-            shape_factor=shape_factor,
-            throw=False,
-            **dict(options),
+            u,
+            pickoff_amplifier_gain,
+            shape_factor,
+            ts[0],
+            None,
+            no_rail,
+            n_tail,
+            options["crossing"],
+            options["extremum"],
+            options["period"],
+            window,
+        )
+
+    def one_chunk(chunk):
+        device, key, pickoff_amplifier_gain, shape_factor = chunk
+        u = jax.vmap(record)(device, key)
+        fast, exact = jax.vmap(functools.partial(identify, window=window))(
+            u, pickoff_amplifier_gain, shape_factor
+        )
+        # The whole-record passes only for a chunk with a fit the window does not hold
+        # (a real branch: its predicate is one flag for the chunk).
+        return jax.lax.cond(
+            jnp.all(exact),
+            lambda: fast,
+            lambda: jax.vmap(functools.partial(identify, window=None))(
+                u, pickoff_amplifier_gain, shape_factor
+            )[0],
         )
 
     def chunks(local):
-        return jax.lax.map(lambda chunk: jax.vmap(one)(*chunk), local)
+        return jax.lax.map(one_chunk, local)
 
     if n_dev > 1:
         # Each device runs the chunked loop over its share of the chunks (a shard_map over
@@ -181,10 +229,15 @@ def monte_carlo_oscillatory(
     gain = jnp.broadcast_to(jnp.asarray(pickoff_amplifier_gain, dtype), (size,))
     gamma = jnp.broadcast_to(jnp.asarray(shape_factor, dtype), (size,))
     noise_dtype = _check_noise_dtype(noise_dtype)
-    options = dict(tail_fraction=tail_fraction, crossing=crossing, extremum=extremum, period=period)
+    options = dict(crossing=crossing, extremum=extremum, period=period)
     # Validate the record-level settings once, outside the compiled kernel.
-    if not 0.0 < tail_fraction <= 0.5:
-        raise ValueError(f"tail_fraction must be in (0, 0.5], got {tail_fraction!r}.")
+    n_tail = _validate_record("monte_carlo_oscillatory", ts, ts, tail_fraction)
+    if crossing not in ("linear", "nearest"):
+        raise ValueError(f"crossing must be 'linear' or 'nearest', got {crossing!r}.")
+    if extremum not in ("sample", "parabolic"):
+        raise ValueError(f"extremum must be 'sample' or 'parabolic', got {extremum!r}.")
+    if period not in ("full", "half"):
+        raise ValueError(f"period must be 'full' or 'half', got {period!r}.")
     devices = tuple(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("devices must name at least one device.")
@@ -198,6 +251,8 @@ def monte_carlo_oscillatory(
         float(test_voltage),
         chunk_size=min(chunk_size, -(-size // n_dev)),
         devices=devices,
+        n_tail=n_tail,
+        window=_FIT_WINDOW,
         options=tuple(sorted(options.items())),
         noise_dtype=None if noise_dtype is None else noise_dtype.name,
     )

@@ -9,6 +9,7 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array
 
 from .record import (
     _CROSSING_FIT_WIDTH,
@@ -201,6 +202,84 @@ def _fit_crossing(ts, deviation, fit_width, a, k, crossing):
     return t_cross
 
 
+def _window(length: int, end, n: int):
+    """Sample indices end − length + 1 … end, clipped into the record, and which are real
+    (not clipped)."""
+    raw = end - length + 1 + jnp.arange(length, dtype=jnp.int32)
+    return jnp.clip(raw, 0, n - 1), raw >= 0
+
+
+def _last_before(mask_at, end, length: int, n: int):
+    """`_last` of a mask over samples 0 … end, searched in the `length` samples ending at
+    `end`: (index, 0 when none; exact: True when it is `_last` of the whole mask). Exact when
+    found in the window, or when the window reaches sample 0 (then there is none)."""
+    idx, real = _window(length, end, n)
+    local, found = _last(real & mask_at(idx))
+    return jnp.where(found, idx[local], 0), found | (end - length + 1 <= 0)
+
+
+def _fit_crossing_window(ts, deviation, fit_width, a, k, crossing, length: int):
+    """`_fit_crossing` over the `length` samples ending at k: the same fit (the same
+    weights, summed in another order: equal to rounding) whenever k − a < length."""
+    n = ts.shape[0]
+    idx, real = _window(length, k, n)
+    local = jnp.arange(length, dtype=jnp.int32)
+    window = real & (idx >= a)
+    d, t = deviation[idx], ts[idx]
+    positive = d >= 0
+    sign_change = jnp.concatenate([positive[1:] != positive[:-1], jnp.zeros(1, bool)])
+    j = jnp.argmax(window & (idx < k) & sign_change)
+    pair = (local == j) | (local == j + 1)
+    ratio = d / jnp.where(fit_width > 0, fit_width, 1.0)
+    near = window & (fit_width > 0) & (jnp.abs(ratio) < 1)
+    weight = pair + jnp.where(near, (1 - ratio**2) ** 2, 0.0)
+    x = jnp.where(weight > 0, t - ts[k], 0.0)
+    y = jnp.where(weight > 0, d, 0.0)
+    sw, sx, sy, sxx, sxy = _weighted_moments(weight, x, y)
+    denominator = sw * sxx - sx * sx
+    slope = (sw * sxy - sx * sy) / jnp.where(denominator > 0, denominator, 1.0)
+    intercept = (sy - slope * sx) / sw
+    safe_slope = jnp.where(slope != 0, slope, 1.0)
+    t_cross = jnp.clip(ts[k] - intercept / safe_slope, ts[a], ts[k])
+    if crossing == "nearest":
+        j = jnp.argmin(jnp.where(window, jnp.abs(t - t_cross), jnp.inf))
+        t_cross = t[j]
+    return t_cross
+
+
+def _crossing_window(ts, deviation, label, fit_width, k, exists, crossing, length: int):
+    """`_crossing` from the `length` samples before the transition: (time, exact)."""
+    n = ts.shape[0]
+    k = jnp.where(exists, k, 1)
+    a, exact = _last_before(lambda idx: (idx < k) & (label[idx] != 0), k, length, n)
+    return _fit_crossing_window(ts, deviation, fit_width, a, k, crossing, length), exact
+
+
+def _rising_crossing_window(
+    ts, deviation, band, fit_width, below, has_below, limit, crossing, length: int
+):
+    """`_rising_crossing` with its fit window searched within `length` samples of the sign
+    change: (time, exists, exact). Exact when the last sample below −band lies within
+    `length` samples before it: then the window ends within 2·length − 1 samples of its
+    start, and a first sample above +band further on than `length` cannot end it."""
+    n = ts.shape[0]
+    index = jnp.arange(n, dtype=jnp.int32)
+    rises = jnp.concatenate([(deviation[:-1] < 0) & (deviation[1:] >= 0), jnp.zeros(1, bool)])
+    candidate = rises & (index >= below) & (index + 1 < limit)
+    first, found = _first(candidate)
+    exists = has_below & found
+    j = jnp.where(exists, first, 1)
+    a, exact = _last_before(lambda idx: deviation[idx] < -band, j, length, n)
+    ahead = j + 1 + jnp.arange(length, dtype=jnp.int32)
+    above = (ahead < n) & (deviation[jnp.clip(ahead, 0, n - 1)] > band)
+    local, any_above = _first(above)
+    k_far = jnp.where(any_above, ahead[local], n - 1)
+    k = jnp.minimum(k_far, jnp.minimum(j + 1 + (j - a), n - 1))
+    k = jnp.maximum(k, j + 1)
+    t2 = _fit_crossing_window(ts, deviation, fit_width, a, k, crossing, 2 * length)
+    return t2, exists, exact
+
+
 def _largest_between(ts, signed_deviation, start, stop, extremum):
     inside = (ts > start) & (ts < stop)
     j = jnp.argmax(jnp.where(inside, signed_deviation, -jnp.inf))
@@ -229,6 +308,42 @@ def _identify_oscillatory(
     period_from: str,
     throw: bool,
 ) -> OscillatoryEstimate:
+    estimate, _ = _oscillatory_estimate(
+        ts,
+        u,
+        pickoff_amplifier_gain,
+        shape_factor,
+        step_time,
+        steady_state,
+        saturation_level,
+        n_tail,
+        crossing,
+        extremum,
+        period_from,
+        None,
+    )
+    return _fail_if(estimate.result, estimate, throw)
+
+
+def _oscillatory_estimate(
+    ts,
+    u,
+    pickoff_amplifier_gain,
+    shape_factor,
+    step_time,
+    steady_state,
+    saturation_level,
+    n_tail: int,
+    crossing: str,
+    extremum: str,
+    period_from: str,
+    window: int | None,
+) -> tuple[OscillatoryEstimate, Array]:
+    """The estimate, and whether it is exact. `window=None`: over the whole record, always
+    exact. `window=L` (the Monte Carlo kernel's fast path): each crossing fit is searched
+    and summed over ≤ 2L samples about its sign change instead of masked passes over the
+    whole record; where that gives the whole-record answer (to rounding) the flag is True,
+    else the caller must use `window=None`. The failed estimates' placeholders may differ."""
     R = IdentificationResult
     record = _summarise(ts, u, step_time, steady_state, n_tail, saturation_level)
     ts, band = record.ts, record.band
@@ -259,9 +374,22 @@ def _identify_oscillatory(
     noisy = variance > 0
     sigma = jnp.where(noisy, jnp.sqrt(jnp.where(noisy, variance, 1.0)), 0.0)
     fit_width = _CROSSING_FIT_WIDTH * _NOISE_SIGMAS * sigma
-    t1 = _crossing(ts, deviation, label, fit_width, k1, has_1, crossing)
-    t_mid = _crossing(ts, deviation, label, fit_width, k2, has_2, crossing)
-    t2, has_3 = _rising_crossing(ts, deviation, band, fit_width, k2, has_2, n - n_tail, crossing)
+    if window is None:
+        t1 = _crossing(ts, deviation, label, fit_width, k1, has_1, crossing)
+        t_mid = _crossing(ts, deviation, label, fit_width, k2, has_2, crossing)
+        t2, has_3 = _rising_crossing(
+            ts, deviation, band, fit_width, k2, has_2, n - n_tail, crossing
+        )
+        exact = jnp.array(True)
+    else:
+        t1, exact_1 = _crossing_window(ts, deviation, label, fit_width, k1, has_1, crossing, window)
+        t_mid, exact_2 = _crossing_window(
+            ts, deviation, label, fit_width, k2, has_2, crossing, window
+        )
+        t2, has_3, exact_3 = _rising_crossing_window(
+            ts, deviation, band, fit_width, k2, has_2, n - n_tail, crossing, window
+        )
+        exact = exact_1 & exact_2 & exact_3
     overshoot = _largest_between(ts, deviation, t1, t_mid, extremum)
     undershoot = _largest_between(ts, -deviation, t_mid, t2, extremum)
 
@@ -297,7 +425,7 @@ def _identify_oscillatory(
         scale_factor=scale_factor,
         result=result,
     )
-    return _fail_if(result, estimate, throw)
+    return estimate, exact
 
 
 def identify_oscillatory(
