@@ -163,7 +163,11 @@ def monte_carlo_oscillatory(
     output noise ε_i) and its `identify_oscillatory` estimate with k_dp k_y =
     `pickoff_amplifier_gain[i]`, γ = `shape_factor[i]` and `throw=False`. The answers are
     those of calling the two functions in turn (the same code on the same record; XLA
-    fuses the kernel differently, so they agree to rounding, ~1e-14). The batch is processed
+    fuses the kernel differently, so they agree to rounding, ~1e-14). Fast path: the crossing
+    fits are searched and summed within ±128 samples of each sign change; a chunk where one
+    fit's window does not hold the whole-record fit is identified over the whole record, so
+    the estimates are always `identify_oscillatory`'s (failed trajectories' placeholder
+    numbers aside). The batch is processed
     `chunk_size` trajectories at a time (`lax.map` over vmapped chunks), so the memory held
     is about chunk_size·n·(a few) numbers, whatever N. Recompiles for a new N, n or
     setting, not for new values.

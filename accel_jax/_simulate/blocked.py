@@ -22,12 +22,11 @@ does). The record agrees with `simulate_linear` to ~1e-13 of the step in float64
 measure ~2e-14). `monte_carlo_oscillatory` draws the noise deviates in float32 by
 default (its docstring says why that suffices); `noise_dtype` chooses.
 
-Speed (`benchmarks/bench.py`, 2-core CPU, 5 001-sample records, chunks of 16): the
-record costs ~1/5 of the `lax.scan` one; per trajectory the fused kernel spends about
-40 µs on the record, 30 µs on the noise (float32 draws) and 110 µs in
-`identify_oscillatory`, whose ~30 dependent passes over the record (summary, band
-labels, three crossing fits, two extrema) are what is left: 7e3 trajectories/s, ×3.7 a
-per-trajectory SciPy `lfilter` loop.
+Speed (`benchmarks/bench.py`, 2-core CPU, 5 001-sample records, chunks of 16, one core):
+the record costs ~1/8 of the `lax.scan` one: 42 µs per trajectory, ~29 of them the ZOH
+matrix exponential (`jax.scipy.linalg.expm` runs all 64 allowed squarings under vmap);
+`monte_carlo_oscillatory` adds 37 µs of float32 noise and 74 µs of identification (the
+README's Speed section has the whole profile).
 """
 
 from __future__ import annotations
