@@ -341,3 +341,31 @@ def test_allan_deviation_intervals_on_a_drift_like_record():
     assert np.nanmax(adev.alpha) <= -3
     assert np.all(np.isfinite(adev.edf)) and np.all(adev.edf > 0)
     assert np.all((adev.lower <= adev.deviation) & (adev.deviation <= adev.upper))
+
+
+def test_shaping_filter_17_read_with_the_zero_at_minus_b_has_autocorrelation_16():
+    # The paper's filter (17), b² = α² + β², read as σ√(2α)(p + b)/(p² + 2αp + b²) and driven
+    # by unit white noise: its stationary autocovariance C e^{Aτ} P Cᵀ (P from the
+    # Lyapunov equation, SciPy) is ExponentialCosine's σ² e^{−α|τ|} cos βτ; without the
+    # zero (numerator σ√(2α)·b) it is e^{−α|τ|}(cos βτ + (α/β) sin β|τ|) instead.
+    sigma, alpha, beta = 0.7, 0.3, 1.9
+    b = np.hypot(alpha, beta)
+    a = np.array([[0.0, 1.0], [-(b**2), -2 * alpha]])  # controllable canonical form
+    noise_in = np.array([[0.0], [1.0]])
+    p = scipy.linalg.solve_continuous_lyapunov(a, -noise_in @ noise_in.T)
+    lags = np.linspace(0.0, 12.0, 41)
+    model = ExponentialCosine(sigma, alpha, beta)
+    expected = np.asarray(model.autocovariance(jnp.asarray(lags)))
+    gain = sigma * np.sqrt(2 * alpha)
+    for numerator, target in (
+        (np.array([[b, 1.0]]), expected),  # p + b
+        (np.array([[b, 0.0]]), None),  # b alone
+    ):
+        c = gain * numerator
+        covariance = np.array([(c @ scipy.linalg.expm(a * t) @ p @ c.T).item() for t in lags])
+        if target is None:
+            # K/(p² + 2αp + b²) has variance K²/(4αb²): here σ²/2.
+            variance = (gain * b) ** 2 / (4 * alpha * b**2)
+            damped = variance * np.exp(-alpha * lags)
+            target = damped * (np.cos(beta * lags) + alpha / beta * np.sin(beta * lags))
+        np.testing.assert_allclose(covariance, target, rtol=1e-9, atol=1e-12 * sigma**2)

@@ -134,3 +134,16 @@ def test_user_device_and_its_twin():
     assert ape is heavy and float(aj.damping_ratio(osc)) == pytest.approx(
         float(aj.damping_ratio(aj.ServoParams.reference())), rel=1e-12
     )
+
+
+@pytest.mark.slow
+def test_stop_displacement_error_enters_one_for_one(study):
+    # Eq. (11) divides outputs ∝ h_true by the design h: K̂_a ∝ h_true/h_design, so δK_a
+    # moves by 1 % per 1 % of stop error (to the sweep's ±2 %: (1 + e) is linear in e).
+    sweep = study["decomposition"]["stop_tolerance"]
+    assert sweep["slope_percent_per_percent"] == pytest.approx(1.0, abs=0.01)
+    at = dict(zip(sweep["stop_error_percent"], sweep["dKa_percent"], strict=True))
+    # The e = 0 point is the gain's own error from the stops (small: the stop outputs are
+    # settled and noise-free); each ±e scales the gain by (1 + e).
+    assert abs(at[0.0]) < 0.05
+    assert at[1.0] - at[0.0] == pytest.approx(1.0 + at[0.0] / 100, rel=1e-3)

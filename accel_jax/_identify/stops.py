@@ -24,6 +24,15 @@ def pickoff_gain_from_stops(
     U± = ±k_dp k_y h± + U_offset. Averaging the two slopes cancels the offset exactly when
     h⁺ = h⁻ (in general it leaves ½ U_offset (1/h⁺ − 1/h⁻)).
 
+    A reinterpretation of the paper: eq. (11) as printed (SPEC.md §1, seed 000) divides the
+    *test signals* U_test± by h_max±. Read literally that is not k_dp k_y — the test voltage
+    sets the torque, not the pick-off output, so the value would change with U_test — and on
+    the reference device with the study's U_test = 5 V it is 24 % off (5 V / 1.9 µm =
+    2.63e6 against k_dp k_y = 2.125e6 V/m).
+    Here U± are the *outputs* on the stops, which is what the formula must mean for its
+    result to be the pick-off and amplifier gain. An error in h± enters k_dp k_y, and so
+    K̂_a (eq. (7)), one for one.
+
     **Arguments:**
 
     - `u_plus`: output on the positive stop [V] (positive).

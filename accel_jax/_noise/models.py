@@ -4,9 +4,13 @@ state-space form (no approximation in Δt) and, where stationary, its autocovari
 x_{k+1} = φ x_k + w, φ = e^{−Δ/τ}, var w = σ²(1 − φ²). The exponential-cosine autocovariance
 σ² e^{−α|τ|} cos βτ is that of the first component of the 2-D state s_{k+1} = e^{−αΔ}
 Rot(βΔ) s_k + w, cov w = σ²(1 − e^{−2αΔ}) I (a damped rotation; the continuous form is ds =
-(−α I + β J) s dt + σ√(2α) dW). The paper's second-order shaping filter (17) with b² = α² +
-β² has the autocorrelation e^{−α|τ|}(cos βτ + (α/β) sin β|τ|) instead; we realise (16)
-exactly, which is the model the paper identifies. Random walk x_{k+1} = x_k + w, var w = q
+(−α I + β J) s dt + σ√(2α) dW). The paper's second-order shaping filter (17), with
+b² = α² + β², is garbled in the source; read as the standard form σ√(2α)(p + b)/(p² + 2αp +
+b²) driven by unit white noise it has exactly the autocorrelation (16) (its spectrum is
+2ασ²(ω² + b²)/((b² − ω²)² + 4α²ω²), that of (16); tests/test_noise.py checks the two
+autocovariances through the filter's Lyapunov covariance). Without the zero at −b, a constant
+numerator gives e^{−α|τ|}(cos βτ + (α/β) sin β|τ|) instead. Either way the process
+identified is (16), realised here exactly. Random walk x_{k+1} = x_k + w, var w = q
 Δ, with a diffuse start. `simulate_noise` draws records from a model and `model_parameters`
 lists its parameters as plain floats.
 """
