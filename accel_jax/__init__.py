@@ -83,11 +83,13 @@ from ._kalman import ConsistencyTrial as ConsistencyTrial
 from ._kalman import FilterOutput as FilterOutput
 from ._kalman import INSChannel as INSChannel
 from ._kalman import LinearGaussianModel as LinearGaussianModel
+from ._kalman import SmootherOutput as SmootherOutput
 from ._kalman import ins_consistency_trial as ins_consistency_trial
 from ._kalman import ins_initial_covariance as ins_initial_covariance
 from ._kalman import kalman_filter as kalman_filter
 from ._kalman import normalised_estimation_error_squared as normalised_estimation_error_squared
 from ._kalman import normalised_innovation_squared as normalised_innovation_squared
+from ._kalman import rts_smoother as rts_smoother
 from ._kalman import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
 from ._ml_estimate import AbstractDisturbance as AbstractDisturbance

@@ -212,6 +212,60 @@ def kalman_filter(
     return FilterOutput(*outs)
 
 
+class SmootherOutput(eqx.Module):
+    """Result of `rts_smoother` over T observations (n states).
+
+    **Fields:**
+
+    - `smoothed_means`: x̂_{k|T}, the mean of the state given the whole record, shape (T, n).
+    - `smoothed_covariances`: P_{k|T}, shape (T, n, n).
+    """
+
+    smoothed_means: Array
+    smoothed_covariances: Array
+
+
+def rts_smoother(model: LinearGaussianModel, output: FilterOutput) -> SmootherOutput:
+    """The Rauch–Tung–Striebel fixed-interval smoother: x̂_{k|T}, P_{k|T} from the filter's
+    pass over the whole record (a flight log), as one backward `jax.lax.scan`.
+
+    x̂_{k|T} = x̂_{k|k} + C_k (x̂_{k+1|T} − x̂_{k+1|k}), C_k = P_{k|k} Fᵀ P_{k+1|k}⁻¹,
+    P_{k|T} = P_{k|k} + C_k (P_{k+1|T} − P_{k+1|k}) C_kᵀ; at k = T − 1 the smoothed
+    estimate is the filtered one. The gain C_k comes from a Cholesky solve with P_{k+1|k}.
+    The result is the exact Gaussian conditional mean and covariance of each state given
+    all observations (tests/test_kalman.py checks it against dense conditioning).
+
+    **Arguments:**
+
+    - `model`: the `LinearGaussianModel` the filter ran with.
+    - `output`: `kalman_filter(model, ...)`'s `FilterOutput`.
+
+    **Returns:** a `SmootherOutput`.
+    """
+    F = model.transition.astype(output.filtered_means.dtype)
+    means, covs = output.filtered_means, output.filtered_covariances
+    # P_{k+1|k} and x̂_{k+1|k} for k < T − 1 are the filter's predictions at k + 1.
+    next_pred_means = output.predicted_means[1:]
+    next_pred_covs = output.predicted_covariances[1:]
+
+    def step(carry, inputs):
+        smooth_mean, smooth_cov = carry
+        mean, cov, pred_mean, pred_cov = inputs
+        chol = jnp.linalg.cholesky(_symmetrise(pred_cov))
+        gain = jsl.cho_solve((chol, True), F @ cov).T  # P F^T P_pred^{-1}
+        new_mean = mean + gain @ (smooth_mean - pred_mean)
+        new_cov = _symmetrise(cov + gain @ (smooth_cov - pred_cov) @ gain.T)
+        return (new_mean, new_cov), (new_mean, new_cov)
+
+    last = (means[-1], covs[-1])
+    _, (early_means, early_covs) = jax.lax.scan(
+        step, last, (means[:-1], covs[:-1], next_pred_means, next_pred_covs), reverse=True
+    )
+    return SmootherOutput(
+        jnp.concatenate([early_means, means[-1:]]), jnp.concatenate([early_covs, covs[-1:]])
+    )
+
+
 def simulate_linear_gaussian(
     model: LinearGaussianModel,
     initial_mean: ArrayLike,

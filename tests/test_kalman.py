@@ -173,3 +173,54 @@ def test_bad_input_raises_clear_errors():
         LinearGaussianModel(jnp.eye(1), -jnp.eye(1), jnp.eye(1), jnp.eye(1))
     with pytest.raises(ValueError, match="drift_factor"):
         scale_noise_coefficients(CHANNEL, drift_factor=0.0, diffusion_factor=1.0)
+
+
+def test_rts_smoother_is_the_dense_gaussian_conditional():
+    # Independent check: for a short record, stack x_0..x_{T−1} and z_0..z_{T−1} as one
+    # Gaussian (NumPy) and condition on all z: E[x_k | z], Cov[x_k | z].
+    from accel_jax import rts_smoother
+
+    rng = np.random.default_rng(3)
+    n, T = 3, 6
+    F = 0.6 * scipy.linalg.expm(rng.standard_normal((n, n)) * 0.3)
+    q_root = 0.3 * rng.standard_normal((n, n))
+    Q = q_root @ q_root.T + 0.05 * np.eye(n)
+    H = rng.standard_normal((1, n))
+    R = np.array([[0.2]])
+    m0 = rng.standard_normal(n)
+    p_root = rng.standard_normal((n, n))
+    P0 = p_root @ p_root.T + 0.1 * np.eye(n)
+    model = LinearGaussianModel(jnp.asarray(F), jnp.asarray(Q), jnp.asarray(H), jnp.asarray(R))
+    z = rng.standard_normal(T)
+
+    def power(k):
+        return np.linalg.matrix_power(F, k)
+
+    cov_x = np.zeros((n * T, n * T))
+    for i in range(T):
+        for j in range(T):
+            block = power(i) @ P0 @ power(j).T
+            for l in range(min(i, j)):
+                block += power(i - 1 - l) @ Q @ power(j - 1 - l).T
+            cov_x[n * i : n * i + n, n * j : n * j + n] = block
+    mean_x = np.concatenate([power(k) @ m0 for k in range(T)])
+    big_h = np.kron(np.eye(T), H)
+    cov_z = big_h @ cov_x @ big_h.T + np.kron(np.eye(T), R)
+    gain = cov_x @ big_h.T @ np.linalg.inv(cov_z)
+    mean_post = mean_x + gain @ (z - big_h @ mean_x)
+    cov_post = cov_x - gain @ big_h @ cov_x
+
+    out = rts_smoother(
+        model, kalman_filter(model, jnp.asarray(z), jnp.asarray(m0), jnp.asarray(P0))
+    )
+    np.testing.assert_allclose(out.smoothed_means, mean_post.reshape(T, n), rtol=1e-9, atol=1e-12)
+    for k in range(T):
+        np.testing.assert_allclose(
+            out.smoothed_covariances[k],
+            cov_post[n * k : n * k + n, n * k : n * k + n],
+            rtol=1e-9,
+            atol=1e-12,
+        )
+    # The last smoothed estimate is the filtered one.
+    filtered = kalman_filter(model, jnp.asarray(z), jnp.asarray(m0), jnp.asarray(P0))
+    np.testing.assert_array_equal(out.smoothed_means[-1], filtered.filtered_means[-1])
