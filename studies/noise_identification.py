@@ -59,8 +59,12 @@ from accel_jax import (  # noqa: E402
     fit_gauss_markov_paper,
     fit_maximum_likelihood,
     ins_consistency_trial,
+    ins_initial_covariance,
+    kalman_filter,
+    rts_smoother,
     scale_noise_coefficients,
     select_noise_model,
+    simulate_linear_gaussian,
     simulate_noise,
 )
 from accel_jax._runtime import fast_compile  # noqa: E402
@@ -308,7 +312,13 @@ def structure_case(n: int, key, quick: bool) -> dict:
 def identify_sensor(sigma, tau, n, key) -> dict:
     """Identify a Gauss-Markov sensor error from a static record of n samples at 1 Hz: rule
     (15) over r_j > e⁻¹ (the starting point) and maximum likelihood (used by the filter)."""
-    x = simulate_noise(GaussMarkov(sigma, tau), DT, n, key=key)
+    return identify_series(simulate_noise(GaussMarkov(sigma, tau), DT, n, key=key))
+
+
+def identify_series(x) -> dict:
+    """Rule (15) over r_j > e⁻¹ and maximum likelihood of a Gauss-Markov model of series x
+    sampled at DT (the sensor's record, or the filter's estimates of it)."""
+    n = x.shape[0]
     scale = float(jnp.std(x))
     x = x / scale  # fit in units of the record's std: the optimiser's tolerances are absolute
     R = autocorrelation(x, min(n // 10, 2000))
@@ -405,6 +415,109 @@ def kalman_study(runs: int, hours: float, record_hours: float, key) -> dict:
     return out, traces
 
 
+def _consistency(one, keys, assumed) -> dict:
+    res = aj.sweep(one, keys, assumed, in_axes=(0, None))
+    return {
+        "fraction_outside_3sigma": float(np.mean(np.asarray(res.fraction_outside_3sigma))),
+        "mean_nees": float(np.mean(np.asarray(res.nees))),
+        "mean_nis": float(np.mean(np.asarray(res.nis))),
+    }
+
+
+def _sensor_fields(channel) -> dict:
+    return {k: float(getattr(channel, k)) for k in INS_TRUE if k != "velocity_noise"}
+
+
+def filter_identification_loop(
+    iterations: int, log_hours: float, runs: int, hours: float, key, estimator: str = "rule_15"
+) -> dict:
+    """Seed 001's experiment as the paper runs it: the INS filter, tuned with the wrong
+    model, processes a flight log (velocity observations only); the sensor-error models are
+    identified from its own estimates of Δa and Δω — the RTS-smoothed means over the log
+    (the batch, from-a-log variant) — by the paper's rule (15) over r_j > e⁻¹
+    (`estimator="rule_15"`) or by exact ML (`"ml"`, which treats the smoothed series as a
+    Gauss-Markov record); the filter is retuned with them and the loop repeats. Each iteration's model is judged by Monte
+    Carlo consistency (truth simulated, this model in the filter) beside the oracle that
+    knows the true models. The smoothed estimate is a conditional mean, not the sensor
+    error: where Δa is weakly observable from velocity it is shrunk towards zero, and the
+    model identified from it is biased; the table shows by how much and whether the loop
+    still reaches a consistent filter."""
+    truth = INSChannel(**INS_TRUE)
+    assumed = scale_noise_coefficients(
+        truth, drift_factor=WRONG_DRIFT, diffusion_factor=WRONG_DIFFUSION
+    )
+    k_log, k_mc = jax.random.split(key)
+    true_model = truth.discretise(DT)
+    n_log = int(log_hours * 3600 / DT)
+    zeros = jnp.zeros(4)
+    states, observations = simulate_linear_gaussian(
+        true_model, zeros, ins_initial_covariance(truth), n_log, key=k_log
+    )
+    keys = jax.random.split(k_mc, runs)
+    trial = functools.partial(ins_consistency_trial, num_steps=int(hours * 3600 / DT))
+
+    def one(key, model):
+        return trial(truth, model, key)
+
+    @eqx.filter_jit
+    def smoothed_sensor_errors(channel, observations):
+        model = channel.discretise(DT)
+        out = kalman_filter(model, observations, zeros, ins_initial_covariance(channel))
+        return rts_smoother(model, out).smoothed_means[:, 2:]
+
+    rows = []
+    for iteration in range(iterations + 1):
+        estimates = smoothed_sensor_errors(assumed, observations)
+        row = {
+            "iteration": iteration,
+            "model": _sensor_fields(assumed),
+            **_consistency(one, keys, assumed),
+            "smoothed_std_over_true_std": {
+                "accelerometer": float(jnp.std(estimates[:, 0]) / jnp.std(states[:, 2])),
+                "gyro": float(jnp.std(estimates[:, 1]) / jnp.std(states[:, 3])),
+            },
+        }
+        rows.append(row)
+        if iteration == iterations:
+            break
+        which = "paper" if estimator == "rule_15" else "ml"
+        accel = identify_series(estimates[:, 0])[which]
+        gyro = identify_series(estimates[:, 1])[which]
+        assumed = eqx.tree_at(
+            lambda c: (
+                c.accel_sigma,
+                c.accel_correlation_time,
+                c.gyro_sigma,
+                c.gyro_correlation_time,
+            ),
+            assumed,
+            tuple(
+                jnp.float64(v)
+                for v in (accel["sigma"], accel["tau_s"], gyro["sigma"], gyro["tau_s"])
+            ),
+        )
+    direct = {
+        "accelerometer": identify_series(states[:, 2])["ml"],
+        "gyro": identify_series(states[:, 3])["ml"],
+    }
+    return {
+        "iterations": rows,
+        "oracle": {"model": _sensor_fields(truth), **_consistency(one, keys, truth)},
+        "identified_from_the_true_sensor_errors_of_the_same_log": direct,
+        "log_hours": log_hours,
+        "runs": runs,
+        "hours": hours,
+        "estimator": estimator,
+        "method": "batch: RTS-smoothed means of Δa, Δω over the whole log, "
+        + (
+            "rule (15) over r_j > e⁻¹ on each (the paper's rule)"
+            if estimator == "rule_15"
+            else "exact Gauss-Markov ML on each (rule (15) as its start)"
+        )
+        + "; the real-time sliding-window variant is not built",
+    }
+
+
 # --- 4. Allan deviation ----------------------------------------------------------------
 
 
@@ -499,6 +612,18 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             key=k_kal,
         )
         timing["kalman"] = time.perf_counter() - started
+        loop = {
+            estimator: filter_identification_loop(
+                iterations=2 if quick else 4,
+                log_hours=8.0 if quick else 48.0,
+                runs=2 if quick else 64,
+                hours=1.0 if quick else 4.0,
+                key=jax.random.fold_in(k_kal, 1),
+                estimator=estimator,
+            )
+            for estimator in ("rule_15", "ml")
+        }
+        timing["filter_loop"] = time.perf_counter() - started
         allan = allan_case(5000 if quick else 100000, k_allan, quick)
         timing["allan"] = time.perf_counter() - started
 
@@ -531,6 +656,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
         },
         "structure_selection": {k: v for k, v in structure.items() if k != "curves"},
         "kalman": kal,
+        "filter_identification_loop": loop,
         "allan": allan,
         "assumptions": {
             "sample_interval_s": DT,
@@ -629,6 +755,64 @@ def _summary_rows(result: dict) -> list[dict]:
             "ours": result["structure_selection"]["chosen"],
             "paper": "exp-cosine needed (Fig. 3)",
             "note": "",
+        }
+    )
+    loop = result["filter_identification_loop"]["rule_15"]
+    for row in loop["iterations"]:
+        last = row["iteration"] == loop["iterations"][-1]["iteration"]
+        model = row["model"]
+        entry = {
+            "quantity": f"seed 001's loop (rule (15) on the smoothed estimates), iteration "
+            f"{row['iteration']}: vertical error outside ±3σ [% of time] / NEES",
+            "ours": f"{100 * row['fraction_outside_3sigma']:.2f} / {row['mean_nees']:.1f}",
+            "paper": "consistent after retuning (Fig. 5)" if last else "—",
+            "note": f"τ_a {model['accel_correlation_time']:.3g} s, σ_a "
+            f"{model['accel_sigma']:.2g}, τ_ω {model['gyro_correlation_time']:.3g} s, σ_ω "
+            f"{model['gyro_sigma']:.2g}; smoothed Δa std "
+            f"{row['smoothed_std_over_true_std']['accelerometer']:.2f} × the true one"
+            + ("; the initial (wrong) model" if row["iteration"] == 0 else ""),
+        }
+        if last:
+            oracle = loop["oracle"]
+            # Consistent as the paper claims: at most 1 % of the time outside ±3σ (a
+            # consistent filter: 0.27 %) and a NEES within 1.5× the oracle's.
+            consistent = (
+                row["fraction_outside_3sigma"] <= 0.01
+                and row["mean_nees"] <= 1.5 * oracle["mean_nees"]
+            )
+            entry["status"] = "reproduced" if consistent else "differs"
+            first = loop["iterations"][0]
+            entry["explanation"] = (
+                f"the loop takes the filter from {100 * first['fraction_outside_3sigma']:.0f} % "
+                f"to {100 * row['fraction_outside_3sigma']:.1f} % outside ±3σ in "
+                f"{row['iteration']} iterations (oracle "
+                f"{100 * oracle['fraction_outside_3sigma']:.2f} %, NEES "
+                f"{oracle['mean_nees']:.1f}); the smoothed estimates it identifies from are "
+                "conditional means (low-passed, shrunk where weakly observable), not the sensor "
+                f"errors, so the models stay biased (τ_ω {model['gyro_correlation_time']:.3g} s "
+                f"against {INS_TRUE['gyro_correlation_time']:g} s); an EM M-step would add the "
+                "smoothed covariances this fit ignores"
+            )
+        rows.append(entry)
+    ml_last = result["filter_identification_loop"]["ml"]["iterations"][-1]
+    rows.append(
+        {
+            "quantity": f"the same loop with ML instead of rule (15), iteration "
+            f"{ml_last['iteration']}: outside ±3σ [%] / NEES",
+            "ours": f"{100 * ml_last['fraction_outside_3sigma']:.2f} / {ml_last['mean_nees']:.3g}",
+            "paper": "—",
+            "note": f"τ_a {ml_last['model']['accel_correlation_time']:.3g} s, τ_ω "
+            f"{ml_last['model']['gyro_correlation_time']:.3g} s: the smoothed series is "
+            "smoother than any Gauss-Markov record, and ML reads it as a near random walk",
+        }
+    )
+    oracle = loop["oracle"]
+    rows.append(
+        {
+            "quantity": "seed 001's loop, oracle (the true models): outside ±3σ [%] / NEES",
+            "ours": f"{100 * oracle['fraction_outside_3sigma']:.2f} / {oracle['mean_nees']:.1f}",
+            "paper": "—",
+            "note": f"{loop['runs']} runs of {loop['hours']:g} h; log {loop['log_hours']:g} h",
         }
     )
     for name, paper in (

@@ -224,3 +224,33 @@ def test_rts_smoother_is_the_dense_gaussian_conditional():
     # The last smoothed estimate is the filtered one.
     filtered = kalman_filter(model, jnp.asarray(z), jnp.asarray(m0), jnp.asarray(P0))
     np.testing.assert_array_equal(out.smoothed_means[-1], filtered.filtered_means[-1])
+
+
+def test_rts_smoother_on_an_ins_log_is_consistent_and_beats_the_filter():
+    # A simulated 4 h flight log filtered and smoothed with the true model: the smoothed
+    # errors x − x̂_{k|T} are N(0, P_{k|T}) (mean NEES ≈ 4, the state dimension) and the
+    # smoothed accelerometer-error estimate is closer to the truth than the filtered one (in
+    # mean square over logs).
+    from accel_jax import rts_smoother
+
+    model = CHANNEL.discretise(1.0)
+    p0 = ins_initial_covariance(CHANNEL)
+    zeros = jnp.zeros(4)
+
+    def one(key):
+        states, z = simulate_linear_gaussian(model, zeros, p0, 4 * 3600, key=key)
+        out = kalman_filter(model, z, zeros, p0)
+        smooth = rts_smoother(model, out)
+        errors = states - smooth.smoothed_means
+        nees = normalised_estimation_error_squared(errors, smooth.smoothed_covariances)
+        filtered_rms = jnp.sqrt(jnp.mean((states[:, 2] - out.filtered_means[:, 2]) ** 2))
+        smoothed_rms = jnp.sqrt(jnp.mean(errors[:, 2] ** 2))
+        return jnp.mean(nees), filtered_rms, smoothed_rms
+
+    nees, filtered_rms, smoothed_rms = jax.jit(jax.vmap(one))(
+        jax.random.split(jax.random.key(11), 8)
+    )
+    assert 3.4 < float(jnp.mean(nees)) < 4.6, nees
+    # In expectation (per log it can go either way: 7 of these 8 logs agree). Weakly
+    # observable: the error is still ~0.6 σ_a.
+    assert float(jnp.mean(smoothed_rms**2)) < 0.8 * float(jnp.mean(filtered_rms**2))

@@ -52,3 +52,33 @@ def test_study_allan_intervals(quick_report):
         else:
             assert term["value"] is None and term["upper"] >= 0
     assert len(ieee["model_adev_rad_per_s"]) == adev.size
+
+
+@pytest.mark.slow
+def test_study_filter_identification_loop(quick_report):
+    """Seed 001's loop: the filter with the wrong model, its smoothed estimates identified
+    and the filter retuned, per iteration, beside the oracle; the oracle filter is
+    consistent (its NEES near the state dimension 4), the wrong model is not."""
+    from helpers import study_result
+
+    _, saved = study_result(quick_report, "noise_identification")
+    loops = saved["filter_identification_loop"]
+    assert set(loops) == {"rule_15", "ml"}
+    for loop in loops.values():
+        rows = loop["iterations"]
+        assert [row["iteration"] for row in rows] == list(range(len(rows)))
+        assert len(rows) >= 2
+        assert rows[0]["mean_nees"] > 10 * loop["oracle"]["mean_nees"]  # the wrong model
+        for row in rows:
+            assert set(row["model"]) == {
+                "accel_sigma",
+                "accel_correlation_time",
+                "gyro_sigma",
+                "gyro_correlation_time",
+            }
+            assert all(v > 0 for v in row["model"].values())
+        # The model changes between iterations: the loop retunes the filter.
+        assert rows[1]["model"] != rows[0]["model"]
+    assert 2.0 < loops["rule_15"]["oracle"]["mean_nees"] < 8.0
+    summary = [row["quantity"] for row in saved["summary"]]
+    assert any("seed 001's loop" in q and "oracle" in q for q in summary)
