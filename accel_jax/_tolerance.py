@@ -141,18 +141,29 @@ def tactical_missile(flight: str = "short") -> ToleranceScenario:
 
 # --- the paper's method (13), (15) ------------------------------------------------------
 
+# (c4, c5): the σ⁴ coefficients of the k4 additive and k5 linear bounds, per reading.
+_FOURTH_MOMENT = {"exact": (3.0, 15.0), "printed": (1.0, 5.0)}
 
-def paper_limits(scenario: ToleranceScenario) -> dict[str, Array]:
+
+def paper_limits(scenario: ToleranceScenario, *, reading: str = "exact") -> dict[str, Array]:
     """Admissible |coefficient| by the paper's fixed-ratio method, eqs. (13) and (15) [g-units;
     ×1e6 for ppm]. With b = sine amplitudes, σ = RMS random levels, a = mean a3, δ*:
 
         A1 ≤ 0.44δ*/(0.673 b3 + 0.125 σ3)          k2 ≤ 0.44δ*/(0.5 b3² + σ3²)
-        k4 ≤ 0.44δ*/(0.375 b3⁴ + 3σ3⁴)  (additive)  m3i ≤ 0.22δ*/(0.5 b3 bi + σ3 σi)
-        k3 ≤ 0.35δ*/(a (1.5 b3² + 3σ3²))           k5 ≤ 0.35δ*/(a (1.875 b3⁴ + 15σ3⁴))
+        k4 ≤ 0.44δ*/(0.375 b3⁴ + c4 σ3⁴)  (additive) m3i ≤ 0.22δ*/(0.5 b3 bi + σ3 σi)
+        k3 ≤ 0.35δ*/(a (1.5 b3² + 3σ3²))           k5 ≤ 0.35δ*/(a (1.875 b3⁴ + c5 σ3⁴))
         k4 ≤ 0.24δ*/(3a² (b3² + 2σ3²))  (mult.)    k5 ≤ 0.24δ*/(5a³ (b3² + 2σ3²))
+
+    `reading` chooses the fourth-moment coefficients of the random part: `"exact"` (default)
+    c4 = 3, c5 = 15, the Gaussian moments E v⁴ = 3σ⁴ and E (a+v)⁵ − a⁵ ⊃ 15 a σ⁴ (SPEC.md §3);
+    `"printed"` c4 = 1, c5 = 5, the coefficients as printed in the paper's (4)/(13) and
+    (5)/(15). The two agree for sinusoidal vibration alone (σ = 0).
 
     **Returns:** a dict with every bound and "k4", "k5" the smaller of their two bounds.
     """
+    if reading not in _FOURTH_MOMENT:
+        raise ValueError(f"reading must be 'exact' or 'printed', got {reading!r}.")
+    c4, c5 = _FOURTH_MOMENT[reading]
     d = scenario.admissible_error
     a = jnp.abs(scenario.mean_acceleration)
     b = scenario.environment.sine_amplitude
@@ -161,11 +172,11 @@ def paper_limits(scenario: ToleranceScenario) -> dict[str, Array]:
     out = {
         "asymmetry": ADDITIVE_SHARE * d / (0.673 * b3 + 0.125 * s3),
         "k2": ADDITIVE_SHARE * d / (0.5 * b3**2 + s3**2),
-        "k4_additive": ADDITIVE_SHARE * d / (0.375 * b3**4 + 3 * s3**4),
+        "k4_additive": ADDITIVE_SHARE * d / (0.375 * b3**4 + c4 * s3**4),
         "m31": CROSS_SHARE * d / (0.5 * b3 * b[0] + s3 * s[0]),
         "m32": CROSS_SHARE * d / (0.5 * b3 * b[1] + s3 * s[1]),
         "k3": LINEAR_SHARE * d / (a * (1.5 * b3**2 + 3 * s3**2)),
-        "k5_linear": LINEAR_SHARE * d / (a * (1.875 * b3**4 + 15 * s3**4)),
+        "k5_linear": LINEAR_SHARE * d / (a * (1.875 * b3**4 + c5 * s3**4)),
         "k4_multiplicative": HIGHER_SHARE * d / (3 * a**2 * (b3**2 + 2 * s3**2)),
         "k5_cubic": HIGHER_SHARE * d / (5 * a**3 * (b3**2 + 2 * s3**2)),
     }

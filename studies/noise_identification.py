@@ -315,16 +315,19 @@ def identify_sensor(sigma, tau, n, key) -> dict:
     return identify_series(simulate_noise(GaussMarkov(sigma, tau), DT, n, key=key))
 
 
-def identify_series(x) -> dict:
+def identify_series(x, throw: bool = True) -> dict:
     """Rule (15) over r_j > e⁻¹ and maximum likelihood of a Gauss-Markov model of series x
-    sampled at DT (the sensor's record, or the filter's estimates of it)."""
+    sampled at DT (the sensor's record, or the filter's estimates of it). With
+    `throw=False` a series rule (15) cannot fit (no r_j > 0: it looks white) gives
+    "paper_ok": False instead of an error."""
     n = x.shape[0]
     scale = float(jnp.std(x))
     x = x / scale  # fit in units of the record's std: the optimiser's tolerances are absolute
     R = autocorrelation(x, min(n // 10, 2000))
-    paper = fit_gauss_markov_paper(R, DT, min_correlation=float(np.exp(-1)))
+    paper = fit_gauss_markov_paper(R, DT, min_correlation=float(np.exp(-1)), throw=throw)
     ml = eqx.filter_jit(functools.partial(fit_maximum_likelihood, throw=False))(paper.model, x, DT)
     return {
+        "paper_ok": bool(paper.result == NoiseFitResult.successful),
         "ml_converged": bool(ml.result == NoiseFitResult.successful),
         "paper": {
             "sigma": float(paper.model.sigma) * scale,
@@ -481,8 +484,19 @@ def filter_identification_loop(
         if iteration == iterations:
             break
         which = "paper" if estimator == "rule_15" else "ml"
-        accel = identify_series(estimates[:, 0])[which]
-        gyro = identify_series(estimates[:, 1])[which]
+        fits = {
+            "accelerometer": identify_series(estimates[:, 0], throw=False),
+            "gyro": identify_series(estimates[:, 1], throw=False),
+        }
+        failed = [name for name, fit in fits.items() if not fit["paper_ok"]]
+        if failed:
+            row["stopped"] = (
+                f"rule (15) finds no lag with r_j > 0 in the smoothed {' and '.join(failed)} "
+                "estimates (they look white): nothing to retune with"
+            )
+            break
+        row["ml_converged"] = {name: fit["ml_converged"] for name, fit in fits.items()}
+        accel, gyro = fits["accelerometer"][which], fits["gyro"][which]
         assumed = eqx.tree_at(
             lambda c: (
                 c.accel_sigma,
@@ -803,7 +817,8 @@ def _summary_rows(result: dict) -> list[dict]:
             "paper": "—",
             "note": f"τ_a {ml_last['model']['accel_correlation_time']:.3g} s, τ_ω "
             f"{ml_last['model']['gyro_correlation_time']:.3g} s: the smoothed series is "
-            "smoother than any Gauss-Markov record, and ML reads it as a near random walk",
+            "smoother than any Gauss-Markov record, and ML reads it as a near random walk"
+            + (f"; the loop stopped: {ml_last['stopped']}" if "stopped" in ml_last else ""),
         }
     )
     oracle = loop["oracle"]

@@ -29,8 +29,22 @@ def test_tolerance_limits_study_quick(quick_report):
     assert cyc["paper"]["A1"] == pytest.approx(430.1, abs=0.1)
     assert cyc["paper"]["m"] == pytest.approx(48.67, abs=0.01)
     assert cyc["table2"] == {"A1": 445, "k2": 10, "k3": 37, "k4": 24, "k5": 1, "m": 48}
-    assert [n for n in limits if cyc["reproduced"][n]] == ["A1", "k5", "m"]
+    # Reproduced means: rounds to the printed value at its printed significant figures.
+    # 430.1 is not 445, 0.72 is not 1, and 48.67 prints as 49 (48 if truncated).
+    assert [n for n in limits if cyc["reproduced"][n]] == []
     assert cyc["reproduced_by_reading"]["k3"] == ["k3 with σ² for 3σ² in (15)"]
+    assert cyc["reproduced_by_reading"]["m"] == ["truncated, not rounded, to the printed figures"]
+    assert cyc["reproduced_by_reading"]["k2"] == ["k2 with its last digit lost (105 → 10)"]
+    assert cyc["reproduced_by_reading"]["A1"] == []
+    # The printed fourth-moment coefficients (σ⁴, 5σ⁴ for 3σ⁴, 15σ⁴): the long flight's k4
+    # 0.0134 prints as the table's 0.01; the k5 digits appear on the opposite flights.
+    long = r["tactical"]["long_range"]
+    assert long["paper_printed_reading"]["k4"] == pytest.approx(0.0134, abs=5e-5)
+    assert long["reproduced_by_reading"]["k4"] == [
+        "the printed coefficients (σ⁴ in (4)/(13), 5σ⁴ in (5)/(15))"
+    ]
+    assert f"{long['paper_printed_reading']['k5']:.1g}" == "0.001"  # the short flight's digit
+    assert f"{r['tactical']['paper_printed_reading']['k5']:.1g}" == "0.0004"  # the long's
     # Exact A1 sensitivity at 2 g is far below the paper's: its gradient limit is looser.
     assert cyc["gradient"]["A1"] > 2 * cyc["paper"]["A1"]
     # The profile reaches 5 g: the worst instant is tighter for k3..k5.

@@ -34,9 +34,19 @@ def test_paper_limits_cyclone4_by_hand():
     assert lim["k5"] == pytest.approx(0.24 * d / (5 * a**3 * (b3**2 + 2 * s**2)))
     assert lim["k2"] == pytest.approx(0.44 * d / (0.5 * b3**2 + s**2))
     assert lim["k3"] == pytest.approx(0.35 * d / (a * (1.5 * b3**2 + 3 * s**2)))
-    # Table 2 entries that reproduce (within the table's rounding): A1 445, m 48.
+    # Close to Table 2's A1 445 and m 48 (neither prints as the table's digits: see the
+    # tolerance study).
     assert lim["asymmetry"] == pytest.approx(445, rel=0.04)
     assert lim["m31"] == pytest.approx(48, rel=0.02)
+    # The printed reading: σ⁴ for 3σ⁴ in the k4 additive bound, 5σ⁴ for 15σ⁴ in k5 linear.
+    printed = {k: float(v) / PPM for k, v in paper_limits(cyclone4(), reading="printed").items()}
+    assert printed["k4_additive"] == pytest.approx(0.44 * d / (0.375 * b3**4 + s**4))
+    assert printed["k5_linear"] == pytest.approx(0.35 * d / (a * (1.875 * b3**4 + 5 * s**4)))
+    assert lim["k4_additive"] == pytest.approx(0.44 * d / (0.375 * b3**4 + 3 * s**4))
+    for name in ("asymmetry", "k2", "k3", "m31", "k4_multiplicative", "k5_cubic"):
+        assert printed[name] == lim[name]
+    with pytest.raises(ValueError, match="reading"):
+        paper_limits(cyclone4(), reading="garbled")
 
 
 def test_paper_limits_missile_reproduce_table2_a1_k2_m():
