@@ -166,6 +166,23 @@ def table1() -> dict:
         "sigma_from_printed_column_paper_formula_g": float(np.sqrt(np.mean(printed**2))),
         "sigma_variance_additive_g": float(spectrum.rms(paper=False)),
         "paper_sigma_g": TABLE1["printed_sigma_g"],
+        "eta_squared": {
+            "psd_implied_by_printed_column_g2_per_Hz": printed**2 / (eta**2 * df),
+            "psd_implied_within_printed_range_3pc": bool(
+                np.all(
+                    (printed**2 / (eta**2 * df) >= lo * 0.97)
+                    & (printed**2 / (eta**2 * df) <= hi * 1.03)
+                )
+            ),
+            "paper_formula_sigma_g_midpoint_psd": float(spectrum.rms(eta_squared=True)),
+            "variance_additive_sigma_g_midpoint_psd": float(
+                spectrum.rms(paper=False, eta_squared=True)
+            ),
+            "meaning": "η is an amplitude-response factor (the mount and the sensor, Fig. "
+            "4), so it should scale the PSD as η²; the paper applies it linearly. With η² "
+            "the printed column would need PSDs outside the printed ranges (20× the range in "
+            "the 320–640 Hz band): the paper used η, not η²",
+        },
         "explanation": (
             "The printed 'η S Δf [g²]' column is sqrt(η S Δf) in g (each value reproduces with "
             "a PSD inside the printed range). The paper's formula σ = sqrt((1/n) Σ η S Δf) gives "
@@ -608,6 +625,22 @@ def _summary(r) -> list:
             <= 0.05 * t1["paper_sigma_g"]
             else "differs",
             "note": t1["explanation"],
+        }
+    )
+    eta2 = t1["eta_squared"]
+    rows.append(
+        {
+            "quantity": "Table 1 σ_V3 with η² (η as an amplitude response) [g]",
+            "ours": round(eta2["paper_formula_sigma_g_midpoint_psd"], 3),
+            "paper": "—",
+            "note": "the paper's formula with η² S Δf at the midpoint PSDs (variance-additive: "
+            f"{eta2['variance_additive_sigma_g_midpoint_psd']:.2f} g); "
+            + (
+                "the printed column fits η, not η²: the paper applied η linearly"
+                if t1["psd_implied_within_printed_range_3pc"]
+                and not eta2["psd_implied_within_printed_range_3pc"]
+                else "the printed column does not single out η or η²"
+            ),
         }
     )
     rows.append(

@@ -176,3 +176,19 @@ def test_bad_scenario_raises():
 
 
 # --- the study, quick mode ---------------------------------------------------------------
+
+
+def test_asymmetry_exact_counterparts_of_the_paper_factors():
+    # The asymmetry term ½A1|a3| at a3 = 0: exact ∂δ_V/∂A1 = b/π under a sine of amplitude b
+    # (the paper writes 0.673 b) and ½·sqrt(2/π)·σ under Gaussian vibration (paper 0.125 σ).
+    from accel_jax._vibration.paper import ASYMMETRY_RANDOM_FACTOR, ASYMMETRY_SINE_FACTOR
+
+    b, sigma = 0.8, 1.3
+    sine = aj.VibrationEnvironment(sine_amplitude=b, sine_frequency=20.0)
+    noise = aj.VibrationEnvironment(random_std=sigma, random_band=(20.0, 200.0))
+    assert float(sensitivities(sine, 0.0).asymmetry) == pytest.approx(b / np.pi, rel=1e-6)
+    assert float(sensitivities(noise, 0.0).asymmetry) == pytest.approx(
+        0.5 * np.sqrt(2 / np.pi) * sigma, rel=1e-6
+    )
+    assert ASYMMETRY_SINE_FACTOR / (1 / np.pi) == pytest.approx(2.11, abs=0.01)
+    assert ASYMMETRY_RANDOM_FACTOR < 0.5 * np.sqrt(2 / np.pi)

@@ -223,6 +223,9 @@ def test_random_rms_table1():
     per_band = np.sqrt(eta * s * df)
     np.testing.assert_allclose(per_band, [0.72, 1.17, 1.26, 1.26, 1.39], atol=0.07)
     assert float(random_rms(s, df, eta)) == pytest.approx(np.sqrt(np.mean(eta * s * df)))
+    assert float(random_rms(s, df, eta, eta_squared=True)) == pytest.approx(
+        np.sqrt(np.mean(eta**2 * s * df))
+    )
     assert float(random_rms(s, df, eta, paper=False)) == pytest.approx(
         np.sqrt(np.sum(eta * s * df))
     )

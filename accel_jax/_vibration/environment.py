@@ -113,7 +113,14 @@ class VibrationEnvironment(eqx.Module):
         return self.random_correlation * s[..., :, None] * s[..., None, :]
 
 
-def random_rms(psd: ArrayLike, band_width: ArrayLike, eta: ArrayLike = 1.0, *, paper: bool = True):
+def random_rms(
+    psd: ArrayLike,
+    band_width: ArrayLike,
+    eta: ArrayLike = 1.0,
+    *,
+    paper: bool = True,
+    eta_squared: bool = False,
+):
     """RMS random vibration from band PSDs with the mounting/sensor response factors η.
 
     **Arguments:**
@@ -124,6 +131,11 @@ def random_rms(psd: ArrayLike, band_width: ArrayLike, eta: ArrayLike = 1.0, *, p
       frequency response).
     - `paper`: True gives the paper's σ = sqrt((1/n) Σ_j η_j S_j Δf_j) (the mean over the n
       bands); False gives the variance-additive σ = sqrt(Σ_j η_j S_j Δf_j).
+    - `eta_squared`: η is an amplitude-response factor (the mount's and the sensor's
+      frequency response, the paper's Fig. 4), so physically it scales the PSD as η²:
+      True uses η_j² S_j Δf_j. False (default) applies η linearly, as the paper does — its
+      Table 1 column reproduces with PSDs inside the printed ranges only that way (the
+      tolerance-limits study shows both).
 
     **Returns:** σ [g]. (The paper's Table 1 quotes 1.4 for Cyclone-4, which is the mean
     square (1/n) Σ η S Δf ≈ 1.4 g² itself; its RMS is ≈ 1.18 g. See the study.)
@@ -136,7 +148,7 @@ def random_rms(psd: ArrayLike, band_width: ArrayLike, eta: ArrayLike = 1.0, *, p
             raise ValueError(
                 f"random_rms: {name} must be non-negative, got {_shown(concrete)} {unit}."
             )
-    power = eta * psd * band_width
+    power = (eta**2 if eta_squared else eta) * psd * band_width
     total = jnp.sum(power)
     return jnp.sqrt(total / power.size) if paper else jnp.sqrt(total)
 
@@ -219,11 +231,12 @@ class BandSpectrum(eqx.Module):
         """(lowest, highest) frequency covered [Hz] (for `VibrationEnvironment.random_band`)."""
         return jnp.stack([self.f_low[0], self.f_high[-1]])
 
-    def rms(self, *, paper: bool = True) -> Array:
+    def rms(self, *, paper: bool = True, eta_squared: bool = False) -> Array:
         """σ [g]: the paper's sqrt((1/n) Σ η S Δf) (`paper=True`) or the variance-additive
-        sqrt(Σ η S Δf) (`paper=False`); see `random_rms`."""
+        sqrt(Σ η S Δf) (`paper=False`); η² in place of η with `eta_squared=True` (η as an
+        amplitude response); see `random_rms`."""
         eta = jnp.broadcast_to(self.eta, self.psd.shape)
-        return random_rms(self.psd, self.band_width, eta, paper=paper)
+        return random_rms(self.psd, self.band_width, eta, paper=paper, eta_squared=eta_squared)
 
     @classmethod
     def cyclone4(cls) -> BandSpectrum:

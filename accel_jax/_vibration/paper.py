@@ -13,11 +13,13 @@ from .._static import StaticTransferFunction
 from .environment import VibrationEnvironment
 
 ASYMMETRY_SINE_FACTOR = 0.673
-"""The paper's factor in A1·(0.673 b − 0.5 a) (eqs. 4, 19); the exact sine average of |a3|
-with a = 0 gives 2/π ≈ 0.637 (see `mean_abs_sine`)."""
+"""The paper's factor in A1·(0.673 b − 0.5 a) (eqs. 4, 19), the vibration error of the
+asymmetry term ½A1|a3|. Its exact counterpart at a = 0: ½A1·E|b sin θ| = ½A1·(2/π) b =
+A1·b/π, i.e. a factor 1/π ≈ 0.318 on A1·b (the time average of |a3| itself is (2/π) b; see
+`mean_abs_sine`), so the paper's 0.673 is about 2.1× the exact value."""
 ASYMMETRY_RANDOM_FACTOR = 0.125
-"""The paper's factor in 0.125·A1·σ (eqs. 13, 20); the exact Gaussian value with a = 0 is
-½·sqrt(2/π) ≈ 0.399."""
+"""The paper's factor in 0.125·A1·σ (eqs. 13, 20) for the same term under random vibration;
+the exact value at a = 0: ½A1·E|σZ| = ½A1·sqrt(2/π) σ, a factor ½·sqrt(2/π) ≈ 0.399 on A1·σ."""
 
 
 def paper_deterministic_error(
