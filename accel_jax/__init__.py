@@ -94,11 +94,13 @@ from ._kalman import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
 from ._ml_estimate import AbstractDisturbance as AbstractDisturbance
 from ._ml_estimate import CompensatedEstimate as CompensatedEstimate
+from ._ml_estimate import ExponentialDisturbance as ExponentialDisturbance
 from ._ml_estimate import GaussMarkovDisturbance as GaussMarkovDisturbance
 from ._ml_estimate import HarmonicDisturbance as HarmonicDisturbance
 from ._ml_estimate import MLEstimate as MLEstimate
 from ._ml_estimate import NonlinearFit as NonlinearFit
 from ._ml_estimate import WhiteDisturbance as WhiteDisturbance
+from ._ml_estimate import column_sum_estimate as column_sum_estimate
 from ._ml_estimate import compensate_linearisation as compensate_linearisation
 from ._ml_estimate import error_covariance as error_covariance
 from ._ml_estimate import fit_sensing_element as fit_sensing_element

@@ -267,3 +267,51 @@ def test_bad_input_raises():
             TS, jnp.zeros(128), SensingElement(OMEGA0), covariance=jnp.ones(128), initial_guess=1.0
         )
     assert isinstance(ml_estimate(TS, jnp.zeros(128), OMEGA0, jnp.ones(128)), MLEstimate)
+
+
+def test_exponential_disturbance_covariance_is_that_of_its_samples():
+    from accel_jax._ml_estimate import ExponentialDisturbance
+
+    ts = sample_times(0.05, 40)
+    disturbance = ExponentialDisturbance(2e-5, 0.4)
+    samples = jax.vmap(lambda k: disturbance.sample(ts, key=k))(
+        jax.random.split(jax.random.key(4), 20_000)
+    )
+    empirical = np.cov(np.asarray(samples), rowvar=False)
+    expected = np.asarray(disturbance.covariance(ts))
+    # Rank one: s² e_i e_j. The sample covariance of 20,000 draws: within ~3 % of s².
+    np.testing.assert_allclose(empirical, expected, atol=0.03 * 2e-5**2)
+    assert np.linalg.matrix_rank(expected, tol=1e-6 * expected.max()) == 1
+    with pytest.raises(ValueError, match="time_constant"):
+        ExponentialDisturbance(1e-5, 0.0)
+
+
+def test_column_sum_estimate_is_gls_for_diagonal_r_and_worse_for_correlated_r():
+    from accel_jax._ml_estimate import ExponentialDisturbance, column_sum_estimate
+
+    ts = sample_times(0.02, 128)
+    omega = 2 * np.pi
+    truth = jnp.array([0.01, 0.003, -0.002])
+    clean = state_basis(ts, omega) @ truth
+    # A diagonal R (unequal variances): the paper's (8) is the GLS estimate.
+    variances = jnp.linspace(1e-10, 4e-10, ts.shape[0])
+    gls = ml_estimate(ts, clean + 1e-5, omega, variances)
+    paper = column_sum_estimate(ts, clean + 1e-5, omega, variances)
+    np.testing.assert_allclose(paper.state, gls.state, rtol=1e-10)
+    np.testing.assert_allclose(paper.covariance, gls.covariance, rtol=1e-8)
+    # Correlated R (white pickoff + Gauss–Markov + exponential transient): still unbiased
+    # (G A = I) but with a larger variance of α̂_P than GLS (Gauss–Markov theorem); its
+    # stated covariance G R Gᵀ is that of its errors over 4,000 noisy records.
+    r = (
+        error_covariance(ts, 1e-5, GaussMarkovDisturbance(1e-5, 0.1))
+        + ExponentialDisturbance(3e-5, 0.5).covariance(ts)
+    )
+    paper = column_sum_estimate(ts, clean, omega, r)
+    gls = ml_estimate(ts, clean, omega, r)
+    np.testing.assert_allclose(paper.gain @ state_basis(ts, omega), np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(paper.state, truth, rtol=1e-9)
+    assert float(paper.covariance[0, 0]) > 1.01 * float(gls.covariance[0, 0])  # here +4 %
+    root = np.linalg.cholesky(np.asarray(r))
+    noise = np.random.default_rng(5).standard_normal((4000, ts.shape[0])) @ root.T
+    errors = (np.asarray(clean) + noise) @ np.asarray(paper.gain).T - np.asarray(truth)
+    assert np.var(errors[:, 0]) == pytest.approx(float(paper.covariance[0, 0]), rel=0.1)

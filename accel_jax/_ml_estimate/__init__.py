@@ -13,7 +13,8 @@ R = σ² I + R_SE is the generalised least-squares solution
 
 with A = [1, sin ωt_i, cos ωt_i] (7). Note: the paper writes the normal matrix (8) with
 column-summed weights w_i = Σ_j w_ji, which equals Aᵀ R⁻¹ A only for a diagonal R; this
-module uses Aᵀ R⁻¹ A itself (the likelihood equation (3) exactly).
+module uses Aᵀ R⁻¹ A itself (the likelihood equation (3) exactly); `column_sum_estimate`
+is the paper's printed form, for comparison.
 
 The linearisation error. For a record of the refined (cubic / sine) motion, first order in
 A³, ξt and the frequency error, the samples differ from the linear model by (derived here
@@ -37,19 +38,22 @@ of the samples with a fixed array shape, so that one compiled function runs over
 different length K (see `accel_jax._pendulum.record_mask`). Linear solves use lineax.
 Precision follows the inputs; the study and tests use float64 (the biases are 1e-10…1e-5 rad).
 
-Modules: `disturbances` (white, Gauss–Markov and harmonic disturbances, the error
-covariance), `estimate` (the GLS estimate and its linearisation error), `compensation`,
+Modules: `disturbances` (white, Gauss–Markov, harmonic and exponential disturbances, the
+error covariance), `estimate` (the GLS estimate, the paper's column-sum estimate
+`column_sum_estimate`, and the linearisation error), `compensation`,
 `fit` (the exact-sine fit).
 """
 
 from .compensation import CompensatedEstimate as CompensatedEstimate
 from .compensation import compensate_linearisation as compensate_linearisation
 from .disturbances import AbstractDisturbance as AbstractDisturbance
+from .disturbances import ExponentialDisturbance as ExponentialDisturbance
 from .disturbances import GaussMarkovDisturbance as GaussMarkovDisturbance
 from .disturbances import HarmonicDisturbance as HarmonicDisturbance
 from .disturbances import WhiteDisturbance as WhiteDisturbance
 from .disturbances import error_covariance as error_covariance
 from .estimate import MLEstimate as MLEstimate
+from .estimate import column_sum_estimate as column_sum_estimate
 from .estimate import linearisation_error as linearisation_error
 from .estimate import linearisation_residual as linearisation_residual
 from .estimate import ml_estimate as ml_estimate

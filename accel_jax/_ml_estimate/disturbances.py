@@ -132,6 +132,37 @@ class HarmonicDisturbance(AbstractDisturbance):
         return self.amplitude * jnp.sin(self.angular_frequency * ts + theta)
 
 
+class ExponentialDisturbance(AbstractDisturbance):
+    """An exponentially settling disturbance c·e^{−t/τ} with a random amplitude c ~ N(0, s²):
+    the paper's deterministic disturbances of "exponential character" (e.g. a thermal or
+    electrical transient settling after switch-on), given the random amplitude so that they
+    enter the ML covariance like the harmonic one does.
+
+    R_SE,ij = s² e^{−t_i/τ} e^{−t_j/τ} (rank 1: only with σ² > 0 is R invertible); t is the
+    record's clock (the transient starts at t = 0).
+
+    **Fields:** `std` s [rad]; `time_constant` τ [s].
+    """
+
+    std: Float[Array, ""] = eqx.field(converter=_as_float)
+    time_constant: Float[Array, ""] = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _check_non_negative("ExponentialDisturbance", "std", self.std, "rad")
+        _check_positive("ExponentialDisturbance", "time_constant", self.time_constant, "s")
+
+    def _shape(self, ts):
+        return jnp.exp(-jnp.asarray(ts) / self.time_constant)
+
+    def covariance(self, ts):
+        shape = self._shape(ts)
+        return self.std**2 * shape[:, None] * shape[None, :]
+
+    def sample(self, ts, *, key):
+        ts = jnp.asarray(ts)
+        return self.std * jax.random.normal(key, (), ts.dtype) * self._shape(ts)
+
+
 def error_covariance(
     ts: SeriesLike, pickoff_std: ScalarLike, disturbance: AbstractDisturbance | None = None
 ) -> Matrix:

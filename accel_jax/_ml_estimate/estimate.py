@@ -179,6 +179,50 @@ def ml_estimate(
     return MLEstimate(state=state, covariance=psi, gain=gain)
 
 
+def column_sum_estimate(
+    ts: SeriesLike,
+    samples: SeriesLike,
+    angular_frequency: ScalarLike,
+    covariance: ArrayLike,
+) -> MLEstimate:
+    """The paper's estimate as printed, eq. (8): B_α Ẑ = C_α with each sample weighted by
+    the column sum w_i = Σ_j w_ji of R⁻¹ = [w_ji] (the weights of (8) and of (16)).
+
+    B_α = Aᵀ diag(w) A and C_α = Aᵀ diag(w) α*. For a diagonal R this is `ml_estimate`
+    exactly; for a correlated R it is another linear estimator, Ẑ = G α* with
+    G = (Aᵀ W A)⁻¹ Aᵀ W, W = diag(w) — unbiased for the linear model (G A = I), but not the
+    maximum-likelihood one, so its variance is at least GLS's (Gauss–Markov theorem). The
+    returned `covariance` is that estimator's true error covariance G R Gᵀ, not (Aᵀ W A)⁻¹.
+    w = R⁻¹ 1 (R is symmetric), which may have negative entries for a correlated R; the
+    3×3 system is solved by LU.
+
+    **Arguments:** as `ml_estimate` (no mask).
+
+    **Returns:** an `MLEstimate` (state, covariance G R Gᵀ, gain G).
+    """
+    ts, _, basis, weighted, _ = _gls_parts(ts, angular_frequency, covariance, None)
+    samples = jnp.asarray(samples, ts.dtype)
+    if samples.shape != ts.shape:
+        raise ValueError(f"samples must have the shape of ts {ts.shape}, got {samples.shape}.")
+    column_sums = weighted[:, 0]  # R⁻¹ A's first column: R⁻¹ 1, A's first column being 1
+    weighted_basis = basis * column_sums[:, None]  # W A
+    normal = basis.T @ weighted_basis  # B_α
+    operator = lx.MatrixLinearOperator(normal)
+    solver = lx.LU()
+    state_ = solver.init(operator, {})
+    gain = jax.vmap(
+        lambda b: lx.linear_solve(operator, b, solver, state=state_).value, in_axes=1, out_axes=1
+    )(weighted_basis.T)  # (3, K)
+    r = jnp.asarray(covariance, ts.dtype)
+    r_gain = r[:, None] * gain.T if r.ndim == 1 else r @ gain.T
+    error_covariance_ = gain @ r_gain
+    return MLEstimate(
+        state=gain @ samples,
+        covariance=0.5 * (error_covariance_ + error_covariance_.T),
+        gain=gain,
+    )
+
+
 def linearisation_residual(
     ts: SeriesLike,
     amplitude: ScalarLike,
