@@ -35,7 +35,7 @@ TYPICAL_SECONDS = {
     "sensing_element_ml": 113,
     "vibration_compensation": 16,
     "tolerance_limits": 10,
-    "noise_identification": 79,
+    "noise_identification": 245,  # with seed 001's filter loop (issue 23), alone, 2026-11-25
     "sim_to_real_validation": 815,  # 520 blind records (issue 19)
     "table5_gap": 1,
 }
