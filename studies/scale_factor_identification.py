@@ -826,7 +826,7 @@ def _summary_rows(result: dict) -> list[dict]:
             "ours": f"{head['oscillatory_gamma_3_4']['mean']:.4f} ± "
             f"{head['oscillatory_gamma_3_4']['std']:.4f}",
             "paper": "0.141",
-            "explanation": "differs: with the γ = 3/4 the paper states we are "
+            "explanation": "with the γ = 3/4 the paper states we are "
             f"{_sigmas(head['oscillatory_gamma_3_4'], 0.141):.1f}σ from its 0.141 %; with "
             "the device's exact γ = m l²/J δK_a = "
             f"{head['oscillatory_gamma_exact']['mean']:.3f} % (next row), close to the "
