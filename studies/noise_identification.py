@@ -798,7 +798,7 @@ def _summary_rows(result: dict) -> list[dict]:
             first = loop["iterations"][0]
             entry["explanation"] = (
                 f"the loop takes the filter from {100 * first['fraction_outside_3sigma']:.0f} % "
-                f"to {100 * row['fraction_outside_3sigma']:.1f} % outside ±3σ in "
+                f"to {100 * row['fraction_outside_3sigma']:.2f} % outside ±3σ in "
                 f"{row['iteration']} iterations (oracle "
                 f"{100 * oracle['fraction_outside_3sigma']:.2f} %, NEES "
                 f"{oracle['mean_nees']:.1f}); the smoothed estimates it identifies from are "
