@@ -49,3 +49,20 @@ def drawn_devices(size, seed):
         fields[name] = fields[name] * (1 + 0.03 * rng.standard_normal(size))
     del reference
     return accel_jax.ServoParams(**{k: jnp.asarray(v) for k, v in fields.items()})
+
+
+def run_on_simulated_cpu_devices(code: str, count: int):
+    """Run `code` in a fresh interpreter that sees `count` CPU devices (the device count is
+    fixed when JAX starts); returns the completed process (stdout, stderr as text)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(
+        os.environ,
+        XLA_FLAGS=f"--xla_force_host_platform_device_count={count}",
+        JAX_PLATFORMS="cpu",
+    )
+    return subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )

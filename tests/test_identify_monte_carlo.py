@@ -2,9 +2,6 @@
 against `identify_oscillatory` called on the same records, and its float32 noise draws.
 Float64 (tests/conftest.py). Records: 10 ms at 250 kHz (2 501 samples), small batches."""
 
-import os
-import subprocess
-import sys
 import textwrap
 
 import equinox as eqx
@@ -151,12 +148,9 @@ def test_monte_carlo_on_two_simulated_devices_matches_one():
         print("OK", len(both.scale_factor.sharding.device_set))
         """
     )
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
-    )
+    from helpers import run_on_simulated_cpu_devices
+
+    proc = run_on_simulated_cpu_devices(code, 2)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.strip() == "OK 2", proc.stdout
     with pytest.raises(ValueError, match="at least one device"):

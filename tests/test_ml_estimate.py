@@ -302,10 +302,9 @@ def test_column_sum_estimate_is_gls_for_diagonal_r_and_worse_for_correlated_r():
     # Correlated R (white pickoff + Gauss–Markov + exponential transient): still unbiased
     # (G A = I) but with a larger variance of α̂_P than GLS (Gauss–Markov theorem); its
     # stated covariance G R Gᵀ is that of its errors over 4,000 noisy records.
-    r = (
-        error_covariance(ts, 1e-5, GaussMarkovDisturbance(1e-5, 0.1))
-        + ExponentialDisturbance(3e-5, 0.5).covariance(ts)
-    )
+    r = error_covariance(ts, 1e-5, GaussMarkovDisturbance(1e-5, 0.1)) + ExponentialDisturbance(
+        3e-5, 0.5
+    ).covariance(ts)
     paper = column_sum_estimate(ts, clean, omega, r)
     gls = ml_estimate(ts, clean, omega, r)
     np.testing.assert_allclose(paper.gain @ state_basis(ts, omega), np.eye(3), atol=1e-9)

@@ -1,7 +1,6 @@
 """The sharded sweep: same numbers on 1 and on several (simulated) devices."""
 
 import io
-import os
 import subprocess
 import sys
 import textwrap
@@ -131,12 +130,9 @@ def test_sweep_on_four_simulated_devices():
         print("OK", len(out.sharding.device_set))
         """
     )
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
-    )
+    from helpers import run_on_simulated_cpu_devices
+
+    proc = run_on_simulated_cpu_devices(code, 4)
     assert proc.returncode == 0, proc.stderr[-3000:]
     # The result lives on all four devices: the batch was really split.
     assert proc.stdout.strip() == "OK 4", proc.stdout

@@ -17,7 +17,7 @@ from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from .._params import ServoParams, _concrete
 from .._simulate.blocked import _check_noise_dtype, fast_step_response
-from .oscillatory import OscillatoryEstimate, _oscillatory_estimate
+from .oscillatory import OscillatoryEstimate, _check_options, _oscillatory_estimate
 from .record import _validate_record
 
 _CHUNK_CPU = 16
@@ -236,12 +236,7 @@ def monte_carlo_oscillatory(
     options = dict(crossing=crossing, extremum=extremum, period=period)
     # Validate the record-level settings once, outside the compiled kernel.
     n_tail = _validate_record("monte_carlo_oscillatory", ts, ts, tail_fraction)
-    if crossing not in ("linear", "nearest"):
-        raise ValueError(f"crossing must be 'linear' or 'nearest', got {crossing!r}.")
-    if extremum not in ("sample", "parabolic"):
-        raise ValueError(f"extremum must be 'sample' or 'parabolic', got {extremum!r}.")
-    if period not in ("full", "half"):
-        raise ValueError(f"period must be 'full' or 'half', got {period!r}.")
+    _check_options(crossing, extremum, period)
     devices = tuple(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("devices must name at least one device.")

@@ -177,28 +177,34 @@ def _weighted_moments_jvp(primals, tangents):
 
 def _fit_crossing(ts, deviation, fit_width, a, k, crossing):
     """Weighted straight-line zero crossing over samples a..k (see `_crossing`)."""
-    n = ts.shape[0]
-    index = jnp.arange(n, dtype=jnp.int32)
+    index = jnp.arange(ts.shape[0], dtype=jnp.int32)
     window = (index >= a) & (index <= k)
+    return _fit_line(ts, deviation, window, index < k, ts[a], ts[k], fit_width, crossing)
+
+
+def _fit_line(t, d, window, before_k, t_a, t_k, fit_width, crossing):
+    """The fit of `_fit_crossing` on samples t, d (the whole record, or a window of it):
+    `window` marks a..k, `before_k` the samples before k."""
+    position = jnp.arange(t.shape[0], dtype=jnp.int32)
     # The deviations at a and k lie beyond opposite band edges, so a sign change exists.
-    positive = deviation >= 0
+    positive = d >= 0
     sign_change = jnp.concatenate([positive[1:] != positive[:-1], jnp.zeros(1, bool)])
-    j = jnp.argmax(window & (index < k) & sign_change)
-    pair = (index == j) | (index == j + 1)
-    ratio = deviation / jnp.where(fit_width > 0, fit_width, 1.0)
+    j = jnp.argmax(window & before_k & sign_change)
+    pair = (position == j) | (position == j + 1)
+    ratio = d / jnp.where(fit_width > 0, fit_width, 1.0)
     near = window & (fit_width > 0) & (jnp.abs(ratio) < 1)
     weight = pair + jnp.where(near, (1 - ratio**2) ** 2, 0.0)
-    x = jnp.where(weight > 0, ts - ts[k], 0.0)  # centred on t_k for conditioning
-    y = jnp.where(weight > 0, deviation, 0.0)
+    x = jnp.where(weight > 0, t - t_k, 0.0)  # centred on t_k for conditioning
+    y = jnp.where(weight > 0, d, 0.0)
     sw, sx, sy, sxx, sxy = _weighted_moments(weight, x, y)
     denominator = sw * sxx - sx * sx
     slope = (sw * sxy - sx * sy) / jnp.where(denominator > 0, denominator, 1.0)
     intercept = (sy - slope * sx) / sw
     safe_slope = jnp.where(slope != 0, slope, 1.0)
-    t_cross = jnp.clip(ts[k] - intercept / safe_slope, ts[a], ts[k])
+    t_cross = jnp.clip(t_k - intercept / safe_slope, t_a, t_k)
     if crossing == "nearest":
-        j = jnp.argmin(jnp.where(window, jnp.abs(ts - t_cross), jnp.inf))
-        t_cross = ts[j]
+        j = jnp.argmin(jnp.where(window, jnp.abs(t - t_cross), jnp.inf))
+        t_cross = t[j]
     return t_cross
 
 
@@ -221,30 +227,9 @@ def _last_before(mask_at, end, length: int, n: int):
 def _fit_crossing_window(ts, deviation, fit_width, a, k, crossing, length: int):
     """`_fit_crossing` over the `length` samples ending at k: the same fit (the same
     weights, summed in another order: equal to rounding) whenever k − a < length."""
-    n = ts.shape[0]
-    idx, real = _window(length, k, n)
-    local = jnp.arange(length, dtype=jnp.int32)
+    idx, real = _window(length, k, ts.shape[0])
     window = real & (idx >= a)
-    d, t = deviation[idx], ts[idx]
-    positive = d >= 0
-    sign_change = jnp.concatenate([positive[1:] != positive[:-1], jnp.zeros(1, bool)])
-    j = jnp.argmax(window & (idx < k) & sign_change)
-    pair = (local == j) | (local == j + 1)
-    ratio = d / jnp.where(fit_width > 0, fit_width, 1.0)
-    near = window & (fit_width > 0) & (jnp.abs(ratio) < 1)
-    weight = pair + jnp.where(near, (1 - ratio**2) ** 2, 0.0)
-    x = jnp.where(weight > 0, t - ts[k], 0.0)
-    y = jnp.where(weight > 0, d, 0.0)
-    sw, sx, sy, sxx, sxy = _weighted_moments(weight, x, y)
-    denominator = sw * sxx - sx * sx
-    slope = (sw * sxy - sx * sy) / jnp.where(denominator > 0, denominator, 1.0)
-    intercept = (sy - slope * sx) / sw
-    safe_slope = jnp.where(slope != 0, slope, 1.0)
-    t_cross = jnp.clip(ts[k] - intercept / safe_slope, ts[a], ts[k])
-    if crossing == "nearest":
-        j = jnp.argmin(jnp.where(window, jnp.abs(t - t_cross), jnp.inf))
-        t_cross = t[j]
-    return t_cross
+    return _fit_line(ts[idx], deviation[idx], window, idx < k, ts[a], ts[k], fit_width, crossing)
 
 
 def _crossing_window(ts, deviation, label, fit_width, k, exists, crossing, length: int):
@@ -428,6 +413,16 @@ def _oscillatory_estimate(
     return estimate, exact
 
 
+def _check_options(crossing: str, extremum: str, period: str) -> None:
+    """The static settings of `identify_oscillatory` (and of the Monte Carlo kernel)."""
+    if crossing not in ("linear", "nearest"):
+        raise ValueError(f"crossing must be 'linear' or 'nearest', got {crossing!r}.")
+    if extremum not in ("sample", "parabolic"):
+        raise ValueError(f"extremum must be 'sample' or 'parabolic', got {extremum!r}.")
+    if period not in ("full", "half"):
+        raise ValueError(f"period must be 'full' or 'half', got {period!r}.")
+
+
 def identify_oscillatory(
     ts: SeriesLike,
     u_out: SeriesLike,
@@ -494,12 +489,7 @@ def identify_oscillatory(
     An `OscillatoryEstimate` (its `t2` is the measured t2 whichever `period` is used).
     """
     n_tail = _validate_record("identify_oscillatory", ts, u_out, tail_fraction)
-    if crossing not in ("linear", "nearest"):
-        raise ValueError(f"crossing must be 'linear' or 'nearest', got {crossing!r}.")
-    if extremum not in ("sample", "parabolic"):
-        raise ValueError(f"extremum must be 'sample' or 'parabolic', got {extremum!r}.")
-    if period not in ("full", "half"):
-        raise ValueError(f"period must be 'full' or 'half', got {period!r}.")
+    _check_options(crossing, extremum, period)
     head, tail, _ = _record_arguments(
         ts, u_out, pickoff_amplifier_gain, shape_factor, step_time, steady_state, saturation_level
     )
