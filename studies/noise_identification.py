@@ -315,6 +315,11 @@ def identify_sensor(sigma, tau, n, key) -> dict:
     return identify_series(simulate_noise(GaussMarkov(sigma, tau), DT, n, key=key))
 
 
+# One compiled ML fit for every series of a length (a new filter_jit wrapper per call would
+# compile again each time: the filter loop fits 2 series per iteration).
+_fit_ml = eqx.filter_jit(functools.partial(fit_maximum_likelihood, throw=False))
+
+
 def identify_series(x, throw: bool = True) -> dict:
     """Rule (15) over r_j > e⁻¹ and maximum likelihood of a Gauss-Markov model of series x
     sampled at DT (the sensor's record, or the filter's estimates of it). With
@@ -325,7 +330,7 @@ def identify_series(x, throw: bool = True) -> dict:
     x = x / scale  # fit in units of the record's std: the optimiser's tolerances are absolute
     R = autocorrelation(x, min(n // 10, 2000))
     paper = fit_gauss_markov_paper(R, DT, min_correlation=float(np.exp(-1)), throw=throw)
-    ml = eqx.filter_jit(functools.partial(fit_maximum_likelihood, throw=False))(paper.model, x, DT)
+    ml = _fit_ml(paper.model, x, DT)
     return {
         "paper_ok": bool(paper.result == NoiseFitResult.successful),
         "ml_converged": bool(ml.result == NoiseFitResult.successful),
