@@ -145,6 +145,39 @@ def test_select_composite_record():
     assert fractions == sorted(fractions)  # each step explains more
 
 
+def test_startup_transient_judged_in_the_time_domain_and_checked_backward():
+    """A warm-up at the start (τ = 60 samples; 3 σ_w alone, 6 σ_w under a random walk,
+    where the exact expected 2 ln Λ is ~100: the walk hides the level the transient
+    departs from) is named, with its amplitude and τ recovered; a random walk alone, whose start a
+    white-noise model would take for a transient, gets none (the time-domain test runs
+    against the current noise model, and the backward check judges every effect again
+    against the final one)."""
+    n, dt, white = 6000, 0.01, 1e-3
+    transient = (3e-3, 0.6)
+    cases = {
+        "alone": {"white": white, "transient": transient, "level": 0.4},
+        "under_a_walk": {
+            "white": white,
+            "random_walk": (3 * white) ** 2 / (n * dt),
+            "transient": (6e-3, 0.6),
+            "level": -0.2,
+        },
+        "walk_only": {"white": white, "random_walk": (5 * white) ** 2 / (n * dt)},
+    }
+    found = {}
+    for i, (name, truth) in enumerate(cases.items()):
+        rng = np.random.default_rng(40 + i)
+        found[name] = aj.select_sensor_noise(noise_truth.record(rng, n, dt, truth), dt)
+    assert found["alone"].verdict == "startup_transient", found["alone"].steps
+    assert set(found["under_a_walk"].effects) == {"random_walk", "startup_transient"}
+    assert found["walk_only"].verdict == "random_walk", found["walk_only"].steps
+    for name in ("alone", "under_a_walk"):
+        fitted = found[name].parameters["startup_transient"]
+        amplitude, tau = cases[name]["transient"]
+        assert fitted["amplitude"] == pytest.approx(amplitude, rel=0.15)
+        assert fitted["time_constant_s"] == pytest.approx(tau, rel=0.35)
+
+
 def test_outside_the_library_is_unexplained():
     """A square wave (a switching regulator's ripple; no library effect, its harmonics
     beyond `max_lines`) is not passed off as white noise."""

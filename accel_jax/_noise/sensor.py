@@ -16,7 +16,13 @@ and adds, one at a time, the effect whose evidence is largest, while it is signi
 **Evidence** of an addition: 2 ln B ≈ 2 Δ ln L − k ln J on the training part (the first
 2/3 of the record; J its number of periodogram bins, k the effect's parameter count), and
 it is added only when it is at least `EVIDENCE` and the held-out part's (last third)
-Whittle likelihood rises too. **Explained fraction** after each step: the share of the
+Whittle likelihood rises too. A start-up transient's 2 Δ ln L is instead its exact
+time-domain likelihood ratio against the current noise model (`_transient_test`: the
+spectral likelihood's taper gives the record's first samples almost no weight), and it has
+no held-out check (it lies in the training part). **Backward check** (`_backward`): once
+nothing more is added, each effect is judged again against the final model without it and
+the weakest below `EVIDENCE` is removed, until every one stands (an effect added early can
+lose its evidence once a later one is in). **Explained fraction** after each step: the share of the
 nominal model's excess Whittle deviance on the held-out part, Σ (r − ln r − 1) − γJ with
 r = I/f (zero in expectation for the right model), that the model removes. What the final
 model leaves is **unexplained** when its held-out excess deviance stands more than
@@ -48,9 +54,6 @@ QUANTIZATION_SHARE = 0.01
 (half the variance of its first difference) to be named."""
 
 UNEXPLAINED_Z = 4.0
-HELD_OUT_SLACK = 1.0
-"""A start-up transient may lower the held-out log-likelihood by at most this much (it is
-absent there; its refit of the stationary part may move it by sampling error)."""
 HELD_OUT_FRACTION = 1 / 3
 EULER_GAMMA = 0.5772156649015329
 DEVIANCE_VARIANCE = math.pi**2 / 6 - 1
@@ -73,10 +76,13 @@ class SensorNoiseSelection:
     **Fields:** `effects` the named effects in the order added (`quantization` last when
     named); `unexplained` whether the final model leaves a significant held-out misfit;
     `steps` one dict per forward step (the model, its 2 ln B, held-out gain and the
-    explained fraction); `parameters` the final model's physical parameters by effect;
-    `held_out` the final model's held-out deviance test; `quantization` the grid found (or
-    None); `verdict` the effects joined by '+' ('none' when nothing is named and nothing
-    is left, 'unexplained' alone when nothing is named but the misfit stays).
+    explained fraction; the steps of effects the backward check removed are left out, and
+    the last step's fraction and z are the final model's); `parameters` the final model's
+    physical parameters by effect; `held_out` the final model's held-out deviance test
+    (with `removed`: the effects the backward check took out and their 2 ln B then);
+    `quantization` the grid found (or None); `verdict` the effects joined by '+' ('none'
+    when nothing is named and nothing is left, 'unexplained' alone when nothing is named
+    but the misfit stays).
     """
 
     effects: tuple
@@ -179,44 +185,6 @@ def _line_signal(line: dict, t: np.ndarray) -> np.ndarray:
     return line["cos"] * np.cos(w) + line["sin"] * np.sin(w)
 
 
-def _fit_transient(r: np.ndarray, t: np.ndarray, dt: float) -> dict:
-    """a e^{−t/τ} + c fitted to r by least squares over a grid of τ (2Δ to a quarter of
-    the span); beyond 2¹⁵ samples on block means (a transient longer than a block is smooth
-    across it, one shorter is fitted on the first 2¹⁵ samples as they are)."""
-    t0 = t - t[0]
-    candidates = []
-    head = min(r.size, 1 << 15)
-    candidates.append((r[:head], t0[:head], 1))
-    if r.size > head:
-        block = int(math.ceil(r.size / head))
-        usable = r.size // block * block
-        candidates.append(
-            (
-                r[:usable].reshape(-1, block).mean(1),
-                t0[:usable].reshape(-1, block).mean(1),
-                block,  # a block mean's squared reduction counts for its block's samples
-            )
-        )
-    best = None
-    span = t0[-1]
-    taus = np.geomspace(2 * dt, max(span / 4, 3 * dt), 60)
-    for rr, tt, weight in candidates:
-        usable = taus[taus <= 4 * tt[-1]]
-        e = np.exp(-tt[None, :] / usable[:, None])
-        e0 = e - e.mean(axis=1, keepdims=True)
-        centred = rr - rr.mean()
-        denom = np.einsum("ij,ij->i", e0, e0)
-        proj = e0 @ centred
-        ok = denom > 0
-        # the reduction of the residual sum of squares a transient of each τ gives (the
-        # part of the record outside rr is unchanged by one that has decayed there)
-        gain = np.where(ok, weight * proj**2 / np.where(ok, denom, 1.0), -np.inf)
-        j = int(np.argmax(gain))
-        if np.isfinite(gain[j]) and (best is None or gain[j] > best[0]):
-            best = (float(gain[j]), float(usable[j]), float(proj[j] / denom[j]))
-    return {"time_constant_s": best[1], "amplitude": best[2]}
-
-
 def _transient_signal(transient: dict, t: np.ndarray) -> np.ndarray:
     return transient["amplitude"] * np.exp(-(t - t[0]) / transient["time_constant_s"])
 
@@ -275,6 +243,85 @@ def _evaluate(record, floor, names, lines, transient, parent=None) -> _Model:
     mask = jnp.asarray(spectral._mask(names))
     held_lik = float(spectral.log_likelihood(jnp.asarray(z), mask, held, jnp.asarray(floor)))
     return _Model(tuple(names), tuple(lines), transient, z, log_lik, held_lik, ok)
+
+
+TRANSIENT_WINDOW = 1 << 12
+"""The start-up transient is tested on the first `TRANSIENT_WINDOW` first differences of
+the record (time constants up to a quarter of that)."""
+
+TRANSIENT_TAUS = 24
+
+
+def _differenced_autocovariance(model: _Model, floor: float, size: int) -> np.ndarray:
+    """γ_y(h), h = 0..size−1, of the model's differenced record y = Δx: the inverse Fourier
+    transform of its spectral density f_y (`spectral.spectrum`) on a grid of 8·size."""
+    grid = 8 * size
+    w = 2 * np.pi * np.arange(grid) / grid
+    folded = np.minimum(w, 2 * np.pi - w)
+    f = np.asarray(
+        spectral.spectrum(
+            jnp.asarray(model.z), jnp.asarray(spectral._mask(model.names)), folded, floor
+        )
+    )
+    return np.real(np.fft.ifft(f))[:size]
+
+
+def _innovations(gamma: np.ndarray, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The one-step prediction errors of the columns of `vectors` under the stationary
+    autocovariance γ (the Durbin–Levinson recursion: each sample predicted from all the
+    earlier ones of the window) and their variances D_k; Σ_k e_k e'_k/D_k is then the exact
+    Gaussian inner product uᵀ C⁻¹ v."""
+    size = gamma.size
+    out = np.empty_like(vectors)
+    variance = np.empty(size)
+    phi = np.zeros(0)
+    d = float(gamma[0])
+    out[0] = vectors[0]
+    variance[0] = d
+    for k in range(1, size):
+        kappa = (gamma[k] - phi @ gamma[k - 1 : 0 : -1]) / d if k > 1 else gamma[1] / d
+        phi = np.concatenate([phi - kappa * phi[::-1], [kappa]])
+        d = d * (1 - kappa * kappa)
+        if not d > 0:
+            return out[:k], variance[:k]
+        out[k] = vectors[k] - phi[::-1] @ vectors[:k]
+        variance[k] = d
+    return out, variance
+
+
+def _transient_test(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict:
+    """The start-up transient a e^{−t/τ} that best explains the start of r, and its
+    evidence 2 ln Λ against `model`'s noise, by generalised least squares in the time
+    domain: on the first `TRANSIENT_WINDOW` first differences y of r (the difference takes
+    the level out and makes a random walk stationary), the exact Gaussian likelihood ratio
+    of y − a Δh_τ − b against y − b under the model's autocovariance of y (Durbin–Levinson;
+    b, a constant rate of the level, is a nuisance: a linear drift is not a transient),
+    2 ln Λ = (Δhᵀ C⁻¹ y)² / (Δhᵀ C⁻¹ Δh) with b projected out of both, maximised over a
+    geometric grid of τ from 2Δ to a quarter of the window.
+
+    The spectral (Whittle) likelihood cannot judge a transient: its taper gives the first
+    samples of the record, where the transient lives, almost no weight."""
+    y = np.diff(r)[:TRANSIENT_WINDOW]
+    size = y.size
+    taus = np.geomspace(2 * dt, max(size * dt / 4, 3 * dt), TRANSIENT_TAUS)
+    k = np.arange(size + 1) * dt
+    templates = np.diff(np.exp(-k[:, None] / taus[None, :]), axis=0)
+    gamma = _differenced_autocovariance(model, floor, size)
+    columns = np.concatenate([y[:, None], np.ones((size, 1)), templates], axis=1)
+    e, d = _innovations(gamma, columns)
+    weighted = e / d[:, None]
+    gram = weighted.T @ e  # the C⁻¹ inner products of every pair of columns
+    # the level's drift (a constant mean of y) taken out: a ramp is not a transient
+    drift = gram[1, 1]
+    cross = gram[2:, 0] - gram[2:, 1] * gram[1, 0] / drift
+    energy = np.diag(gram)[2:] - gram[2:, 1] ** 2 / drift
+    z2 = np.where(energy > 0, cross**2 / np.where(energy > 0, energy, 1.0), 0.0)
+    i = int(np.argmax(z2))
+    return {
+        "evidence": float(z2[i]),
+        "time_constant_s": float(taus[i]),
+        "amplitude": float(cross[i] / energy[i]) if energy[i] > 0 else 0.0,
+    }
 
 
 def _held_out_deviance(record, floor, model: _Model) -> dict:
@@ -345,6 +392,52 @@ def _physical(model: _Model, dt: float, floor: float) -> dict:
     return out
 
 
+def _explained(dev: dict, nominal: dict) -> float:
+    """The share of the nominal model's held-out excess deviance that a model removes."""
+    if not nominal["excess_deviance"] > 0:
+        return 0.0
+    return min(max(1 - dev["excess_deviance"] / nominal["excess_deviance"], 0.0), 1.0)
+
+
+def _backward(rec, floor, model: _Model, log_j: float, evidence: float):
+    """The backward check of the forward selection: each effect of the final model is
+    judged again against the final model without it (a stochastic effect by its Whittle
+    2 ln B on the training part, the start-up transient by its time-domain test against
+    the reduced noise model); the weakest that falls below `evidence` is removed and the
+    check repeats. An effect added early can lose its evidence once a later one is in: a
+    random walk taken for the low-frequency power of a start-up transient, or a transient
+    seen in the start of a record whose wandering level was not yet modelled.
+
+    Returns (model, removed: [{"effect", "evidence"}])."""
+    removed = []
+    while True:
+        weakest = None
+        for name in model.names:
+            names = tuple(n for n in model.names if n != name)
+            reduced = _evaluate(
+                rec,
+                floor,
+                names,
+                model.lines,
+                model.transient,
+                dataclasses.replace(model, names=names),
+            )
+            score = 2 * (model.train - reduced.train) - PARAMETER_COUNT[name] * log_j
+            if weakest is None or score < weakest[0]:
+                weakest = (score, name, reduced)
+        if model.transient is not None:
+            r = rec.residual(model.lines, None)
+            found = _transient_test(r[: rec.split], rec.dt, model, floor)
+            score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
+            if weakest is None or score < weakest[0]:
+                reduced = _evaluate(rec, floor, model.names, model.lines, None, model)
+                weakest = (score, "startup_transient", reduced)
+        if weakest is None or weakest[0] >= evidence:
+            return model, removed
+        removed.append({"effect": weakest[1], "evidence": float(weakest[0])})
+        model = weakest[2]
+
+
 def select_sensor_noise(
     record, sample_interval: float, *, evidence: float = EVIDENCE, max_lines: int = MAX_LINES
 ) -> SensorNoiseSelection:
@@ -381,6 +474,7 @@ def select_sensor_noise(
             }
         ]
         j_train = float(spectral.periodogram(rec.x[: rec.split]).n_bins)
+        log_j = math.log(j_train)
         for _ in range(MAX_STEPS):
             trials = []
             for name in spectral.COMPONENTS:
@@ -397,39 +491,38 @@ def select_sensor_noise(
                 trials.append(
                     ("sinusoid", _evaluate(rec, floor, model.names, lines, model.transient, model))
                 )
+            scored = [
+                (2 * (m.train - model.train) - PARAMETER_COUNT[name] * log_j, name, m)
+                for name, m in trials
+            ]
             if model.transient is None:
                 r = rec.residual(model.lines, None)
-                transient = _fit_transient(r[: rec.split], rec.t[: rec.split], dt)
-                trials.append(
+                found = _transient_test(r[: rec.split], dt, model, floor)
+                transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
+                scored.append(
                     (
+                        found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j,
                         "startup_transient",
                         _evaluate(rec, floor, model.names, model.lines, transient, model),
                     )
                 )
-            scored = [
-                (2 * (m.train - model.train) - PARAMETER_COUNT[name] * math.log(j_train), name, m)
-                for name, m in trials
-            ]
             scored.sort(key=lambda s: -s[0])
             accepted = None
             for score, name, m in scored:
                 if score < evidence:
                     break
-                # A start-up transient is localised in the training part: the held-out
-                # part can only tell that it costs nothing there.
-                slack = HELD_OUT_SLACK if name == "startup_transient" else 0.0
-                if m.held > model.held - slack:
+                # A start-up transient lies in the training part (τ ≤ a quarter of
+                # `TRANSIENT_WINDOW` samples): the held-out part has nothing to check, and
+                # the refit of the noise without it moves the held-out likelihood by
+                # sampling error alone. Its time-domain test is its evidence.
+                if name == "startup_transient" or m.held > model.held:
                     accepted = (score, name, m)
                     break
             if accepted is None:
                 break
             score, name, new = accepted
             dev = _held_out_deviance(rec, floor, new)
-            fraction = (
-                min(max(1 - dev["excess_deviance"] / nominal_dev["excess_deviance"], 0.0), 1.0)
-                if nominal_dev["excess_deviance"] > 0
-                else 0.0
-            )
+            fraction = _explained(dev, nominal_dev)
             steps.append(
                 {
                     "model": "+".join(["white", *_named(new)]),
@@ -441,7 +534,18 @@ def select_sensor_noise(
                 }
             )
             model = new
+        model, removed = _backward(rec, floor, model, log_j, evidence)
+        if removed:
+            kept = set(_named(model))
+            steps = [steps[0], *(st for st in steps[1:] if st["added"] in kept)]
+            dev = _held_out_deviance(rec, floor, model)
+            steps[-1] = {
+                **steps[-1],
+                "explained_fraction": _explained(dev, nominal_dev),
+                "held_out_z": dev["z"],
+            }
         final = _held_out_deviance(rec, floor, model)
+        final["removed"] = removed
         effects = _named(model)
         params = _physical(model, dt, floor)
         quantization = None
