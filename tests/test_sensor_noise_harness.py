@@ -1,0 +1,92 @@
+"""The blind harness's ideal observer (studies/sensor_noise_harness.py, NumPy/SciPy only):
+its expected evidence checked against exact time-domain values."""
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.linalg import toeplitz
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import sensor_noise_harness as harness  # noqa: E402
+
+
+def _gaussian_2kl(cov_true, cov_alt, project=True):
+    """2 KL(N(0, C_true) ‖ N(0, C_alt)) of the record with its level taken out (projected
+    on the complement of the constant, as the diagnosis treats the level as unknown): the
+    expected 2 ln Λ of the truth against the alternative, exactly."""
+    m = cov_true.shape[0]
+    if project:
+        basis, _ = np.linalg.qr(np.concatenate([np.ones((m, 1)), np.eye(m)[:, : m - 1]], 1))
+        q = basis[:, 1:]
+        cov_true, cov_alt = q.T @ cov_true @ q, q.T @ cov_alt @ q
+    solved = np.linalg.solve(cov_alt, cov_true)
+    _, logdet = np.linalg.slogdet(solved)
+    return float(np.trace(solved) - cov_true.shape[0] - logdet)
+
+
+@pytest.mark.parametrize(
+    "name, spec",
+    [
+        ("gauss_markov", {"gauss_markov": (0.5e-3, 0.4)}),
+        ("random_walk", {"random_walk": (3e-3) ** 2 / 9.0}),
+        ("flicker", {"flicker": 0.15e-3}),
+        ("bandlimit", {"bandlimit": 20.0, "gauss_markov": (0.5e-3, 0.05)}),
+    ],
+)
+def test_oracle_of_a_stochastic_effect_is_the_exact_divergence(name, spec):
+    """Against the dense-matrix 2 KL of the level-free record (its first difference), the
+    covariances from the truth's own spectra; and a random walk's value against the
+    level-domain one (covariance σ²I + qΔ min(i, j), the level projected out)."""
+    n, dt, white = 900, 0.01, 1e-3  # training part: 600 samples
+    spec = {"white": white, **spec}
+    full = harness._differenced_autocovariance(spec, dt, 599)
+    alt = harness._differenced_autocovariance(spec, dt, 599, without=name)
+    dense = _gaussian_2kl(toeplitz(full), toeplitz(alt), project=False)
+    assert harness.oracle_evidence(spec, dt, n)[name] == pytest.approx(dense, rel=1e-8)
+    if name == "random_walk":
+        k = np.arange(600)
+        walk = white**2 * np.eye(600) + spec[name] * dt * np.minimum.outer(k, k)
+        level = _gaussian_2kl(walk, white**2 * np.eye(600))
+        assert dense == pytest.approx(level, rel=1e-6)
+
+
+def test_oracle_of_a_transient_and_a_line_match_exact_values():
+    """The transient's oracle against the level-domain GLS with the level projected out
+    (white noise plus a random walk from the record's start: covariance σ²I + qΔ min(i, j)),
+    and in white noise against the closed form; the line's against A² m / 2σ²."""
+    n, dt, white = 900, 0.01, 1e-3
+    m = 600
+    a, tau = 3e-3, 0.6
+    k = np.arange(m)
+    signal = a * np.exp(-k * dt / tau)
+    ones = np.ones(m)
+
+    def projected(cov):
+        solved_s, solved_1 = np.linalg.solve(cov, signal), np.linalg.solve(cov, ones)
+        return signal @ solved_s - (ones @ solved_s) ** 2 / (ones @ solved_1)
+
+    for walk in (0.0, (3 * white) ** 2 / (n * dt)):
+        spec = {"white": white, "transient": (a, tau), "lines": [(7.3, 2e-4)]}
+        if walk:
+            spec["random_walk"] = walk
+        cov = white**2 * np.eye(m) + walk * dt * np.minimum.outer(k, k)
+        oracle = harness.oracle_evidence(spec, dt, n)
+        assert oracle["startup_transient"] == pytest.approx(projected(cov), rel=1e-6)
+    white_only = harness.oracle_evidence(
+        {"white": white, "transient": (a, tau), "lines": [(7.3, 2e-4)]}, dt, n
+    )
+    closed = a**2 * np.sum(np.exp(-2 * k * dt / tau)) / white**2
+    level = (a * np.sum(np.exp(-k * dt / tau))) ** 2 / m / white**2
+    assert white_only["startup_transient"] == pytest.approx(closed - level, rel=1e-6)
+    assert white_only["sinusoid"] == pytest.approx(2e-4**2 * m / 2 / white**2, rel=1e-12)
+
+
+def test_detectable_needs_twice_the_bar():
+    n = 10000
+    bar = 10 + math.log(6667 // 2)
+    assert harness.detectable("flicker", {"flicker": 2.01 * bar}, n)
+    assert not harness.detectable("flicker", {"flicker": 1.99 * bar}, n)
+    assert harness.detectable("quantization", {}, n)
