@@ -881,6 +881,11 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
             f"  + {step['added']}: 2 ln B = {step['evidence']:.1f}, explained "
             f"{step['explained_fraction']:.1%} of the held-out excess"
         )
+    for entry in selection.held_out.get("removed", []):
+        say(
+            f"  − {entry['effect']}: added on the way, dropped by the backward check "
+            f"(2 ln B = {entry['evidence']:.1f} against the final model)"
+        )
     if selection.unexplained:
         say(
             f"  unexplained: the held-out spectrum stays {selection.held_out['z']:.1f} standard "

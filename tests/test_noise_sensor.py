@@ -178,6 +178,25 @@ def test_startup_transient_judged_in_the_time_domain_and_checked_backward():
         assert fitted["time_constant_s"] == pytest.approx(tau, rel=0.35)
 
 
+def test_backward_check_removes_an_effect_the_data_do_not_hold():
+    """A white record fitted with a random walk and a Gauss–Markov noise it does not have:
+    the backward check drops both (each below the bar against the model without it), and
+    keeps a real one."""
+    from accel_jax._noise import sensor
+
+    rng = np.random.default_rng(12)
+    dt = 0.01
+    x = noise_truth.record(rng, 4000, dt, {"white": 1e-3, "gauss_markov": (2e-3, 0.2)})
+    rec = sensor._Record(x, dt)
+    floor = 1e-9 * rec.variance
+    log_j = math.log(spectral.periodogram(x[: rec.split]).n_bins)
+    padded = sensor._evaluate(rec, floor, ("gauss_markov", "random_walk", "flicker"), (), None)
+    model, removed = sensor._backward(rec, floor, padded, log_j, sensor.EVIDENCE)
+    assert model.names == ("gauss_markov",)
+    assert {r["effect"] for r in removed} == {"random_walk", "flicker"}
+    assert all(r["evidence"] < sensor.EVIDENCE for r in removed)
+
+
 def test_outside_the_library_is_unexplained():
     """A square wave (a switching regulator's ripple; no library effect, its harmonics
     beyond `max_lines`) is not passed off as white noise."""
