@@ -499,13 +499,14 @@ def select_sensor_noise(
                 r = rec.residual(model.lines, None)
                 found = _transient_test(r[: rec.split], dt, model, floor)
                 transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
-                scored.append(
-                    (
-                        found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j,
-                        "startup_transient",
-                        _evaluate(rec, floor, model.names, model.lines, transient, model),
-                    )
+                score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
+                # the noise refit without the transient only when it can be accepted
+                refit = (
+                    _evaluate(rec, floor, model.names, model.lines, transient, model)
+                    if score >= evidence
+                    else None
                 )
+                scored.append((score, "startup_transient", refit))
             scored.sort(key=lambda s: -s[0])
             accepted = None
             for score, name, m in scored:
