@@ -266,7 +266,7 @@ def detectable(effect: str, oracle: dict, n: int) -> bool:
     (quantisation, found from the values, always counts)."""
     if effect == "quantization":
         return True
-    bins = int(round(2 / 3 * n)) // 2
+    bins = n // 2  # the whole record's Fourier bins: the detector's evidence uses them all
     bar = 10 + PENALTY_K[effect] * math.log(bins)
     return oracle.get(effect, 0.0) >= DETECTABLE_MARGIN * bar
 
@@ -391,8 +391,8 @@ def main(argv=None) -> int:
             "precision": "float64",
             "detectable": (
                 f"the ideal observer's expected 2 ln Λ (oracle_evidence: the effect's form and "
-                f"parameters known) ≥ {DETECTABLE_MARGIN} × (10 + k ln J), J the training "
-                f"part's Fourier bins"
+                f"parameters known) ≥ {DETECTABLE_MARGIN} × (10 + k ln J), J the record's "
+                f"Fourier bins (n/2)"
             ),
             "seed": args.seed,
         },

@@ -86,7 +86,7 @@ def test_oracle_of_a_transient_and_a_line_match_exact_values():
 
 def test_detectable_needs_twice_the_bar():
     n = 10000
-    bar = 10 + math.log(6667 // 2)
+    bar = 10 + math.log(n // 2)
     assert harness.detectable("flicker", {"flicker": 2.01 * bar}, n)
     assert not harness.detectable("flicker", {"flicker": 1.99 * bar}, n)
     assert harness.detectable("quantization", {}, n)

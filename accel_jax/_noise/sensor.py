@@ -13,16 +13,22 @@ and adds, one at a time, the effect whose evidence is largest, while it is signi
   there). It is named when the grid noise is at least `QUANTIZATION_SHARE` of the white
   variance; a finer grid is reported as the record's resolution only.
 
-**Evidence** of an addition: 2 ln B ≈ 2 Δ ln L − k ln J on the training part (the first
-2/3 of the record; J its number of periodogram bins, k the effect's parameter count), and
-it is added only when it is at least `EVIDENCE` and the held-out part's (last third)
-Whittle likelihood rises too. A start-up transient's 2 Δ ln L is instead its exact
-time-domain likelihood ratio against the current noise model (`_transient_test`: the
-spectral likelihood's taper gives the record's first samples almost no weight), and it has
-no held-out check (it lies in the training part). **Backward check** (`_backward`): once
-nothing more is added, each effect is judged again against the final model without it and
-the weakest below `EVIDENCE` is removed, until every one stands (an effect added early can
-lose its evidence once a later one is in). **Explained fraction** after each step: the share of the
+**Evidence** of an addition: 2 ln B ≈ 2 Δ ln L − k ln J (k the effect's parameter count,
+J the record's periodogram bins), Δ ln L the whole record's Whittle likelihood gain with
+the parameters fitted on the training part (the first 2/3) alone: the held-out part (the
+last third) adds its gain at those parameters, so an addition that fitted the training
+part's noise loses there. It is added when that is at least `EVIDENCE` and the **held-out
+check** does not refuse it: the held-out part must not prefer the model without it
+significantly (a paired z over its periodogram entries below −`HELD_OUT_Z`; requiring a
+held-out gain outright refused flicker and random walks, whose evidence lies in the few
+lowest bins a third of the record does not resolve). A start-up transient's 2 Δ ln L is
+instead its exact time-domain likelihood ratio against the current noise model
+(`_transient_test`: the spectral likelihood's taper gives the record's first samples
+almost no weight), and it has no held-out check (it lies in the training part).
+**Backward check** (`_backward`): once nothing more is added, each effect is judged again
+(by the same evidence) against the final model without it and the weakest below
+`EVIDENCE` is removed, until every one stands (an effect added early can lose its evidence
+once a later one is in). **Explained fraction** after each step: the share of the
 nominal model's excess Whittle deviance on the held-out part, Σ (r − ln r − 1) − γJ with
 r = I/f (zero in expectation for the right model), that the model removes. What the final
 model leaves is **unexplained** when its held-out excess deviance stands more than
@@ -55,6 +61,9 @@ QUANTIZATION_SHARE = 0.01
 
 UNEXPLAINED_Z = 4.0
 HELD_OUT_FRACTION = 1 / 3
+HELD_OUT_Z = 2.0
+"""An addition is refused when the held-out part prefers the model without it at this
+paired z (`_held_out_z`)."""
 EULER_GAMMA = 0.5772156649015329
 DEVIANCE_VARIANCE = math.pi**2 / 6 - 1
 
@@ -202,6 +211,7 @@ class _Model:
     z: np.ndarray
     train: float
     held: float
+    held_terms: np.ndarray
     converged: bool
 
 
@@ -241,8 +251,30 @@ def _evaluate(record, floor, names, lines, transient, parent=None) -> _Model:
         list(names), train, floor, record.variance, parent_z, parent_names
     )
     mask = jnp.asarray(spectral._mask(names))
-    held_lik = float(spectral.log_likelihood(jnp.asarray(z), mask, held, jnp.asarray(floor)))
-    return _Model(tuple(names), tuple(lines), transient, z, log_lik, held_lik, ok)
+    terms = np.asarray(spectral.whittle_terms(jnp.asarray(z), mask, held, jnp.asarray(floor)))
+    held_lik = float(np.sum(terms))
+    return _Model(tuple(names), tuple(lines), transient, z, log_lik, held_lik, terms, ok)
+
+
+def _evidence(model: _Model, smaller: _Model, k: int, log_j: float) -> float:
+    """2 ln B of `model` over `smaller` (nested): 2 Δ ln L on the whole record (the
+    training part's likelihood at the parameters fitted there plus the held-out part's at
+    the same parameters: the held-out part only confirms, and an addition that fits the
+    training part's noise loses its gain there) − k ln J, J the whole record's bins."""
+    return 2 * ((model.train + model.held) - (smaller.train + smaller.held)) - k * log_j
+
+
+def _held_out_z(model: _Model, smaller: _Model) -> float:
+    """The held-out check of an addition: the paired (Vuong) z of the held-out
+    log-likelihood gain over its entries, Σ d_j / √(Σ d_j²) with d_j each periodogram
+    entry's change. The addition is refused when the held-out part prefers the smaller
+    model significantly (z < −`HELD_OUT_Z`). Not a demand that the held-out part gain: an
+    effect whose evidence lies at the lowest frequencies (flicker, a random walk) has its
+    gain in a few bins that the held-out part, a third of the record, does not even
+    resolve, and its held-out gain then scatters about zero."""
+    d = model.held_terms - smaller.held_terms
+    scale = float(np.sqrt(np.sum(d * d)))
+    return float(np.sum(d)) / scale if scale > 0 else 0.0
 
 
 TRANSIENT_WINDOW = 1 << 12
@@ -422,7 +454,7 @@ def _backward(rec, floor, model: _Model, log_j: float, evidence: float):
                 model.transient,
                 dataclasses.replace(model, names=names),
             )
-            score = 2 * (model.train - reduced.train) - PARAMETER_COUNT[name] * log_j
+            score = _evidence(model, reduced, PARAMETER_COUNT[name], log_j)
             if weakest is None or score < weakest[0]:
                 weakest = (score, name, reduced)
         if model.transient is not None:
@@ -473,8 +505,8 @@ def select_sensor_noise(
                 "held_out_z": nominal_dev["z"],
             }
         ]
-        j_train = float(spectral.periodogram(rec.x[: rec.split]).n_bins)
-        log_j = math.log(j_train)
+        train_gram, held_gram = rec.grams((), None)
+        log_j = math.log(train_gram.n_bins + held_gram.n_bins)
         for _ in range(MAX_STEPS):
             trials = []
             for name in spectral.COMPONENTS:
@@ -492,8 +524,7 @@ def select_sensor_noise(
                     ("sinusoid", _evaluate(rec, floor, model.names, lines, model.transient, model))
                 )
             scored = [
-                (2 * (m.train - model.train) - PARAMETER_COUNT[name] * log_j, name, m)
-                for name, m in trials
+                (_evidence(m, model, PARAMETER_COUNT[name], log_j), name, m) for name, m in trials
             ]
             if model.transient is None:
                 r = rec.residual(model.lines, None)
@@ -516,7 +547,7 @@ def select_sensor_noise(
                 # `TRANSIENT_WINDOW` samples): the held-out part has nothing to check, and
                 # the refit of the noise without it moves the held-out likelihood by
                 # sampling error alone. Its time-domain test is its evidence.
-                if name == "startup_transient" or m.held > model.held:
+                if name == "startup_transient" or _held_out_z(m, model) >= -HELD_OUT_Z:
                     accepted = (score, name, m)
                     break
             if accepted is None:
@@ -530,6 +561,9 @@ def select_sensor_noise(
                     "added": name,
                     "evidence": float(score),
                     "held_out_gain": float(new.held - model.held),
+                    "held_out_check_z": (
+                        None if name == "startup_transient" else _held_out_z(new, model)
+                    ),
                     "explained_fraction": float(fraction),
                     "held_out_z": dev["z"],
                 }

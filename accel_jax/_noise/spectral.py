@@ -260,8 +260,19 @@ def periodogram(x: np.ndarray, *, banded: bool | None = None) -> Periodogram:
 
 def whittle(z, mask, gram: Periodogram, floor):
     """The Whittle log-likelihood of the (banded) periodogram."""
+    return jnp.sum(_whittle_terms(z, mask, gram, floor))
+
+
+def _whittle_terms(z, mask, gram: Periodogram, floor):
     f = expected_periodogram(z, mask, gram, floor)
-    return -jnp.sum(gram.count * (jnp.log(f) + gram.power / f))
+    return -gram.count * (jnp.log(f) + gram.power / f)
+
+
+@eqx.filter_jit
+def whittle_terms(z, mask, gram: Periodogram, floor):
+    """The Whittle log-likelihood's terms, one per periodogram entry (their sum is
+    `whittle`): for paired comparisons of two models on the same bins."""
+    return _whittle_terms(z, mask, gram, floor)
 
 
 @eqx.filter_jit
