@@ -886,6 +886,16 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
             f"  − {entry['effect']}: added on the way, dropped by the backward check "
             f"(2 ln B = {entry['evidence']:.1f} against the final model)"
         )
+    for entry in selection.held_out.get("exchanged", []):
+        say(
+            f"  ⇄ {entry['by']} in place of {entry['effect']} (added on the way): "
+            f"2 ln B = {entry['evidence']:.1f} in its favour"
+        )
+    for entry in selection.held_out.get("ties", []):
+        say(
+            f"  ? {entry['effect']} or {entry['alternative']}: the record cannot tell them "
+            f"apart (2 ln B = {entry['evidence']:.1f}, < {entry['bar']:g})"
+        )
     if selection.unexplained:
         say(
             f"  unexplained: the held-out spectrum stays {selection.held_out['z']:.1f} standard "

@@ -198,6 +198,40 @@ def test_backward_check_removes_an_effect_the_data_do_not_hold():
     assert all(r["evidence"] < sensor.EVIDENCE for r in removed)
 
 
+def test_exchange_puts_the_better_low_frequency_effect_in_place_and_reports_ties():
+    """A strong random walk fitted as flicker: the exchange puts the walk in its place
+    (2 ln B well above the bar); a harness record (random walk 525 and a transient, with
+    flicker 6 by the ideal observer) whose low end flicker and a Gauss–Markov process fit
+    within the bar is named with that tie reported, not silently."""
+    import sensor_noise_harness as harness
+
+    from accel_jax._noise import sensor
+
+    rng = np.random.default_rng(14)
+    dt, n = 0.01, 4000
+    x = noise_truth.record(rng, n, dt, {"white": 1e-3, "random_walk": (8e-3) ** 2 / (n * dt)})
+    rec = sensor._Record(x, dt)
+    floor = 1e-9 * rec.variance
+    train, held = rec.grams((), None)
+    log_j = math.log(train.n_bins + held.n_bins)
+    wrong = sensor._evaluate(rec, floor, ("flicker",), (), None)
+    model, exchanged, _ = sensor._exchanges(rec, floor, wrong, log_j, sensor.EVIDENCE)
+    assert model.names == ("random_walk",)
+    assert exchanged[0]["effect"] == "flicker" and exchanged[0]["by"] == "random_walk"
+    assert exchanged[0]["evidence"] >= sensor.EVIDENCE
+
+    effects = ("flicker", "random_walk", "startup_transient")
+    rng = np.random.default_rng(1623387756)
+    truth = harness.draw(rng, effects, 10000)
+    x = noise_truth.record(rng, 10000, truth["dt"], truth["spec"])
+    found = aj.select_sensor_noise(x, truth["dt"])
+    ties = found.held_out["ties"]
+    assert ties, found.steps
+    for tie in ties:
+        assert tie["effect"] in found.effects and tie["alternative"] not in found.effects
+        assert abs(tie["evidence"]) < sensor.EVIDENCE
+
+
 def test_held_out_check_refuses_a_consistent_loss_not_a_scattered_one():
     """The held-out check is a paired z over the held-out periodogram entries: a model
     that loses a little in every entry is refused, one whose held-out change is a few

@@ -28,7 +28,10 @@ almost no weight), and it has no held-out check (it lies in the training part).
 **Backward check** (`_backward`): once nothing more is added, each effect is judged again
 (by the same evidence) against the final model without it and the weakest below
 `EVIDENCE` is removed, until every one stands (an effect added early can lose its evidence
-once a later one is in). **Explained fraction** after each step: the share of the
+once a later one is in). **Exchange** (`_exchanges`): each named Gauss–Markov, random walk
+or flicker is tried against the others in its place; one better by `EVIDENCE` replaces it,
+one within `EVIDENCE` either way is reported as a tie (the record cannot tell them apart).
+**Explained fraction** after each step: the share of the
 nominal model's excess Whittle deviance on the held-out part, Σ (r − ln r − 1) − γJ with
 r = I/f (zero in expectation for the right model), that the model removes. What the final
 model leaves is **unexplained** when its held-out excess deviance stands more than
@@ -88,7 +91,9 @@ class SensorNoiseSelection:
     explained fraction; the steps of effects the backward check removed are left out, and
     the last step's fraction and z are the final model's); `parameters` the final model's
     physical parameters by effect; `held_out` the final model's held-out deviance test
-    (with `removed`: the effects the backward check took out and their 2 ln B then);
+    (with `removed`: the effects the backward check took out and their 2 ln B then;
+    `exchanged`: the low-frequency effects the exchange replaced, and by what; `ties`:
+    each named low-frequency effect another fits as well, within the bar);
     `quantization` the grid found (or None); `verdict` the effects joined by '+' ('none'
     when nothing is named and nothing is left, 'unexplained' alone when nothing is named
     but the misfit stays).
@@ -177,12 +182,17 @@ def _fit_line(r: np.ndarray, t: np.ndarray, f0: float, width: float) -> dict:
     i = int(np.argmax(values))
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
     golden = (math.sqrt(5) - 1) / 2
-    for _ in range(40):
-        c, d = hi - golden * (hi - lo), lo + golden * (hi - lo)
-        if power(c) > power(d):
-            hi = d
+    c, d = hi - golden * (hi - lo), lo + golden * (hi - lo)
+    pc, pd = power(c), power(d)
+    for _ in range(40):  # each step keeps one of the two inner points and its power
+        if pc > pd:
+            hi, d, pd = d, c, pc
+            c = hi - golden * (hi - lo)
+            pc = power(c)
         else:
-            lo = c
+            lo, c, pc = c, d, pd
+            d = lo + golden * (hi - lo)
+            pd = power(d)
     f = f0 + 0.5 * (lo + hi)
     design = _line_design(t, f)
     coef, *_ = np.linalg.lstsq(design, r, rcond=None)
@@ -470,6 +480,59 @@ def _backward(rec, floor, model: _Model, log_j: float, evidence: float):
         model = weakest[2]
 
 
+LOW_FREQUENCY = ("gauss_markov", "random_walk", "flicker")
+"""The effects that put their power at the lowest frequencies: on a record a few of their
+time scales long, one can stand in for another."""
+
+
+def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
+    """Each named effect of `LOW_FREQUENCY` against each unnamed one in its place (the rest
+    of the model kept, the substitute's fit started from the model's optimum): 2 ln B of
+    the named effect over the substitute, 2 Δ ln L − (k − k') ln J on the whole record as
+    in the forward selection. A substitute that beats the named effect by `evidence` or
+    more replaces it (the forward path added the first that stood, not the best: a random
+    walk with a start-up transient can look like flicker until the transient is in), and
+    the exchange repeats; one within `evidence` either way is reported as a tie: the
+    record cannot tell the two apart.
+
+    Returns (model, exchanged: [{"effect", "by", "evidence"}], ties: [{"effect",
+    "alternative", "evidence"}])."""
+    exchanged = []
+    for _ in range(len(LOW_FREQUENCY)):
+        ties, best = [], None
+        for name in model.names:
+            if name not in LOW_FREQUENCY:
+                continue
+            rest = tuple(n for n in model.names if n != name)
+            for other in LOW_FREQUENCY:
+                if other in model.names:
+                    continue
+                names = tuple(other if n == name else n for n in model.names)
+                parent = dataclasses.replace(model, names=rest)
+                alt = _evaluate(rec, floor, names, model.lines, model.transient, parent)
+                score = (
+                    2 * ((model.train + model.held) - (alt.train + alt.held))
+                    - (PARAMETER_COUNT[name] - PARAMETER_COUNT[other]) * log_j
+                )
+                if score <= -evidence:
+                    if best is None or score < best[0]:
+                        best = (score, alt, name, other)
+                elif score < evidence:
+                    ties.append(
+                        {
+                            "effect": name,
+                            "alternative": other,
+                            "evidence": float(score),
+                            "bar": float(evidence),
+                        }
+                    )
+        if best is None:
+            return model, exchanged, ties
+        score, model, name, other = best
+        exchanged.append({"effect": name, "by": other, "evidence": float(-score)})
+    return model, exchanged, ties
+
+
 def select_sensor_noise(
     record, sample_interval: float, *, evidence: float = EVIDENCE, max_lines: int = MAX_LINES
 ) -> SensorNoiseSelection:
@@ -570,9 +633,22 @@ def select_sensor_noise(
             )
             model = new
         model, removed = _backward(rec, floor, model, log_j, evidence)
-        if removed:
+        model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
+        if removed or exchanged:
+            swap = {}  # the effect the forward path added → the one now in its place
+            for e in exchanged:
+                origin = next((k for k, v in swap.items() if v == e["effect"]), e["effect"])
+                swap[origin] = e["by"]
             kept = set(_named(model))
-            steps = [steps[0], *(st for st in steps[1:] if st["added"] in kept)]
+            steps = [
+                steps[0],
+                *(st for st in steps[1:] if swap.get(st["added"], st["added"]) in kept),
+            ]
+            for st in steps[1:]:
+                tokens = [swap.get(t, t) for t in st["model"].split("+")]
+                st["model"] = "+".join(tokens)
+                if st["added"] in swap:  # its evidence is the replaced effect's
+                    st["replaced"], st["added"] = st["added"], swap[st["added"]]
             dev = _held_out_deviance(rec, floor, model)
             steps[-1] = {
                 **steps[-1],
@@ -581,6 +657,8 @@ def select_sensor_noise(
             }
         final = _held_out_deviance(rec, floor, model)
         final["removed"] = removed
+        final["exchanged"] = exchanged
+        final["ties"] = ties
         effects = _named(model)
         params = _physical(model, dt, floor)
         quantization = None

@@ -35,6 +35,7 @@ geometric bands of bins (ratio `BAND_RATIO`), which makes one evaluation cost th
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -212,6 +213,19 @@ def _grid(m: int, taper: np.ndarray) -> int:
     return min(size, full, MID_GRID)
 
 
+@functools.lru_cache(maxsize=8)
+def _taper_weight(m: int) -> np.ndarray:
+    """`_lag_weight` of the `TAPER` window of m samples on its `_grid` (a function of m
+    alone: cached, as a selection takes the periodogram of records of two lengths many
+    times)."""
+    from scipy.signal.windows import tukey
+
+    taper = tukey(m, TAPER)
+    weight = _lag_weight(taper, _grid(m, taper))
+    weight.setflags(write=False)
+    return weight
+
+
 def periodogram(x: np.ndarray, *, banded: bool | None = None) -> Periodogram:
     """Tapered periodogram I_j = |Σ w_k y_k e^{−iω_j k}|²/Σ w_k² of y = diff(x) (m samples,
     demeaned, `TAPER`), j = 1..⌈m/2⌉ − 1 (no zero or Nyquist bin), banded (the first 256
@@ -230,7 +244,7 @@ def periodogram(x: np.ndarray, *, banded: bool | None = None) -> Periodogram:
     if banded is None:
         banded = power.size > FULL_RESOLUTION
     if not banded:
-        weight = _lag_weight(taper, _grid(m, taper))
+        weight = _taper_weight(m)
         omega = jnp.asarray(omega)
         index = jnp.arange(power.size)
         return Periodogram(
@@ -245,7 +259,7 @@ def periodogram(x: np.ndarray, *, banded: bool | None = None) -> Periodogram:
     counts = np.diff(edges).astype(np.float64)
     sums_p = np.add.reduceat(power, edges[:-1])
     sums_w = np.add.reduceat(omega, edges[:-1])
-    weight = _lag_weight(taper, _grid(m, taper))
+    weight = _taper_weight(m)
     centre = jnp.asarray(sums_w / counts)
     return Periodogram(
         centre,
