@@ -293,6 +293,7 @@ def run_one(job, n: int) -> dict:
         "verdict": found.verdict,
         "effects": list(found.effects),
         "unexplained": found.unexplained,
+        "ties": [[t["effect"], t["alternative"]] for t in found.held_out.get("ties", [])],
         "seconds": time.perf_counter() - started,
     }
     if "line_Hz" in truth["facts"] and "sinusoid" in found.parameters:
@@ -321,6 +322,12 @@ def score(rows: list, n: int) -> dict:
         seen = [r for r in with_e if detectable(e, r["oracle"], n)]
         seen_named = [r for r in seen if e in r["effects"]]
         alone = [r for r in seen if len(r["truth"]["effects"]) == 1]
+        # not named, but offered as the equal of a named effect (a tie the record leaves)
+        tied = [
+            r
+            for r in seen
+            if e not in r["effects"] and any(alt == e for _, alt in r.get("ties", []))
+        ]
         per[e] = {
             "records": len(with_e),
             "named": len(named),
@@ -328,6 +335,7 @@ def score(rows: list, n: int) -> dict:
             "detectable": len(seen),
             "named_when_detectable": len(seen_named),
             "rate_when_detectable": len(seen_named) / max(len(seen), 1),
+            "tied_when_detectable_not_named": len(tied),
             "detectable_alone": len(alone),
             "detectable_in_composites": len(seen) - len(alone),
         }
