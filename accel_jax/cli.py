@@ -877,8 +877,9 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         )
     say(f"effects: {selection.verdict}")
     for step in selection.steps[1:]:
+        was = f" (added as {step['replaced']}, exchanged below)" if "replaced" in step else ""
         say(
-            f"  + {step['added']}: 2 ln B = {step['evidence']:.1f}, explained "
+            f"  + {step['added']}{was}: 2 ln B = {step['evidence']:.1f}, explained "
             f"{step['explained_fraction']:.1%} of the held-out excess"
         )
     for entry in selection.held_out.get("removed", []):
@@ -888,7 +889,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         )
     for entry in selection.held_out.get("exchanged", []):
         say(
-            f"  ⇄ {entry['by']} in place of {entry['effect']} (added on the way): "
+            f"  ⇄ {entry['by']} in place of {entry['effect']}: "
             f"2 ln B = {entry['evidence']:.1f} in its favour"
         )
     for entry in selection.held_out.get("ties", []):

@@ -92,8 +92,9 @@ class SensorNoiseSelection:
     the last step's fraction and z are the final model's); `parameters` the final model's
     physical parameters by effect; `held_out` the final model's held-out deviance test
     (with `removed`: the effects the backward check took out and their 2 ln B then;
-    `exchanged`: the low-frequency effects the exchange replaced, and by what; `ties`:
-    each named low-frequency effect another fits as well, within the bar);
+    `exchanged`: the low-frequency effects the exchange replaced, and by what — their
+    steps then name the substitute, with `replaced` the effect whose evidence they show;
+    `ties`: each named low-frequency effect another fits as well, within the bar);
     `quantization` the grid found (or None); `verdict` the effects joined by '+' ('none'
     when nothing is named and nothing is left, 'unexplained' alone when nothing is named
     but the misfit stays).
@@ -275,13 +276,14 @@ def _evidence(model: _Model, smaller: _Model, k: int, log_j: float) -> float:
 
 
 def _held_out_z(model: _Model, smaller: _Model) -> float:
-    """The held-out check of an addition: the paired (Vuong) z of the held-out
-    log-likelihood gain over its entries, Σ d_j / √(Σ d_j²) with d_j each periodogram
-    entry's change. The addition is refused when the held-out part prefers the smaller
-    model significantly (z < −`HELD_OUT_Z`). Not a demand that the held-out part gain: an
-    effect whose evidence lies at the lowest frequencies (flicker, a random walk) has its
-    gain in a few bins that the held-out part, a third of the record, does not even
-    resolve, and its held-out gain then scatters about zero."""
+    """The held-out check of an addition: a paired z of the held-out log-likelihood gain
+    over its entries, Σ d_j / √(Σ d_j²) with d_j each periodogram entry's change (Vuong's
+    statistic with the spread taken about zero, not about the mean: never larger in size,
+    so the check is conservative). The addition is refused when the held-out part prefers
+    the smaller model significantly (z < −`HELD_OUT_Z`). Not a demand that the held-out
+    part gain: an effect whose evidence lies at the lowest frequencies (flicker, a random
+    walk) has its gain in a few bins that the held-out part, a third of the record, does
+    not even resolve, and its held-out gain then scatters about zero."""
     d = model.held_terms - smaller.held_terms
     scale = float(np.sqrt(np.sum(d * d)))
     return float(np.sum(d)) / scale if scale > 0 else 0.0
@@ -444,7 +446,7 @@ def _explained(dev: dict, nominal: dict) -> float:
 def _backward(rec, floor, model: _Model, log_j: float, evidence: float):
     """The backward check of the forward selection: each effect of the final model is
     judged again against the final model without it (a stochastic effect by its Whittle
-    2 ln B on the training part, the start-up transient by its time-domain test against
+    2 ln B on the whole record, `_evidence`, the start-up transient by its time-domain test against
     the reduced noise model); the weakest that falls below `evidence` is removed and the
     check repeats. An effect added early can lose its evidence once a later one is in: a
     random walk taken for the low-frequency power of a start-up transient, or a transient
@@ -498,7 +500,7 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     Returns (model, exchanged: [{"effect", "by", "evidence"}], ties: [{"effect",
     "alternative", "evidence"}])."""
     exchanged = []
-    for _ in range(len(LOW_FREQUENCY)):
+    for _ in range(len(LOW_FREQUENCY) + 1):
         ties, best = [], None
         for name in model.names:
             if name not in LOW_FREQUENCY:
@@ -514,7 +516,7 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
                     2 * ((model.train + model.held) - (alt.train + alt.held))
                     - (PARAMETER_COUNT[name] - PARAMETER_COUNT[other]) * log_j
                 )
-                if score <= -evidence:
+                if score <= -evidence and _held_out_z(alt, parent) >= -HELD_OUT_Z:
                     if best is None or score < best[0]:
                         best = (score, alt, name, other)
                 elif score < evidence:
@@ -530,6 +532,7 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
             return model, exchanged, ties
         score, model, name, other = best
         exchanged.append({"effect": name, "by": other, "evidence": float(-score)})
+    ties = [t for t in ties if t["effect"] in model.names and t["alternative"] not in model.names]
     return model, exchanged, ties
 
 
@@ -633,7 +636,11 @@ def select_sensor_noise(
             )
             model = new
         model, removed = _backward(rec, floor, model, log_j, evidence)
+        kept_before = set(_named(model))
         model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
+        if exchanged:  # the substitute may leave another effect without evidence
+            model, again = _backward(rec, floor, model, log_j, evidence)
+            removed += again
         if removed or exchanged:
             swap = {}  # the effect the forward path added → the one now in its place
             for e in exchanged:
@@ -642,11 +649,19 @@ def select_sensor_noise(
             kept = set(_named(model))
             steps = [
                 steps[0],
-                *(st for st in steps[1:] if swap.get(st["added"], st["added"]) in kept),
+                *(
+                    st
+                    for st in steps[1:]
+                    if st["added"] in kept_before and swap.get(st["added"], st["added"]) in kept
+                ),
             ]
             for st in steps[1:]:
-                tokens = [swap.get(t, t) for t in st["model"].split("+")]
-                st["model"] = "+".join(tokens)
+                tokens = [
+                    swap.get(t, t)
+                    for t in st["model"].split("+")
+                    if t == "white" or t in kept_before
+                ]
+                st["model"] = "+".join(t for t in tokens if t == "white" or t in kept)
                 if st["added"] in swap:  # its evidence is the replaced effect's
                     st["replaced"], st["added"] = st["added"], swap[st["added"]]
             dev = _held_out_deviance(rec, floor, model)
