@@ -232,6 +232,29 @@ def test_exchange_puts_the_better_low_frequency_effect_in_place_and_reports_ties
         assert abs(tie["evidence"]) < sensor.EVIDENCE
 
 
+def test_a_failed_fit_does_not_scramble_the_ranking():
+    """A candidate whose fit fails (a non-finite likelihood) scores −∞: a NaN would compare
+    false with every score and leave the sort of the candidates in arbitrary order. The
+    harness record that showed it (a 8.7 mg warm-up, τ = 380 samples, its exponential-
+    cosine fit NaN) was called `gauss_markov`: the transient, with twice the evidence,
+    sorted behind it."""
+    import sensor_noise_harness as harness
+
+    from accel_jax._noise import sensor
+
+    nan = sensor._Model((), (), None, np.zeros(1), math.nan, 0.0, np.zeros(3), False)
+    ok = sensor._Model((), (), None, np.zeros(1), 0.0, 0.0, np.zeros(3), True)
+    assert sensor._evidence(nan, ok, 1, 8.0) == -math.inf
+
+    rng = np.random.default_rng(158690399)
+    truth = harness.draw(rng, ("startup_transient",), 10000)
+    x = noise_truth.record(rng, 10000, truth["dt"], truth["spec"])
+    found = aj.select_sensor_noise(x, truth["dt"])
+    assert found.verdict == "startup_transient", found.steps
+    amplitude, tau = truth["spec"]["transient"]
+    assert found.parameters["startup_transient"]["amplitude"] == pytest.approx(amplitude, rel=0.1)
+
+
 def test_held_out_check_refuses_a_consistent_loss_not_a_scattered_one():
     """The held-out check is a paired z over the held-out periodogram entries: a model
     that loses a little in every entry is refused, one whose held-out change is a few

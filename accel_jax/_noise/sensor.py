@@ -272,7 +272,10 @@ def _evidence(model: _Model, smaller: _Model, k: int, log_j: float) -> float:
     training part's likelihood at the parameters fitted there plus the held-out part's at
     the same parameters: the held-out part only confirms, and an addition that fits the
     training part's noise loses its gain there) − k ln J, J the whole record's bins."""
-    return 2 * ((model.train + model.held) - (smaller.train + smaller.held)) - k * log_j
+    score = 2 * ((model.train + model.held) - (smaller.train + smaller.held)) - k * log_j
+    # a fit that failed (a non-finite likelihood) is no evidence, and must not scramble
+    # the ranking (NaN compares false with everything)
+    return score if math.isfinite(score) else -math.inf
 
 
 def _held_out_z(model: _Model, smaller: _Model) -> float:
@@ -286,6 +289,8 @@ def _held_out_z(model: _Model, smaller: _Model) -> float:
     not even resolve, and its held-out gain then scatters about zero."""
     d = model.held_terms - smaller.held_terms
     scale = float(np.sqrt(np.sum(d * d)))
+    if not np.isfinite(scale):
+        return -math.inf
     return float(np.sum(d)) / scale if scale > 0 else 0.0
 
 
@@ -597,12 +602,18 @@ def select_sensor_noise(
                 found = _transient_test(r[: rec.split], dt, model, floor)
                 transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
                 score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
+                score = score if math.isfinite(score) else -math.inf
                 # the noise refit without the transient only when it can be accepted
-                refit = (
-                    _evaluate(rec, floor, model.names, model.lines, transient, model)
-                    if score >= evidence
-                    else None
-                )
+                refit = None
+                if score >= evidence:
+                    refit = _evaluate(rec, floor, model.names, model.lines, transient, model)
+                    # Tested again against that refit: the current model's noise took in
+                    # the transient's power (a white variance inflated by it makes the
+                    # transient look small beside a slow Gauss–Markov fitted to it).
+                    found = _transient_test(r[: rec.split], dt, refit, floor)
+                    transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
+                    score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
+                    refit = _evaluate(rec, floor, model.names, model.lines, transient, refit)
                 scored.append((score, "startup_transient", refit))
             scored.sort(key=lambda s: -s[0])
             accepted = None
