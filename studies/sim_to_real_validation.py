@@ -517,7 +517,7 @@ a departure from these."""
 _DIAGNOSE_CODE = (
     f"NOMINAL_LAGS = {NOMINAL_LAGS!r}\n"
     + """
-import json, sys, pathlib, signal
+import json, sys, pathlib, signal, time
 signal.signal(signal.SIGINT, lambda *_: sys.exit(130))  # Ctrl-C: quiet exit, no traceback
 import accel_jax  # applies the XLA:CPU deadlock workaround (accel_jax._runtime)
 from accel_jax._runtime import enable_compilation_cache
@@ -530,9 +530,10 @@ from accel_jax.diagnose import diagnose_many
 out = pathlib.Path(sys.argv[1])
 # The device's data sheet, as a user gives it: the reference device with ideal lags.
 nominal = NominalDevice.reference(**NOMINAL_LAGS)
-answer = {}
+answer, seconds = {}, {}
 for folder in map(pathlib.Path, sys.argv[2:]):
     files = sorted(folder.glob("*.csv"))
+    t0 = time.perf_counter()
     # recommend=False: the next experiment of a lag tie is the multi-record harness's
     # (studies/step_set_harness.py); here it would add ~30 s per tie.
     results = diagnose_many([read_csv(f) for f in files], nominal, recommend=False)
@@ -544,6 +545,8 @@ for folder in map(pathlib.Path, sys.argv[2:]):
                      for e in r.ranking],
          "refit": r.refit}
         for f, r in zip(files, results)]
+    seconds[folder.name] = time.perf_counter() - t0
+answer["_seconds"] = seconds  # wall time of each folder's diagnosis (compilation included)
 out.write_text(json.dumps(answer, default=float))
 """
 )
@@ -1180,6 +1183,8 @@ def run(
     t0 = time.perf_counter()
     answers = diagnose_blind(folders)
     timing["diagnose_all_kinds_one_process"] = time.perf_counter() - t0
+    for kind, seconds in answers.pop("_seconds", {}).items():
+        timing[f"diagnose_{kind}"] = seconds
     for kind in kinds:
         if [v["file"] for v in answers[kind]] != names[kind]:
             raise RuntimeError(

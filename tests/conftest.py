@@ -5,6 +5,15 @@ choice; the library itself never changes JAX's global settings."""
 import os  # noqa: E402
 
 import accel_jax  # noqa: F401  (applies the XLA:CPU deadlock workaround; see _runtime.py)
+from accel_jax._runtime import apply_fast_compile  # noqa: E402
+
+# The suite compiles thousands of small programs and runs most of them a few times: it
+# compiles as the CLI does, with XLA:CPU's older loop emitters (`FAST_COMPILE_FLAGS`; set
+# before JAX starts its backend, unless the caller's XLA_FLAGS chose the option). Measured
+# on the 2-core CPU, `pytest -n 2`: tests/test_diagnose_step_set.py's four stop-level and
+# tie tests 87 → 55 s, tests/test_noise_sensor.py (run-bound) 150 → 132 s. The study
+# scripts the quick report runs get the user's environment, not this.
+apply_fast_compile()
 
 # Hermetic timings: the report's persistent compilation cache stays off in the tests unless
 # the caller chose a folder (tests/test_runtime.py checks the cache itself in a subprocess).
