@@ -845,6 +845,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
     from ._data import DataError, read_csv
     from ._io import write_json_atomic
     from ._noise import analysis, export
+    from ._noise.sensor import UNEXPLAINED_Z
 
     try:
         data = read_csv(file, kind="noise")
@@ -897,10 +898,32 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
             f"  ? {entry['effect']} or {entry['alternative']}: the record cannot tell them "
             f"apart (2 ln B = {entry['evidence']:.1f}, < {entry['bar']:g})"
         )
-    if selection.unexplained:
+    held = selection.held_out
+    for shift in held.get("level_shifts", []):
         say(
-            f"  unexplained: the held-out spectrum stays {selection.held_out['z']:.1f} standard "
+            f"  unexplained: the level steps by {shift['size']:.3g} g at {shift['time_s']:.4g} s "
+            f"(|z| = {abs(shift['z']):.1f} against the model's own wander; taken out before "
+            "the effects above were selected)"
+        )
+    for burst in held.get("bursts", [])[:5]:
+        say(
+            f"  unexplained: an impulsive event at {burst['start_s']:.4g} s (peak "
+            f"{burst['peak']:.3g} g from the median level)"
+        )
+    if selection.unexplained and held["z"] > UNEXPLAINED_Z:
+        say(
+            f"  unexplained: the held-out spectrum stays {held['z']:.1f} standard "
             "errors above the final model's"
+        )
+    elif (
+        selection.unexplained
+        and not held.get("level_shifts")
+        and not held.get("bursts")
+        and "drift" in held
+    ):
+        say(
+            f"  unexplained: the level drifts {held['drift']['slope_per_s']:.3g} g/s "
+            f"({held['drift']['t']:.0f} standard errors), which no named effect makes"
         )
     if selection.quantization is not None:
         say(f"  output grid: step {selection.quantization['step']:.4g} g")

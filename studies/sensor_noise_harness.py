@@ -294,6 +294,8 @@ def run_one(job, n: int) -> dict:
         "effects": list(found.effects),
         "unexplained": found.unexplained,
         "ties": [[t["effect"], t["alternative"]] for t in found.held_out.get("ties", [])],
+        # no record here has a step in its level: every one found is a false alarm
+        "level_shifts": len(found.held_out.get("level_shifts", [])),
         "seconds": time.perf_counter() - started,
     }
     if "line_Hz" in truth["facts"] and "sinusoid" in found.parameters:
@@ -361,6 +363,8 @@ def score(rows: list, n: int) -> dict:
         "steps_within_5pct": sum(e <= 0.05 for e in steps),
         "steps_scored": len(steps),
         "spurious_effects_named": extras,
+        "unexplained_records": sum(bool(r.get("unexplained")) for r in rows),
+        "records_with_a_false_level_shift": sum(r.get("level_shifts", 0) > 0 for r in rows),
         "errors": [r["error"] for r in rows if "error" in r],
         "median_seconds": float(np.median([r["seconds"] for r in rows if "seconds" in r])),
     }

@@ -239,9 +239,21 @@ def _mpu6050():
 
 def test_real_mems_record_and_a_line_the_library_does_not_model():
     t, a = _mpu6050()
-    clean, lined = diagnose_many(
-        [NoiseData(t, a), NoiseData(t, a + 1.5e-3 * np.sin(2 * np.pi * 0.56 * t + 0.3))]
+    jump = 49 / 16384 * (t >= 150.0)  # a bias jump of 49 counts (3.0 mg) at 150 s
+    clean, lined, stepped = diagnose_many(
+        [
+            NoiseData(t, a),
+            NoiseData(t, a + 1.5e-3 * np.sin(2 * np.pi * 0.56 * t + 0.3)),
+            NoiseData(t, a + jump),
+        ]
     )
+    # The real record with a step in its level (outside the library; its spectrum is a
+    # random walk's): unexplained, the step found where it is and as large, on the grid.
+    assert "unexplained" in stepped.verdict and "random_walk" not in stepped.verdict
+    (shift,) = stepped.where["sensor_effects"]["held_out"]["level_shifts"]
+    assert shift["time_s"] == pytest.approx(150.0, abs=0.5)
+    assert shift["size"] == pytest.approx(49 / 16384, rel=0.1)
+    assert "level steps by" in stepped.reason
     # Its held-out part is white at 4.6 mg (the Allan deviation follows τ^-1/2 to 10 s):
     # `none` is the honest answer, with the remaining gap at the floor.
     assert clean.verdict == "none", clean.summary()

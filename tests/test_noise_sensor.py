@@ -354,4 +354,61 @@ def test_a_linear_drift_is_not_none():
     drifting = aj.select_sensor_noise(white + 0.02 * t / t[-1], dt)
     assert drifting.unexplained and drifting.verdict != "none"
     assert drifting.held_out["drift"]["slope_per_s"] == pytest.approx(0.02 / t[-1], rel=0.1)
+    assert drifting.held_out["level_shifts"] == []  # a ramp is not a step
     assert aj.select_sensor_noise(white, dt).verdict == "none"
+
+
+def test_haar_variance_of_the_model_matches_monte_carlo():
+    """Var D_w (the level-shift test's yardstick, from the model's variogram) against the
+    sample variance of D_w on records drawn directly: white + random walk + Gauss–Markov."""
+    from scipy.signal import lfilter
+
+    from accel_jax._noise import sensor
+
+    z = np.full(spectral.N_PARAMS, -30.0)
+    white, q, sigma_gm, tau = 1.0, 0.01, 2.0, 20.0
+    z[0], z[6] = math.log(white**2), math.log(q)
+    z[1], z[2] = math.log(sigma_gm**2), math.log(tau)
+    model = sensor._Model(("random_walk", "gauss_markov"), (), None, z, 0.0, 0.0, np.zeros(1), True)
+    v = sensor._variogram(model, 0.0, 512)
+    # white noise of unit variance (V(h) = 1 for h ≥ 1): 2σ²/w
+    assert sensor._haar_variance(np.r_[0.0, np.ones(511)], 8) == pytest.approx(2 / 8)
+    rng = np.random.default_rng(3)
+    n, reps, phi = 1024, 2000, math.exp(-1 / tau)
+    e = rng.normal(size=(reps, n))
+    walk = np.cumsum(math.sqrt(q) * rng.normal(size=(reps, n)), axis=1)
+    drive = sigma_gm * math.sqrt(1 - phi**2) * rng.normal(size=(reps, n))
+    drive[:, 0] = sigma_gm * rng.normal(size=reps)  # stationary start
+    gm = lfilter([1.0], [1.0, -phi], drive, axis=1)
+    x = white * e + walk + gm
+    j = n // 2
+    for w in (4, 32, 256):
+        d = x[:, j : j + w].mean(1) - x[:, j - w : j].mean(1)
+        # sample variance of 2000 draws: relative standard error √(2/2000) = 3.2 %
+        assert np.var(d) == pytest.approx(sensor._haar_variance(v, w), rel=0.1), w
+
+
+def test_a_level_shift_is_unexplained_not_a_random_walk():
+    """A record with a step in its level (a bias jump; outside the library, and made here,
+    not by the library's simulators): in the periodogram a step looks like a random walk
+    (both ∝ 1/f²), in time it is one instant. The level-shift test finds it (time and
+    size), the verdict is unexplained, and the selection run again without the step
+    names nothing for it. A true random walk of similar low-frequency power, and white
+    noise, show no shift; a quantised record keeps its grid once the step is taken out."""
+    rng = np.random.default_rng(21)
+    n, dt = 8000, 0.01
+    k = np.arange(n)
+    white = 2e-3 * rng.normal(size=n)
+    stepped = aj.select_sensor_noise(-(0.3 + white + 4e-3 * (k >= n // 4)), dt)
+    assert stepped.unexplained and "random_walk" not in stepped.effects, stepped.verdict
+    (shift,) = stepped.held_out["level_shifts"]
+    assert shift["time_s"] == pytest.approx(n // 4 * dt, abs=0.1)
+    assert shift["size"] == pytest.approx(-4e-3, rel=0.15)
+    walk = aj.select_sensor_noise(white + np.cumsum(1e-4 * rng.normal(size=n)), dt)
+    assert "random_walk" in walk.effects and walk.held_out["level_shifts"] == []
+    test = walk.held_out["level_shift_test"]
+    assert abs(test["z"]) < test["critical_z"]
+    grid = np.round((white + 2e-3 * (k >= n // 2)) / 1e-3) * 1e-3
+    quantised = aj.select_sensor_noise(grid, dt)
+    assert quantised.held_out["level_shifts"] and "quantization" in quantised.effects
+    assert quantised.held_out["level_shifts"][0]["size"] == pytest.approx(2e-3)

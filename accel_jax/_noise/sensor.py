@@ -35,7 +35,12 @@ one within `EVIDENCE` either way is reported as a tie (the record cannot tell th
 nominal model's excess Whittle deviance on the held-out part, Σ (r − ln r − 1) − γJ with
 r = I/f (zero in expectation for the right model), that the model removes. What the final
 model leaves is **unexplained** when its held-out excess deviance stands more than
-`UNEXPLAINED_Z` standard errors (√((π²/6 − 1) J)) above zero.
+`UNEXPLAINED_Z` standard errors (√((π²/6 − 1) J)) above zero, when impulsive events
+(`_bursts`) or a linear drift no named effect makes (`_drift`) are found, or when the
+level shifts (`_level_shift`: a step in the level, which the periodogram takes for a
+random walk, found in the time domain against the final model's own wander). A shift is
+taken out of the record and the selection run again on what is left (up to
+`MAX_LEVEL_SHIFTS`), so that no effect of the library takes the credit for it.
 
 Float64, host-driven (NumPy); the fits are one jitted, vmapped Whittle fit per record
 length (`accel_jax._noise.spectral`).
@@ -45,6 +50,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 
 import jax
 import jax.numpy as jnp
@@ -556,162 +562,196 @@ def select_sensor_noise(
         x = np.asarray(_validate_record("select_sensor_noise", record, min_samples=64), np.float64)
         _sample_interval("select_sensor_noise", sample_interval)
         dt = float(sample_interval)
-        rec = _Record(x, dt)
-        if not rec.variance > (1e-10 * float(np.max(np.abs(x)))) ** 2:
-            raise ValueError(
-                "select_sensor_noise: the record's first differences are constant over its "
-                "training part (a pure ramp or a staircase of one step): no noise to model."
-            )
+        shifts = []
         grid = detect_quantization(x)
-        floor = grid["step"] ** 2 / 12 if grid else 1e-9 * rec.variance
-        model = _evaluate(rec, floor, (), (), None)
-        nominal_dev = _held_out_deviance(rec, floor, model)
-        steps = [
-            {
-                "model": "white",
-                "added": None,
-                "evidence": 0.0,
-                "held_out_gain": 0.0,
-                "explained_fraction": 0.0,
-                "held_out_z": nominal_dev["z"],
-            }
-        ]
-        train_gram, held_gram = rec.grams((), None)
-        log_j = math.log(train_gram.n_bins + held_gram.n_bins)
-        for _ in range(MAX_STEPS):
-            trials = []
-            for name in spectral.COMPONENTS:
-                if name not in model.names:
-                    names = (*model.names, name)
-                    trials.append(
-                        (name, _evaluate(rec, floor, names, model.lines, model.transient, model))
-                    )
-            if len(model.lines) < max_lines:
-                f0, width = _standardised_peak(rec, floor, model)
-                r = rec.residual(model.lines, model.transient)
-                line = _fit_line(r[: rec.split], rec.t[: rec.split], f0, width)
-                lines = (*model.lines, line)
-                trials.append(
-                    ("sinusoid", _evaluate(rec, floor, model.names, lines, model.transient, model))
-                )
-            scored = [
-                (_evidence(m, model, PARAMETER_COUNT[name], log_j), name, m) for name, m in trials
-            ]
-            if model.transient is None:
-                r = rec.residual(model.lines, None)
-                found = _transient_test(r[: rec.split], dt, model, floor)
-                transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
-                score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
-                score = score if math.isfinite(score) else -math.inf
-                # the noise refit without the transient only when it can be accepted
-                refit = None
-                if score >= evidence:
-                    refit = _evaluate(rec, floor, model.names, model.lines, transient, model)
-                    # Tested again against that refit: the current model's noise took in
-                    # the transient's power (a white variance inflated by it makes the
-                    # transient look small beside a slow Gauss–Markov fitted to it).
-                    found = _transient_test(r[: rec.split], dt, refit, floor)
-                    transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
-                    score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
-                    refit = _evaluate(rec, floor, model.names, model.lines, transient, refit)
-                scored.append((score, "startup_transient", refit))
-            scored.sort(key=lambda s: -s[0])
-            accepted = None
-            for score, name, m in scored:
-                if score < evidence:
-                    break
-                # A start-up transient lies in the training part (τ ≤ a quarter of
-                # `TRANSIENT_WINDOW` samples): the held-out part has nothing to check, and
-                # the refit of the noise without it moves the held-out likelihood by
-                # sampling error alone. Its time-domain test is its evidence.
-                if name == "startup_transient" or _held_out_z(m, model) >= -HELD_OUT_Z:
-                    accepted = (score, name, m)
-                    break
-            if accepted is None:
+        while True:
+            selection, model, floor, residual = _select(x, dt, evidence, max_lines)
+            found = _level_shift(residual, dt, model, floor)
+            selection.held_out["level_shift_test"] = found
+            if (
+                found is None
+                or not abs(found["z"]) > found["critical_z"]
+                or len(shifts) == MAX_LEVEL_SHIFTS
+            ):
                 break
-            score, name, new = accepted
-            dev = _held_out_deviance(rec, floor, new)
-            fraction = _explained(dev, nominal_dev)
-            steps.append(
+            # Outside the library: taken out of the record, and the selection run again on
+            # what is left, so that no effect takes the credit for the step.
+            size = found["size"]
+            if grid is not None:  # a whole number of grid steps keeps the record on its grid
+                size = round(size / grid["step"]) * grid["step"]
+            shifts.append(
                 {
-                    "model": "+".join(["white", *_named(new)]),
-                    "added": name,
-                    "evidence": float(score),
-                    "held_out_gain": float(new.held - model.held),
-                    "held_out_check_z": (
-                        None if name == "startup_transient" else _held_out_z(new, model)
-                    ),
-                    "explained_fraction": float(fraction),
-                    "held_out_z": dev["z"],
+                    **{k: found[k] for k in ("time_s", "z", "window_s")},
+                    "size": size,
+                    # the held-out misfit with the step still in, beside the final one
+                    "held_out_z_with_it": selection.held_out["z"],
+                    "effects_with_it": list(selection.effects),
                 }
             )
-            model = new
-        model, removed = _backward(rec, floor, model, log_j, evidence)
-        kept_before = set(_named(model))
-        model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
-        if exchanged:  # the substitute may leave another effect without evidence
-            model, again = _backward(rec, floor, model, log_j, evidence)
-            removed += again
-        if removed or exchanged:
-            swap = {}  # the effect the forward path added → the one now in its place
-            for e in exchanged:
-                origin = next((k for k, v in swap.items() if v == e["effect"]), e["effect"])
-                swap[origin] = e["by"]
-            kept = set(_named(model))
-            steps = [
-                steps[0],
-                *(
-                    st
-                    for st in steps[1:]
-                    if st["added"] in kept_before and swap.get(st["added"], st["added"]) in kept
+            x = x - size * (np.arange(x.size) >= found["index"])
+        selection.held_out["level_shifts"] = shifts
+        if shifts:
+            selection = dataclasses.replace(selection, unexplained=True)
+        return selection
+
+
+def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int):
+    """The forward selection on x; returns (selection, final model, floor, residual)."""
+    rec = _Record(x, dt)
+    if not rec.variance > (1e-10 * float(np.max(np.abs(x)))) ** 2:
+        raise ValueError(
+            "select_sensor_noise: the record's first differences are constant over its "
+            "training part (a pure ramp or a staircase of one step): no noise to model."
+        )
+    grid = detect_quantization(x)
+    floor = grid["step"] ** 2 / 12 if grid else 1e-9 * rec.variance
+    model = _evaluate(rec, floor, (), (), None)
+    nominal_dev = _held_out_deviance(rec, floor, model)
+    steps = [
+        {
+            "model": "white",
+            "added": None,
+            "evidence": 0.0,
+            "held_out_gain": 0.0,
+            "explained_fraction": 0.0,
+            "held_out_z": nominal_dev["z"],
+        }
+    ]
+    train_gram, held_gram = rec.grams((), None)
+    log_j = math.log(train_gram.n_bins + held_gram.n_bins)
+    for _ in range(MAX_STEPS):
+        trials = []
+        for name in spectral.COMPONENTS:
+            if name not in model.names:
+                names = (*model.names, name)
+                trials.append(
+                    (name, _evaluate(rec, floor, names, model.lines, model.transient, model))
+                )
+        if len(model.lines) < max_lines:
+            f0, width = _standardised_peak(rec, floor, model)
+            r = rec.residual(model.lines, model.transient)
+            line = _fit_line(r[: rec.split], rec.t[: rec.split], f0, width)
+            lines = (*model.lines, line)
+            trials.append(
+                ("sinusoid", _evaluate(rec, floor, model.names, lines, model.transient, model))
+            )
+        scored = [
+            (_evidence(m, model, PARAMETER_COUNT[name], log_j), name, m) for name, m in trials
+        ]
+        if model.transient is None:
+            r = rec.residual(model.lines, None)
+            found = _transient_test(r[: rec.split], dt, model, floor)
+            transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
+            score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
+            score = score if math.isfinite(score) else -math.inf
+            # the noise refit without the transient only when it can be accepted
+            refit = None
+            if score >= evidence:
+                refit = _evaluate(rec, floor, model.names, model.lines, transient, model)
+                # Tested again against that refit: the current model's noise took in
+                # the transient's power (a white variance inflated by it makes the
+                # transient look small beside a slow Gauss–Markov fitted to it).
+                found = _transient_test(r[: rec.split], dt, refit, floor)
+                transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
+                score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
+                refit = _evaluate(rec, floor, model.names, model.lines, transient, refit)
+            scored.append((score, "startup_transient", refit))
+        scored.sort(key=lambda s: -s[0])
+        accepted = None
+        for score, name, m in scored:
+            if score < evidence:
+                break
+            # A start-up transient lies in the training part (τ ≤ a quarter of
+            # `TRANSIENT_WINDOW` samples): the held-out part has nothing to check, and
+            # the refit of the noise without it moves the held-out likelihood by
+            # sampling error alone. Its time-domain test is its evidence.
+            if name == "startup_transient" or _held_out_z(m, model) >= -HELD_OUT_Z:
+                accepted = (score, name, m)
+                break
+        if accepted is None:
+            break
+        score, name, new = accepted
+        dev = _held_out_deviance(rec, floor, new)
+        fraction = _explained(dev, nominal_dev)
+        steps.append(
+            {
+                "model": "+".join(["white", *_named(new)]),
+                "added": name,
+                "evidence": float(score),
+                "held_out_gain": float(new.held - model.held),
+                "held_out_check_z": (
+                    None if name == "startup_transient" else _held_out_z(new, model)
                 ),
-            ]
-            for st in steps[1:]:
-                tokens = [
-                    swap.get(t, t)
-                    for t in st["model"].split("+")
-                    if t == "white" or t in kept_before
-                ]
-                st["model"] = "+".join(t for t in tokens if t == "white" or t in kept)
-                if st["added"] in swap:  # its evidence is the replaced effect's
-                    st["replaced"], st["added"] = st["added"], swap[st["added"]]
-            dev = _held_out_deviance(rec, floor, model)
-            steps[-1] = {
-                **steps[-1],
-                "explained_fraction": _explained(dev, nominal_dev),
+                "explained_fraction": float(fraction),
                 "held_out_z": dev["z"],
             }
-        final = _held_out_deviance(rec, floor, model)
-        final["removed"] = removed
-        final["exchanged"] = exchanged
-        final["ties"] = ties
-        effects = _named(model)
-        params = _physical(model, dt, floor)
-        quantization = None
-        if grid is not None:
-            share = grid["step"] ** 2 / 12 / rec.variance
-            quantization = {**grid, "noise_share_of_white": float(share)}
-            if share >= QUANTIZATION_SHARE:
-                effects.append("quantization")
-                params["quantization"] = {"step": grid["step"]}
-        residual = rec.residual(model.lines, model.transient)
-        bursts = _bursts(residual, dt)
-        final["bursts"] = bursts
-        # The first difference makes a linear drift a constant, which the periodogram never
-        # sees: test it in the time domain unless a wandering level was named.
-        drift = _drift(residual, dt)
-        final["drift"] = drift
-        drifting = drift["t"] > DRIFT_T and not {"random_walk", "flicker"} & set(effects)
-        return SensorNoiseSelection(
-            effects=tuple(effects),
-            unexplained=bool(final["z"] > UNEXPLAINED_Z or bursts or drifting),
-            steps=steps,
-            parameters=params,
-            held_out=final,
-            quantization=quantization,
-            sample_interval=dt,
-            n_samples=int(x.size),
         )
+        model = new
+    model, removed = _backward(rec, floor, model, log_j, evidence)
+    kept_before = set(_named(model))
+    model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
+    if exchanged:  # the substitute may leave another effect without evidence
+        model, again = _backward(rec, floor, model, log_j, evidence)
+        removed += again
+    if removed or exchanged:
+        swap = {}  # the effect the forward path added → the one now in its place
+        for e in exchanged:
+            origin = next((k for k, v in swap.items() if v == e["effect"]), e["effect"])
+            swap[origin] = e["by"]
+        kept = set(_named(model))
+        steps = [
+            steps[0],
+            *(
+                st
+                for st in steps[1:]
+                if st["added"] in kept_before and swap.get(st["added"], st["added"]) in kept
+            ),
+        ]
+        for st in steps[1:]:
+            tokens = [
+                swap.get(t, t) for t in st["model"].split("+") if t == "white" or t in kept_before
+            ]
+            st["model"] = "+".join(t for t in tokens if t == "white" or t in kept)
+            if st["added"] in swap:  # its evidence is the replaced effect's
+                st["replaced"], st["added"] = st["added"], swap[st["added"]]
+        dev = _held_out_deviance(rec, floor, model)
+        steps[-1] = {
+            **steps[-1],
+            "explained_fraction": _explained(dev, nominal_dev),
+            "held_out_z": dev["z"],
+        }
+    final = _held_out_deviance(rec, floor, model)
+    final["removed"] = removed
+    final["exchanged"] = exchanged
+    final["ties"] = ties
+    effects = _named(model)
+    params = _physical(model, dt, floor)
+    quantization = None
+    if grid is not None:
+        share = grid["step"] ** 2 / 12 / rec.variance
+        quantization = {**grid, "noise_share_of_white": float(share)}
+        if share >= QUANTIZATION_SHARE:
+            effects.append("quantization")
+            params["quantization"] = {"step": grid["step"]}
+    residual = rec.residual(model.lines, model.transient)
+    bursts = _bursts(residual, dt)
+    final["bursts"] = bursts
+    # The first difference makes a linear drift a constant, which the periodogram never
+    # sees: test it in the time domain unless a wandering level was named.
+    drift = _drift(residual, dt)
+    final["drift"] = drift
+    drifting = drift["t"] > DRIFT_T and not {"random_walk", "flicker"} & set(effects)
+    selection = SensorNoiseSelection(
+        effects=tuple(effects),
+        unexplained=bool(final["z"] > UNEXPLAINED_Z or bursts or drifting),
+        steps=steps,
+        parameters=params,
+        held_out=final,
+        quantization=quantization,
+        sample_interval=dt,
+        n_samples=int(x.size),
+    )
+    return selection, model, floor, residual
 
 
 BURST_Z = 8.0
@@ -745,6 +785,88 @@ def _bursts(r: np.ndarray, dt: float) -> list:
             }
         )
     return out
+
+
+LEVEL_SHIFT_ALPHA = 1e-3
+"""Family-wise false-alarm rate of the level-shift test (`_level_shift`)."""
+MAX_LEVEL_SHIFTS = 3
+
+
+def _variogram(model: _Model, floor: float, size: int) -> np.ndarray:
+    """V(h) = ½ E (x_{t+h} − x_t)², h = 0..size−1, of the model (defined for a random walk
+    and flicker too): ½ Σ_{i,j=1}^{h} γ_y(i − j) of the differenced record's γ_y."""
+    g = _differenced_autocovariance(model, floor, size)
+    h = np.arange(size, dtype=np.float64)
+    tau = np.arange(1, size, dtype=np.float64)
+    s1 = np.concatenate([[0.0, 0.0], np.cumsum(g[1:])[: size - 2]])
+    s2 = np.concatenate([[0.0, 0.0], np.cumsum(tau * g[1:])[: size - 2]])
+    return 0.5 * (h * g[0] + 2 * (h * s1 - s2))
+
+
+def _haar_variance(v: np.ndarray, w: int) -> float:
+    """Var(D) of D = mean(x[j : j+w]) − mean(x[j−w : j]) from the variogram V:
+    (2/w²) [Σ_{h=1}^{2w−1} min(h, 2w−h) V(h) − 2 Σ_{h=1}^{w−1} (w−h) V(h)]
+    (2σ²/w for white noise of variance σ²)."""
+    h = np.arange(1, 2 * w)
+    across = np.minimum(h, 2 * w - h) @ v[1 : 2 * w]
+    within = (w - h[: w - 1]) @ v[1:w]
+    return 2.0 / w**2 * float(across - 2 * within)
+
+
+def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict | None:
+    """The most significant shift of the level in the residual r against the model's own noise: the
+    Haar statistic z_w(j) = D_w(j)/√Var D_w, D_w(j) the mean of the w samples after j less
+    the mean of the w before, over every j and dyadic w from 4 to n/8, Var D_w from the
+    model's variogram (so a random walk or flicker in the model widens it as it should), on
+    r less its least-squares line. A step is concentrated in time, where a random walk of
+    the same low-frequency power spreads its increments over the record: the periodogram
+    cannot tell them apart, this can. Critical |z|: Bonferroni over Σ_w 2n/w nearly
+    independent positions at `LEVEL_SHIFT_ALPHA`. Returns the largest |z| (time of the shift
+    [s], its size, the window w Δ [s]) with the critical value, or None for a record too
+    short (n < 32)."""
+    n = r.size
+    scales = [1 << k for k in range(2, 40) if 8 << k <= n]
+    if not scales:
+        return None
+    v = _variogram(model, floor, 2 * scales[-1])
+    # A linear drift moves every D_w(j) alike: it is taken out here (the drift check
+    # judges it), and what stands out is localised.
+    t = np.arange(n) - (n - 1) / 2
+    raw = np.concatenate([[0.0], np.cumsum(r - np.mean(r))])
+    c = raw - np.concatenate([[0.0], np.cumsum(t)]) * (t @ r) / (t @ t)
+    best = None
+    for w in scales:
+        var = _haar_variance(v, w)
+        if not var > 0:
+            continue
+        j = np.arange(w, n - w + 1)
+        d = ((c[j + w] - c[j]) - (c[j] - c[j - w])) / w
+        z = d / math.sqrt(var)
+        i = int(np.argmax(np.abs(z)))
+        if best is None or abs(z[i]) > abs(best["z"]):
+            best = {"z": float(z[i]), "index": int(j[i]), "size": float(d[i]), "window": w}
+    if best is None:
+        return None
+    # The size at that place from the window whose D has the least variance under the
+    # model (the widest the record allows for white noise, shorter where the model
+    # wanders): the window that located the step is picked for its |z|, which biases its
+    # own D upwards.
+    j = best["index"]
+    fits = [(_haar_variance(v, w), w) for w in scales if w <= min(j, n - j)]
+    if fits:
+        _, w = min(fits)
+        # (on r as it is: the line taken out above would bias a step's size)
+        best["size"] = float(((raw[j + w] - raw[j]) - (raw[j] - raw[j - w])) / w)
+    tests = sum(2 * n / w for w in scales)
+    critical = statistics.NormalDist().inv_cdf(1 - LEVEL_SHIFT_ALPHA / (2 * tests))
+    return {
+        "z": best["z"],
+        "critical_z": float(critical),
+        "time_s": best["index"] * dt,
+        "index": best["index"],
+        "size": best["size"],
+        "window_s": best["window"] * dt,
+    }
 
 
 DRIFT_T = 8.0

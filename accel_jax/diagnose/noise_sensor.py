@@ -5,10 +5,11 @@ combined with the exact time-domain diagnosis of `noise.py`.
 
 **When it runs.** The exact diagnosis (Kalman likelihood, one effect at a time) decides on
 records up to `EXACT_LIMIT` samples. The forward selection (Whittle likelihood, effects
-added while significant) runs as well when that verdict is `unexplained` or `cannot_tell`,
-or when the record lies on an output grid coarse enough to name; beyond `EXACT_LIMIT`
-samples it alone decides (the exact filter of 10⁶ samples × candidates takes minutes,
-the Whittle selection seconds).
+added while significant) runs as well when that verdict is `unexplained`, `cannot_tell` or
+`random_walk` (a step in the level has a walk's spectrum; the selection's level-shift test
+tells them apart), or when the record lies on an output grid coarse enough to name; beyond
+`EXACT_LIMIT` samples it alone decides (the exact filter of 10⁶ samples × candidates takes
+minutes, the Whittle selection seconds).
 
 **The verdict.** When the selection names an effect outside the three, or several effects,
 the verdict is the composite it names (`bandlimit+sinusoid+quantization`, with
@@ -37,6 +38,10 @@ CLASSIC = ("gauss_markov", "exp_cosine", "random_walk")
 def needs_selection(x: np.ndarray, verdict: str | None) -> bool:
     """Whether the forward selection should run on this record (module docstring)."""
     if verdict is None or verdict in ("unexplained", "cannot_tell"):
+        return True
+    if verdict == "random_walk":
+        # A step in the level has a random walk's 1/f² spectrum: the selection's
+        # level-shift test (time domain) tells them apart.
         return True
     grid = detect_quantization(x)
     if grid is None:
@@ -103,6 +108,13 @@ def _describe(sel: SensorNoiseSelection) -> str:
             f". {len(bursts)} impulsive event(s) (first differences beyond 8 robust σ; at "
             f"{at}; peak {max(b['peak'] for b in bursts):.3g} g) that no Gaussian effect makes"
         )
+    for shift in held.get("level_shifts", []):
+        text += (
+            f". The level steps by {shift['size']:.3g} g at {shift['time_s']:.4g} s "
+            f"(|z| = {abs(shift['z']):.1f} against the model's own wander over "
+            f"{shift['window_s']:.3g} s windows): outside the library; taken out before "
+            "the effects above were selected"
+        )
     drift = held.get("drift")
     if drift and sel.unexplained and drift["t"] > 8.0 and not bursts and held["z"] <= 4.0:
         text += (
@@ -116,7 +128,7 @@ def _describe(sel: SensorNoiseSelection) -> str:
         )
     else:
         text += f". The held-out spectrum fits the final model ({held['z']:+.1f} standard errors)"
-    if sel.unexplained and not bursts and held["z"] <= 4.0:
+    if sel.unexplained and not bursts and held["z"] <= 4.0 and not held.get("level_shifts"):
         text += " (unexplained)"
     return text + "."
 
@@ -126,7 +138,7 @@ def combine(result: DiagnosisResult, sel: SensorNoiseSelection) -> DiagnosisResu
     selection names an effect beyond the three or several effects."""
     result.where["sensor_effects"] = selection_summary(sel)
     beyond = [e for e in sel.effects if e not in CLASSIC]
-    if beyond or len(sel.effects) > 1:
+    if beyond or len(sel.effects) > 1 or sel.held_out.get("level_shifts"):
         previous = result.verdict
         result.verdict = sel.verdict
         result.tied = []
