@@ -900,11 +900,17 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         )
     held = selection.held_out
     for shift in held.get("level_shifts", []):
+        what = (
+            "taken out before the effects above were selected"
+            if shift.get("taken_out", True)
+            else "under half the output grid's step, left in"
+        )
         say(
             f"  unexplained: the level steps by {shift['size']:.3g} g at {shift['time_s']:.4g} s "
-            f"(|z| = {abs(shift['z']):.1f} against the model's own wander; taken out before "
-            "the effects above were selected)"
+            f"(|z| = {abs(shift['z']):.1f} against the model's own wander; {what})"
         )
+    if held.get("more_level_shifts"):
+        say("  unexplained: more steps in the level than were taken out")
     for burst in held.get("bursts", [])[:5]:
         say(
             f"  unexplained: an impulsive event at {burst['start_s']:.4g} s (peak "
@@ -915,12 +921,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
             f"  unexplained: the held-out spectrum stays {held['z']:.1f} standard "
             "errors above the final model's"
         )
-    elif (
-        selection.unexplained
-        and not held.get("level_shifts")
-        and not held.get("bursts")
-        and "drift" in held
-    ):
+    elif held.get("drifting") and not held.get("bursts"):
         say(
             f"  unexplained: the level drifts {held['drift']['slope_per_s']:.3g} g/s "
             f"({held['drift']['t']:.0f} standard errors), which no named effect makes"

@@ -377,23 +377,45 @@ def main(argv=None) -> int:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument(
+        "--shuffle",
+        action="store_true",
+        help="run the records in a random order (the same records): a run stopped early "
+        "leaves a fair sample in OUT/rows.jsonl",
+    )
     args = parser.parse_args(argv)
     jobs = plan(args.per_effect, args.seed)
+    if args.shuffle:
+        jobs = [jobs[i] for i in np.random.default_rng(args.seed + 1).permutation(len(jobs))]
     started = time.perf_counter()
+    stream = None
+    if args.out is not None:  # each row as it comes (a run cut short keeps what it did)
+        args.out.mkdir(parents=True, exist_ok=True)
+        stream = open(args.out / "rows.jsonl", "w")  # noqa: SIM115
+    rows = []
+
+    def keep(row):
+        rows.append(row)
+        if stream is not None:
+            stream.write(json.dumps(row, default=float) + "\n")
+            stream.flush()
+        if len(rows) % 100 == 0:
+            print(
+                f"{len(rows)}/{len(jobs)} records, {time.perf_counter() - started:.0f} s",
+                flush=True,
+            )
+
     if args.jobs > 1:
         import multiprocessing as mp
 
-        rows = []
         with mp.get_context("spawn").Pool(args.jobs) as pool:
             for row in pool.imap(_worker, [(j, args.samples) for j in jobs], chunksize=2):
-                rows.append(row)
-                if len(rows) % 100 == 0:
-                    print(
-                        f"{len(rows)}/{len(jobs)} records, {time.perf_counter() - started:.0f} s",
-                        flush=True,
-                    )
+                keep(row)
     else:
-        rows = [_worker((j, args.samples)) for j in jobs]
+        for j in jobs:
+            keep(_worker((j, args.samples)))
+    if stream is not None:
+        stream.close()
     result = {
         "assumptions": {
             "samples_per_record": args.samples,
@@ -415,7 +437,6 @@ def main(argv=None) -> int:
     }
     text = json.dumps(result, indent=1, default=float)
     if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
         tmp = args.out / "result.json.tmp"
         tmp.write_text(text)
         tmp.replace(args.out / "result.json")

@@ -412,3 +412,14 @@ def test_a_level_shift_is_unexplained_not_a_random_walk():
     quantised = aj.select_sensor_noise(grid, dt)
     assert quantised.held_out["level_shifts"] and "quantization" in quantised.effects
     assert quantised.held_out["level_shifts"][0]["size"] == pytest.approx(2e-3)
+    # A spike (20 σ at one sample) is an impulsive event, not a step: its difference of
+    # means falls as 1/w in the wider windows.
+    spiked = white.copy()
+    spiked[n // 3] += 0.04
+    spike = aj.select_sensor_noise(spiked, dt)
+    assert spike.held_out["bursts"] and spike.held_out["level_shifts"] == []
+    # A step and nothing else (no noise left once it is out): said, not an error.
+    bare = aj.select_sensor_noise(0.3 + 1e-3 * (k >= n // 2), dt)
+    assert bare.unexplained and bare.held_out["level_shifts"][0]["time_s"] == pytest.approx(
+        n // 2 * dt
+    )

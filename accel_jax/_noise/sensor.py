@@ -100,7 +100,12 @@ class SensorNoiseSelection:
     (with `removed`: the effects the backward check took out and their 2 ln B then;
     `exchanged`: the low-frequency effects the exchange replaced, and by what — their
     steps then name the substitute, with `replaced` the effect whose evidence they show;
-    `ties`: each named low-frequency effect another fits as well, within the bar);
+    `ties`: each named low-frequency effect another fits as well, within the bar;
+    `bursts`: impulsive events; `drift`, `drifting`: the level's linear drift and whether
+    it is one no named effect makes; `level_shifts`: the steps in the level found and taken
+    out (time, size, their z, the held-out z and effects with the step still in),
+    `level_shift_test`: the last test (None for records under 32 samples), and
+    `more_level_shifts` when one more stood than `MAX_LEVEL_SHIFTS`);
     `quantization` the grid found (or None); `verdict` the effects joined by '+' ('none'
     when nothing is named and nothing is left, 'unexplained' alone when nothing is named
     but the misfit stays).
@@ -564,33 +569,57 @@ def select_sensor_noise(
         dt = float(sample_interval)
         shifts = []
         grid = detect_quantization(x)
-        while True:
-            selection, model, floor, residual = _select(x, dt, evidence, max_lines)
+        selection, model, floor, residual = _select(x, dt, evidence, max_lines)
+        for attempt in range(MAX_LEVEL_SHIFTS + 1):
             found = _level_shift(residual, dt, model, floor)
             selection.held_out["level_shift_test"] = found
-            if (
-                found is None
-                or not abs(found["z"]) > found["critical_z"]
-                or len(shifts) == MAX_LEVEL_SHIFTS
-            ):
+            if found is None or not found["significant"]:
+                break
+            if attempt == MAX_LEVEL_SHIFTS:  # one more than taken out: said, not hidden
+                selection.held_out["more_level_shifts"] = True
                 break
             # Outside the library: taken out of the record, and the selection run again on
             # what is left, so that no effect takes the credit for the step.
             size = found["size"]
             if grid is not None:  # a whole number of grid steps keeps the record on its grid
                 size = round(size / grid["step"]) * grid["step"]
-            shifts.append(
-                {
-                    **{k: found[k] for k in ("time_s", "z", "window_s")},
-                    "size": size,
-                    # the held-out misfit with the step still in, beside the final one
-                    "held_out_z_with_it": selection.held_out["z"],
-                    "effects_with_it": list(selection.effects),
-                }
+            taken_out = size != 0 and math.isfinite(size)  # not under half a grid step
+            near = next(
+                (
+                    sh
+                    for sh in shifts
+                    if abs(sh["index"] - found["index"]) * dt
+                    <= max(sh["size_window_s"], found["size_window_s"])
+                ),
+                None,
             )
-            x = x - size * (np.arange(x.size) >= found["index"])
+            if near is not None:  # what the first estimate of that step left
+                near["size"] += size if taken_out else 0.0
+            else:
+                shifts.append(
+                    {
+                        **{
+                            k: found[k]
+                            for k in ("time_s", "index", "z", "window_s", "size_window_s")
+                        },
+                        "size": size if taken_out else found["size"],
+                        "taken_out": bool(taken_out),
+                        # the held-out misfit with the step still in, beside the final one
+                        "held_out_z_with_it": selection.held_out["z"],
+                        "effects_with_it": list(selection.effects),
+                    }
+                )
+            if not taken_out:
+                break
+            corrected = x - size * (np.arange(x.size) >= found["index"])
+            try:
+                rerun = _select(corrected, dt, evidence, max_lines)
+            except ValueError:  # nothing left but the steps (a record without noise)
+                break
+            x = corrected
+            selection, model, floor, residual = rerun
         selection.held_out["level_shifts"] = shifts
-        if shifts:
+        if shifts or selection.held_out.get("more_level_shifts"):
             selection = dataclasses.replace(selection, unexplained=True)
         return selection
 
@@ -741,6 +770,7 @@ def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int):
     drift = _drift(residual, dt)
     final["drift"] = drift
     drifting = drift["t"] > DRIFT_T and not {"random_walk", "flicker"} & set(effects)
+    final["drifting"] = bool(drifting)
     selection = SensorNoiseSelection(
         effects=tuple(effects),
         unexplained=bool(final["z"] > UNEXPLAINED_Z or bursts or drifting),
@@ -852,20 +882,24 @@ def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict 
     # wanders): the window that located the step is picked for its |z|, which biases its
     # own D upwards.
     j = best["index"]
-    fits = [(_haar_variance(v, w), w) for w in scales if w <= min(j, n - j)]
-    if fits:
-        _, w = min(fits)
-        # (on r as it is: the line taken out above would bias a step's size)
-        best["size"] = float(((raw[j + w] - raw[j]) - (raw[j] - raw[j - w])) / w)
+    var, w = min((_haar_variance(v, w), w) for w in scales if w <= min(j, n - j))
+    # (on r as it is: the line taken out above would bias a step's size)
+    size = float(((raw[j + w] - raw[j]) - (raw[j] - raw[j - w])) / w)
     tests = sum(2 * n / w for w in scales)
     critical = statistics.NormalDist().inv_cdf(1 - LEVEL_SHIFT_ALPHA / (2 * tests))
+    size_z = size / math.sqrt(var)
     return {
         "z": best["z"],
         "critical_z": float(critical),
-        "time_s": best["index"] * dt,
-        "index": best["index"],
-        "size": best["size"],
+        "time_s": j * dt,
+        "index": j,
+        "size": size,
+        # A step holds its size in every window; a spike's D falls as 1/w: it must stand
+        # in the size's window too (the spike is a burst, `_bursts`, not a shift).
+        "size_z": float(size_z),
+        "significant": bool(abs(best["z"]) > critical and abs(size_z) > critical),
         "window_s": best["window"] * dt,
+        "size_window_s": w * dt,
     }
 
 

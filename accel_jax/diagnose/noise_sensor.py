@@ -112,11 +112,17 @@ def _describe(sel: SensorNoiseSelection) -> str:
         text += (
             f". The level steps by {shift['size']:.3g} g at {shift['time_s']:.4g} s "
             f"(|z| = {abs(shift['z']):.1f} against the model's own wander over "
-            f"{shift['window_s']:.3g} s windows): outside the library; taken out before "
-            "the effects above were selected"
+            f"{shift['window_s']:.3g} s windows): outside the library; "
+            + (
+                "taken out before the effects above were selected"
+                if shift.get("taken_out", True)
+                else "under half the output grid's step, left in"
+            )
         )
+    if held.get("more_level_shifts"):
+        text += f". More steps than the {len(held['level_shifts'])} taken out"
     drift = held.get("drift")
-    if drift and sel.unexplained and drift["t"] > 8.0 and not bursts and held["z"] <= 4.0:
+    if drift and held.get("drifting") and not bursts and held["z"] <= 4.0:
         text += (
             f". The level drifts {drift['slope_per_s']:.3g} g/s ({drift['t']:.0f} standard "
             "errors over block means), which no named effect makes"
