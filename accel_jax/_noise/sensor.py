@@ -575,6 +575,14 @@ def select_sensor_noise(
             selection.held_out["level_shift_test"] = found
             if found is None or not found["significant"]:
                 break
+            at_burst = any(
+                b["start_s"] - found["size_window_s"]
+                <= found["time_s"]
+                <= b["end_s"] + found["size_window_s"]
+                for b in selection.held_out.get("bursts", [])
+            )
+            if at_burst:  # an impulsive event, reported as such
+                break
             if attempt == MAX_LEVEL_SHIFTS:  # one more than taken out: said, not hidden
                 selection.held_out["more_level_shifts"] = True
                 break
@@ -820,6 +828,9 @@ def _bursts(r: np.ndarray, dt: float) -> list:
 LEVEL_SHIFT_ALPHA = 1e-3
 """Family-wise false-alarm rate of the level-shift test (`_level_shift`)."""
 MAX_LEVEL_SHIFTS = 3
+SHIFT_SIZE_Z = 3.0
+"""A shift's size, measured in the window where it is most precise under the model, must
+be this many standard deviations from zero (a spike's falls as 1/w there)."""
 
 
 def _variogram(model: _Model, floor: float, size: int) -> np.ndarray:
@@ -894,10 +905,11 @@ def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict 
         "time_s": j * dt,
         "index": j,
         "size": size,
-        # A step holds its size in every window; a spike's D falls as 1/w: it must stand
-        # in the size's window too (the spike is a burst, `_bursts`, not a shift).
+        # A step holds its size in every window; a spike's D falls as 1/w: the size must
+        # stand in its own window too (a shape check, `SHIFT_SIZE_Z`; the false-alarm rate
+        # is the located |z|'s). A spike is a burst (`_bursts`), not a shift.
         "size_z": float(size_z),
-        "significant": bool(abs(best["z"]) > critical and abs(size_z) > critical),
+        "significant": bool(abs(best["z"]) > critical and abs(size_z) > SHIFT_SIZE_Z),
         "window_s": best["window"] * dt,
         "size_window_s": w * dt,
     }
