@@ -569,7 +569,7 @@ def select_sensor_noise(
         dt = float(sample_interval)
         shifts = []
         grid = detect_quantization(x)
-        selection, model, floor, residual = _select(x, dt, evidence, max_lines)
+        selection, model, floor, residual = _select(x, dt, evidence, max_lines, grid)
         for attempt in range(MAX_LEVEL_SHIFTS + 1):
             found = _level_shift(residual, dt, model, floor)
             selection.held_out["level_shift_test"] = found
@@ -621,7 +621,7 @@ def select_sensor_noise(
                 break
             corrected = x - size * (np.arange(x.size) >= found["index"])
             try:
-                rerun = _select(corrected, dt, evidence, max_lines)
+                rerun = _select(corrected, dt, evidence, max_lines, grid)
             except ValueError:  # nothing left but the steps (a record without noise)
                 break
             x = corrected
@@ -632,15 +632,16 @@ def select_sensor_noise(
         return selection
 
 
-def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int):
-    """The forward selection on x; returns (selection, final model, floor, residual)."""
+def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int, grid: dict | None):
+    """The forward selection on x, whose output grid is `grid` (`detect_quantization`;
+    a step taken out is a whole number of its steps); returns (selection, final model,
+    floor, residual)."""
     rec = _Record(x, dt)
     if not rec.variance > (1e-10 * float(np.max(np.abs(x)))) ** 2:
         raise ValueError(
             "select_sensor_noise: the record's first differences are constant over its "
             "training part (a pure ramp or a staircase of one step): no noise to model."
         )
-    grid = detect_quantization(x)
     floor = grid["step"] ** 2 / 12 if grid else 1e-9 * rec.variance
     model = _evaluate(rec, floor, (), (), None)
     nominal_dev = _held_out_deviance(rec, floor, model)
