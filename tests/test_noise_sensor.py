@@ -145,6 +145,23 @@ def test_select_composite_record():
     assert fractions == sorted(fractions)  # each step explains more
 
 
+def test_fits_on_threads_give_the_same_selection(monkeypatch):
+    """The forward, backward and exchange steps fit their candidates on threads where the
+    process has several cores (`_evaluate_many`); one core gives the same selection, to the
+    bit (the same XLA calls, in another order)."""
+    from accel_jax._noise import sensor
+
+    truth = {"white": 2e-3, "gauss_markov": (1e-3, 0.3), "lines": [(3.1, 1e-3)], "level": 0.5}
+    x = noise_truth.record(np.random.default_rng(21), 6000, 0.01, truth)
+    found = {}
+    for cores in (1, 2):
+        monkeypatch.setattr(sensor, "_cores", lambda cores=cores: cores)
+        found[cores] = aj.select_sensor_noise(x, 0.01)
+    assert found[1].verdict == found[2].verdict and "gauss_markov" in found[1].effects
+    assert found[1].steps == found[2].steps
+    assert repr(found[1].parameters) == repr(found[2].parameters)
+
+
 def test_startup_transient_judged_in_the_time_domain_and_checked_backward():
     """A warm-up at the start (τ = 60 samples; 3 σ_w alone, 6 σ_w under a random walk,
     where the exact expected 2 ln Λ is ~100: the walk hides the level the transient

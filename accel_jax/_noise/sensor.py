@@ -50,7 +50,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import statistics
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -278,6 +280,30 @@ def _evaluate(record, floor, names, lines, transient, parent=None) -> _Model:
     return _Model(tuple(names), tuple(lines), transient, z, log_lik, held_lik, terms, ok)
 
 
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))  # what this process may use (a pinned job: 1)
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _evaluate_many(record, floor, specs: list) -> list:
+    """`_evaluate` of each spec (names, lines, transient, parent), in order. Independent
+    fits run on as many threads as the process has cores: a fit is one XLA call that runs
+    on one core and releases the GIL (the first forward step of a 10⁶-sample record 3.3 s
+    → 1.9 s on the 2-core machine). The same fits, the same results, in either case."""
+    workers = min(len(specs), _cores())
+    if workers < 2:
+        return [_evaluate(record, floor, *spec) for spec in specs]
+
+    def one(spec):
+        with jax.enable_x64(True):  # thread-local: each worker sets it again
+            return _evaluate(record, floor, *spec)
+
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(one, specs))
+
+
 def _evidence(model: _Model, smaller: _Model, k: int, log_j: float) -> float:
     """2 ln B of `model` over `smaller` (nested): 2 Δ ln L on the whole record (the
     training part's likelihood at the parameters fitted there plus the held-out part's at
@@ -472,16 +498,12 @@ def _backward(rec, floor, model: _Model, log_j: float, evidence: float):
     removed = []
     while True:
         weakest = None
+        specs = []
         for name in model.names:
             names = tuple(n for n in model.names if n != name)
-            reduced = _evaluate(
-                rec,
-                floor,
-                names,
-                model.lines,
-                model.transient,
-                dataclasses.replace(model, names=names),
-            )
+            parent = dataclasses.replace(model, names=names)
+            specs.append((names, model.lines, model.transient, parent))
+        for name, reduced in zip(model.names, _evaluate_many(rec, floor, specs), strict=True):
             score = _evidence(model, reduced, PARAMETER_COUNT[name], log_j)
             if weakest is None or score < weakest[0]:
                 weakest = (score, name, reduced)
@@ -518,6 +540,7 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     exchanged = []
     for _ in range(len(LOW_FREQUENCY) + 1):
         ties, best = [], None
+        pairs, specs = [], []
         for name in model.names:
             if name not in LOW_FREQUENCY:
                 continue
@@ -527,23 +550,27 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
                     continue
                 names = tuple(other if n == name else n for n in model.names)
                 parent = dataclasses.replace(model, names=rest)
-                alt = _evaluate(rec, floor, names, model.lines, model.transient, parent)
-                score = (
-                    2 * ((model.train + model.held) - (alt.train + alt.held))
-                    - (PARAMETER_COUNT[name] - PARAMETER_COUNT[other]) * log_j
+                pairs.append((name, other, parent))
+                specs.append((names, model.lines, model.transient, parent))
+        for (name, other, parent), alt in zip(
+            pairs, _evaluate_many(rec, floor, specs), strict=True
+        ):
+            score = (
+                2 * ((model.train + model.held) - (alt.train + alt.held))
+                - (PARAMETER_COUNT[name] - PARAMETER_COUNT[other]) * log_j
+            )
+            if score <= -evidence and _held_out_z(alt, parent) >= -HELD_OUT_Z:
+                if best is None or score < best[0]:
+                    best = (score, alt, name, other)
+            elif score < evidence:
+                ties.append(
+                    {
+                        "effect": name,
+                        "alternative": other,
+                        "evidence": float(score),
+                        "bar": float(evidence),
+                    }
                 )
-                if score <= -evidence and _held_out_z(alt, parent) >= -HELD_OUT_Z:
-                    if best is None or score < best[0]:
-                        best = (score, alt, name, other)
-                elif score < evidence:
-                    ties.append(
-                        {
-                            "effect": name,
-                            "alternative": other,
-                            "evidence": float(score),
-                            "bar": float(evidence),
-                        }
-                    )
         if best is None:
             return model, exchanged, ties
         score, model, name, other = best
@@ -658,21 +685,18 @@ def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int, grid: dic
     train_gram, held_gram = rec.grams((), None)
     log_j = math.log(train_gram.n_bins + held_gram.n_bins)
     for _ in range(MAX_STEPS):
-        trials = []
+        labels, specs = [], []
         for name in spectral.COMPONENTS:
             if name not in model.names:
-                names = (*model.names, name)
-                trials.append(
-                    (name, _evaluate(rec, floor, names, model.lines, model.transient, model))
-                )
+                labels.append(name)
+                specs.append(((*model.names, name), model.lines, model.transient, model))
         if len(model.lines) < max_lines:
             f0, width = _standardised_peak(rec, floor, model)
             r = rec.residual(model.lines, model.transient)
             line = _fit_line(r[: rec.split], rec.t[: rec.split], f0, width)
-            lines = (*model.lines, line)
-            trials.append(
-                ("sinusoid", _evaluate(rec, floor, model.names, lines, model.transient, model))
-            )
+            labels.append("sinusoid")
+            specs.append((model.names, (*model.lines, line), model.transient, model))
+        trials = list(zip(labels, _evaluate_many(rec, floor, specs), strict=True))
         scored = [
             (_evidence(m, model, PARAMETER_COUNT[name], log_j), name, m) for name, m in trials
         ]
