@@ -845,7 +845,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
     from ._data import DataError, read_csv
     from ._io import write_json_atomic
     from ._noise import analysis, export
-    from ._noise.sensor import UNEXPLAINED_Z
+    from ._noise.sensor import UNEXPLAINED_Z, level_shift_sentence
 
     try:
         data = read_csv(file, kind="noise")
@@ -900,15 +900,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         )
     held = selection.held_out
     for shift in held.get("level_shifts", []):
-        what = (
-            "taken out before the effects above were selected"
-            if shift.get("taken_out", True)
-            else "under half the output grid's step, left in"
-        )
-        say(
-            f"  unexplained: the level steps by {shift['size']:.3g} g at {shift['time_s']:.4g} s "
-            f"(|z| = {abs(shift['z']):.1f} against the model's own wander; {what})"
-        )
+        say(f"  unexplained: {level_shift_sentence(shift)}")
     if held.get("more_level_shifts"):
         say("  unexplained: more steps in the level than were taken out")
     for burst in held.get("bursts", [])[:5]:

@@ -440,3 +440,60 @@ def test_a_level_shift_is_unexplained_not_a_random_walk():
     assert bare.unexplained and bare.held_out["level_shifts"][0]["time_s"] == pytest.approx(
         n // 2 * dt
     )
+
+
+def test_a_small_step_is_not_taken_for_a_random_walk():
+    """A step too small to stand against a random walk's wander (1.2 mg in 2 mg white noise,
+    made here with NumPy): the selection names a walk for its 1/f² power, and against the
+    walk the step is within the wander. Sought against the model without the walk, taken
+    out, and the selection run again, the step beats the walk on the whole record's
+    likelihood: unexplained, the step at its time and size. A true walk of the same
+    low-frequency power keeps its name (one step taken out of it gains little)."""
+    rng = np.random.default_rng(11)
+    n, dt = 8000, 0.01
+    k = np.arange(n)
+    x = -0.5 + 2e-3 * rng.normal(size=n) + 1.2e-3 * (k >= 2400)
+    stepped = aj.select_sensor_noise(x, dt)
+    assert stepped.unexplained and "random_walk" not in stepped.effects, stepped.verdict
+    (shift,) = stepped.held_out["level_shifts"]
+    assert shift["in_place_of"] == "random_walk"
+    assert shift["time_s"] == pytest.approx(24.0, abs=0.3)
+    assert shift["size"] == pytest.approx(1.2e-3, rel=0.25)
+    test = stepped.held_out["step_or_walk"]
+    assert test["evidence_over_the_walk"] >= test["bar"]
+    walk = aj.select_sensor_noise(
+        2e-3 * rng.normal(size=n) + np.cumsum(rng.normal(size=n)) * 4e-3 / math.sqrt(n), dt
+    )
+    assert walk.verdict == "random_walk", walk.verdict
+    test = walk.held_out.get("step_or_walk")
+    assert test is None or test["evidence_over_the_walk"] < test["bar"]
+
+
+def test_level_shift_screen_rarely_fires_on_noise_and_sees_a_step():
+    """The model-free screen that decides whether the diagnosis runs the selection on a
+    record the exact one-effect diagnosis called white or Gauss–Markov: on 300 records of
+    white noise, a Gauss–Markov process or flicker (drawn by the independent truth
+    generator) it fires rarely (a false trigger costs one selection run, not a verdict);
+    a 6 mg step in 2 mg white + a 1 mg Gauss–Markov process it sees at its place, and then
+    the diagnosis runs the selection where it would not have."""
+    from accel_jax._noise.sensor import level_shift_screen
+    from accel_jax.diagnose.noise_sensor import needs_selection
+
+    rng = np.random.default_rng(8)
+    n, dt = 10000, 0.01
+    truths = [
+        {"white": 2e-3},
+        {"white": 2e-3, "gauss_markov": (1e-3, 0.3)},
+        {"white": 1e-3, "gauss_markov": (2e-3, 1.0)},
+        {"white": 1e-3, "flicker": 3e-4},
+    ]
+    fired = sum(
+        level_shift_screen(noise_truth.record(rng, n, dt, truths[i % 4]))["significant"]
+        for i in range(300)
+    )
+    assert fired <= 9, fired  # ≤ 3 %
+    gm = noise_truth.record(rng, n, dt, {"white": 2e-3, "gauss_markov": (1e-3, 0.3)})
+    stepped = gm + 6e-3 * (np.arange(n) >= 3000)
+    found = level_shift_screen(stepped)
+    assert found["significant"] and abs(found["index"] - 3000) <= 64
+    assert needs_selection(stepped, "gauss_markov") and not needs_selection(gm, "gauss_markov")

@@ -653,6 +653,17 @@ def select_sensor_noise(
                 break
             x = corrected
             selection, model, floor, residual = rerun
+        if not shifts and "random_walk" in model.names:
+            test, swapped = _shift_in_place_of_walk(x, dt, evidence, max_lines, grid, model, floor)
+            selection.held_out["step_or_walk"] = test
+            if swapped is not None:
+                shift, rerun = swapped
+                shift["held_out_z_with_it"] = selection.held_out["z"]
+                shift["effects_with_it"] = list(selection.effects)
+                selection, model, floor, residual = rerun
+                selection.held_out["level_shift_test"] = _level_shift(residual, dt, model, floor)
+                selection.held_out["step_or_walk"] = test
+                shifts.append(shift)
         selection.held_out["level_shifts"] = shifts
         if shifts or selection.held_out.get("more_level_shifts"):
             selection = dataclasses.replace(selection, unexplained=True)
@@ -879,22 +890,11 @@ def _haar_variance(v: np.ndarray, w: int) -> float:
     return 2.0 / w**2 * float(across - 2 * within)
 
 
-def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict | None:
-    """The most significant shift of the level in the residual r against the model's own noise: the
-    Haar statistic z_w(j) = D_w(j)/√Var D_w, D_w(j) the mean of the w samples after j less
-    the mean of the w before, over every j and dyadic w from 4 to n/8, Var D_w from the
-    model's variogram (so a random walk or flicker in the model widens it as it should), on
-    r less its least-squares line. A step is concentrated in time, where a random walk of
-    the same low-frequency power spreads its increments over the record: the periodogram
-    cannot tell them apart, this can. Critical |z|: Bonferroni over Σ_w 2n/w nearly
-    independent positions at `LEVEL_SHIFT_ALPHA`. Returns the largest |z| (time of the shift
-    [s], its size, the window w Δ [s]) with the critical value, or None for a record too
-    short (n < 32)."""
+def _haar_scan(r: np.ndarray, v: np.ndarray, scales: list):
+    """The largest |z_w(j)| of the Haar differences of r (less its least-squares line) at
+    the dyadic windows `scales`, Var D_w from the variogram v; returns (best: {"z",
+    "index", "size", "window"} or None, the cumulative sum of r less its mean)."""
     n = r.size
-    scales = [1 << k for k in range(2, 40) if 8 << k <= n]
-    if not scales:
-        return None
-    v = _variogram(model, floor, 2 * scales[-1])
     # A linear drift moves every D_w(j) alike: it is taken out here (the drift check
     # judges it), and what stands out is localised.
     t = np.arange(n) - (n - 1) / 2
@@ -911,6 +911,68 @@ def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict 
         i = int(np.argmax(np.abs(z)))
         if best is None or abs(z[i]) > abs(best["z"]):
             best = {"z": float(z[i]), "index": int(j[i]), "size": float(d[i]), "window": w}
+    return best, raw
+
+
+def _shift_critical_z(n: int, scales: list) -> float:
+    """Bonferroni over Σ_w 2n/w nearly independent positions at `LEVEL_SHIFT_ALPHA`."""
+    tests = sum(2 * n / w for w in scales)
+    return statistics.NormalDist().inv_cdf(1 - LEVEL_SHIFT_ALPHA / (2 * tests))
+
+
+SCREEN_BLOCKS = 64
+"""The level-shift screen's widest window is n / `SCREEN_BLOCKS` (its robust scale then
+rests on at least that many independent windows)."""
+
+
+def level_shift_screen(x: np.ndarray) -> dict:
+    """A model-free screen for a step in the level: the Haar differences D_w(j) of
+    `_level_shift` at dyadic windows up to n/`SCREEN_BLOCKS`, each standardised by its own
+    robust scale over j (1.4826 × the median absolute deviation): whatever noise the record
+    has, a Gauss–Markov process's wander included, sets the scale, and a step, which moves
+    D_w at only 2w of the n places, stands out of it. (The record's own variogram or Allan
+    variance would not do: at the wide windows where a small step shows, the step itself
+    inflates them.) For deciding whether the forward selection, whose level-shift test
+    judges against the fitted model, must run; a screen, so a false trigger costs only that
+    run. Returns {"z", "critical_z", "index", "significant"}."""
+    x = np.asarray(x, np.float64)
+    n = x.size
+    scales = [1 << k for k in range(2, 40) if SCREEN_BLOCKS << k <= n]
+    best = {"z": 0.0, "index": 0}
+    t = np.arange(n) - (n - 1) / 2
+    c = np.concatenate([[0.0], np.cumsum(x - np.mean(x))])
+    c = c - np.concatenate([[0.0], np.cumsum(t)]) * (t @ x) / (t @ t)
+    for w in scales:
+        j = np.arange(w, n - w + 1)
+        d = ((c[j + w] - c[j]) - (c[j] - c[j - w])) / w
+        scale = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+        if not scale > 0:
+            continue
+        z = d / scale
+        i = int(np.argmax(np.abs(z)))
+        if abs(z[i]) > abs(best["z"]):
+            best = {"z": float(z[i]), "index": int(j[i])}
+    critical = _shift_critical_z(n, scales) if scales else math.inf
+    return {**best, "critical_z": float(critical), "significant": bool(abs(best["z"]) > critical)}
+
+
+def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict | None:
+    """The most significant shift of the level in the residual r against the model's own noise: the
+    Haar statistic z_w(j) = D_w(j)/√Var D_w, D_w(j) the mean of the w samples after j less
+    the mean of the w before, over every j and dyadic w from 4 to n/8, Var D_w from the
+    model's variogram (so a random walk or flicker in the model widens it as it should), on
+    r less its least-squares line. A step is concentrated in time, where a random walk of
+    the same low-frequency power spreads its increments over the record: the periodogram
+    cannot tell them apart, this can. Critical |z|: Bonferroni over Σ_w 2n/w nearly
+    independent positions at `LEVEL_SHIFT_ALPHA`. Returns the largest |z| (time of the shift
+    [s], its size, the window w Δ [s]) with the critical value, or None for a record too
+    short (n < 32)."""
+    n = r.size
+    scales = [1 << k for k in range(2, 40) if 8 << k <= n]
+    if not scales:
+        return None
+    v = _variogram(model, floor, 2 * scales[-1])
+    best, raw = _haar_scan(r, v, scales)
     if best is None:
         return None
     # The size at that place from the window whose D has the least variance under the
@@ -921,8 +983,7 @@ def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict 
     var, w = min((_haar_variance(v, w), w) for w in scales if w <= min(j, n - j))
     # (on r as it is: the line taken out above would bias a step's size)
     size = float(((raw[j + w] - raw[j]) - (raw[j] - raw[j - w])) / w)
-    tests = sum(2 * n / w for w in scales)
-    critical = statistics.NormalDist().inv_cdf(1 - LEVEL_SHIFT_ALPHA / (2 * tests))
+    critical = _shift_critical_z(n, scales)
     size_z = size / math.sqrt(var)
     return {
         "z": best["z"],
@@ -938,6 +999,82 @@ def _level_shift(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict 
         "window_s": best["window"] * dt,
         "size_window_s": w * dt,
     }
+
+
+def _parameters(model: _Model) -> int:
+    k = sum(PARAMETER_COUNT[n] for n in model.names)
+    k += PARAMETER_COUNT["sinusoid"] * len(model.lines)
+    return k + (PARAMETER_COUNT["startup_transient"] if model.transient is not None else 0)
+
+
+def _shift_in_place_of_walk(x, dt, evidence, max_lines, grid, model: _Model, floor: float):
+    """A random walk named where the record holds a step of its level instead: the two have
+    the same 1/f² spectrum, and once the walk is in the model its wander covers the step,
+    so the level-shift test against the final model cannot see it. Here the step is sought
+    against the model *without* the walk (the rest refitted); one found there is taken out
+    and the selection run again on what is left, and the step replaces the walk when the
+    whole record's likelihood says so: 2 Δ ln L of (the new selection + the step) over the
+    walk's model, less Δk ln J for the noise parameters, at least the shift test's own
+    critical z² (the price of searching its place and size) plus `evidence`. A true walk
+    keeps its wander after one step is taken out: the new selection names it again and
+    gains little. Returns (the test: the step sought, its score and bar, or None where no
+    step stands against the reduced model; (shift, the new `_select` result) or None)."""
+    rec = _Record(x, dt)
+    names = tuple(n for n in model.names if n != "random_walk")
+    reduced = _evaluate(rec, floor, names, model.lines, model.transient)
+    residual = rec.residual(model.lines, model.transient)
+    found = _level_shift(residual, dt, reduced, floor)
+    if found is None or not found["significant"]:
+        return None, None
+    size = found["size"]
+    if grid is not None:
+        size = round(size / grid["step"]) * grid["step"]
+    if not (size != 0 and math.isfinite(size)):
+        return None, None
+    corrected = x - size * (np.arange(x.size) >= found["index"])
+    try:
+        rerun = _select(corrected, dt, evidence, max_lines, grid)
+    except ValueError:
+        return None, None
+    new = rerun[1]
+    gain = 2 * ((new.train + new.held) - (model.train + model.held))
+    train, held = rec.grams((), None)
+    score = gain - (_parameters(new) + 1 - _parameters(model)) * math.log(
+        train.n_bins + held.n_bins
+    )
+    test = {
+        "time_s": found["time_s"],
+        "size": size,
+        "z_without_the_walk": found["z"],
+        "evidence_over_the_walk": float(score),
+        "bar": float(found["critical_z"] ** 2 + evidence),
+        "effects_without_the_step": list(rerun[0].effects),
+    }
+    if not score >= test["bar"]:
+        return test, None
+    shift = {
+        **{k: found[k] for k in ("time_s", "index", "z", "window_s", "size_window_s")},
+        "size": size,
+        "taken_out": True,
+        "in_place_of": "random_walk",
+        "evidence_over_the_walk": float(score),
+    }
+    return test, (shift, rerun)
+
+
+def level_shift_sentence(shift: dict, unit: str = "g") -> str:
+    """One level shift of `held_out["level_shifts"]` in words (the CLI and the diagnosis
+    say it alike)."""
+    what = (
+        "taken out before the effects were selected"
+        if shift.get("taken_out", True)
+        else "under half the output grid's step, left in"
+    )
+    return (
+        f"the level steps by {shift['size']:.3g} {unit} at {shift['time_s']:.4g} s "
+        f"(|z| = {abs(shift['z']):.1f} against the model's own wander over "
+        f"{shift['window_s']:.3g} s windows): outside the library; {what}"
+    )
 
 
 DRIFT_T = 8.0

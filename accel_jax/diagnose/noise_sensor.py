@@ -7,7 +7,9 @@ combined with the exact time-domain diagnosis of `noise.py`.
 records up to `EXACT_LIMIT` samples. The forward selection (Whittle likelihood, effects
 added while significant) runs as well when that verdict is `unexplained`, `cannot_tell` or
 `random_walk` (a step in the level has a walk's spectrum; the selection's level-shift test
-tells them apart), or when the record lies on an output grid coarse enough to name; beyond
+tells them apart), when a model-free screen sees a step in the level
+(`level_shift_screen`: one the exact verdict took into a Gauss–Markov process or white
+noise), or when the record lies on an output grid coarse enough to name; beyond
 `EXACT_LIMIT` samples it alone decides (the exact filter of 10⁶ samples × candidates takes
 minutes, the Whittle selection seconds).
 
@@ -26,7 +28,13 @@ import math
 import numpy as np
 
 from .._noise import allan_deviation_intervals, detect_quantization, select_sensor_noise
-from .._noise.sensor import DEVIANCE_VARIANCE, QUANTIZATION_SHARE, SensorNoiseSelection
+from .._noise.sensor import (
+    DEVIANCE_VARIANCE,
+    QUANTIZATION_SHARE,
+    SensorNoiseSelection,
+    level_shift_screen,
+    level_shift_sentence,
+)
 from .base import DiagnosisResult
 
 EXACT_LIMIT = 20_000
@@ -42,6 +50,10 @@ def needs_selection(x: np.ndarray, verdict: str | None) -> bool:
     if verdict == "random_walk":
         # A step in the level has a random walk's 1/f² spectrum: the selection's
         # level-shift test (time domain) tells them apart.
+        return True
+    if level_shift_screen(x)["significant"]:
+        # A step the one-effect diagnosis took into a Gauss–Markov process or white noise
+        # (a model-free screen; the selection's test judges it against the fitted model).
         return True
     grid = detect_quantization(x)
     if grid is None:
@@ -109,16 +121,8 @@ def _describe(sel: SensorNoiseSelection) -> str:
             f"{at}; peak {max(b['peak'] for b in bursts):.3g} g) that no Gaussian effect makes"
         )
     for shift in held.get("level_shifts", []):
-        text += (
-            f". The level steps by {shift['size']:.3g} g at {shift['time_s']:.4g} s "
-            f"(|z| = {abs(shift['z']):.1f} against the model's own wander over "
-            f"{shift['window_s']:.3g} s windows): outside the library; "
-            + (
-                "taken out before the effects above were selected"
-                if shift.get("taken_out", True)
-                else "under half the output grid's step, left in"
-            )
-        )
+        sentence = level_shift_sentence(shift)
+        text += ". " + sentence[0].upper() + sentence[1:]
     if held.get("more_level_shifts"):
         text += f". More steps than the {len(held['level_shifts'])} taken out"
     drift = held.get("drift")
