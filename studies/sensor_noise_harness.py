@@ -266,8 +266,8 @@ STOCHASTIC = ("gauss_markov", "exp_cosine", "random_walk", "flicker", "bandlimit
 
 def realized_evidence(spec: dict, dt: float, x: np.ndarray) -> dict:
     """The ideal observer's 2 ln Λ on *this* record, for each stochastic effect of the
-    truth: the exact Gaussian log-likelihood ratio of the training part's first difference
-    y under the truth against the truth without the effect, both with their true
+    truth: the exact Gaussian log-likelihood ratio of the whole record's first difference
+    y (the detector's evidence is on the whole record too) under the truth against the truth without the effect, both with their true
     parameters, yᵀ(C₀⁻¹ − C₁⁻¹)y + ln det C₀ − ln det C₁ (`solve_toeplitz`, `_durbin`).
     The expected value (`oracle_evidence`) says what a record of this truth holds on
     average; this says what the one drawn holds (an effect whose evidence lies in a few of
@@ -278,8 +278,8 @@ def realized_evidence(spec: dict, dt: float, x: np.ndarray) -> dict:
 
     if "lines" in spec or "transient" in spec:
         return {}
-    m = int(round(2 / 3 * x.size))
-    y = np.diff(x[:m])
+    m = x.size
+    y = np.diff(x)
 
     def log_det(gamma):
         return sum(math.log(d) for _, _, d in _durbin(gamma))

@@ -602,13 +602,7 @@ def select_sensor_noise(
             selection.held_out["level_shift_test"] = found
             if found is None or not found["significant"]:
                 break
-            at_burst = any(
-                b["start_s"] - found["size_window_s"]
-                <= found["time_s"]
-                <= b["end_s"] + found["size_window_s"]
-                for b in selection.held_out.get("bursts", [])
-            )
-            if at_burst:  # an impulsive event, reported as such
+            if _at_burst(found, selection):  # an impulsive event, reported as such
                 break
             if attempt == MAX_LEVEL_SHIFTS:  # one more than taken out: said, not hidden
                 selection.held_out["more_level_shifts"] = True
@@ -654,7 +648,9 @@ def select_sensor_noise(
             x = corrected
             selection, model, floor, residual = rerun
         if not shifts and "random_walk" in model.names:
-            test, swapped = _shift_in_place_of_walk(x, dt, evidence, max_lines, grid, model, floor)
+            test, swapped = _shift_in_place_of_walk(
+                x, dt, evidence, max_lines, grid, model, floor, selection
+            )
             selection.held_out["step_or_walk"] = test
             if swapped is not None:
                 shift, rerun = swapped
@@ -1007,7 +1003,19 @@ def _parameters(model: _Model) -> int:
     return k + (PARAMETER_COUNT["startup_transient"] if model.transient is not None else 0)
 
 
-def _shift_in_place_of_walk(x, dt, evidence, max_lines, grid, model: _Model, floor: float):
+def _at_burst(found: dict, selection) -> bool:
+    """Whether a level shift found lies at an impulsive event of `selection` (a shock that
+    settles at a new level is reported as the event, not as a step)."""
+    margin = found["size_window_s"]
+    return any(
+        b["start_s"] - margin <= found["time_s"] <= b["end_s"] + margin
+        for b in selection.held_out.get("bursts", [])
+    )
+
+
+def _shift_in_place_of_walk(
+    x, dt, evidence, max_lines, grid, model: _Model, floor: float, selection
+):
     """A random walk named where the record holds a step of its level instead: the two have
     the same 1/f² spectrum, and once the walk is in the model its wander covers the step,
     so the level-shift test against the final model cannot see it. Here the step is sought
@@ -1024,7 +1032,7 @@ def _shift_in_place_of_walk(x, dt, evidence, max_lines, grid, model: _Model, flo
     reduced = _evaluate(rec, floor, names, model.lines, model.transient)
     residual = rec.residual(model.lines, model.transient)
     found = _level_shift(residual, dt, reduced, floor)
-    if found is None or not found["significant"]:
+    if found is None or not found["significant"] or _at_burst(found, selection):
         return None, None
     size = found["size"]
     if grid is not None:
@@ -1048,9 +1056,11 @@ def _shift_in_place_of_walk(x, dt, evidence, max_lines, grid, model: _Model, flo
         "z_without_the_walk": found["z"],
         "evidence_over_the_walk": float(score),
         "bar": float(found["critical_z"] ** 2 + evidence),
-        "effects_without_the_step": list(rerun[0].effects),
+        "effects_with_the_step_out": list(rerun[0].effects),
     }
-    if not score >= test["bar"]:
+    # the step in the walk's place: a walk still named once the step is out is a step in
+    # a walk, which the level-shift test against the walk's model judges
+    if not score >= test["bar"] or "random_walk" in new.names:
         return test, None
     shift = {
         **{k: found[k] for k in ("time_s", "index", "z", "window_s", "size_window_s")},
