@@ -370,7 +370,11 @@ def score(rows: list, n: int) -> dict:
         ]
         # where the ideal observer, the truth's parameters known, clears the bar on the
         # record drawn (records without a line or transient: `realized_evidence`)
-        held = [r for r in with_e if r.get("realized", {}).get(e, -math.inf) >= _bar(e, n)]
+        held = [
+            r
+            for r in with_e
+            if e in STOCHASTIC and r.get("realized", {}).get(e, -math.inf) >= _bar(e, n)
+        ]
         per[e] = {
             "records": len(with_e),
             "named": len(named),
