@@ -119,3 +119,45 @@ def test_realized_evidence_is_the_exact_likelihood_ratio_and_averages_to_the_ora
     assert abs(values.mean() - expected) < 3 * values.std(ddof=1) / math.sqrt(values.size)
     # a record with a line: its phase is not the observer's, so no value
     assert harness.realized_evidence({**spec, "lines": [(1.0, 1e-3)]}, dt, x) == {}
+
+
+def test_score_counts_each_effect_by_expected_and_realized_evidence():
+    """The scoring of rows (synthetic here): named rates over all records, where the
+    expected oracle clears twice the bar, and where the realized evidence clears the bar
+    (stochastic effects only: quantisation and lines have none)."""
+    n = 10000
+    bar = 10 + math.log(n // 2)
+    rows = [
+        {
+            "truth": {"effects": ["flicker", "quantization"], "step_g": 1e-3},
+            "oracle": {"flicker": 3 * bar},
+            "realized": {"flicker": 1.5 * bar},
+            "verdict": "flicker+quantization",
+            "effects": ["flicker", "quantization"],
+            "step_relative_error": 0.01,
+            "seconds": 1.0,
+        },
+        {
+            "truth": {"effects": ["flicker"]},
+            "oracle": {"flicker": 3 * bar},
+            "realized": {"flicker": 0.5 * bar},
+            "verdict": "none",
+            "effects": [],
+            "seconds": 1.0,
+        },
+        {
+            "truth": {"effects": []},
+            "oracle": {},
+            "realized": {},
+            "verdict": "none",
+            "effects": [],
+            "seconds": 1.0,
+        },
+    ]
+    score = harness.score(rows, n)
+    flicker = score["per_effect"]["flicker"]
+    assert (flicker["named"], flicker["records"]) == (1, 2)
+    assert (flicker["named_when_detectable"], flicker["detectable"]) == (1, 2)
+    assert (flicker["named_when_realized_detectable"], flicker["realized_detectable"]) == (1, 1)
+    assert score["per_effect"]["quantization"]["realized_detectable"] == 0
+    assert score["false_alarms"] == 0 and score["steps_within_5pct"] == 1
