@@ -154,7 +154,7 @@ def _profile(ts, size, impl, repeats):
     # kernel's chunks (`lax.map` over vmapped chunks of `default_chunk_size()`, on the
     # whole chunks of the batch). Its rate bounds what any identification, however fast,
     # could reach with this simulation.
-    chunk = default_chunk_size()
+    chunk = min(default_chunk_size(), size)  # an accelerator's 4096 > the probe's size
     whole = size // chunk * chunk
 
     def noisy_sum(d, k):
