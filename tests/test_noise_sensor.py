@@ -497,3 +497,48 @@ def test_level_shift_screen_rarely_fires_on_noise_and_sees_a_step():
     found = level_shift_screen(stepped)
     assert found["significant"] and abs(found["index"] - 3000) <= 64
     assert needs_selection(stepped, "gauss_markov") and not needs_selection(gm, "gauss_markov")
+
+
+def test_a_clipped_record_sits_on_a_rail_and_is_unexplained():
+    """A range limit (outside the library) clips the record: continuous values repeat the
+    rail's value, a grid's extreme level gathers the whole tail beyond it. Records without
+    one — white, a random walk, flicker, a Gauss–Markov process, on coarse and fine grids,
+    and the real MPU-6050 record — show no rail; the clipped ones do, on the clipped side
+    alone, and the selection and the diagnosis call them unexplained with the rail said
+    (the exact one-effect diagnosis alone calls clipped white noise `none`)."""
+    from accel_jax._noise.sensor import detect_quantization, detect_saturation
+    from accel_jax.diagnose import diagnose
+
+    rng = np.random.default_rng(21)
+    n, dt, w = 4000, 0.01, 2e-3
+
+    def rails(x):
+        return [r["side"] for r in detect_saturation(x, detect_quantization(x))]
+
+    truths = [
+        {"white": w},
+        {"white": w, "random_walk": (3 * w) ** 2 / (n * dt)},
+        {"white": w, "flicker": 0.3 * w},
+        {"white": w, "gauss_markov": (2 * w, 0.5)},
+    ]
+    for i in range(40):
+        truth = dict(truths[i % 4], level=float(rng.uniform(-1, 1)))
+        if i % 3:  # a grid from 0.5 to 2 σ_w, random offset (noise_truth's ADC)
+            truth["quantization"] = w * float(rng.uniform(0.5, 2.0))
+        assert rails(noise_truth.record(rng, n, dt, truth)) == [], truth
+    counts = np.loadtxt(
+        Path(__file__).parent / "data" / "mpu6050_static_az_counts.txt.gz", comments="#"
+    )
+    assert rails(counts / 16384.0) == []
+
+    x = rng.normal(0.0, w, n)
+    clipped = np.clip(x, -1.5 * w, 1.5 * w) + 1.0
+    assert rails(clipped) == ["high", "low"]
+    grid = 0.1 * w  # an ADC 10× finer than the noise, whose range ends at +1.2 σ
+    assert rails(np.minimum(np.round(x / grid) * grid, 12 * grid) - 0.5) == ["high"]
+    assert rails(-np.minimum(x, 2.0 * w)) == ["low"]  # polarity: the rail is the minimum
+
+    selection = aj.select_sensor_noise(clipped, dt)
+    assert selection.unexplained and len(selection.held_out["saturation"]) == 2
+    found = diagnose(aj.NoiseData(np.arange(n) * dt, clipped))
+    assert found.verdict == "unexplained" and "rail at 1.003 g" in found.reason, found.summary()

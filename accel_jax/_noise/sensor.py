@@ -38,8 +38,9 @@ model leaves is **unexplained** when its held-out excess deviance stands more th
 `UNEXPLAINED_Z` standard errors (√((π²/6 − 1) J)) above zero, when impulsive events
 (`_bursts`) or a linear drift no named effect makes (`_drift`) are found, or when the
 level shifts (`_level_shift`: a step in the level, which the periodogram takes for a
-random walk, found in the time domain against the final model's own wander). A shift is
-taken out of the record and the selection run again on what is left (up to
+random walk, found in the time domain against the final model's own wander), or when the
+output sits on a rail (`detect_saturation`: a range limit that clips the record). A shift
+is taken out of the record and the selection run again on what is left (up to
 `MAX_LEVEL_SHIFTS`), so that no effect of the library takes the credit for it.
 
 Float64, host-driven (NumPy); the fits are one jitted, vmapped Whittle fit per record
@@ -107,7 +108,8 @@ class SensorNoiseSelection:
     it is one no named effect makes; `level_shifts`: the steps in the level found and taken
     out (time, size, their z, the held-out z and effects with the step still in),
     `level_shift_test`: the last test (None for records under 32 samples), and
-    `more_level_shifts` when one more stood than `MAX_LEVEL_SHIFTS`);
+    `more_level_shifts` when one more stood than `MAX_LEVEL_SHIFTS`; `saturation`: the
+    rails the record's values pile up on, `detect_saturation`);
     `quantization` the grid found (or None); `verdict` the effects joined by '+' ('none'
     when nothing is named and nothing is left, 'unexplained' alone when nothing is named
     but the misfit stays).
@@ -157,6 +159,63 @@ def detect_quantization(x: np.ndarray) -> dict | None:
     (offset, q), *_ = np.linalg.lstsq(design, u, rcond=None)
     misfit = float(np.max(np.abs(design @ np.array([offset, q]) - u)))
     return {"step": float(q), "offset": float(offset), "levels": int(u.size), "misfit": misfit}
+
+
+SATURATION_MIN = 5
+"""Samples at an extreme of the record that, piled there, make it a rail."""
+
+
+def detect_saturation(x: np.ndarray, grid: dict | None = None) -> list:
+    """Rails: an extreme of the record (its largest or its smallest value) holding a pile of
+    samples that no unimodal noise puts there: the range limit of an ADC or of the sensor's
+    electronics, outside the library (clipping flattens the record's distribution, cuts its
+    variance and biases every fitted parameter). Continuous values (`grid` None): the
+    extreme value repeated at least `SATURATION_MIN` times (continuous noise repeats no
+    value). On an output grid (`detect_quantization`, judged from 4 levels on): the extreme
+    level holds at least `SATURATION_MIN` samples and more than twice the level next inside
+    it — a unimodal noise's tail falls outward, a rail gathers the whole tail beyond it. (On
+    a coarse grid a rail close to the mean is not seen: its pile is then no larger than a
+    level's share.) Returns one entry per side found: {"side": "high" | "low", "level",
+    "count", "fraction", "inner_count" (None for continuous values)}."""
+    x = np.asarray(x, np.float64)
+    found = []
+    for side, sign in (("high", 1.0), ("low", -1.0)):
+        y = sign * x
+        top = float(np.max(y))
+        if grid is None:
+            count = int(np.sum(y == top))
+            inner = None
+        else:
+            q = grid["step"]
+            if grid["levels"] < 4 or not q > 0:
+                continue
+            count = int(np.sum(y > top - q / 2))
+            inner = int(np.sum((y > top - 1.5 * q) & (y <= top - q / 2)))
+        if count >= SATURATION_MIN and count > 2 * (inner or 0):
+            found.append(
+                {
+                    "side": side,
+                    "level": sign * top,
+                    "count": count,
+                    "fraction": count / x.size,
+                    "inner_count": inner,
+                }
+            )
+    return found
+
+
+def saturation_sentence(rail: dict, unit: str = "g") -> str:
+    """One rail of `held_out["saturation"]` in words (the CLI and the diagnosis alike)."""
+    pile = (
+        "at exactly that value"
+        if rail["inner_count"] is None
+        else f"against {rail['inner_count']} on the output level next inside it"
+    )
+    return (
+        f"the output sits on a rail at {rail['level']:.6g} {unit} ({rail['count']} samples, "
+        f"{100 * rail['fraction']:.2g} % of the record, {pile}): clipped by a range limit, "
+        "outside the library; the fitted noise is biased low"
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -596,6 +655,7 @@ def select_sensor_noise(
         dt = float(sample_interval)
         shifts = []
         grid = detect_quantization(x)
+        record_values = x  # as given: steps taken out below would move its extremes
         selection, model, floor, residual = _select(x, dt, evidence, max_lines, grid)
         for attempt in range(MAX_LEVEL_SHIFTS + 1):
             found = _level_shift(residual, dt, model, floor)
@@ -661,7 +721,9 @@ def select_sensor_noise(
                 selection.held_out["step_or_walk"] = test
                 shifts.append(shift)
         selection.held_out["level_shifts"] = shifts
-        if shifts or selection.held_out.get("more_level_shifts"):
+        rails = detect_saturation(record_values, grid)
+        selection.held_out["saturation"] = rails
+        if shifts or selection.held_out.get("more_level_shifts") or rails:
             selection = dataclasses.replace(selection, unexplained=True)
         return selection
 

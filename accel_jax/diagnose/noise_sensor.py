@@ -32,8 +32,10 @@ from .._noise.sensor import (
     DEVIANCE_VARIANCE,
     QUANTIZATION_SHARE,
     SensorNoiseSelection,
+    detect_saturation,
     level_shift_screen,
     level_shift_sentence,
+    saturation_sentence,
 )
 from .base import DiagnosisResult
 
@@ -56,6 +58,9 @@ def needs_selection(x: np.ndarray, verdict: str | None) -> bool:
         # (a model-free screen; the selection's test judges it against the fitted model).
         return True
     grid = detect_quantization(x)
+    if detect_saturation(x, grid):
+        # A clipped record: the exact diagnosis has no word for a rail; the selection does.
+        return True
     if grid is None:
         return False
     return grid["step"] ** 2 / 12 >= QUANTIZATION_SHARE * float(np.var(np.diff(x))) / 2
@@ -125,6 +130,9 @@ def _describe(sel: SensorNoiseSelection) -> str:
         text += ". " + sentence[0].upper() + sentence[1:]
     if held.get("more_level_shifts"):
         text += f". More steps than the {len(held['level_shifts'])} taken out"
+    for rail in held.get("saturation", []):
+        sentence = saturation_sentence(rail)
+        text += ". " + sentence[0].upper() + sentence[1:]
     drift = held.get("drift")
     if drift and held.get("drifting") and not bursts and held["z"] <= 4.0:
         text += (
@@ -138,7 +146,13 @@ def _describe(sel: SensorNoiseSelection) -> str:
         )
     else:
         text += f". The held-out spectrum fits the final model ({held['z']:+.1f} standard errors)"
-    if sel.unexplained and not bursts and held["z"] <= 4.0 and not held.get("level_shifts"):
+    if (
+        sel.unexplained
+        and not bursts
+        and held["z"] <= 4.0
+        and not held.get("level_shifts")
+        and not held.get("saturation")
+    ):
         text += " (unexplained)"
     return text + "."
 
@@ -148,7 +162,8 @@ def combine(result: DiagnosisResult, sel: SensorNoiseSelection) -> DiagnosisResu
     selection names an effect beyond the three or several effects."""
     result.where["sensor_effects"] = selection_summary(sel)
     beyond = [e for e in sel.effects if e not in CLASSIC]
-    if beyond or len(sel.effects) > 1 or sel.held_out.get("level_shifts"):
+    held = sel.held_out
+    if beyond or len(sel.effects) > 1 or held.get("level_shifts") or held.get("saturation"):
         previous = result.verdict
         result.verdict = sel.verdict
         result.tied = []
