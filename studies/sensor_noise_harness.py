@@ -273,7 +273,11 @@ def realized_evidence(spec: dict, dt: float, x: np.ndarray) -> dict:
     average; this says what the one drawn holds (an effect whose evidence lies in a few of
     the lowest bins, flicker above all, scatters widely about its mean). Only for records
     whose other effects are stochastic too (no line or transient: their phase and start
-    are not the observer's); the output grid is taken as white q²/12. NumPy/SciPy only."""
+    are not the observer's); the output grid is taken as white q²/12. NumPy/SciPy only.
+    None where a covariance of the whole record's length is not positive definite in
+    float64 (a Durbin–Levinson variance D_k ≤ 0: a low-pass far below Nyquist leaves the
+    differenced spectrum near zero over most of the band): the observer is then not
+    computed, and the record is left out of the realized count (not counted undetectable)."""
     from scipy.linalg import solve_toeplitz
 
     if "lines" in spec or "transient" in spec:
@@ -282,16 +286,33 @@ def realized_evidence(spec: dict, dt: float, x: np.ndarray) -> dict:
     y = np.diff(x)
 
     def log_det(gamma):
-        return sum(math.log(d) for _, _, d in _durbin(gamma))
+        variances = [d for _, _, d in _durbin(gamma)]
+        if not min(variances) > 0:
+            return None
+        return sum(math.log(d) for d in variances)
 
     gamma = _differenced_autocovariance(spec, dt, m - 1)
-    full = float(y @ solve_toeplitz(gamma, y)) + log_det(gamma)
+    full_det = log_det(gamma)
+    if full_det is None:
+        return None
+    full = float(y @ solve_toeplitz(gamma, y)) + full_det
     out = {}
     for name in STOCHASTIC:
         if name in spec:
             without = _differenced_autocovariance(spec, dt, m - 1, without=name)
-            out[name] = float(y @ solve_toeplitz(without, y)) + log_det(without) - full
+            det = log_det(without)
+            if det is None:
+                return None
+            out[name] = float(y @ solve_toeplitz(without, y)) + det - full
     return out
+
+
+def realized_evidence_unavailable(spec: dict, realized: dict) -> bool:
+    """Whether the record's stochastic effects went without the realized observer (its
+    covariance not positive definite in float64: `realized_evidence` returned None)."""
+    if "lines" in spec or "transient" in spec:
+        return False
+    return any(name in spec for name in STOCHASTIC) and not realized
 
 
 def detectable(effect: str, oracle: dict, n: int) -> bool:
@@ -327,7 +348,7 @@ def run_one(job, n: int) -> dict:
     out = {
         "truth": truth["facts"],
         "oracle": oracle_evidence(truth["spec"], truth["dt"], n),
-        "realized": realized_evidence(truth["spec"], truth["dt"], x),
+        "realized": realized_evidence(truth["spec"], truth["dt"], x) or {},
         "verdict": found.verdict,
         "effects": list(found.effects),
         "unexplained": found.unexplained,
@@ -336,6 +357,8 @@ def run_one(job, n: int) -> dict:
         "level_shifts": len(found.held_out.get("level_shifts", [])),
         "seconds": time.perf_counter() - started,
     }
+    if realized_evidence_unavailable(truth["spec"], out["realized"]):
+        out["realized_unavailable"] = True
     if "line_Hz" in truth["facts"] and "sinusoid" in found.parameters:
         lines = [line["frequency_Hz"] for line in found.parameters["sinusoid"]]
         nearest = min(lines, key=lambda f: abs(f - truth["facts"]["line_Hz"]))
@@ -413,6 +436,7 @@ def score(rows: list, n: int) -> dict:
         "unexplained_records": sum(bool(r.get("unexplained")) for r in rows),
         "records_with_a_false_level_shift": sum(r.get("level_shifts", 0) > 0 for r in rows),
         "errors": [r["error"] for r in rows if "error" in r],
+        "realized_unavailable_records": sum(bool(r.get("realized_unavailable")) for r in rows),
         "median_seconds": float(np.median([r["seconds"] for r in rows if "seconds" in r])),
     }
 
@@ -425,6 +449,12 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the rows already in OUT/rows.jsonl (a run cut short, same arguments) and "
+        "run the plan's records after them",
+    )
+    parser.add_argument(
         "--shuffle",
         action="store_true",
         help="run the records in a random order (the same records): a run stopped early "
@@ -436,10 +466,20 @@ def main(argv=None) -> int:
         jobs = [jobs[i] for i in np.random.default_rng(args.seed + 1).permutation(len(jobs))]
     started = time.perf_counter()
     stream = None
+    rows = []
+    if args.resume:
+        if args.out is None or not (args.out / "rows.jsonl").is_file():
+            parser.error("--resume needs --out DIR holding the rows.jsonl of the run cut short")
+        with open(args.out / "rows.jsonl") as done:
+            rows = [json.loads(line) for line in done if line.strip()]
+        if len(rows) > len(jobs):
+            parser.error(f"{len(rows)} rows in OUT/rows.jsonl, more than the plan's {len(jobs)}")
+        print(f"resuming after {len(rows)} records", flush=True)
+    resumed = len(rows)
+    todo = jobs[resumed:]  # the pool keeps the plan's order, so the rows are its head
     if args.out is not None:  # each row as it comes (a run cut short keeps what it did)
         args.out.mkdir(parents=True, exist_ok=True)
-        stream = open(args.out / "rows.jsonl", "w")  # noqa: SIM115
-    rows = []
+        stream = open(args.out / "rows.jsonl", "a" if args.resume else "w")  # noqa: SIM115
 
     def keep(row):
         rows.append(row)
@@ -456,10 +496,10 @@ def main(argv=None) -> int:
         import multiprocessing as mp
 
         with mp.get_context("spawn").Pool(args.jobs) as pool:
-            for row in pool.imap(_worker, [(j, args.samples) for j in jobs], chunksize=2):
+            for row in pool.imap(_worker, [(j, args.samples) for j in todo], chunksize=2):
                 keep(row)
     else:
-        for j in jobs:
+        for j in todo:
             keep(_worker((j, args.samples)))
     if stream is not None:
         stream.close()
@@ -481,6 +521,7 @@ def main(argv=None) -> int:
             ),
             "seed": args.seed,
         },
+        "resumed_after": resumed,
         "records": len(rows),
         "score": score(rows, args.samples),
         "wall_s": time.perf_counter() - started,

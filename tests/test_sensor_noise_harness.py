@@ -161,3 +161,24 @@ def test_score_counts_each_effect_by_expected_and_realized_evidence():
     assert (flicker["named_when_realized_detectable"], flicker["realized_detectable"]) == (1, 1)
     assert score["per_effect"]["quantization"]["realized_detectable"] == 0
     assert score["false_alarms"] == 0 and score["steps_within_5pct"] == 1
+
+
+def test_realized_evidence_where_the_covariance_is_not_positive_definite():
+    """A low-pass far below Nyquist leaves the differenced spectrum near zero over most of
+    the band: the whole record's Toeplitz covariance is then not positive definite in
+    float64 (a Durbin–Levinson variance ≤ 0), and the observer is not computed (None, the
+    row marked) instead of raising — a harness run of 624 records once died there at the
+    567th (harness seed 2026: bandlimit + exp-cosine)."""
+    spec = {
+        "white": 0.0013159045828774348,
+        "bandlimit": 14.288698028117059,
+        "exp_cosine": (0.00242826206239547, 6.537273760195531, 45.63364465629214),
+    }
+    rng = np.random.default_rng(0)
+    x = harness.noise_truth.record(rng, 10000, 0.01, spec)
+    assert harness.realized_evidence(spec, 0.01, x) is None
+    assert harness.realized_evidence_unavailable(spec, {})
+    assert not harness.realized_evidence_unavailable({**spec, "lines": [(1.0, 1e-3)]}, {})
+    row = {"truth": {"effects": ["bandlimit"]}, "oracle": {}, "realized": {}, "verdict": "none"}
+    row.update(effects=[], seconds=1.0, realized_unavailable=True)
+    assert harness.score([row], 10000)["realized_unavailable_records"] == 1
