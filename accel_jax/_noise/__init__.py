@@ -87,6 +87,7 @@ from .selection import initial_model as initial_model
 from .selection import select_noise_model as select_noise_model
 from .sensor import SensorNoiseSelection as SensorNoiseSelection
 from .sensor import detect_quantization as detect_quantization
+from .sensor import detect_saturation as detect_saturation
 from .sensor import select_sensor_noise as select_sensor_noise
 from .whiteness import ljung_box as ljung_box
 
