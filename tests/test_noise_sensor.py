@@ -542,3 +542,9 @@ def test_a_clipped_record_sits_on_a_rail_and_is_unexplained():
     assert selection.unexplained and len(selection.held_out["saturation"]) == 2
     found = diagnose(aj.NoiseData(np.arange(n) * dt, clipped))
     assert found.verdict == "unexplained" and "rail at 1.003 g" in found.reason, found.summary()
+
+
+@pytest.mark.parametrize("bad", [[], [1.0, float("nan"), 2.0], [[1.0, 2.0], [3.0, 4.0]]])
+def test_detect_saturation_refuses_bad_input(bad):
+    with pytest.raises(ValueError, match="detect_saturation: the record must be"):
+        aj.detect_saturation(np.asarray(bad, dtype=float))

@@ -178,6 +178,10 @@ def detect_saturation(x: np.ndarray, grid: dict | None = None) -> list:
     level's share.) Returns one entry per side found: {"side": "high" | "low", "level",
     "count", "fraction", "inner_count" (None for continuous values)}."""
     x = np.asarray(x, np.float64)
+    if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
+        raise ValueError(
+            "detect_saturation: the record must be a non-empty 1-D array of finite values"
+        )
     found = []
     for side, sign in (("high", 1.0), ("low", -1.0)):
         y = sign * x
