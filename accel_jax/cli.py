@@ -845,7 +845,12 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
     from ._data import DataError, read_csv
     from ._io import write_json_atomic
     from ._noise import analysis, export
-    from ._noise.sensor import UNEXPLAINED_Z, level_shift_sentence, saturation_sentence
+    from ._noise.sensor import (
+        UNEXPLAINED_Z,
+        level_shift_sentence,
+        non_gaussian_sentence,
+        saturation_sentence,
+    )
 
     try:
         data = read_csv(file, kind="noise")
@@ -905,6 +910,8 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         say("  unexplained: more steps in the level than were taken out")
     for rail in held.get("saturation", []):
         say(f"  unexplained: {saturation_sentence(rail)}")
+    if held.get("non_gaussian", {}).get("significant") and not held.get("bursts"):
+        say(f"  unexplained: {non_gaussian_sentence(held['non_gaussian'])}")
     for burst in held.get("bursts", [])[:5]:
         say(
             f"  unexplained: an impulsive event at {burst['start_s']:.4g} s (peak "

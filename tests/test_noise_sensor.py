@@ -548,3 +548,61 @@ def test_a_clipped_record_sits_on_a_rail_and_is_unexplained():
 def test_detect_saturation_refuses_bad_input(bad):
     with pytest.raises(ValueError, match="detect_saturation: the record must be"):
         aj.detect_saturation(np.asarray(bad, dtype=float))
+
+
+def _telegraph(rng, n, dwell, peak_to_peak):
+    """A random telegraph (popcorn) noise made here with NumPy: two levels, exponential
+    dwell times of mean `dwell` samples; its spectrum is a Gauss–Markov process's."""
+    return peak_to_peak * (np.cumsum(rng.random(n) < 1 / dwell) % 2)
+
+
+def test_non_gaussian_residual_is_calibrated_and_sees_two_levels_and_heavy_tails():
+    from accel_jax._noise.sensor import NON_GAUSSIAN_Z, _non_gaussian
+
+    rng = np.random.default_rng(21)
+    n, dt = 10_000, 0.01
+    # Gaussian records, the correlated ones included, are never called non-Gaussian: a
+    # slow Gauss–Markov or a walk has few independent values, and the standard errors
+    # come from the record's own autocorrelation.
+    gaussian = {
+        "white": rng.normal(size=n),
+        "slow GM": noise_truth.gauss_markov(rng, n, dt, 2.0, 10.0) + rng.normal(size=n),
+        "walk": np.cumsum(rng.normal(size=n)) * 0.1 + rng.normal(size=n),
+        "fine grid": np.round(rng.normal(size=n) / 0.3) * 0.3,
+    }
+    for name, x in gaussian.items():
+        found = _non_gaussian(x, 0.3**2 / 12 if name == "fine grid" else 0.0)
+        assert found["tested"] and not found["significant"], (name, found)
+        assert abs(found["excess_kurtosis_z"]) < NON_GAUSSIAN_Z, name
+    # Two levels 3 σ apart: excess kurtosis −2 (1.5²)²/(1 + 1.5²)² ≈ −0.96 in theory.
+    two_levels = _non_gaussian(rng.normal(size=n) + _telegraph(rng, n, 20, 3.0), 0.0)
+    assert two_levels["significant"] and -1.2 < two_levels["excess_kurtosis"] < -0.7
+    heavy = _non_gaussian(rng.standard_t(5, n), 0.0)  # excess kurtosis 6 in theory
+    assert heavy["significant"] and heavy["excess_kurtosis"] > 1.0
+    skewed = _non_gaussian(rng.gamma(4.0, size=n), 0.0)  # skewness 1 in theory
+    assert skewed["significant"] and 0.8 < skewed["skewness"] < 1.2
+    # A coarse grid's values are a discrete distribution: not tested (said so).
+    assert not _non_gaussian(np.round(rng.normal(size=n) / 2) * 2, 1 / 3)["tested"]
+
+
+def test_a_fast_telegraph_noise_is_gauss_markov_and_unexplained():
+    """Its Lorentzian spectrum is a Gauss–Markov process's, which the selection rightly
+    names; its two levels are outside the library: unexplained, not a clean verdict, and
+    the diagnosis runs the selection to say so."""
+    from accel_jax.diagnose.noise_sensor import _describe, needs_selection
+
+    rng = np.random.default_rng(5)
+    n, dt, w = 10_000, 0.01, 2e-3
+    x = w * rng.normal(size=n) + _telegraph(rng, n, 20, 3 * w) + 0.3
+    selection = aj.select_sensor_noise(x, dt)
+    assert selection.verdict == "gauss_markov+unexplained"
+    gm = selection.parameters["gauss_markov"]
+    # A telegraph of levels 0 and a, switching with probability p per sample: σ = a/2,
+    # correlation e^{−2p k} (τ = Δt / 2p = 0.1 s).
+    assert gm["sigma"] == pytest.approx(1.5 * w, rel=0.15)
+    assert gm["correlation_time_s"] == pytest.approx(0.1, rel=0.25)
+    assert "random telegraph" in _describe(selection)
+    assert needs_selection(x, "gauss_markov")
+    # A Gauss–Markov record of the same spectrum is Gaussian: nothing to add.
+    g = noise_truth.gauss_markov(rng, n, dt, 1.5 * w, 0.1) + w * rng.normal(size=n)
+    assert not needs_selection(g, "gauss_markov")

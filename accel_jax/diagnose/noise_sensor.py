@@ -9,7 +9,9 @@ added while significant) runs as well when that verdict is `unexplained`, `canno
 `random_walk` (a step in the level has a walk's spectrum; the selection's level-shift test
 tells them apart), when a model-free screen sees a step in the level
 (`level_shift_screen`: one the exact verdict took into a Gauss–Markov process or white
-noise), or when the record lies on an output grid coarse enough to name; beyond
+noise), when the record's values are far from Gaussian (`_non_gaussian`: a random
+telegraph noise has a Gauss–Markov spectrum), or when the record lies on an output grid
+coarse enough to name; beyond
 `EXACT_LIMIT` samples it alone decides (the exact filter of 10⁶ samples × candidates takes
 minutes, the Whittle selection seconds).
 
@@ -34,7 +36,9 @@ from .._noise.sensor import (
     SensorNoiseSelection,
     detect_saturation,
     level_shift_screen,
+    _non_gaussian,
     level_shift_sentence,
+    non_gaussian_sentence,
     saturation_sentence,
 )
 from .base import DiagnosisResult
@@ -61,9 +65,13 @@ def needs_selection(x: np.ndarray, verdict: str | None) -> bool:
     if detect_saturation(x, grid):
         # A clipped record: the exact diagnosis has no word for a rail; the selection does.
         return True
-    if grid is None:
-        return False
-    return grid["step"] ** 2 / 12 >= QUANTIZATION_SHARE * float(np.var(np.diff(x))) / 2
+    white = float(np.var(np.diff(x))) / 2
+    share = 0.0 if grid is None else grid["step"] ** 2 / 12 / white if white > 0 else math.inf
+    if _non_gaussian(np.asarray(x, float), share)["significant"]:
+        # Values not Gaussian (two levels, heavy tails): the exact diagnosis, Gaussian by
+        # construction, names their spectrum; the selection's residual test says so.
+        return True
+    return share >= QUANTIZATION_SHARE
 
 
 def allan_summary(x: np.ndarray, dt: float) -> dict:
@@ -133,6 +141,10 @@ def _describe(sel: SensorNoiseSelection) -> str:
     for rail in held.get("saturation", []):
         sentence = saturation_sentence(rail)
         text += ". " + sentence[0].upper() + sentence[1:]
+    gaussian = held.get("non_gaussian", {})
+    if gaussian.get("significant") and not bursts:
+        sentence = non_gaussian_sentence(gaussian)
+        text += ". " + sentence[0].upper() + sentence[1:]
     drift = held.get("drift")
     if drift and held.get("drifting") and not bursts and held["z"] <= 4.0:
         text += (
@@ -152,6 +164,7 @@ def _describe(sel: SensorNoiseSelection) -> str:
         and held["z"] <= 4.0
         and not held.get("level_shifts")
         and not held.get("saturation")
+        and not gaussian.get("significant")
     ):
         text += " (unexplained)"
     return text + "."
@@ -163,7 +176,13 @@ def combine(result: DiagnosisResult, sel: SensorNoiseSelection) -> DiagnosisResu
     result.where["sensor_effects"] = selection_summary(sel)
     beyond = [e for e in sel.effects if e not in CLASSIC]
     held = sel.held_out
-    if beyond or len(sel.effects) > 1 or held.get("level_shifts") or held.get("saturation"):
+    if (
+        beyond
+        or len(sel.effects) > 1
+        or held.get("level_shifts")
+        or held.get("saturation")
+        or held.get("non_gaussian", {}).get("significant")
+    ):
         previous = result.verdict
         result.verdict = sel.verdict
         result.tied = []
