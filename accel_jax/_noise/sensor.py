@@ -27,12 +27,14 @@ instead its exact time-domain likelihood ratio against the current noise model
 almost no weight), and it has no held-out check (it lies in the training part). A
 transient that clears the bar is added before any noise component, whatever their
 evidence: its decay's power lies in the lowest bins, which a random walk or flicker
-fitted first takes for its own.
+fitted first takes for its own (should the backward check remove it, the selection runs
+again in the order of the evidence alone).
 **Backward check** (`_backward`): once nothing more is added, each effect is judged again
 (by the same evidence) against the final model without it and the weakest below
 `EVIDENCE` is removed, until every one stands (an effect added early can lose its evidence
-once a later one is in). **Exchange** (`_exchanges`): each named Gauss–Markov, random walk
-or flicker is tried against the others in its place; one better by `EVIDENCE` replaces it,
+once a later one is in). **Exchange** (`_exchanges`): each named Gauss–Markov, random walk,
+flicker or exponential-cosine process is tried against the first three in its place; one
+better by `EVIDENCE` replaces it,
 one within `EVIDENCE` either way is reported as a tie (the record cannot tell them apart).
 **Explained fraction** after each step: the share of the
 nominal model's excess Whittle deviance on the held-out part, Σ (r − ln r − 1) − γJ with
@@ -612,9 +614,16 @@ LOW_FREQUENCY = ("gauss_markov", "random_walk", "flicker")
 """The effects that put their power at the lowest frequencies: on a record a few of their
 time scales long, one can stand in for another."""
 
+EXCHANGED = (*LOW_FREQUENCY, "exp_cosine")
+"""The named effects the exchange tries the `LOW_FREQUENCY` ones in place of: an
+exponential-cosine process too can stand in for a low-frequency one (its oscillation
+frequency fitted near 0 it is a Gauss–Markov process; harness record 166663425, flicker
+with a line, took it first, before the line was in and while the line's power favoured a
+peaked spectrum, and kept it)."""
+
 
 def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
-    """Each named effect of `LOW_FREQUENCY` against each unnamed one in its place (the rest
+    """Each named effect of `EXCHANGED` against each unnamed `LOW_FREQUENCY` one in its place (the rest
     of the model kept, the substitute's fit started from the model's optimum): 2 ln B of
     the named effect over the substitute, 2 Δ ln L − (k − k') ln J on the whole record as
     in the forward selection. A substitute that beats the named effect by `evidence` or
@@ -626,11 +635,11 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     Returns (model, exchanged: [{"effect", "by", "evidence"}], ties: [{"effect",
     "alternative", "evidence"}])."""
     exchanged = []
-    for _ in range(len(LOW_FREQUENCY) + 1):
+    for _ in range(len(EXCHANGED) + 1):
         ties, best = [], None
         pairs, specs = [], []
         for name in model.names:
-            if name not in LOW_FREQUENCY:
+            if name not in EXCHANGED:
                 continue
             rest = tuple(n for n in model.names if n != name)
             for other in LOW_FREQUENCY:
@@ -757,10 +766,24 @@ def select_sensor_noise(
         return selection
 
 
-def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int, grid: dict | None):
+def _select(
+    x: np.ndarray,
+    dt: float,
+    evidence: float,
+    max_lines: int,
+    grid: dict | None,
+    transient_first: bool = True,
+):
     """The forward selection on x, whose output grid is `grid` (`detect_quantization`;
     a step taken out is a whole number of its steps); returns (selection, final model,
-    floor, residual)."""
+    floor, residual).
+
+    With `transient_first`, a start-up transient that clears the bar is added before a
+    noise component that scores higher; should the backward check then remove it (the
+    start of a random walk looks like a decay against white noise alone, and the noise
+    fitted after a false transient is not the one fitted first: harness record
+    128256395, a walk, was named Gauss–Markov), the selection is run again in the
+    order of the evidence alone."""
     rec = _Record(x, dt)
     if not rec.variance > (1e-10 * float(np.max(np.abs(x)))) ** 2:
         raise ValueError(
@@ -782,6 +805,7 @@ def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int, grid: dic
     ]
     train_gram, held_gram = rec.grams((), None)
     log_j = math.log(train_gram.n_bins + held_gram.n_bins)
+    promoted = False  # a transient added before a noise component that scored higher
     for _ in range(MAX_STEPS):
         labels, specs = [], []
         for name in spectral.COMPONENTS:
@@ -823,7 +847,9 @@ def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int, grid: dic
         # record 1079240685: flicker 0.38 mg + an 11 mg, τ 4.5 s warm-up was named a
         # random walk alone). The backward check removes it again should the noise
         # added after it explain it.
-        scored.sort(key=lambda s: not (s[1] == "startup_transient" and s[0] >= evidence))
+        top = scored[0][1] if scored else None
+        if transient_first:
+            scored.sort(key=lambda s: not (s[1] == "startup_transient" and s[0] >= evidence))
         accepted = None
         for score, name, m in scored:
             if score < evidence:
@@ -838,6 +864,7 @@ def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int, grid: dic
         if accepted is None:
             break
         score, name, new = accepted
+        promoted = promoted or (name == "startup_transient" and top != name)
         dev = _held_out_deviance(rec, floor, new)
         fraction = _explained(dev, nominal_dev)
         steps.append(
@@ -855,6 +882,8 @@ def _select(x: np.ndarray, dt: float, evidence: float, max_lines: int, grid: dic
         )
         model = new
     model, removed = _backward(rec, floor, model, log_j, evidence)
+    if promoted and model.transient is None:
+        return _select(x, dt, evidence, max_lines, grid, transient_first=False)
     kept_before = set(_named(model))
     model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
     if exchanged:  # the substitute may leave another effect without evidence
