@@ -606,3 +606,31 @@ def test_a_fast_telegraph_noise_is_gauss_markov_and_unexplained():
     # A Gauss–Markov record of the same spectrum is Gaussian: nothing to add.
     g = noise_truth.gauss_markov(rng, n, dt, 1.5 * w, 0.1) + w * rng.normal(size=n)
     assert not needs_selection(g, "gauss_markov")
+
+
+@pytest.mark.parametrize(
+    "seed, truth, before",
+    [
+        # flicker B 0.38 mg + an 11 mg warm-up (τ 4.5 s): the walk fitted first took the
+        # warm-up's low-frequency power; the transient is now put first
+        (1079240685, {"flicker", "startup_transient"}, "random_walk"),
+        # a random walk whose start a transient put first mistook for a decay: the
+        # backward check removed it, and the selection runs again in evidence order
+        (128256395, {"random_walk"}, "gauss_markov+unexplained (a transient-first try)"),
+        # flicker and a 1.36 Hz line: exp-cosine went in before the line and stayed; it
+        # is now exchanged for the better flicker
+        (166663425, {"flicker", "sinusoid"}, "exp_cosine+sinusoid"),
+    ],
+)
+def test_harness_records_once_misnamed(seed, truth, before):
+    """Three records of the blind harness (studies/sensor_noise_harness.py, seed 2026)
+    whose verdict `before` missed an effect: each effect is now named and nothing else."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+    import sensor_noise_harness as harness
+
+    effects = next(e for e, s in harness.plan(50, 2026) if s == seed)
+    rng = np.random.default_rng(seed)
+    drawn = harness.draw(rng, effects, 10_000)
+    x = noise_truth.record(rng, 10_000, drawn["dt"], drawn["spec"])
+    selection = aj.select_sensor_noise(x, drawn["dt"])
+    assert set(selection.effects) == truth, (selection.verdict, before)
