@@ -110,8 +110,9 @@ class SensorNoiseSelection:
     steps then name the substitute, with `replaced` the effect whose evidence they show;
     `ties`: each named low-frequency effect another fits as well, within the bar;
     `bursts`: impulsive events; `non_gaussian`: the residual's skewness and excess
-    kurtosis and their z (`_non_gaussian`; `significant` makes the record unexplained); `drift`, `drifting`: the level's linear drift and whether
-    it is one no named effect makes; `level_shifts`: the steps in the level found and taken
+    kurtosis and their z (`_non_gaussian`; `significant` makes the record unexplained);
+    `drift`, `drifting`: the level's linear drift and whether it is one no named effect
+    makes; `level_shifts`: the steps in the level found and taken
     out (time, size, their z, the held-out z and effects with the step still in),
     `level_shift_test`: the last test (None for records under 32 samples), and
     `more_level_shifts` when one more stood than `MAX_LEVEL_SHIFTS`; `saturation`: the
@@ -226,7 +227,6 @@ def saturation_sentence(rail: dict, unit: str = "g") -> str:
         f"{100 * rail['fraction']:.2g} % of the record, {pile}): clipped by a range limit, "
         "outside the library; the fitted noise is biased low"
     )
-
 
 
 def non_gaussian_sentence(found: dict) -> str:
@@ -623,9 +623,9 @@ peaked spectrum, and kept it)."""
 
 
 def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
-    """Each named effect of `EXCHANGED` against each unnamed `LOW_FREQUENCY` one in its place (the rest
-    of the model kept, the substitute's fit started from the model's optimum): 2 ln B of
-    the named effect over the substitute, 2 Δ ln L − (k − k') ln J on the whole record as
+    """Each named effect of `EXCHANGED` against each unnamed `LOW_FREQUENCY` one in its
+    place (the rest of the model kept, the substitute's fit started from the model's
+    optimum): 2 ln B of the named effect over the substitute, 2 Δ ln L − (k − k') ln J on the whole record as
     in the forward selection. A substitute that beats the named effect by `evidence` or
     more replaces it (the forward path added the first that stood, not the best: a random
     walk with a start-up transient can look like flicker until the transient is in), and
@@ -923,8 +923,8 @@ def _select(
     effects = _named(model)
     params = _physical(model, dt, floor)
     quantization = None
+    share = grid["step"] ** 2 / 12 / rec.variance if grid is not None else 0.0
     if grid is not None:
-        share = grid["step"] ** 2 / 12 / rec.variance
         quantization = {**grid, "noise_share_of_white": float(share)}
         if share >= QUANTIZATION_SHARE:
             effects.append("quantization")
@@ -932,7 +932,6 @@ def _select(
     residual = rec.residual(model.lines, model.transient)
     bursts = _bursts(residual, dt)
     final["bursts"] = bursts
-    share = grid["step"] ** 2 / 12 / rec.variance if grid is not None else 0.0
     gaussian = _non_gaussian(residual, share)
     final["non_gaussian"] = gaussian
     # The first difference makes a linear drift a constant, which the periodogram never
@@ -987,7 +986,6 @@ def _bursts(r: np.ndarray, dt: float) -> list:
             }
         )
     return out
-
 
 
 NON_GAUSSIAN_Z = 6.0

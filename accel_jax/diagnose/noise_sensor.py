@@ -99,6 +99,11 @@ def selection_summary(sel: SensorNoiseSelection) -> dict:
     }
 
 
+def _capitalised(sentence: str) -> str:
+    """A sentence of `sensor`'s (lower case, for the CLI's lists) as the next sentence here."""
+    return ". " + sentence[0].upper() + sentence[1:]
+
+
 def _describe(sel: SensorNoiseSelection) -> str:
     parts = []
     for step in sel.steps[1:]:
@@ -134,17 +139,14 @@ def _describe(sel: SensorNoiseSelection) -> str:
             f"{at}; peak {max(b['peak'] for b in bursts):.3g} g) that no Gaussian effect makes"
         )
     for shift in held.get("level_shifts", []):
-        sentence = level_shift_sentence(shift)
-        text += ". " + sentence[0].upper() + sentence[1:]
+        text += _capitalised(level_shift_sentence(shift))
     if held.get("more_level_shifts"):
         text += f". More steps than the {len(held['level_shifts'])} taken out"
     for rail in held.get("saturation", []):
-        sentence = saturation_sentence(rail)
-        text += ". " + sentence[0].upper() + sentence[1:]
+        text += _capitalised(saturation_sentence(rail))
     gaussian = held.get("non_gaussian", {})
     if gaussian.get("significant") and not bursts:
-        sentence = non_gaussian_sentence(gaussian)
-        text += ". " + sentence[0].upper() + sentence[1:]
+        text += _capitalised(non_gaussian_sentence(gaussian))
     drift = held.get("drift")
     if drift and held.get("drifting") and not bursts and held["z"] <= 4.0:
         text += (
