@@ -132,6 +132,7 @@ from ._noise import autocorrelation as autocorrelation
 from ._noise import density_to_discrete as density_to_discrete
 from ._noise import density_to_one_sided_asd as density_to_one_sided_asd
 from ._noise import density_to_vrw as density_to_vrw
+from ._noise import detect_non_gaussian as detect_non_gaussian
 from ._noise import detect_quantization as detect_quantization
 from ._noise import detect_saturation as detect_saturation
 from ._noise import discrete_to_density as discrete_to_density

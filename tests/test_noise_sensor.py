@@ -585,6 +585,24 @@ def test_non_gaussian_residual_is_calibrated_and_sees_two_levels_and_heavy_tails
     assert not _non_gaussian(np.round(rng.normal(size=n) / 2) * 2, 1 / 3)["tested"]
 
 
+
+def test_detect_non_gaussian_on_a_raw_record_takes_the_grid_from_detect_quantization():
+    """The public test on a record: the grid's share decides whether it runs, as inside
+    the selection; a two-level record is found, a Gaussian one on a fine grid is not."""
+    rng = np.random.default_rng(8)
+    n = 10_000
+    fine = np.round(rng.normal(size=n) / 0.3) * 0.3
+    found = aj.detect_non_gaussian(fine, aj.detect_quantization(fine))
+    assert found["tested"] and not found["significant"], found
+    coarse = np.round(rng.normal(size=n) / 2) * 2  # q²/12 a third of the variance
+    assert not aj.detect_non_gaussian(coarse, aj.detect_quantization(coarse))["tested"]
+    # Without the grid the same coarse record is tested, and its discreteness shows.
+    assert aj.detect_non_gaussian(coarse)["tested"]
+    two_levels = aj.detect_non_gaussian(rng.normal(size=n) + _telegraph(rng, n, 20, 3.0))
+    assert two_levels["significant"] and two_levels["excess_kurtosis"] < -0.7
+    with pytest.raises(ValueError, match="detect_non_gaussian: the record must be"):
+        aj.detect_non_gaussian(np.array([1.0, np.inf, 2.0]))
+
 def test_a_fast_telegraph_noise_is_gauss_markov_and_unexplained():
     """Its Lorentzian spectrum is a Gauss–Markov process's, which the selection rightly
     names; its two levels are outside the library: unexplained, not a clean verdict, and

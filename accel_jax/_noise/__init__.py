@@ -86,6 +86,7 @@ from .selection import StructureSelection as StructureSelection
 from .selection import initial_model as initial_model
 from .selection import select_noise_model as select_noise_model
 from .sensor import SensorNoiseSelection as SensorNoiseSelection
+from .sensor import detect_non_gaussian as detect_non_gaussian
 from .sensor import detect_quantization as detect_quantization
 from .sensor import detect_saturation as detect_saturation
 from .sensor import select_sensor_noise as select_sensor_noise

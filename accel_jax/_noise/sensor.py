@@ -1038,6 +1038,32 @@ def _non_gaussian(r: np.ndarray, grid_share: float) -> dict:
     }
 
 
+
+def detect_non_gaussian(x: np.ndarray, grid: dict | None = None) -> dict:
+    """Whether a record's values are far from Gaussian (`_non_gaussian` on x itself): a
+    random telegraph noise's two levels, heavy tails. `grid` is the record's output grid
+    (`detect_quantization`), whose noise share of the short-term variance (half the variance
+    of the first difference) decides whether the test is run at all. Returns {"tested",
+    "significant"} and, when tested, "skewness", "skewness_z", "excess_kurtosis",
+    "excess_kurtosis_z". The selection tests its residual in the same way
+    (`held_out["non_gaussian"]`); this tests the raw record, so a line, a transient or a step
+    in it counts against Gaussianity."""
+    x = np.asarray(x, np.float64)
+    if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
+        raise ValueError(
+            "detect_non_gaussian: the record must be a non-empty 1-D array of finite values"
+        )
+    return _non_gaussian(x, grid_noise_share(x, grid))
+
+
+def grid_noise_share(x: np.ndarray, grid: dict | None) -> float:
+    """The output grid's noise q²/12 as a share of the record's short-term variance (half
+    the variance of its first difference); 0 without a grid, inf on a constant record."""
+    if grid is None:
+        return 0.0
+    white = float(np.var(np.diff(x))) / 2 if np.size(x) > 1 else 0.0
+    return grid["step"] ** 2 / 12 / white if white > 0 else math.inf
+
 LEVEL_SHIFT_ALPHA = 1e-3
 """Family-wise false-alarm rate of the level-shift test (`_level_shift`)."""
 MAX_LEVEL_SHIFTS = 3

@@ -9,7 +9,7 @@ added while significant) runs as well when that verdict is `unexplained`, `canno
 `random_walk` (a step in the level has a walk's spectrum; the selection's level-shift test
 tells them apart), when a model-free screen sees a step in the level
 (`level_shift_screen`: one the exact verdict took into a Gauss–Markov process or white
-noise), when the record's values are far from Gaussian (`_non_gaussian`: a random
+noise), when the record's values are far from Gaussian (`detect_non_gaussian`: a random
 telegraph noise has a Gauss–Markov spectrum), or when the record lies on an output grid
 coarse enough to name; beyond
 `EXACT_LIMIT` samples it alone decides (the exact filter of 10⁶ samples × candidates takes
@@ -34,9 +34,10 @@ from .._noise.sensor import (
     DEVIANCE_VARIANCE,
     QUANTIZATION_SHARE,
     SensorNoiseSelection,
+    detect_non_gaussian,
     detect_saturation,
+    grid_noise_share,
     level_shift_screen,
-    _non_gaussian,
     level_shift_sentence,
     non_gaussian_sentence,
     saturation_sentence,
@@ -65,13 +66,11 @@ def needs_selection(x: np.ndarray, verdict: str | None) -> bool:
     if detect_saturation(x, grid):
         # A clipped record: the exact diagnosis has no word for a rail; the selection does.
         return True
-    white = float(np.var(np.diff(x))) / 2
-    share = 0.0 if grid is None else grid["step"] ** 2 / 12 / white if white > 0 else math.inf
-    if _non_gaussian(np.asarray(x, float), share)["significant"]:
+    if detect_non_gaussian(x, grid)["significant"]:
         # Values not Gaussian (two levels, heavy tails): the exact diagnosis, Gaussian by
         # construction, names their spectrum; the selection's residual test says so.
         return True
-    return share >= QUANTIZATION_SHARE
+    return grid_noise_share(x, grid) >= QUANTIZATION_SHARE
 
 
 def allan_summary(x: np.ndarray, dt: float) -> dict:
