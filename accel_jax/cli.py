@@ -849,6 +849,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         UNEXPLAINED_Z,
         level_shift_sentence,
         non_gaussian_sentence,
+        spectral_change_sentence,
         saturation_sentence,
     )
 
@@ -912,6 +913,9 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         say(f"  unexplained: {saturation_sentence(rail)}")
     if held.get("non_gaussian", {}).get("significant") and not held.get("bursts"):
         say(f"  unexplained: {non_gaussian_sentence(held['non_gaussian'])}")
+    if held.get("spectral_change", {}).get("significant"):
+        duration = selection.n_samples * selection.sample_interval
+        say(f"  unexplained: {spectral_change_sentence(held['spectral_change'], duration)}")
     for burst in held.get("bursts", [])[:5]:
         say(
             f"  unexplained: an impulsive event at {burst['start_s']:.4g} s (peak "

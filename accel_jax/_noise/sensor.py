@@ -43,8 +43,11 @@ model leaves is **unexplained** when its held-out excess deviance stands more th
 `UNEXPLAINED_Z` standard errors (√((π²/6 − 1) J)) above zero, when impulsive events
 (`_bursts`) or a linear drift no named effect makes (`_drift`) are found, or when the
 level shifts (`_level_shift`: a step in the level, which the periodogram takes for a
-random walk, found in the time domain against the final model's own wander), or when the
-output sits on a rail (`detect_saturation`: a range limit that clips the record). A shift
+random walk, found in the time domain against the final model's own wander), when the
+output sits on a rail (`detect_saturation`: a range limit that clips the record), when the
+residual's values are far from Gaussian (`_non_gaussian`), or when its spectrum changes
+between the record's halves (`_spectral_change`: a line that moves, a vibration that
+starts or stops). A shift
 is taken out of the record and the selection run again on what is left (up to
 `MAX_LEVEL_SHIFTS`), so that no effect of the library takes the credit for it.
 
@@ -111,6 +114,9 @@ class SensorNoiseSelection:
     `ties`: each named low-frequency effect another fits as well, within the bar;
     `bursts`: impulsive events; `non_gaussian`: the residual's skewness and excess
     kurtosis and their z (`_non_gaussian`; `significant` makes the record unexplained);
+    `spectral_change`: the residual's spectrum compared between the record's halves, the
+    band that changes most and its p (`_spectral_change`; `significant` makes the record
+    unexplained);
     `drift`, `drifting`: the level's linear drift and whether it is one no named effect
     makes; `level_shifts`: the steps in the level found and taken
     out (time, size, their z, the held-out z and effects with the step still in),
@@ -248,6 +254,19 @@ def non_gaussian_sentence(found: dict) -> str:
         "spectrum may be right, its Gaussian likelihood is not"
     )
 
+
+
+def spectral_change_sentence(found: dict, duration_s: float) -> str:
+    """`held_out["spectral_change"]` in words, when significant (the CLI and the diagnosis)."""
+    low, high = found["band_Hz"]
+    factor = math.exp(found["log_ratio_second_to_first"])
+    half = duration_s / 2
+    return (
+        f"the spectrum changes during the record: {low:.3g}–{high:.3g} Hz carries "
+        f"{factor:.2g} times the power after {half:.4g} s that it carried before (family-wise "
+        f"p {found['p_family']:.1g}): a line or resonance that moves, a vibration that starts "
+        "or stops; every model of the library is stationary, outside the library"
+    )
 
 # --------------------------------------------------------------------------------------
 # Deterministic components
@@ -934,6 +953,8 @@ def _select(
     final["bursts"] = bursts
     gaussian = _non_gaussian(residual, share)
     final["non_gaussian"] = gaussian
+    change = _spectral_change(residual, dt)
+    final["spectral_change"] = change
     # The first difference makes a linear drift a constant, which the periodogram never
     # sees: test it in the time domain unless a wandering level was named.
     drift = _drift(residual, dt)
@@ -943,7 +964,11 @@ def _select(
     selection = SensorNoiseSelection(
         effects=tuple(effects),
         unexplained=bool(
-            final["z"] > UNEXPLAINED_Z or bursts or drifting or gaussian["significant"]
+            final["z"] > UNEXPLAINED_Z
+            or bursts
+            or drifting
+            or gaussian["significant"]
+            or change["significant"]
         ),
         steps=steps,
         parameters=params,
@@ -1063,6 +1088,79 @@ def grid_noise_share(x: np.ndarray, grid: dict | None) -> float:
         return 0.0
     white = float(np.var(np.diff(x))) / 2 if np.size(x) > 1 else 0.0
     return grid["step"] ** 2 / 12 / white if white > 0 else math.inf
+
+
+SPECTRAL_CHANGE_ALPHA = 1e-4
+"""Family-wise false-alarm rate of the spectral-change test (`_spectral_change`)."""
+SPECTRAL_CHANGE_SIZE = math.log(2.0)
+"""A band's power must change by at least this log ratio (a factor 2) between the record's
+halves: a long record is not called non-stationary for a change no user would act on."""
+SPECTRAL_CHANGE_SCALES = (16, 64, 256)
+"""Band widths of the scan, in (every other) periodogram bins of a half."""
+SPECTRAL_CHANGE_SMOOTH = 33
+"""Bins of the moving average of the halves' pooled periodogram by which each bin is
+standardised (the bands then hold bins of equal expected size)."""
+
+
+def _spectral_change(r: np.ndarray, dt: float) -> dict:
+    """Whether the residual's spectrum changes between the record's first and second half
+    (a line or resonance that moves with temperature, a vibration that starts or stops):
+    every model of the library is stationary. Each half of the first difference (the
+    difference takes a walk's wander and a level shift's step out), Hann-tapered; every
+    other periodogram bin (the taper correlates neighbours), each divided by the moving
+    average of both halves' (`SPECTRAL_CHANGE_SMOOTH` bins); then bands of
+    `SPECTRAL_CHANGE_SCALES` bins: under a stationary spectrum the first half's share of a
+    band's sum is Beta(k, k). Significant when the smallest two-sided p, Bonferroni over
+    all bands, is below `SPECTRAL_CHANGE_ALPHA` and that band's power changes by a factor
+    of at least 2 (`SPECTRAL_CHANGE_SIZE`).
+
+    Calibration (NumPy records, 10⁴ samples): family-wise p < 0.05 in 5.7 % of 300 white,
+    7.7 % of walk, 4 % of slow and 4.7 % of fast Gauss–Markov, 7 % of flicker records; on
+    the 624 sensor-noise harness truths (lines and transients out) the smallest p is 0.002.
+    A line sweeping 1 → 3 Hz at half the white σ is found (p ≈ 3e-10), at a quarter not."""
+    from scipy import stats
+
+    d = np.diff(np.asarray(r, np.float64))
+    h = d.size // 2
+    if h < 4 * (2 * SPECTRAL_CHANGE_SCALES[0] + 4):
+        return {"tested": False, "significant": False}
+    window = np.hanning(h)
+    halves = [d[:h], d[h : 2 * h]]
+    grams = [
+        (np.abs(np.fft.rfft(window * (v - v.mean()))) ** 2)[2:-2:2] for v in halves
+    ]
+    kernel = np.ones(SPECTRAL_CHANGE_SMOOTH)
+    pooled = np.convolve((grams[0] + grams[1]) / 2, kernel, mode="same")
+    level = pooled / np.convolve(np.ones_like(grams[0]), kernel, mode="same")
+    if not np.all(level > 0):
+        return {"tested": False, "significant": False}
+    a, b = grams[0] / level, grams[1] / level
+    bands = []
+    for k in SPECTRAL_CHANGE_SCALES:
+        m = a.size // k
+        if m < 2:
+            continue
+        sa = a[: m * k].reshape(m, k).sum(axis=1)
+        sb = b[: m * k].reshape(m, k).sum(axis=1)
+        share = sa / (sa + sb)
+        p = 2 * np.minimum(stats.beta.cdf(share, k, k), stats.beta.sf(share, k, k))
+        bands.append((k, p, np.log(sb / sa)))
+    tests = sum(p.size for _, p, _ in bands)
+    k, p, ratio = min(bands, key=lambda band: float(np.min(band[1])))
+    j = int(np.argmin(p))
+    family = min(float(p[j]) * tests, 1.0)
+    # Kept bin i of a half is its periodogram bin 2 + 2i, at (2 + 2i) / (h Δt) Hz.
+    low, high = (2 + 2 * j * k) / (h * dt), (2 + 2 * ((j + 1) * k - 1)) / (h * dt)
+    return {
+        "tested": True,
+        "p_family": family,
+        "band_Hz": (low, high),
+        "log_ratio_second_to_first": float(ratio[j]),
+        "bands_tested": int(tests),
+        "significant": bool(
+            family < SPECTRAL_CHANGE_ALPHA and abs(ratio[j]) >= SPECTRAL_CHANGE_SIZE
+        ),
+    }
 
 LEVEL_SHIFT_ALPHA = 1e-3
 """Family-wise false-alarm rate of the level-shift test (`_level_shift`)."""

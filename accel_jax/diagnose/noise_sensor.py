@@ -40,6 +40,7 @@ from .._noise.sensor import (
     level_shift_screen,
     level_shift_sentence,
     non_gaussian_sentence,
+    spectral_change_sentence,
     saturation_sentence,
 )
 from .base import DiagnosisResult
@@ -146,6 +147,10 @@ def _describe(sel: SensorNoiseSelection) -> str:
     gaussian = held.get("non_gaussian", {})
     if gaussian.get("significant") and not bursts:
         text += _capitalised(non_gaussian_sentence(gaussian))
+    change = held.get("spectral_change", {})
+    if change.get("significant"):
+        duration = sel.n_samples * sel.sample_interval
+        text += _capitalised(spectral_change_sentence(change, duration))
     drift = held.get("drift")
     if drift and held.get("drifting") and not bursts and held["z"] <= 4.0:
         text += (
@@ -166,6 +171,7 @@ def _describe(sel: SensorNoiseSelection) -> str:
         and not held.get("level_shifts")
         and not held.get("saturation")
         and not gaussian.get("significant")
+        and not change.get("significant")
     ):
         text += " (unexplained)"
     return text + "."
@@ -183,6 +189,7 @@ def combine(result: DiagnosisResult, sel: SensorNoiseSelection) -> DiagnosisResu
         or held.get("level_shifts")
         or held.get("saturation")
         or held.get("non_gaussian", {}).get("significant")
+        or held.get("spectral_change", {}).get("significant")
     ):
         previous = result.verdict
         result.verdict = sel.verdict
