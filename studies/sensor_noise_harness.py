@@ -355,6 +355,8 @@ def run_one(job, n: int) -> dict:
         "ties": [[t["effect"], t["alternative"]] for t in found.held_out.get("ties", [])],
         # no record here has a step in its level: every one found is a false alarm
         "level_shifts": len(found.held_out.get("level_shifts", [])),
+        # every truth here is stationary: a spectral change found is a false alarm
+        "spectral_change": bool(found.held_out.get("spectral_change", {}).get("significant")),
         "seconds": time.perf_counter() - started,
     }
     if realized_evidence_unavailable(truth["spec"], out["realized"]):
@@ -435,6 +437,7 @@ def score(rows: list, n: int) -> dict:
         "spurious_effects_named": extras,
         "unexplained_records": sum(bool(r.get("unexplained")) for r in rows),
         "records_with_a_false_level_shift": sum(r.get("level_shifts", 0) > 0 for r in rows),
+        "records_with_a_false_spectral_change": sum(bool(r.get("spectral_change")) for r in rows),
         "errors": [r["error"] for r in rows if "error" in r],
         "realized_unavailable_records": sum(bool(r.get("realized_unavailable")) for r in rows),
         "median_seconds": float(np.median([r["seconds"] for r in rows if "seconds" in r])),

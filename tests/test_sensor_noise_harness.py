@@ -132,8 +132,9 @@ def test_score_counts_each_effect_by_expected_and_realized_evidence():
             "truth": {"effects": ["flicker", "quantization"], "step_g": 1e-3},
             "oracle": {"flicker": 3 * bar},
             "realized": {"flicker": 1.5 * bar},
-            "verdict": "flicker+quantization",
+            "verdict": "flicker+quantization+unexplained",
             "effects": ["flicker", "quantization"],
+            "spectral_change": True,
             "step_relative_error": 0.01,
             "seconds": 1.0,
         },
@@ -161,6 +162,7 @@ def test_score_counts_each_effect_by_expected_and_realized_evidence():
     assert (flicker["named_when_realized_detectable"], flicker["realized_detectable"]) == (1, 1)
     assert score["per_effect"]["quantization"]["realized_detectable"] == 0
     assert score["false_alarms"] == 0 and score["steps_within_5pct"] == 1
+    assert score["records_with_a_false_spectral_change"] == 1
 
 
 def test_realized_evidence_where_the_covariance_is_not_positive_definite():
