@@ -693,3 +693,6 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     assert selection.unexplained and selection.held_out["spectral_change"]["significant"]
     assert "The spectrum changes during the record" in _describe(selection)
     assert not _spectral_change(rng.normal(size=200), dt)["tested"]
+    # A half without noise has no spectrum to compare (a bare step: no division by zero).
+    bare = np.where(np.arange(n) < n // 2, 0.0, rng.normal(size=n))
+    assert not _spectral_change(bare, dt)["tested"]

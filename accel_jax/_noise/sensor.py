@@ -1126,6 +1126,9 @@ def _spectral_change(r: np.ndarray, dt: float) -> dict:
         return {"tested": False, "significant": False}
     window = np.hanning(h)
     halves = [d[:h], d[h : 2 * h]]
+    if not all(np.ptp(v) > 0 for v in halves):
+        # A half without noise (a bare step, a constant stretch): no spectrum to compare.
+        return {"tested": False, "significant": False}
     grams = [
         (np.abs(np.fft.rfft(window * (v - v.mean()))) ** 2)[2:-2:2] for v in halves
     ]
