@@ -135,6 +135,7 @@ from ._noise import density_to_vrw as density_to_vrw
 from ._noise import detect_non_gaussian as detect_non_gaussian
 from ._noise import detect_quantization as detect_quantization
 from ._noise import detect_saturation as detect_saturation
+from ._noise import detect_spectral_change as detect_spectral_change
 from ._noise import discrete_to_density as discrete_to_density
 from ._noise import discrete_to_gauss_markov as discrete_to_gauss_markov
 from ._noise import discrete_to_random_walk as discrete_to_random_walk

@@ -693,6 +693,20 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     assert selection.unexplained and selection.held_out["spectral_change"]["significant"]
     assert "The spectrum changes during the record" in _describe(selection)
     assert not _spectral_change(rng.normal(size=200), dt)["tested"]
+    # The diagnosis screens the raw record the same way (public: detect_spectral_change),
+    # and runs the selection on a vibration that starts mid-record, not on a steady one.
+    from accel_jax.diagnose.noise_sensor import needs_selection
+
+    line = 1.5e-3 * np.sin(2 * np.pi * 7.3 * t)
+    starts = rng.normal(0, w, n) + line * (t > t[-1] / 2)
+    assert aj.detect_spectral_change(starts, dt)["significant"]
+    assert needs_selection(starts, "exp_cosine")
+    steady = rng.normal(0, w, n) + line
+    assert not aj.detect_spectral_change(steady, dt)["significant"]
+    assert not needs_selection(steady, "exp_cosine")
+    for bad, match in (([np.nan] * 300, "finite values"), (np.ones(300), "sample_interval")):
+        with pytest.raises(ValueError, match=match):
+            aj.detect_spectral_change(np.asarray(bad), 0.0 if match == "sample_interval" else dt)
     # A half without noise has no spectrum to compare (a bare step: no division by zero).
     bare = np.where(np.arange(n) < n // 2, 0.0, rng.normal(size=n))
     assert not _spectral_change(bare, dt)["tested"]

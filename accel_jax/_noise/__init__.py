@@ -89,6 +89,7 @@ from .sensor import SensorNoiseSelection as SensorNoiseSelection
 from .sensor import detect_non_gaussian as detect_non_gaussian
 from .sensor import detect_quantization as detect_quantization
 from .sensor import detect_saturation as detect_saturation
+from .sensor import detect_spectral_change as detect_spectral_change
 from .sensor import select_sensor_noise as select_sensor_noise
 from .whiteness import ljung_box as ljung_box
 

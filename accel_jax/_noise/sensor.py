@@ -1165,6 +1165,22 @@ def _spectral_change(r: np.ndarray, dt: float) -> dict:
         ),
     }
 
+
+def detect_spectral_change(x: np.ndarray, sample_interval: float = 1.0) -> dict:
+    """Whether a record's spectrum changes between its first and second half
+    (`_spectral_change` on x itself; the selection tests its residual in the same way,
+    `held_out["spectral_change"]`). Returns {"tested", "significant"} and, when tested,
+    "p_family", "band_Hz" (at `sample_interval` seconds per sample), "log_ratio_second_to_first"
+    and "bands_tested". On the raw record a start-up transient counts as a change too."""
+    x = np.asarray(x, np.float64)
+    if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
+        raise ValueError(
+            "detect_spectral_change: the record must be a non-empty 1-D array of finite values"
+        )
+    if not (math.isfinite(sample_interval) and sample_interval > 0):
+        raise ValueError("detect_spectral_change: sample_interval must be a positive number")
+    return _spectral_change(x, sample_interval)
+
 LEVEL_SHIFT_ALPHA = 1e-3
 """Family-wise false-alarm rate of the level-shift test (`_level_shift`)."""
 MAX_LEVEL_SHIFTS = 3

@@ -10,7 +10,9 @@ added while significant) runs as well when that verdict is `unexplained`, `canno
 tells them apart), when a model-free screen sees a step in the level
 (`level_shift_screen`: one the exact verdict took into a Gauss–Markov process or white
 noise), when the record's values are far from Gaussian (`detect_non_gaussian`: a random
-telegraph noise has a Gauss–Markov spectrum), or when the record lies on an output grid
+telegraph noise has a Gauss–Markov spectrum), when its spectrum changes between its halves
+(`detect_spectral_change`: a line that moves, a vibration that starts or stops), or when the
+record lies on an output grid
 coarse enough to name; beyond
 `EXACT_LIMIT` samples it alone decides (the exact filter of 10⁶ samples × candidates takes
 minutes, the Whittle selection seconds).
@@ -36,6 +38,7 @@ from .._noise.sensor import (
     SensorNoiseSelection,
     detect_non_gaussian,
     detect_saturation,
+    detect_spectral_change,
     grid_noise_share,
     level_shift_screen,
     level_shift_sentence,
@@ -62,6 +65,11 @@ def needs_selection(x: np.ndarray, verdict: str | None) -> bool:
     if level_shift_screen(x)["significant"]:
         # A step the one-effect diagnosis took into a Gauss–Markov process or white noise
         # (a model-free screen; the selection's test judges it against the fitted model).
+        return True
+    if detect_spectral_change(x)["significant"]:
+        # The spectrum changes between the record's halves (a line that moves, a vibration
+        # that starts or stops): every exact model is stationary, and its verdict names
+        # the record's average spectrum; the selection's residual test says so.
         return True
     grid = detect_quantization(x)
     if detect_saturation(x, grid):
