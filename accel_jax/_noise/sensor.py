@@ -255,7 +255,6 @@ def non_gaussian_sentence(found: dict) -> str:
     )
 
 
-
 def spectral_change_sentence(found: dict, duration_s: float) -> str:
     """`held_out["spectral_change"]` in words, when significant (the CLI and the diagnosis)."""
     low, high = found["band_Hz"]
@@ -267,6 +266,7 @@ def spectral_change_sentence(found: dict, duration_s: float) -> str:
         f"p {found['p_family']:.1g}): a line or resonance that moves, a vibration that starts "
         "or stops; every model of the library is stationary, outside the library"
     )
+
 
 # --------------------------------------------------------------------------------------
 # Deterministic components
@@ -644,8 +644,8 @@ peaked spectrum, and kept it)."""
 def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     """Each named effect of `EXCHANGED` against each unnamed `LOW_FREQUENCY` one in its
     place (the rest of the model kept, the substitute's fit started from the model's
-    optimum): 2 ln B of the named effect over the substitute, 2 Δ ln L − (k − k') ln J on the whole record as
-    in the forward selection. A substitute that beats the named effect by `evidence` or
+    optimum): 2 ln B of the named effect over the substitute, 2 Δ ln L − (k − k') ln J on
+    the whole record as in the forward selection. A substitute that beats the named effect by `evidence` or
     more replaces it (the forward path added the first that stood, not the best: a random
     walk with a start-up transient can look like flicker until the transient is in), and
     the exchange repeats; one within `evidence` either way is reported as a tie: the
@@ -1063,7 +1063,6 @@ def _non_gaussian(r: np.ndarray, grid_share: float) -> dict:
     }
 
 
-
 def detect_non_gaussian(x: np.ndarray, grid: dict | None = None) -> dict:
     """Whether a record's values are far from Gaussian (`_non_gaussian` on x itself): a
     random telegraph noise's two levels, heavy tails. `grid` is the record's output grid
@@ -1170,8 +1169,8 @@ def detect_spectral_change(x: np.ndarray, sample_interval: float = 1.0) -> dict:
     """Whether a record's spectrum changes between its first and second half
     (`_spectral_change` on x itself; the selection tests its residual in the same way,
     `held_out["spectral_change"]`). Returns {"tested", "significant"} and, when tested,
-    "p_family", "band_Hz" (at `sample_interval` seconds per sample), "log_ratio_second_to_first"
-    and "bands_tested". On the raw record a start-up transient counts as a change too."""
+    "p_family", "band_Hz" (at `sample_interval` seconds per sample),
+    "log_ratio_second_to_first" and "bands_tested". On the raw record a start-up transient counts as a change too."""
     x = np.asarray(x, np.float64)
     if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
         raise ValueError(
@@ -1180,6 +1179,7 @@ def detect_spectral_change(x: np.ndarray, sample_interval: float = 1.0) -> dict:
     if not (math.isfinite(sample_interval) and sample_interval > 0):
         raise ValueError("detect_spectral_change: sample_interval must be a positive number")
     return _spectral_change(x, sample_interval)
+
 
 LEVEL_SHIFT_ALPHA = 1e-3
 """Family-wise false-alarm rate of the level-shift test (`_level_shift`)."""
