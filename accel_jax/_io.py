@@ -12,7 +12,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._runtime import usable_cpus
+from ._runtime import placement_record, skipped_xla_flags, usable_cpus
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -69,18 +69,23 @@ def save_figure_atomic(figure, path: str | os.PathLike, **kwargs) -> Path:
 
 def provenance(*, seeds: dict | None = None, precision: str, extra: dict | None = None) -> dict:
     """The provenance block every result file carries: package version, JAX and device,
-    precision, the XLA options in effect, seeds and the date (UTC)."""
+    where the work ran (`--device`: plain `jit` calls and the sweeps), precision, the XLA
+    options in effect and those the running XLA did not accept, seeds and the date (UTC)."""
     from . import __version__
 
     block = {
         "accel_jax_version": __version__,
         "jax_version": jax.__version__,
         "devices": [str(d) for d in jax.devices()],
+        # --device: where plain jit calls ran and where the sweeps (sharded) ran.
+        "placement": placement_record(),
         # CPUs the process could use (a report's side-by-side studies get a share each).
         "cpus": len(usable_cpus()),
         "precision": precision,
         # XLA options change results at the round-off level (e.g. fast-compile in --quick).
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        # The package's options this XLA does not know, left out (never an abort).
+        "xla_options_skipped": skipped_xla_flags(),
         "xla_most_optimizations_off": bool(jax.config.read("jax_disable_most_optimizations")),
         "seeds": seeds or {},
         "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),

@@ -1,5 +1,16 @@
 """Process-level settings: the XLA:CPU deadlock workaround (applied at `import accel_jax`),
-XLA log level, compile-time options and the persistent compilation cache.
+XLA log level, compile-time options, where work runs (`apply_device`) and the persistent
+compilation cache.
+
+**No option can abort a process.** XLA parses `XLA_FLAGS` once, when JAX starts its
+backend, and aborts the process (a fatal "Unknown flag in XLA_FLAGS") on any option its
+build does not know, whatever the backend: jaxlib 0.11 no longer has the fast-compile
+option below. So every option the package adds goes through `accepted_xla_flags` first:
+known-good for the jaxlib versions in `XLA_OPTIONS_SEEN_ACCEPTED`, otherwise decided once by
+starting XLA with the option in a subprocess (`_probe_xla_flags`, about half a second), the
+answer kept per jaxlib version in `~/.cache/accel_jax/xla_options.json`. An option the
+running XLA rejects is skipped; `skipped_xla_flags` (recorded in every result's provenance)
+says which and why.
 
 Not part of the public namespace: the entry points (the `accel-jax` CLI, the study
 scripts, the tests, the benchmarks) import what they need from here.
@@ -56,6 +67,8 @@ def apply_cpu_workarounds() -> bool:
     """
     if _scheduler_option_set() or _opted_out():
         return False
+    if not accepted_xla_flags([CPU_SCHEDULER_FLAG]):
+        return False  # this XLA does not know the option (recorded by accepted_xla_flags)
     flags = os.environ.get("XLA_FLAGS", "")
     os.environ["XLA_FLAGS"] = f"{flags} {CPU_SCHEDULER_FLAG}".strip()
     return True
@@ -63,15 +76,16 @@ def apply_cpu_workarounds() -> bool:
 
 def apply_at_import() -> str:
     """What `import accel_jax` does about the deadlock; returns what happened:
-    `"applied"`, `"user"` (the user set the option or opted out), or `"too_late"` (JAX's
-    backend had started without the flag: a one-time `RuntimeWarning` on the CPU)."""
+    `"applied"`, `"user"` (the user set the option or opted out), `"too_late"` (JAX's
+    backend had started without the flag: a one-time `RuntimeWarning` on the CPU), or
+    `"not_accepted"` (the running XLA does not know the option: nothing added, recorded in
+    `skipped_xla_flags`)."""
     if _scheduler_option_set() or _opted_out():
         return "user"
     if _backend_started():
         _warn_too_late()
         return "too_late"
-    apply_cpu_workarounds()
-    return "applied"
+    return "applied" if apply_cpu_workarounds() else "not_accepted"
 
 
 def _warn_too_late() -> None:
@@ -112,8 +126,9 @@ FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
 """XLA:CPU option for compile-bound runs: the older loop emitters instead of the MLIR fusion
 emitters. On the 2-core CPU it cut the quick studies' compile time by a quarter to a third
 (scale-factor study 44 → 31 s, noise 30 → 20 s) at an unchanged run time (one vmapped
-scale-factor identification: 13.3 ms either way). An XLA:CPU option only: GPU and TPU
-backends ignore it."""
+scale-factor identification: 13.3 ms either way). An XLA:CPU option: it does not change
+what a GPU computes, but XLA parses it whatever the backend, and jaxlib 0.11 no longer
+knows it — so it is added only where `accepted_xla_flags` says the running XLA accepts it."""
 
 
 def _backend_started() -> bool:
@@ -126,15 +141,16 @@ def _backend_started() -> bool:
 
 
 def apply_fast_compile() -> list[str]:
-    """Add `FAST_COMPILE_FLAGS` to `XLA_FLAGS` (each unless the user set that option), for
-    this process and the processes it starts (the report's workers, the blind diagnosis);
-    returns the flags added. Nothing is added once JAX has started its backend (the flags
-    would not apply here, and `XLA_FLAGS`, which `provenance` records, would then claim
-    them)."""
+    """Add `FAST_COMPILE_FLAGS` to `XLA_FLAGS` (each unless the user set that option, and
+    only those the running XLA accepts: `accepted_xla_flags`), for this process and the
+    processes it starts (the report's workers, the blind diagnosis); returns the flags
+    added. Nothing is added once JAX has started its backend (the flags would not apply
+    here, and `XLA_FLAGS`, which `provenance` records, would then claim them)."""
     if _backend_started():
         return []
     flags = os.environ.get("XLA_FLAGS", "")
-    added = [f for f in FAST_COMPILE_FLAGS if f.split("=")[0] not in flags]
+    wanted = [f for f in FAST_COMPILE_FLAGS if f.split("=")[0] not in flags]
+    added = accepted_xla_flags(wanted) if wanted else []
     if added:
         os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
     return added
@@ -270,3 +286,280 @@ def bound_compiled_programs(limit: int = MAP_LIMIT) -> bool:
     jax.clear_caches()
     gc.collect()
     return True
+
+
+# ---------------------------------------------------------------------------------------
+# XLA options that cannot abort a process (module docstring).
+
+XLA_OPTIONS_SEEN_ACCEPTED: dict[str, frozenset[str]] = {
+    # jaxlib version: the package's options its XLA was started with and accepted (by
+    # `_probe_xla_flags`), so that the pinned stack never pays for a probe.
+    "0.10.2": frozenset(
+        {"xla_cpu_enable_concurrency_optimized_scheduler", "xla_cpu_use_fusion_emitters"}
+    ),
+}
+
+_SKIPPED_ENV = "_ACCEL_JAX_XLA_SKIPPED"
+"""Where the options skipped in this process are noted (JSON), so that the processes it
+starts (the report's workers, the blind diagnosis), which inherit `XLA_FLAGS` and decide
+nothing themselves, record them in their provenance too."""
+
+_PROBE_PROGRAM = "import jax; jax.devices()"
+_decided: dict[tuple[str, str], bool] = {}  # (jaxlib version, option name) → accepted
+
+
+def xla_option_name(flag: str) -> str:
+    """`--xla_foo=false` → `xla_foo`."""
+    return flag.strip().lstrip("-").split("=", 1)[0]
+
+
+def jaxlib_version() -> str:
+    """The installed jaxlib's version, read without importing it (`"unknown"` if absent)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("jaxlib")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _options_cache_file() -> Path | None:
+    """`$XDG_CACHE_HOME/accel_jax/xla_options.json` (`~/.cache/…`); None when the user
+    turned the caches off (`ACCEL_JAX_CACHE_DIR=off`): then each process decides anew."""
+    if os.environ.get(CACHE_ENV) is not None and compilation_cache_dir() is None:
+        return None
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "accel_jax" / "xla_options.json"
+
+
+def _read_options_cache() -> dict:
+    path = _options_cache_file()
+    if path is None:
+        return {}
+    try:
+        import json
+
+        cached = json.loads(path.read_text())
+        return cached if isinstance(cached, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _write_options_cache(version: str, decisions: dict[str, bool]) -> None:
+    """Merge `decisions` into the cache file (a temporary file, then a rename); a cache
+    that cannot be written is skipped (the next process probes again)."""
+    import json
+    import tempfile
+
+    path = _options_cache_file()
+    if path is None or not decisions:
+        return
+    cached = _read_options_cache()
+    entry = cached.get(version) if isinstance(cached.get(version), dict) else {}
+    cached[version] = {**entry, **decisions}
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".xla_options.", suffix=".tmp")
+        with os.fdopen(fd, "w") as handle:
+            json.dump(cached, handle, indent=1, sort_keys=True)
+        os.replace(tmp, path)
+    except OSError:
+        pass
+
+
+def _probe_xla_flags(flags: list[str]) -> bool | None:
+    """Start XLA (its CPU backend) in a subprocess with exactly `flags` in `XLA_FLAGS`:
+    True if it starts, False if it refuses (exits non-zero, as XLA's fatal "Unknown flag"
+    does), None if the probe could not be run or did not answer within a minute."""
+    import subprocess
+    import sys
+
+    env = {
+        **os.environ,
+        "XLA_FLAGS": " ".join(flags),
+        "JAX_PLATFORMS": "cpu",  # the options are parsed whatever the backend; CPU is quick
+        "TF_CPP_MIN_LOG_LEVEL": "3",
+    }
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _PROBE_PROGRAM],
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            timeout=60,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.returncode == 0
+
+
+def accepted_xla_flags(flags) -> list[str]:
+    """The members of `flags` (`--xla_name=value` strings) that the running XLA accepts, in
+    order; each other one is noted in `skipped_xla_flags` with its reason.
+
+    Decided per jaxlib version: the versions in `XLA_OPTIONS_SEEN_ACCEPTED` without a
+    subprocess; otherwise the answer cached in `~/.cache/accel_jax/xla_options.json`, or a
+    probe (`_probe_xla_flags`: the undecided options together, each alone if that fails),
+    cached for the next process. An option that could not be checked is skipped too (not
+    cached): adding it could abort the process, leaving it out only costs compile time."""
+    flags = list(flags)
+    version = jaxlib_version()
+    seen = XLA_OPTIONS_SEEN_ACCEPTED.get(version, frozenset())
+    cached = _read_options_cache().get(version) or {}
+    answer: dict[str, bool | None] = {}
+    undecided = []
+    for flag in flags:
+        name = xla_option_name(flag)
+        if name in seen:
+            answer[flag] = True
+        elif (version, name) in _decided:
+            answer[flag] = _decided[version, name]
+        elif isinstance(cached.get(name), bool):
+            answer[flag] = cached[name]
+        else:
+            undecided.append(flag)
+    if undecided:
+        together = _probe_xla_flags(undecided)
+        if together or len(undecided) == 1:
+            answer.update(dict.fromkeys(undecided, together))
+        else:
+            answer.update({flag: _probe_xla_flags([flag]) for flag in undecided})
+        decided = {xla_option_name(f): answer[f] for f in undecided if answer[f] is not None}
+        _decided.update({(version, name): ok for name, ok in decided.items()})
+        _write_options_cache(version, decided)
+    for flag in flags:
+        if answer[flag] is not True:
+            why = "not accepted by" if answer[flag] is False else "could not be checked on"
+            _note_skipped(flag, f"{why} this XLA (jaxlib {version}); skipped")
+    return [flag for flag in flags if answer[flag] is True]
+
+
+def _note_skipped(flag: str, reason: str) -> None:
+    import json
+
+    skipped = skipped_xla_flags()
+    skipped[flag] = reason
+    os.environ[_SKIPPED_ENV] = json.dumps(skipped, sort_keys=True)
+
+
+def skipped_xla_flags() -> dict[str, str]:
+    """The package's XLA options left out in this process or the one that started it,
+    `{flag: reason}` (recorded in every result's provenance)."""
+    import json
+
+    try:
+        skipped = json.loads(os.environ.get(_SKIPPED_ENV, "") or "{}")
+    except ValueError:
+        return {}
+    return skipped if isinstance(skipped, dict) else {}
+
+
+# ---------------------------------------------------------------------------------------
+# Where work runs.
+
+DEVICE_CHOICES = ("auto", "cpu", "gpu")
+DEVICE_ENV = "ACCEL_JAX_DEVICE"
+"""The `--device` choice, inherited by the processes an entry point starts."""
+
+_PLACEMENT_ENV = "_ACCEL_JAX_PLACEMENT"  # this process's placement (JSON), for provenance
+
+
+class DeviceError(ValueError):
+    """The device asked for is not there (e.g. `--device gpu` on a machine without one)."""
+
+
+def plan_placement(choice: str, accelerator: str | None, *, latency_bound: bool) -> dict:
+    """Where one entry point's work runs; a pure function of the choice and the machine.
+
+    `choice`: `auto`, `cpu` or `gpu`; `accelerator`: the platform JAX's default backend
+    has besides the CPU (`"gpu"`, `"tpu"`) or None; `latency_bound`: the entry point's work
+    is latency-bound throughout (a single-record `diagnose`, `identify` or `noise`: small
+    programs, adaptive ODE fits with small while loops, each run once).
+
+    Returns `{"device": choice, "unsharded": "cpu"|"accelerator", "sweeps":
+    "cpu"|"accelerator", "cpu_only": bool}`: `unsharded` is where plain `jit` calls run
+    (JAX's default device), `sweeps` where the throughput kernels (`sweep`,
+    `monte_carlo_oscillatory`, which shard over `jax.devices()`) run, and `cpu_only` that
+    the accelerator is not to be started at all (`JAX_PLATFORMS=cpu`). `auto` puts
+    latency-bound work on the CPU and the sweeps on the accelerator; `gpu` puts everything
+    on the accelerator (an error without one); `cpu` everything on the CPU."""
+    if choice not in DEVICE_CHOICES:
+        raise DeviceError(f"device must be one of {', '.join(DEVICE_CHOICES)}; got {choice!r}")
+    if choice == "gpu" and accelerator is None:
+        raise DeviceError(
+            "--device gpu: JAX sees no GPU on this machine (only its CPU); install a "
+            "CUDA-enabled jaxlib, or use --device auto or cpu."
+        )
+    if choice == "cpu" or accelerator is None or (choice == "auto" and latency_bound):
+        return {"device": choice, "unsharded": "cpu", "sweeps": "cpu", "cpu_only": True}
+    if choice == "gpu":
+        return {"device": choice, "unsharded": "accelerator", "sweeps": "accelerator",
+                "cpu_only": False}
+    return {"device": choice, "unsharded": "cpu", "sweeps": "accelerator", "cpu_only": False}
+
+
+def apply_device(choice: str | None = None, *, latency_bound: bool, shared: bool = False):
+    """Place this process's work as `plan_placement` says, before JAX starts its backend.
+
+    `choice` (default `$ACCEL_JAX_DEVICE`, else `auto`) is kept in the environment for the
+    processes this one starts. Latency-bound work with `auto`, and `cpu`, set
+    `JAX_PLATFORMS=cpu` (the accelerator is never started: a GPU's start-up alone takes
+    seconds). Otherwise JAX's default backend is started here: with an accelerator and
+    `auto`, JAX's default device becomes the host CPU (`jax_default_device`), so that
+    plain `jit` calls run there while `sweep` and `monte_carlo_oscillatory`, which shard
+    over `jax.devices()`, run on the accelerator. `shared`: several processes will use the
+    accelerator at once (the report's studies side by side), so none may claim its memory
+    up front (`XLA_PYTHON_CLIENT_PREALLOCATE=false` unless the user set it).
+
+    Returns the placement, also recorded for `provenance`. Raises `DeviceError` for
+    `gpu` without one, or for `cpu` once JAX's backend has already started on an
+    accelerator (the choice can no longer be made)."""
+    import json
+
+    choice = (choice or os.environ.get(DEVICE_ENV) or "auto").strip().lower()
+    if choice not in DEVICE_CHOICES:
+        raise DeviceError(f"device must be one of {', '.join(DEVICE_CHOICES)}; got {choice!r}")
+    platforms = os.environ.get("JAX_PLATFORMS", "").strip().lower()
+    if (choice == "cpu" or (choice == "auto" and latency_bound)) and not _backend_started():
+        if platforms in ("", "cpu") or choice == "cpu":
+            os.environ["JAX_PLATFORMS"] = "cpu"
+    if shared and choice != "cpu":
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    import jax
+
+    backend = jax.default_backend()
+    accelerator = None if backend == "cpu" else backend
+    if choice == "cpu" and accelerator is not None:
+        raise DeviceError(
+            "--device cpu: JAX had already started on the accelerator in this process; "
+            "set JAX_PLATFORMS=cpu before starting Python."
+        )
+    placement = plan_placement(choice, accelerator, latency_bound=latency_bound)
+    if accelerator is not None and placement["unsharded"] == "cpu":
+        jax.config.update("jax_default_device", jax.devices("cpu")[0])
+    placement["accelerator"] = accelerator
+    os.environ[DEVICE_ENV] = choice  # only once placed: a refused choice is not inherited
+    os.environ[_PLACEMENT_ENV] = json.dumps(placement, sort_keys=True)
+    return placement
+
+
+def placement_record() -> dict:
+    """Where this process's work ran, for the provenance: the `--device` choice, where
+    plain `jit` calls ran (JAX's default device) and where the sweeps ran (the devices
+    they shard over); `{"device": "not set"}` where no entry point placed it."""
+    import json
+
+    import jax
+
+    try:
+        placement = json.loads(os.environ.get(_PLACEMENT_ENV, "") or "{}")
+    except ValueError:
+        placement = {}
+    default = jax.config.jax_default_device or jax.devices()[0]
+    devices = jax.devices()
+    return {
+        "device": placement.get("device", "not set"),
+        "unsharded_work_on": str(default),
+        "sweeps_on": f"{devices[0].platform} ×{len(devices)}",
+    }

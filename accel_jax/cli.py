@@ -41,6 +41,45 @@ TYPICAL_SECONDS = {
 }
 
 
+def _device_option(latency_bound: bool):
+    """`--device auto|cpu|gpu` (default `$ACCEL_JAX_DEVICE`, else auto)."""
+    where = (
+        "auto runs this command's work (small programs, run once) on the CPU even where "
+        "a GPU is present"
+        if latency_bound
+        else "auto runs the latency-bound work on the CPU and the Monte Carlo sweeps on a "
+        "GPU where one is present"
+    )
+    return click.option(
+        "--device",
+        type=click.Choice(["auto", "cpu", "gpu"]),
+        default="auto",
+        envvar="ACCEL_JAX_DEVICE",
+        show_default=True,
+        help=f"Where the work runs: {where}; cpu or gpu put all of it there. Recorded in "
+        "the provenance.",
+    )
+
+
+def _place(device: str, *, latency_bound: bool, shared: bool = False) -> None:
+    """Apply `--device` before JAX starts its backend; a device that is not there is one
+    line and exit status 1."""
+    from ._runtime import DeviceError, apply_device
+
+    try:
+        apply_device(device, latency_bound=latency_bound, shared=shared)
+    except DeviceError as error:
+        raise click.ClickException(str(error)) from None
+
+
+def _provenance() -> dict:
+    """The provenance block of a command's JSON (versions, where the work ran, XLA options
+    in effect and skipped, date), as each study's result carries it."""
+    from ._io import provenance
+
+    return {"provenance": provenance(precision="float64")}
+
+
 def _studies_dir() -> Path:
     # Studies are scripts in the repository's studies/ folder, next to the package.
     return Path(__file__).resolve().parent.parent / "studies"
@@ -109,6 +148,7 @@ def main(ctx):
     help="Keep compiled XLA programs on disk ($ACCEL_JAX_CACHE_DIR, default "
     "~/.cache/accel_jax/xla) so that later runs skip most of the compilation.",
 )
+@_device_option(latency_bound=False)
 @_file_option(
     "--params",
     "params_file",
@@ -123,6 +163,7 @@ def report(
     no_progress: bool,
     jobs: int | None,
     compile_cache: bool,
+    device: str,
     params_file,
 ):
     """Run every study and write a self-contained HTML report (OUT/index.html).
@@ -136,6 +177,9 @@ def report(
         # Before anything starts JAX's backend: the quick report is compile-bound (most of
         # its programs run once or a few times), see FAST_COMPILE_FLAGS.
         apply_fast_compile()
+    # Latency-bound work on the CPU, sweeps on an accelerator (auto); the studies run side
+    # by side, so none of them may claim a GPU's memory up front.
+    _place(device, latency_bound=False, shared=True)
     import jax
 
     # Studies measure effects below float32 resolution (δK_a at 0.1 %): run them in float64.
@@ -146,7 +190,7 @@ def report(
         folder = enable_compilation_cache()
         if folder is not None:
             click.echo(f"compilation cache: {folder}")
-    from .report._run import ReportError, run_report
+    from .report._run import ReportError, StudiesFailed, run_report
 
     params = None
     if params_file is not None:
@@ -168,10 +212,12 @@ def report(
             jobs=jobs,
             typical_seconds=TYPICAL_SECONDS,
         )
+    except StudiesFailed as error:
+        click.echo(f"report written: {error.index}")
+        click.echo(f"Error: {error}", err=True)
+        sys.exit(1)
     except ReportError as error:
-        raise click.ClickException(str(error)) from error
-    except ValueError as error:
-        raise click.ClickException(f"a study rejected its input: {error}") from error
+        raise click.ClickException(str(error)) from None
     except KeyboardInterrupt:
         click.echo(
             "\ninterrupted: finished studies are kept; run the same command again to resume.",
@@ -573,7 +619,8 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 )
 @_out_option("identify")
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
-def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, force):
+@_device_option(latency_bound=True)
+def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, force, device):
     """Identify the scale factor K_a from your own test-signal step record.
 
     FILE is a CSV with a header row and columns t [s], u_test [V], u_out [V] (uniform
@@ -591,6 +638,7 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
     _writable(json_out, force, "--json")  # refused before the work, not after it
     _writable(plot_out, force, "--plot")
     _writable(paths["text"], force, "--out")
+    _place(device, latency_bound=True)
     import jax
 
     # δK_a at the 0.1 % level and crossing times to 1e-9 s are below float32 resolution.
@@ -623,7 +671,7 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
     if json_out is not None:
         # The traces (the record and the model, sample by sample) stay out of the JSON.
         payload = {k: v for k, v in result.items() if k != "traces"}
-        write_json_atomic(json_out, {"source": str(file), **payload})
+        write_json_atomic(json_out, {"source": str(file), **payload, **_provenance()})
         click.echo(f"json written: {json_out}")
     if plot_out is not None:
         save_figure_atomic(report.identification_figure(result, title=str(file)), plot_out)
@@ -673,7 +721,7 @@ def _identify_set(files, params_file, method, gamma_value, json_out, text_out) -
     click.echo(text)
     _write_text(text_out, text)
     if json_out is not None:
-        write_json_atomic(json_out, {"records": payload})
+        write_json_atomic(json_out, {"records": payload, **_provenance()})
         click.echo(f"json written: {json_out}")
 
 
@@ -704,7 +752,10 @@ def _identify_set(files, params_file, method, gamma_value, json_out, text_out) -
 )
 @_out_option("diagnosis")
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
-def diagnose(files: tuple[Path, ...], kind, params_file, json_out, plot_out, out_dir, force):
+@_device_option(latency_bound=True)
+def diagnose(
+    files: tuple[Path, ...], kind, params_file, json_out, plot_out, out_dir, force, device
+):
     """Diagnose the sim-to-real gap of one experiment (CSV, SI units, header row).
 
     Several step records of one device (FILES: small steps, stop-level steps, acceleration
@@ -715,6 +766,7 @@ def diagnose(files: tuple[Path, ...], kind, params_file, json_out, plot_out, out
     _writable(json_out, force, "--json")  # refused before the work, not after it
     _writable(plot_out, force, "--plot")
     _writable(paths["text"], force, "--out")
+    _place(device, latency_bound=True)
     import jax
 
     # Evidence compares log-likelihoods of ~1e4 to within ~1: float64.
@@ -741,7 +793,7 @@ def diagnose(files: tuple[Path, ...], kind, params_file, json_out, plot_out, out
             "has no servo-loop parameters)"
         )
     if json_out is not None:
-        write_json(result, json_out, source=file)
+        write_json(result, json_out, source=file, extra=_provenance())
         click.echo(f"json written: {json_out}")
     if plot_out is not None:
         save_plot(result, plot_out)
@@ -777,7 +829,8 @@ def _diagnose_set(files, kind, params_file, json_out, plot_out, text_out) -> Non
     click.echo(result.summary())
     _write_text(text_out, result.summary())
     if json_out is not None:
-        write_json_atomic(json_out, {"sources": [str(f) for f in files], **result.to_dict()})
+        payload = {"sources": [str(f) for f in files], **result.to_dict(), **_provenance()}
+        write_json_atomic(json_out, payload)
         click.echo(f"json written: {json_out}")
     if plot_out is not None:
         save_figure_atomic(set_figure(result), plot_out)
@@ -810,7 +863,8 @@ def _diagnose_set(files, kind, params_file, json_out, plot_out, text_out) -> Non
 )
 @_out_option("noise")
 @click.option("--force", is_flag=True, help="Replace an existing --json or --plot file.")
-def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, force):
+@_device_option(latency_bound=True)
+def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, force, device):
     """Analyse a static record: Allan deviation, IEEE noise terms, effects, exports.
 
     FILE is a noise CSV (header t,a_out; seconds and g; uniform sampling). Prints the
@@ -832,6 +886,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         (export_out, "--out"),
     ):
         _writable(path, force, option)
+    _place(device, latency_bound=True)
     printed: list[str] = []
 
     def say(text: str = "") -> None:
@@ -960,7 +1015,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
             _write_text(export_out, exported, what=f"{export_format} export")
     _write_text(paths["text"], "\n".join(printed))
     if json_out is not None:
-        payload = {"source": str(file), **analysis.analysis_to_json(result)}
+        payload = {"source": str(file), **analysis.analysis_to_json(result), **_provenance()}
         write_json_atomic(json_out, payload)
         click.echo(f"json written: {json_out}")
     if plot_out is not None:

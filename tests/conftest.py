@@ -92,7 +92,7 @@ def _run_study_scripts(root: Path, names, jobs: int = 2) -> dict:
     from accel_jax.report._run import worker_cpus
 
     studies_dir = Path(__file__).resolve().parent.parent / "studies"
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # as a user's shell
+    env = _user_environment()
     status, running, queue = {}, {}, list(names)
     free = list(range(1, jobs + 1))
     while queue or running:
@@ -123,6 +123,24 @@ def _run_study_scripts(root: Path, names, jobs: int = 2) -> dict:
     return status
 
 
+REJECTS_AN_OPTION = Path(__file__).resolve().parent / "xla_rejects"
+"""On PYTHONPATH, every Python process runs as on a jaxlib whose XLA rejects one of the
+package's options (see its sitecustomize.py)."""
+
+
+def _user_environment() -> dict:
+    """The environment of the quick report's processes: a user's shell (no XLA_FLAGS from
+    this test process), on a jaxlib that rejects one of the package's options (simulated,
+    `REJECTS_AN_OPTION`): the option must be skipped, never abort a process, and change no
+    result the studies' tests check."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env.pop("_ACCEL_JAX_XLA_SKIPPED", None)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(REJECTS_AN_OPTION), *filter(None, [os.environ.get("PYTHONPATH")])]
+    )
+    return env
+
+
 @pytest.fixture(scope="session")
 def quick_report(tmp_path_factory, worker_id):
     """The quick report, made once per test session and shared by every test (and every
@@ -130,13 +148,15 @@ def quick_report(tmp_path_factory, worker_id):
     and reuse it). Returns the report folder; each study's output is beside it.
 
     Made as a user would: each study script runs alone in a fresh process (`--quick`,
-    `_run_study_scripts`), then `accel-jax report --quick` assembles the report, reusing
-    those runs (same folder, marker and cache key). The studies' own tests read their
-    results from here instead of running each study a second time; the script runs'
-    exit codes and times are in `study_scripts` of `quick_report.done`."""
-    from click.testing import CliRunner
+    `_run_study_scripts`), then `accel-jax report --quick` assembles the report in a fresh
+    process, reusing those runs (same folder, marker and cache key) — every process on a
+    jaxlib that rejects one of the package's options (`_user_environment`). The studies'
+    own tests read their results from here instead of running each study a second time;
+    the script runs' exit codes and times are in `study_scripts` of `quick_report.done`."""
+    import subprocess
+    import sys
 
-    from accel_jax.cli import STUDIES, main
+    from accel_jax.cli import STUDIES
 
     base = tmp_path_factory.getbasetemp()
     shared = base.parent if worker_id != "master" else base
@@ -150,14 +170,19 @@ def quick_report(tmp_path_factory, worker_id):
                 names = [n for n in _QUICK_ORDER if n in STUDIES]
                 names += [n for n in STUDIES if n not in names]
                 scripts = _run_study_scripts(out.parent, names)
-                result = CliRunner().invoke(
-                    main, ["report", "--quick", "--no-progress", "--out", str(out)]
+                report = ["report", "--quick", "--no-progress", "--out", str(out)]
+                result = subprocess.run(
+                    [sys.executable, "-c", "from accel_jax.cli import main; main()", *report],
+                    capture_output=True,
+                    text=True,
+                    env=_user_environment(),
+                    timeout=_SCRIPT_TIMEOUT_S,
                 )
                 done.write_text(
                     json.dumps(
                         {
-                            "exit_code": result.exit_code,
-                            "output": result.output,
+                            "exit_code": result.returncode,
+                            "output": result.stdout + result.stderr,
                             "study_scripts": scripts,
                         }
                     )

@@ -100,6 +100,27 @@ def test_quick_report_studies_ran_on_their_own_cpu_shares(report_dir):
             assert json.loads(result.read_text())["provenance"]["cpus"] in shares, folder.name
 
 
+def test_quick_report_ran_where_xla_rejects_one_of_the_options(report_dir):
+    """The fixture's processes run on a jaxlib that rejects one of the package's options
+    (simulated: tests/xla_rejects). Every study finished (the tests above), the option was
+    skipped and named in each study's provenance, the options XLA accepts were applied,
+    and every study records where its work ran."""
+    from accel_jax._runtime import CPU_SCHEDULER_FLAG, FAST_COMPILE_FLAGS
+    from accel_jax.cli import STUDIES
+
+    unknown = "--xla_accel_jax_simulated_unknown_option=false"
+    for name in STUDIES:
+        provenance = json.loads((report_dir.parent / name / "result.json").read_text())[
+            "provenance"
+        ]
+        assert list(provenance["xla_options_skipped"]) == [unknown], name
+        flags = provenance["xla_flags"].split()
+        assert unknown not in flags and CPU_SCHEDULER_FLAG in flags, name
+        assert FAST_COMPILE_FLAGS[0] in flags, name  # --quick
+        assert provenance["placement"]["device"] == "auto", name
+        assert provenance["placement"]["unsharded_work_on"].startswith("cpu"), name
+
+
 def test_study_script_bad_option_or_foreign_folder_is_one_line_and_exit_2(tmp_path):
     """A study's command line: a bad option value, or an --out folder that holds something
     else, is one line on stderr, exit status 2, no traceback, nothing written."""

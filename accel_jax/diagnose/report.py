@@ -12,12 +12,15 @@ from .._io import save_figure_atomic, write_json_atomic
 from .base import DiagnosisResult
 
 
-def write_json(result: DiagnosisResult, path: str | os.PathLike, *, source=None) -> Path:
-    """Write `result.to_dict()` (plus the source file name) atomically as JSON."""
+def write_json(
+    result: DiagnosisResult, path: str | os.PathLike, *, source=None, extra: dict | None = None
+) -> Path:
+    """Write `result.to_dict()` (plus the source file name and `extra`, e.g. the
+    provenance) atomically as JSON."""
     payload = result.to_dict()
     if source is not None:
         payload = {"source": str(source), **payload}
-    return write_json_atomic(path, payload)
+    return write_json_atomic(path, {**payload, **(extra or {})})
 
 
 def figure(result: DiagnosisResult):

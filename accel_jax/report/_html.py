@@ -128,7 +128,40 @@ def _kv_table(mapping: dict) -> str:
     return f"<table>{rows}</table>"
 
 
+def study_failure(study_dir: Path) -> str | None:
+    """Why a study of this report did not finish (its marker's reason), or None. A folder
+    without a readable result.json and no reason recorded reads as not run."""
+    try:
+        marker = json.loads((study_dir / ".accel_jax_run.json").read_text())
+    except (OSError, ValueError):
+        marker = {}
+    if marker.get("failed"):
+        return str(marker["failed"])
+    try:
+        json.loads((study_dir / "result.json").read_text())
+    except (OSError, ValueError):
+        return "no result.json: the study did not finish"
+    return None
+
+
+def _failed_section(study_dir: Path, reason: str) -> str:
+    name = html.escape(study_dir.name)
+    log = study_dir / "error.log"
+    where = (
+        f" Its log: <code>{html.escape(str(log))}</code>." if log.exists() else ""
+    )
+    return (
+        f'<section id="{name}"><h2>{name}: <span class="st-differs">failed</span></h2>'
+        f"<p>This study raised before it finished: {html.escape(reason)}.{where} Run the "
+        "same command again after the cause is fixed: the studies that finished are "
+        "reused.</p></section>"
+    )
+
+
 def _study_section(study_dir: Path, *, quick: bool = False) -> str:
+    reason = study_failure(study_dir)
+    if reason is not None:
+        return _failed_section(study_dir, reason)
     result = json.loads((study_dir / "result.json").read_text())
     title = result.get("title", study_dir.name)
     parts = [f'<h2 id="{html.escape(study_dir.name)}">{html.escape(title)}</h2>']
@@ -299,10 +332,21 @@ def _overview(study_dirs: list[Path]) -> str:
             results[d.name] = json.loads((d / "result.json").read_text())
         except (OSError, ValueError):
             continue
-    parts = [_status_summary(results), _published_table(results)]
+    failed = [d.name for d in study_dirs if study_failure(d) is not None]
+    parts = [_failures(failed), _status_summary(results), _published_table(results)]
     parts += [_overview_tables(name, result.get("overview")) for name, result in results.items()]
     body = "".join(p for p in parts if p)
     return f'<h2 id="overview">At a glance</h2>{body}' if body else ""
+
+
+def _failures(names: list[str]) -> str:
+    if not names:
+        return ""
+    links = ", ".join(f'<a href="#{html.escape(n)}">{html.escape(n)}</a>' for n in names)
+    return (
+        f'<p class="banner"><b>{len(names)} of the studies failed</b> and are missing from '
+        f"the tables below: {links} (each section says why and where its log is).</p>"
+    )
 
 
 QUICK_BANNER = (

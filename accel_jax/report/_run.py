@@ -6,11 +6,15 @@ marker `.accel_jax_run.json` there: the run's cache key and whether the study fi
 A second run with the same key skips finished studies (an interrupted run resumes where it
 stopped); a folder holding a finished run with a different key (other options or other
 code) is left alone and reported, unless `force` replaces it.
+
+A study that raises (or whose process dies) does not take the report down: it is marked
+failed in its marker with a one-line reason, its traceback goes to `error.log` in its
+folder, the other studies finish, the page is written with the study shown as failed,
+and `run_report` then raises `StudiesFailed` (the CLI: a summary and exit status 1).
 """
 
 from __future__ import annotations
 
-import concurrent.futures
 import hashlib
 import importlib.util
 import inspect
@@ -20,6 +24,7 @@ import os
 import shutil
 import sys
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -27,7 +32,7 @@ import jax
 
 from .._io import _atomic_write_bytes
 from .._progress import bar, show_progress
-from .._runtime import usable_cpus
+from .._runtime import apply_device, usable_cpus
 from ._html import REPORT_MARKER, build_report
 
 MARKER = ".accel_jax_run.json"
@@ -35,6 +40,41 @@ MARKER = ".accel_jax_run.json"
 
 class ReportError(Exception):
     """A report cannot be written as asked (the message says why and what to do)."""
+
+
+class StudiesFailed(ReportError):
+    """Some studies raised or their process died. The others finished and the page was
+    written (`index`) with these marked failed; `failures` is `{study: one-line reason}`,
+    each study's traceback in `<study>/error.log`."""
+
+    def __init__(self, index: Path, failures: dict[str, str], root: Path):
+        self.index, self.failures, self.root = index, dict(failures), root
+        lines = [
+            f"  {name}: {why} (log: {root / name / ERROR_LOG})" for name, why in failures.items()
+        ]
+        super().__init__(
+            f"{len(failures)} stud{'y' if len(failures) == 1 else 'ies'} failed; the report "
+            f"marks {'it' if len(failures) == 1 else 'them'} and shows the rest "
+            f"({index}):\n" + "\n".join(lines)
+        )
+
+
+ERROR_LOG = "error.log"
+
+
+def one_line(error: BaseException, limit: int = 300) -> str:
+    """An exception as one line: its type and the first line of its message."""
+    text = str(error).strip().splitlines()
+    line = f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
+    return line if len(line) <= limit else line[: limit - 1] + "…"
+
+
+def _record_failure(folder: Path, key: str, reason: str, log: str | None) -> None:
+    """Mark a study failed (marker: unfinished, with the reason) and write its log."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if log is not None:
+        _atomic_write_bytes(folder / ERROR_LOG, log.encode())
+    _write_marker(folder, key, complete=False, failed=reason)
 
 
 def _package_dir() -> Path:
@@ -84,9 +124,17 @@ def _read_marker(folder: Path) -> dict | None:
         return None
 
 
-def _write_marker(folder: Path, key: str, complete: bool, seconds: float | None = None) -> None:
-    body = json.dumps({"key": key, "complete": complete, "seconds": seconds}).encode()
-    _atomic_write_bytes(folder / MARKER, body)
+def _write_marker(
+    folder: Path,
+    key: str,
+    complete: bool,
+    seconds: float | None = None,
+    failed: str | None = None,
+) -> None:
+    marker = {"key": key, "complete": complete, "seconds": seconds}
+    if failed is not None:
+        marker["failed"] = failed
+    _atomic_write_bytes(folder / MARKER, json.dumps(marker).encode())
 
 
 def _plan(folder: Path, key: str, force: bool) -> str:
@@ -163,9 +211,6 @@ def run_study(
     return result, False
 
 
-_WORKER_POSITION: int | None = None
-
-
 def worker_cpus(slot: int, jobs: int, cpus: Sequence[int]) -> list[int] | None:
     """The CPUs worker `slot` (1..jobs) of `jobs` side-by-side study processes is pinned
     to: every jobs-th CPU from its own (disjoint shares, all CPUs used), or `None` (not
@@ -181,26 +226,43 @@ def worker_cpus(slot: int, jobs: int, cpus: Sequence[int]) -> list[int] | None:
     return list(cpus[slot - 1 :: jobs])
 
 
-def _init_worker(x64: bool, lock, positions, jobs: int = 1) -> None:
-    """A worker process: the parent's float64 setting, the shared terminal lock for the
-    bars, a terminal line of its own below the overall bar, and its share of the CPUs
+def _init_worker(x64: bool, lock, slot: int, jobs: int = 1) -> None:
+    """A study process: the parent's float64 setting and device choice (inherited through
+    `ACCEL_JAX_DEVICE`), the shared terminal lock for the bars, and its share of the CPUs
     (`worker_cpus`; set before JAX starts its backend, whose thread pool follows it)."""
-    global _WORKER_POSITION
-    jax.config.update("jax_enable_x64", x64)
-    from tqdm.auto import tqdm
-
-    tqdm.set_lock(lock)
-    _WORKER_POSITION = positions.get()
-    share = worker_cpus(_WORKER_POSITION, jobs, usable_cpus())
+    share = worker_cpus(slot, jobs, usable_cpus())
     if share is not None and hasattr(os, "sched_setaffinity"):
         try:
             os.sched_setaffinity(0, share)
         except OSError:  # not permitted here: run unpinned
             pass
+    apply_device(latency_bound=False, shared=jobs > 1)
+    jax.config.update("jax_enable_x64", x64)
+    from tqdm.auto import tqdm
+
+    tqdm.set_lock(lock)
 
 
-def _run_study_in_worker(*args) -> float:
-    return _run_study(*args, position=_WORKER_POSITION)
+def _study_process(args: tuple, slot: int, jobs: int, x64: bool, lock, conn) -> None:
+    """The body of one side-by-side study process: run the study, send the parent
+    `("done", seconds)` or `("failed", one-line reason)` (the traceback written to the
+    study's `error.log` here). An interrupt ends it quietly: the parent handles it."""
+    try:
+        _init_worker(x64, lock, slot, jobs)
+        elapsed = _run_study(*args, position=slot)
+        conn.send(("done", elapsed))
+    except KeyboardInterrupt:
+        pass
+    except Exception as error:
+        folder = Path(args[2])
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            _atomic_write_bytes(folder / ERROR_LOG, traceback.format_exc().encode())
+        except OSError:
+            pass
+        conn.send(("failed", one_line(error)))
+    finally:
+        conn.close()
 
 
 # Memory budgeted per study process (a margin: the whole quick report, all studies in one
@@ -218,9 +280,9 @@ def _physical_memory() -> int | None:
 def default_jobs(n_studies: int) -> int:
     """Studies run side by side: one process per CPU core up to 4 (each study is mostly
     single-threaded Python tracing and XLA compilation) and as many as fit in memory at
-    4 GiB each; one on a GPU or TPU (every process would claim the accelerator's memory)."""
-    if jax.default_backend() != "cpu":
-        return 1
+    4 GiB each. The same on a GPU host: there the studies' latency-bound work runs on the
+    host's cores (`apply_device`), and the processes share the accelerator without any
+    claiming its memory up front (`XLA_PYTHON_CLIENT_PREALLOCATE=false`)."""
     jobs = min(n_studies, len(usable_cpus()), 4)
     memory = _physical_memory()
     if memory is not None:
@@ -253,7 +315,9 @@ def run_report(
     `typical_seconds[name]`, else in the given order.
 
     Raises `ReportError` (nothing deleted, nothing half-written) when an existing folder
-    would have to be replaced and `force` is false; a study's own `ValueError` propagates.
+    would have to be replaced and `force` is false. A study that raises or whose process
+    dies is marked failed (`ERROR_LOG` in its folder) while the others run on; the page is
+    written with it shown failed, then `StudiesFailed` is raised.
     """
     out_dir = Path(out_dir)
     root = out_dir.parent
@@ -297,18 +361,42 @@ def run_report(
         echo(f"[{name}] running{' (quick)' if quick else ''} ...")
         return (name, studies_dir, root / name, key, quick, params_fields, progress)
 
+    failures: dict[str, str] = {}
+
+    def finished(name: str, outcome: str, value) -> None:
+        if outcome == "done":
+            echo(f"[{name}] done in {value:.0f} s")
+        else:
+            failures[name] = value
+            _record_failure(root / name, plans[name][0], value, log=None)
+            echo(f"[{name}] FAILED: {value} (log: {root / name / ERROR_LOG})")
+
     with show_progress(progress), bar(len(studies), "studies", unit="study") as overall:
         overall.update(len(studies) - len(todo))
         if jobs == 1:
             for name in todo:
-                elapsed = _run_study(*task(name))
-                echo(f"[{name}] done in {elapsed:.0f} s")
+                args = task(name)
+                try:
+                    finished(name, "done", _run_study(*args))
+                except Exception as error:  # the study's fault: recorded, the rest runs on
+                    _atomic_write_bytes(
+                        _ensure(root / name) / ERROR_LOG, traceback.format_exc().encode()
+                    )
+                    finished(name, "failed", one_line(error))
                 overall.update(1)
         else:
-            _run_parallel(todo, task, jobs, echo, overall)
-    return build_report(
+            _run_parallel(todo, task, jobs, echo, overall, finished, lambda n: root / n)
+    index = build_report(
         [root / name for name in studies], index, title=REPORT_TITLE, quick=bool(quick)
     )
+    if failures:
+        raise StudiesFailed(index, failures, root)
+    return index
+
+
+def _ensure(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
 
 REPORT_TITLE = "accel_jax design-study report"
@@ -338,50 +426,67 @@ def _longest_first(names: list[str], root: Path, typical_seconds: dict[str, floa
     return sorted(names, key=expected)
 
 
-def _run_parallel(todo, task, jobs, echo, overall) -> None:
-    """Run the studies `jobs` at a time in spawned worker processes (JAX is not fork-safe);
-    on an error or an interrupt, cancel what has not started and re-raise."""
+def _run_parallel(todo, task, jobs, echo, overall, finished, task_folder) -> None:
+    """Run the studies `jobs` at a time, each in a spawned process of its own (JAX is not
+    fork-safe; one process per study, so that a process that dies names its study), and
+    call `finished(name, "done", seconds)` or `finished(name, "failed", reason)` for each.
+    On an interrupt or an error of the runner itself, stop every study process and
+    re-raise (finished studies are kept)."""
+    from multiprocessing.connection import wait
+
     from tqdm.auto import tqdm
 
     context = multiprocessing.get_context("spawn")
-    positions = context.Queue()
-    for slot in range(jobs):
-        positions.put(slot + 1)  # line 0 is the overall bar
     echo(f"running {len(todo)} studies, {jobs} at a time (one process each)")
     # One terminal lock for this process's bar and the workers' (tqdm's own is made in
     # the fork context, which a spawned process cannot share).
     lock, previous_lock = context.RLock(), tqdm.get_lock()
     tqdm.set_lock(lock)
-    executor = concurrent.futures.ProcessPoolExecutor(
-        max_workers=jobs,
-        mp_context=context,
-        initializer=_init_worker,
-        initargs=(bool(jax.config.jax_enable_x64), lock, positions, jobs),
-    )
+    x64 = bool(jax.config.jax_enable_x64)
     waiting, running = list(todo), {}
+    free = list(range(1, jobs + 1))  # terminal line of each slot (0 is the overall bar)
     try:
         while waiting or running:
-            while waiting and len(running) < jobs:  # submitted only when a process is free
-                name = waiting.pop(0)
-                running[executor.submit(_run_study_in_worker, *task(name))] = name
-            done, _ = concurrent.futures.wait(
-                running, return_when=concurrent.futures.FIRST_COMPLETED
-            )
-            for future in done:
-                name = running.pop(future)
+            while waiting and free:
+                name, slot = waiting.pop(0), free.pop(0)
+                receive, send = context.Pipe(duplex=False)
+                process = context.Process(
+                    target=_study_process,
+                    args=(task(name), slot, jobs, x64, lock, send),
+                    name=f"accel_jax study {name}",
+                )
+                process.start()
+                send.close()
+                running[process.sentinel] = (name, process, receive, slot)
+            for sentinel in wait(list(running)):
+                name, process, receive, slot = running.pop(sentinel)
+                message = None
                 try:
-                    elapsed = future.result()
-                except concurrent.futures.process.BrokenProcessPool as error:
-                    raise ReportError(
-                        f"the process running {name} died before it finished (out of "
-                        "memory?); finished studies are kept: run the same command again, "
-                        "with --jobs 1 if it recurs."
-                    ) from error
-                echo(f"[{name}] done in {elapsed:.0f} s")
+                    if receive.poll():
+                        message = receive.recv()
+                except (EOFError, OSError):
+                    message = None
+                receive.close()
+                process.join()
+                free.append(slot)
+                if message is None:
+                    code = process.exitcode
+                    how = f"killed by signal {-code}" if code and code < 0 else f"exit {code}"
+                    reason = f"its process died before it finished ({how}; out of memory?)"
+                    folder = _ensure(task_folder(name))
+                    _atomic_write_bytes(folder / ERROR_LOG, (reason + "\n").encode())
+                    finished(name, "failed", reason)
+                else:
+                    finished(name, *message)
                 overall.update(1)
     except BaseException:
-        executor.shutdown(wait=False, cancel_futures=True)
+        for name, process, receive, _ in running.values():
+            process.terminate()
+        for name, process, receive, _ in running.values():
+            process.join(timeout=10)
+            if process.is_alive():
+                process.kill()
+            receive.close()
         raise
     finally:
         tqdm.set_lock(previous_lock)
-    executor.shutdown(wait=True)

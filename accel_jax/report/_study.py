@@ -102,10 +102,18 @@ def study_main(
     different from the report's default one (they enter the cache key; empty for the
     report's own settings); it raises `ValueError` for a bad value. Prints the summary
     (`summary(result)` or each summary row); a bad option or folder is one line on stderr
-    and exit status 2.
+    and exit status 2; a study that raises is one line on stderr (its traceback in
+    `OUT/error.log`) and exit status 1.
     """
-    from .._runtime import apply_fast_compile, enable_compilation_cache, quiet_xla_logs
-    from ._run import ReportError, cache_key, run_study
+    from .._runtime import (
+        DEVICE_CHOICES,
+        DeviceError,
+        apply_device,
+        apply_fast_compile,
+        enable_compilation_cache,
+        quiet_xla_logs,
+    )
+    from ._run import ERROR_LOG, ReportError, _record_failure, cache_key, one_line, run_study
 
     study_file = Path(study_file).resolve()
     name = study_file.stem
@@ -118,12 +126,24 @@ def study_main(
     parser.add_argument(
         "--force", action="store_true", help="replace a folder that holds another run"
     )
+    parser.add_argument(
+        "--device",
+        choices=DEVICE_CHOICES,
+        default=None,
+        help="where the work runs (default $ACCEL_JAX_DEVICE, else auto: latency-bound "
+        "work on the CPU, Monte Carlo sweeps on a GPU where one is present)",
+    )
     if add_arguments is not None:
         add_arguments(parser)
     args = parser.parse_args(argv)
     quiet_xla_logs()
     if args.quick:
         apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
+    try:
+        apply_device(args.device, latency_bound=False)  # as the report places a study
+    except DeviceError as error:
+        print(f"{parser.prog}: {error}", file=sys.stderr)
+        return 2
     enable_compilation_cache()  # $ACCEL_JAX_CACHE_DIR decides, as for the report
     import jax
 
@@ -143,9 +163,17 @@ def study_main(
     except ReportError as error:
         print(f"{parser.prog}: {error}", file=sys.stderr)
         return 2
-    except ValueError as error:
-        print(f"{parser.prog}: the study rejected its input: {error}", file=sys.stderr)
-        return 2
+    except Exception as error:  # the study raised: one line, its traceback in a log file
+        import traceback
+
+        reason, where = one_line(error), ""
+        try:  # marked failed as the report marks it, with the traceback beside it
+            _record_failure(Path(args.out), key, reason, traceback.format_exc())
+            where = f" (log: {Path(args.out) / ERROR_LOG})"
+        except OSError:
+            pass
+        print(f"{parser.prog}: the study failed: {reason}{where}", file=sys.stderr)
+        return 1
     if cached:
         print(f"{args.out} is up to date (same options and code; --force recomputes)")
     (summary or _default_summary)(result)
