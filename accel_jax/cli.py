@@ -177,9 +177,6 @@ def report(
         # Before anything starts JAX's backend: the quick report is compile-bound (most of
         # its programs run once or a few times), see FAST_COMPILE_FLAGS.
         apply_fast_compile()
-    # Latency-bound work on the CPU, sweeps on an accelerator (auto); the studies run side
-    # by side, so none of them may claim a GPU's memory up front.
-    _place(device, latency_bound=False, shared=True)
     import jax
 
     # Studies measure effects below float32 resolution (δK_a at 0.1 %): run them in float64.
@@ -190,6 +187,9 @@ def report(
         folder = enable_compilation_cache()
         if folder is not None:
             click.echo(f"compilation cache: {folder}")
+    # Latency-bound work on the CPU, sweeps on an accelerator (auto); the studies run side
+    # by side, so none of them may claim a GPU's memory up front.
+    _place(device, latency_bound=False, shared=True)
     from .report._run import ReportError, StudiesFailed, run_report
 
     params = None

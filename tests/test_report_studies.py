@@ -147,3 +147,30 @@ def test_study_script_bad_option_or_foreign_folder_is_one_line_and_exit_2(tmp_pa
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "not written by accel-jax report" in out.stderr
     assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+
+
+def test_no_study_starts_jax_at_import():
+    """A study script must not start JAX's backend when imported: its XLA options (the
+    quick run's, the checked ones) and `--device` are set after the import and before the
+    backend starts. (vibration_compensation built a transfer function at import, so its
+    quick run never had the fast-compile emitters and `--device cpu` could not apply.)"""
+    import subprocess
+    import sys
+
+    from accel_jax.cli import STUDIES
+
+    program = (
+        "import importlib.util, sys\n"
+        "from jax._src import xla_bridge\n"
+        "for path in sys.argv[1:]:\n"
+        "    spec = importlib.util.spec_from_file_location('study', path)\n"
+        "    spec.loader.exec_module(importlib.util.module_from_spec(spec))\n"
+        "    print(path, xla_bridge.backends_are_initialized())\n"
+    )
+    paths = [str(ROOT / "studies" / f"{name}.py") for name in STUDIES]
+    out = subprocess.run(
+        [sys.executable, "-c", program, *paths], capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr
+    started = [line.split()[0] for line in out.stdout.splitlines() if line.endswith("True")]
+    assert not started, started

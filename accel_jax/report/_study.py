@@ -139,12 +139,12 @@ def study_main(
     quiet_xla_logs()
     if args.quick:
         apply_fast_compile()  # as `accel-jax report --quick` (before JAX starts)
+    enable_compilation_cache()  # $ACCEL_JAX_CACHE_DIR decides, as for the report
     try:
         apply_device(args.device, latency_bound=False)  # as the report places a study
     except DeviceError as error:
         print(f"{parser.prog}: {error}", file=sys.stderr)
         return 2
-    enable_compilation_cache()  # $ACCEL_JAX_CACHE_DIR decides, as for the report
     import jax
 
     # As `accel-jax report`: the process runs in float64 (the key records it), so a study
