@@ -10,7 +10,8 @@ diagnosis is checked on records made with other conventions than its own:
 - the test winding may be wired with either polarity, and its gain differs from the
   feedback winding's;
 - the record starts wherever the recorder was started: at rest, or in the middle of the
-  transient of an earlier change (a test sequence already running);
+  transient of an earlier change (a test sequence already running), or with the pendulum
+  resting on a stop where an earlier, larger level had held it (`ON_STOP_STARTS`);
 - the output carries an ADC offset and is quantised by an ADC of given step size;
 - sample rates of 0.5–2 MHz and multi-level test sequences.
 
@@ -36,7 +37,11 @@ Everything is float64 NumPy/SciPy. `simulate(device, record, rng=...)` returns
 (t, u_test, u_out), and (t, u_test, u_out, a_in) for a record with an acceleration input.
 `draw_truth`/`make` draw and simulate the blind harness's single records,
 `draw_device_set`/`make_set` one device's set of records (small steps, steps onto the
-stops, acceleration steps) for the multi-record diagnosis.
+stops, acceleration steps) for the multi-record diagnosis; `draw_truth_on_stop` a record
+that starts on a stop (for `make`). For a test stand's view of the input: `measure_input`
+(the digitised input channel: delay, anti-alias filter, noise, ADC, relay spikes, offset,
+drift), and calibration sequences: `prbs_levels` (random telegraph), `sweep_column` and
+`sweep_levels` (a chirp: an input with no plateaus).
 """
 
 from __future__ import annotations
@@ -83,7 +88,11 @@ class Record:
     acceleration; `output_offset` [V]; `output_sign` ±1 (an inverting recorder input);
     `adc_step` [V] (0: none); `noise` white σ [V]; `gm` (σ [V], τ [s]) Gauss–Markov output
     noise; `start` "rest" (at rest under the first level, long before t0) or a number:
-    the time [s] before t0 at which the first level was switched on from `start_level`.
+    the time [s] before t0 at which the first level was switched on from `start_level`,
+    or "on_stop_high" / "on_stop_low": at rest on the +h_max / −h_max stop at t0 (see
+    `ON_STOP_STARTS`), where it was held by the test voltage `hold_level` [V] (None: the
+    level in force at t0); that level was switched off, and the record's level switched
+    on, exactly at t0.
     `bandpass` (ω0 [rad/s], ζ, gain [V·s/V]) replaces the accelerometer by a velocity-
     output sensor driven by the calibration voltage (it ignores the acceleration input).
     `accel_levels` (K+1,) the piecewise-constant input acceleration [g] (None: none) and
@@ -109,6 +118,25 @@ class Record:
     bandpass: tuple | None = None
     accel_levels: np.ndarray | None = None
     accel_change_times: np.ndarray | None = None
+    hold_level: float | None = None
+
+
+ON_STOP_STARTS = {"on_stop_high": 1, "on_stop_low": -1}
+"""`Record.start` values of a record that starts with the pendulum resting on a stop (the
+sign of θ there). The story: an earlier, larger test voltage (`Record.hold_level`) drove
+the pendulum onto that stop and held it there at rest (θ = ±h_max/l, θ' = 0), long enough
+for the torquer lag and the output filter to settle: M_dm = k_dm (g_w U_hold − U_stop),
+U_f = U_stop, with U_stop = ±k_dp k_y h_max (times the pickoff nonlinearity, if any) the
+pickoff output at the stop. At t0 the record's own sequence takes over: from t0 the level
+in force is the record's, and the pendulum stays on the stop while the net moment
+J θ'' = M_dm + M(t) − c θ still presses it outward, and leaves it (the release event) when
+that moment reverses: at once when T_dm = 0 (the torquer has no state) and the level in
+force at t0 would settle inside the stops; after the torquer lag has turned M_dm round
+when T_dm > 0. With `hold_level` None the holding voltage is the level in force at t0
+itself (exact for T_dm = 0, where the earlier voltage leaves no trace; for T_dm > 0 the
+torquer starts settled under that level). A given `hold_level` must press the pendulum
+onto the named stop (else `simulate` raises ValueError). The output at t0 is the stop's:
+output_sign · U_stop + output_offset."""
 
 
 def _accel_steps(rec: Record):
@@ -202,6 +230,18 @@ class _Loop:
         y[3] = self.amp(theta)
         return y
 
+    def on_stop(self, sign, u):
+        """The state at rest on the stop of the given sign (θ = ±θ_stop, θ' = 0), with the
+        torquer moment and the output filter settled there under the test voltage u:
+        M_dm = k_dm (g_w u − U_amp(±θ_stop)), U_f = U_amp(±θ_stop)."""
+        d = self.d
+        theta = sign * self.theta_stop
+        y = np.zeros(4)
+        y[0] = theta
+        y[2] = d.k_dm * (d.test_gain * u - self.amp(theta))
+        y[3] = self.amp(theta)
+        return y
+
 
 def _integrate(loop: _Loop, y, held, t_start, t_end, u, a, t_eval, out, rtol):
     """Integrate from t_start to t_end under the constant test voltage u and acceleration
@@ -288,6 +328,21 @@ def simulate(device: Device, rec: Record, *, rng: np.random.Generator, rtol=1e-1
         clean = np.empty(rec.n)
         if rec.start == "rest":
             t_begin, y = t[0], loop.rest(levels[0], t[0])
+        elif isinstance(rec.start, str) and rec.start in ON_STOP_STARTS:
+            if not np.isfinite(loop.theta_stop):
+                raise ValueError(f"start {rec.start!r} needs a device with stops (finite h_max)")
+            sign = ON_STOP_STARTS[rec.start]
+            t_begin = t[0]
+            u_first = float(levels[np.searchsorted(changes, t_begin, side="right")])
+            u_hold = u_first if rec.hold_level is None else float(rec.hold_level)
+            y = loop.on_stop(sign, u_hold)
+            if rec.hold_level is not None:
+                pressed = sign * loop.net_moment(t_begin, y, u_hold, loop.accel_at(t_begin))
+                if not pressed > 0:
+                    raise ValueError(
+                        f"hold_level {u_hold} V does not press the pendulum onto the stop "
+                        f"of start {rec.start!r}"
+                    )
         else:
             t_begin = t[0] - float(rec.start)
             y = loop.rest(rec.start_level, t_begin)
@@ -379,6 +434,24 @@ IN_LIBRARY = (
 OUT_OF_LIBRARY = ("pickoff_nonlinearity", "bandpass_sensor", "periodic_disturbance")
 CLASSES = ("none",) + IN_LIBRARY + OUT_OF_LIBRARY
 
+ON_STOP_EFFECT = "start_on_stop"
+"""The effect name of `draw_truth_on_stop`'s records (not in `CLASSES`): a device with
+stops whose record starts with the pendulum resting on one of them. An in-library situation
+for the stop effect (the loop and its stops are the library's model), but the start state
+is neither of the library's (at rest inside the stops, or in a transient): the honest
+verdict is not `none`."""
+
+ON_STOP_STOP = (1.8, 2.3)
+"""stop_over_u_max of an on-stop record, uniform: the stop voltage k_dp k_y h_max over the
+settled output of the full small level (U_max), beyond the reach of the later small steps'
+transients (their overshoot at ζ ≈ 0.5, from the stop or between levels, with the moment's
+offset of up to ≈ 0.2 V): over 100 drawn records (seeds 0–99) the output, once off the
+starting stop, reached at most 0.86 of the stop voltage (1.59 U_max k_test)."""
+
+ON_STOP_HOLD = (1.2, 1.5)
+"""The holding level of an on-stop record over the level whose settled output just reaches
+the stop, uniform (the earlier test voltage that drove the pendulum onto it)."""
+
 
 def _log_uniform(rng, low, high):
     return float(np.exp(rng.uniform(np.log(low), np.log(high))))
@@ -455,7 +528,8 @@ def draw_truth(rng: np.random.Generator, effect: str) -> dict:
 
 
 def make(truth: dict, rng: np.random.Generator):
-    """Simulate one drawn world: (t, u_test column, u_out column, noise component) [s, V]."""
+    """Simulate one drawn world (`draw_truth`'s, or `draw_truth_on_stop`'s): (t, u_test
+    column, u_out column, noise component) [s, V]."""
     d = truth["device"]
     device = Device(J=d["J"], mu=d["mu"], c=d["c"], k_dm=d["k_dm"], k_dp=d["k_dp"], k_y=d["k_y"])
     device.test_gain = d["test_gain"]
@@ -485,6 +559,9 @@ def make(truth: dict, rng: np.random.Generator):
         device.T_f = truth["lag_s"]
     elif effect == "stop_saturation":
         device.h_max = truth["stop_over_u_max"] * u_max * k_test / (device.k_dp * device.k_y)
+    elif effect == ON_STOP_EFFECT:
+        device.h_max = truth["stop_over_u_max"] * u_max * k_test / (device.k_dp * device.k_y)
+        record.hold_level = truth["start_level_V"]
     elif effect == "disturbance_drift":
         # Ṁ such that the settled output moves by drift_V over the record.
         record.moment_rate = truth["drift_V"] * loop_k / gain / DURATION
@@ -512,6 +589,48 @@ def make(truth: dict, rng: np.random.Generator):
     clean_record = dataclasses.replace(record, noise=0.0, gm=(0.0, 1.0), adc_step=0.0)
     _, _, clean = simulate(device, clean_record, rng=np.random.default_rng(0))
     return t - t[0], u, y, y - clean
+
+
+def draw_truth_on_stop(rng: np.random.Generator) -> dict:
+    """One record of a device that rests on a mechanical stop when the record starts
+    (effect `ON_STOP_EFFECT`), then driven off it by a small-step test sequence.
+
+    The world is drawn as `draw_truth`'s (device, small-step sequence, conventions: the
+    same draws in the same order), then: the stop (+h_max: "on_stop_high", −h_max:
+    "on_stop_low", even odds), `stop_over_u_max` uniform in `ON_STOP_STOP` (the stop voltage
+    k_dp k_y h_max = stop_over_u_max × U_max × k_test, as `stop_saturation`'s, but beyond
+    every small level's settled output and its transients) and `hold_over_stop` uniform in
+    `ON_STOP_HOLD`. The story (`ON_STOP_STARTS`): an earlier test voltage, `start_level_V`
+    = hold_over_stop × the voltage whose settled output (with the record's moment) just
+    reaches that stop, drove the pendulum onto the stop and held it there at rest; it was
+    switched off at t0, when the record's first level came on. That level settles inside
+    the stops, so the pendulum leaves the stop from t0 (the devices here have no torquer
+    lag: at once), from rest, and the record's first samples sit at the stop voltage
+    (output_sign × ±k_dp k_y h_max + output_offset) while it starts to move. The conventions'
+    drawn `start` and `start_level_V` are replaced by the on-stop start and this level."""
+    device = _draw_device(rng)
+    u_max, levels, bounds = _draw_small_steps(rng)
+    truth = {
+        "effect": ON_STOP_EFFECT,
+        "device": device,
+        "levels_V": levels,
+        "change_times_s": bounds,
+        **_draw_conventions(rng, u_max),
+        "u_max_V": u_max,
+    }
+    side = float(rng.choice([-1.0, 1.0]))
+    truth["stop_over_u_max"] = float(rng.uniform(*ON_STOP_STOP))
+    truth["hold_over_stop"] = float(rng.uniform(*ON_STOP_HOLD))
+    truth["start"] = "on_stop_high" if side > 0 else "on_stop_low"
+    # The settled output under U is k_test g_w U + gain M/(c + k_dm gain); the holding
+    # level is hold_over_stop times the U at which it equals the stop's ±k_dp k_y h_max.
+    gain = device["k_dp"] * device["k_y"] * Device().l
+    loop_k = device["c"] + device["k_dm"] * gain
+    k_test = device["k_dm"] * gain / loop_k
+    stop_V = truth["stop_over_u_max"] * u_max * k_test
+    reach = (side * stop_V - gain * truth["moment_Nm"] / loop_k) / (k_test * device["test_gain"])
+    truth["start_level_V"] = float(truth["hold_over_stop"] * reach)
+    return truth
 
 
 # --------------------------------------------------------------------------------------
@@ -665,3 +784,252 @@ def make_set(truth_set: dict, rng: np.random.Generator) -> list[dict]:
         a_in = columns[3] if len(columns) == 4 else None
         out.append({"name": r["name"], "t": t - t[0], "u_test": u, "u_out": y, "a_in": a_in})
     return out
+
+
+# --------------------------------------------------------------------------------------
+# The test stand's input channel, and calibration test sequences
+# --------------------------------------------------------------------------------------
+
+INPUT_DELAY_WHOLE = (0, 1, 2)
+"""Whole-sample delays of the input channel behind the output channel, one drawn (even
+odds); a fractional part uniform in 0–1 sample is added with probability
+`INPUT_DELAY_FRACTION_P`."""
+
+INPUT_DELAY_FRACTION_P = 0.5
+INPUT_ANTIALIAS = (0.2, 1.0)
+"""Time constant of the input channel's first-order anti-alias filter [sample periods],
+uniform."""
+
+INPUT_NOISE = (3e-4, 1.5e-3)
+"""White noise σ of the input channel [V], log-uniform."""
+
+INPUT_LSB = (0.0, 6e-4)
+"""ADC step of the input channel [V], uniform; none (0) with probability `INPUT_LSB_NONE_P`."""
+
+INPUT_LSB_NONE_P = 0.2
+INPUT_SPIKE_P = 0.7
+"""Probability of a relay spike at each change of the input."""
+
+INPUT_SPIKE_SAMPLES = (1, 2)
+INPUT_SPIKE = (5e-3, 5e-2)
+"""Spike amplitude [V], uniform, of random sign."""
+
+INPUT_DRIFT = 5e-4
+"""Linear drift of the input channel over the record [V]: uniform ±this, present with
+probability `INPUT_DRIFT_P` (else 0)."""
+
+INPUT_DRIFT_P = 0.5
+INPUT_OFFSET = 2e-3
+"""Offset of the input channel [V], uniform ±this."""
+
+
+def measure_input(
+    column,
+    rate,
+    rng: np.random.Generator,
+    *,
+    noise_V=None,
+    lsb_V=None,
+    delay_samples=None,
+    spikes=None,
+    drift_V=None,
+    antialias=None,
+    offset_V=None,
+    change_phase=None,
+):
+    """(measured column, info) of what a test stand's digitiser records of the input
+    channel (the test voltage, or the acceleration) beside the output channel.
+
+    The physical input is the piecewise-constant signal whose sampled column (the level in
+    force at each sample, as `simulate` returns it) is `column`, (n,). Its changes are
+    taken where the column changes, at sample k_j, and placed at the exact time
+    s_j = k_j − φ_j [sample periods from the first sample], φ_j ∈ [0, 1) a fraction of a
+    sample (the DAC runs on its own clock, so the column cannot say when between samples
+    k_j − 1 and k_j it changed; φ_j = 0: exactly at sample k_j). Before the record the
+    input is taken at the first sample's level, and the filter settled there. The channel:
+
+    1. delayed by D = `delay_samples` sample periods behind the output channel (whole part
+       from `INPUT_DELAY_WHOLE`, plus a fractional part uniform 0–1 with probability
+       `INPUT_DELAY_FRACTION_P`): sample k sees the input at time e_k = k − D;
+    2. filtered by a first-order anti-alias low-pass of time constant τ = `antialias`
+       [sample periods] (`INPUT_ANTIALIAS`; 0: none), exactly for the piecewise-constant
+       input: x(e) = c_0 + Σ_{s_j ≤ e} Δ_j (1 − exp(−(e − s_j)/τ)), Δ_j the j-th change;
+    3. plus relay spikes (`spikes`): at each change, with probability `INPUT_SPIKE_P`, a
+       rectangular spike of 1–2 samples and amplitude uniform in `INPUT_SPIKE` of random
+       sign, on the first samples at or after the delayed change, k ≥ s_j + D (a value
+       added to the digitised samples, not filtered);
+    4. plus an offset (`offset_V`, uniform ±`INPUT_OFFSET`), a linear drift (`drift_V`:
+       0 at the first sample, drift_V at the last; uniform ±`INPUT_DRIFT` with
+       probability `INPUT_DRIFT_P`, else 0) and white noise of σ `noise_V` (`INPUT_NOISE`,
+       log-uniform);
+    5. quantised on the grid lsb_V × integer (`INPUT_LSB`; 0: none), offset included
+       (the grid is the ADC's, fixed at zero).
+
+    Each argument None is drawn (ranges in volts: for an acceleration channel give them in
+    its units). `spikes`: None (drawn), or a list of {"change": j, "samples": 1 or 2,
+    "amplitude_V": a} (or (j, samples, a) tuples; [] or False: none). `change_phase`: φ,
+    one for all changes or one per change (None: uniform per change). Every draw is made
+    in a fixed order whatever is given (delay, filter, phases, noise σ, LSB, spikes,
+    drift, offset, the noise samples), so a given value leaves the others' draws as they
+    would be. `info` (JSON-able) holds the values used: delay_samples, delay_s,
+    antialias_tau_samples, antialias_tau_s, change_index (k_j), change_phase (φ_j),
+    noise_V, lsb_V, spikes, drift_V, offset_V, rate.
+    """
+    column = np.asarray(column, dtype=float)
+    n = column.size
+    change_index = np.flatnonzero(column[1:] != column[:-1]) + 1
+    count = change_index.size
+
+    whole = int(rng.choice(INPUT_DELAY_WHOLE))
+    fraction = float(rng.uniform()) if rng.uniform() < INPUT_DELAY_FRACTION_P else 0.0
+    drawn_delay = whole + fraction
+    drawn_tau = float(rng.uniform(*INPUT_ANTIALIAS))
+    drawn_phase = rng.uniform(size=count)
+    drawn_noise = _log_uniform(rng, *INPUT_NOISE)
+    drawn_lsb = 0.0 if rng.uniform() < INPUT_LSB_NONE_P else float(rng.uniform(*INPUT_LSB))
+    spike_on = rng.uniform(size=count) < INPUT_SPIKE_P
+    spike_samples = rng.integers(INPUT_SPIKE_SAMPLES[0], INPUT_SPIKE_SAMPLES[1] + 1, count)
+    spike_amplitude = rng.uniform(*INPUT_SPIKE, count) * rng.choice([-1.0, 1.0], count)
+    drift_on = rng.uniform() < INPUT_DRIFT_P
+    drawn_drift = float(rng.uniform(-INPUT_DRIFT, INPUT_DRIFT)) if drift_on else 0.0
+    drawn_offset = float(rng.uniform(-INPUT_OFFSET, INPUT_OFFSET))
+    white = rng.normal(size=n)
+
+    delay = drawn_delay if delay_samples is None else float(delay_samples)
+    tau = drawn_tau if antialias is None else float(antialias)
+    if change_phase is None:
+        phase = drawn_phase
+    else:
+        phase = np.broadcast_to(np.asarray(change_phase, dtype=float), (count,)).copy()
+    sigma = drawn_noise if noise_V is None else float(noise_V)
+    lsb = drawn_lsb if lsb_V is None else float(lsb_V)
+    drift = drawn_drift if drift_V is None else float(drift_V)
+    offset = drawn_offset if offset_V is None else float(offset_V)
+    if spikes is None:
+        spike_list = [
+            {"change": int(j), "samples": int(spike_samples[j]), "amplitude_V": float(a)}
+            for j, a in enumerate(spike_amplitude)
+            if spike_on[j]
+        ]
+    else:
+        keys = ("change", "samples", "amplitude_V")
+        items = [
+            x if isinstance(x, dict) else dict(zip(keys, x, strict=True)) for x in spikes or []
+        ]
+        spike_list = [
+            {
+                "change": int(x["change"]),
+                "samples": int(x["samples"]),
+                "amplitude_V": float(x["amplitude_V"]),
+            }
+            for x in items
+        ]
+    if delay < 0 or tau < 0 or sigma < 0 or lsb < 0:
+        raise ValueError("delay_samples, antialias, noise_V and lsb_V must be ≥ 0")
+    if np.any((phase < 0) | (phase >= 1)):
+        raise ValueError("change_phase must lie in [0, 1)")
+
+    # The physical input, delayed and filtered, at e_k = k − D [sample periods].
+    levels = np.concatenate([column[:1], column[change_index]])
+    steps = np.diff(levels)
+    s = change_index - phase
+    e = np.arange(n) - delay
+    x = levels[np.searchsorted(s, e, side="right")]
+    if tau > 0:
+        for s_j, step in zip(s, steps, strict=True):
+            # exp(−50) ≈ 2e−22: beyond 50 τ the remainder is below the level's rounding.
+            lo, hi = np.searchsorted(e, [s_j, s_j + 50 * tau], side="left")
+            x[lo:hi] -= step * np.exp(-(e[lo:hi] - s_j) / tau)
+    for spike in spike_list:
+        j = spike["change"]
+        if not 0 <= j < count:
+            raise ValueError(f"spike at change {j}: the column has {count} changes")
+        first = int(np.ceil(s[j] + delay - 1e-9))
+        x[max(first, 0) : max(first + spike["samples"], 0)] += spike["amplitude_V"]
+    ramp = np.arange(n) / max(n - 1, 1)
+    x = x + offset + drift * ramp + sigma * white
+    if lsb > 0:
+        x = lsb * np.round(x / lsb)
+    info = {
+        "rate": float(rate),
+        "delay_samples": float(delay),
+        "delay_s": float(delay / rate),
+        "antialias_tau_samples": float(tau),
+        "antialias_tau_s": float(tau / rate),
+        "change_index": [int(k) for k in change_index],
+        "change_phase": [float(f) for f in phase],
+        "noise_V": float(sigma),
+        "lsb_V": float(lsb),
+        "spikes": spike_list,
+        "drift_V": float(drift),
+        "offset_V": float(offset),
+    }
+    return x, info
+
+
+def prbs_levels(
+    rng: np.random.Generator,
+    *,
+    n_changes: int,
+    duration_s: float,
+    low_V: float,
+    high_V: float,
+    min_bit_s: float,
+    max_run: int = 4,
+):
+    """(levels [V], change times [s]) of a random-telegraph (PRBS-like) calibration
+    sequence over `duration_s` from t = 0, for `Record.levels` / `Record.change_times`.
+
+    Two levels, `low_V` and `high_V`, alternating from a random first one; exactly
+    `n_changes` changes (≥ 200 in use). Each plateau lasts m bit times T_b, m = 1, 2, ...
+    drawn as a PRBS's run lengths (P(m) = 2^−m) capped at `max_run` (the cap taking the
+    tail); T_b = duration_s / (Σm + 1), the sequence starting at φ T_b (φ uniform 0–1: the
+    first plateau, from before the record, lasts ≥ its m T_b in the record, and the last
+    one runs to the end). T_b is a real number on no sample grid, so the changes fall at
+    exact off-grid times (the DAC's own clock). Raises ValueError when T_b < `min_bit_s`
+    (the duration cannot hold the changes): every plateau between changes is ≥ min_bit_s.
+    """
+    if n_changes < 1 or max_run < 1:
+        raise ValueError("n_changes and max_run must be ≥ 1")
+    first_high = rng.uniform() < 0.5
+    runs = np.minimum(rng.geometric(0.5, size=n_changes + 1), max_run)
+    phase = float(rng.uniform())
+    bit = duration_s / (runs.sum() + 1)
+    if bit < min_bit_s:
+        raise ValueError(
+            f"bit time {bit:.3g} s < min_bit_s {min_bit_s:.3g} s: {n_changes} changes "
+            f"(of {int(runs.sum())} bits) do not fit in {duration_s:.3g} s"
+        )
+    times = (phase + np.cumsum(runs)[:-1]) * bit
+    pair = (high_V, low_V) if first_high else (low_V, high_V)
+    levels = [float(pair[i % 2]) for i in range(n_changes + 1)]
+    return levels, [float(x) for x in times]
+
+
+def _chirp(tau, f0, f1, length, amplitude):
+    """A linear sweep f0 → f1 [Hz] over `length` [s] at the times τ [s] from its start."""
+    return amplitude * np.sin(2 * np.pi * (f0 * tau + 0.5 * (f1 - f0) / length * tau**2))
+
+
+def sweep_column(t, f0, f1, amplitude):
+    """A swept-sine (linear chirp) test-voltage column [V] at the record's times t [s]:
+    amplitude · sin 2π(f0 τ + (f1 − f0) τ²/(2T)), τ = t − t[0], T = t[−1] − t[0]; the
+    frequency runs from f0 [Hz] at the first sample to f1 [Hz] at the last. An input with
+    no plateaus (for a diagnosis that must refuse it)."""
+    t = np.asarray(t, dtype=float)
+    tau = t - t[0]
+    return _chirp(tau, f0, f1, max(float(tau[-1]), 1e-300), amplitude)
+
+
+def sweep_levels(f0, f1, amplitude, duration_s, dac_rate, *, dac_phase=0.0):
+    """(levels [V], change times [s]) of the same sweep as `sweep_column` over
+    `duration_s` from t = 0, as a DAC updating at `dac_rate` [Hz] would put it out (a
+    zero-order hold of the chirp at its update times (k + dac_phase)/dac_rate, k ≥ 1,
+    dac_phase in [0, 1); level 0 from before t = 0), so that `simulate` can drive the
+    loop with it. Each update is a change (many pieces: keep dac_rate × duration to a few
+    thousand)."""
+    ticks = np.arange(1, int(np.floor(duration_s * dac_rate - dac_phase)) + 1) + dac_phase
+    times = ticks / dac_rate
+    times = times[times < duration_s]
+    levels = np.concatenate([[0.0], _chirp(times, f0, f1, duration_s, amplitude)])
+    return [float(x) for x in levels], [float(x) for x in times]

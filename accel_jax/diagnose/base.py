@@ -429,6 +429,7 @@ class DiagnosisResult:
         model = self.refit.get("model_parameters")
         if model:
             lines.append(_model_line(model))
+        lines.extend(_nuisance_lines(self.refit))
         if self.refit.get("parameter_error"):
             lines.append("the refit closes the gap: a parameter error, not missing physics")
         gap = self.gap
@@ -449,6 +450,13 @@ class DiagnosisResult:
         )
         for r in self.ranking:
             mark = "*" if r.get("significant") else " "
+            if r.get("fit_failed"):  # a nested fit that lost to the nominal: no evidence
+                below = r["objective_below_nominal"]
+                lines.append(
+                    f"   {r['effect']:<18} fit failed (ended {below:.3g} below the nominal "
+                    "model's penalised ln L, after a restart from its optimum)"
+                )
+                continue
             lines.append(
                 f" {mark} {r['effect']:<18} evidence {r['evidence']:>10.1f}  "
                 f"shrink {r['gap_shrink']:+.2f}"
@@ -459,6 +467,37 @@ class DiagnosisResult:
             )
         lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)
+
+
+def _nuisance_lines(refit: dict) -> list[str]:
+    """The step refit's nuisances, each with its shift in σ of its prior where it has one,
+    and their joint test (`step_verdict.nuisance_test`)."""
+    test, values = refit.get("nuisance_test"), refit.get("nuisances") or {}
+    if not test:
+        return []
+    gain = values.get("test_winding_gain")
+    parts = []
+    if gain is not None:
+        polarity = values.get("test_winding_polarity", "")
+        parts.append(
+            f"test winding gain {gain:.4g} ({test['standardised']['test_winding_gain']:+.1f}σ"
+            f", polarity {polarity})"
+        )
+    parts.append(f"input delay {test['input_delay_samples']:+.2f} samples")
+    if "external_moment_V" in values:
+        parts.append(f"output offset (external moment) {values['external_moment_V']:+.3g} V")
+    if "initial_displacement_V" in values:
+        parts.append(
+            f"initial state {values['initial_displacement_V']:+.3g} V, "
+            f"{values['initial_velocity_V']:+.3g} V (no prior)"
+        )
+    verdict = "STRAINED" if test["strained"] else "within their priors"
+    return [
+        "nuisances: " + "; ".join(parts),
+        f"nuisances judged together: largest {test['largest']} {test['largest_sigma']:+.1f}σ, "
+        f"family-wise p = {test['family_p_value']:.2g} over {test['count']} ({verdict} at "
+        f"α = {test['alpha']:g})",
+    ]
 
 
 def verdict_line(verdict: str, tied) -> str:

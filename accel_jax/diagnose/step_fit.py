@@ -65,7 +65,10 @@ class StepContext(eqx.Module):
     fitted outputs (block means; 0 on padding); `block` m, samples per block; `max_block`
     (static) the largest m of the batch; `change_accel` (J,) Δa [g] of the input
     acceleration at each change and `accel_sign` ±1 the input axis's direction in the
-    record (None: a record without `a_in`).
+    record (None: a record without `a_in`). For a measured test input
+    (`step_input.read_inputs`): `level_sigma` (J,) [V] the standard error of the test
+    level after each change (0 pads) and `held_out_level` (J,) 1 where that level's segment
+    is held out; None for an exact input (then the fit has no level parameters).
     """
 
     dt: jax.Array
@@ -86,6 +89,8 @@ class StepContext(eqx.Module):
     max_block: int = eqx.field(static=True, default=1)
     change_accel: jax.Array | None = None
     accel_sign: jax.Array | None = None
+    level_sigma: jax.Array | None = None
+    held_out_level: jax.Array | None = None
 
 
 def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:
@@ -102,7 +107,10 @@ def _barrier(w, bound):
 
 def unpack(w, candidate, effects, base, prior_sigma, ctx):
     """The model of candidate `candidate` (0: nominal; i: effect i − 1 of `effects`) at the
-    parameters w = [refit z (4), moment, gain z, dv, dw, effect slot (2), change times (J)]."""
+    parameters w = [refit z (4), moment, gain z, dv, dw, effect slot (2), change times (J)]
+    and, for a measured test input (`ctx.level_sigma`), the errors of the levels after each
+    change (J, in units of their standard error: errors in variables, a standard normal
+    prior; the first level's error is an output offset, the moment's)."""
     z = w[:4]
     params = refitted_device(base, z, prior_sigma)
     gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[_I_GAIN])
@@ -127,7 +135,15 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
         bound = jnp.asarray(effect.bounds + (jnp.inf,) * (SLOT - len(effect.bounds)), w.dtype)
         bounds = jnp.where(on, bound, bounds)
         prior = jnp.where(on, effect.prior(ze, ctx), prior)
-    timing = w[_I_TIMING:]
+    n_changes = ctx.change_index.shape[-1]
+    timing = w[_I_TIMING : _I_TIMING + n_changes]
+    levels = w[_I_TIMING + n_changes :]
+    step = ctx.change_step
+    if ctx.level_sigma is not None:
+        # ΔU_j moves by e_j − e_{j−1} (e the level errors [V]); pads carry none.
+        error = ctx.level_sigma * levels
+        previous = jnp.concatenate([jnp.zeros(1, w.dtype), error[:-1]])
+        step = step + jnp.where(ctx.level_sigma > 0, error - previous, 0.0)
     penalties = jnp.concatenate(
         [
             z,  # the standard normal prior of the refit
@@ -138,6 +154,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
             _barrier(slot, bounds) * used,
             prior * used,  # an effect's own prior, where it has one
             (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1],
+            levels,  # the level errors' standard normal prior (empty for an exact input)
         ]
     )
     return {
@@ -148,6 +165,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
         "dv": ctx.scale * w[_I_DV],
         "dw": ctx.scale * w[_I_DW],
         "shift": jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT),
+        "step": step,
         "inverse_stop": inverse,
         "output_offset": offset,
         "phi": phi,
@@ -173,7 +191,7 @@ def predict(m, ctx, n, nonlinear: bool):
         m["dv"],
         m["dw"],
         ctx.change_index,
-        ctx.change_step,
+        m["step"],
         m["shift"],
         moment_jumps(m["params"], ctx, m.get("accel_gain", 1.0)),
     )
@@ -355,7 +373,8 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         for i, effect in enumerate(effects, start=1):
             mask = jnp.isin(jnp.arange(SLOT), jnp.asarray(effect.held_out_nuisance, int))
             nuisance = jnp.where(candidate == i, mask.astype(w.dtype), nuisance)
-        free = jnp.concatenate([nuisance, ctx.held_out_change])
+        held_levels = () if ctx.level_sigma is None else (ctx.held_out_level,)
+        free = jnp.concatenate([nuisance, ctx.held_out_change, *held_levels])
 
         def moved(base, delta):
             return base.at[_I_SLOT:].add(free * delta)
@@ -364,8 +383,12 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
             """The held-out residuals at `base` moved by `delta`, and (aux) the training
             cost Σr² of `residuals` there."""
             m, _, a, _ = error_of(moved(base, delta), candidate)
-            timing = moved(base, delta)[_I_TIMING:]
+            tail = moved(base, delta)[_I_TIMING:]
+            n_changes = ctx.change_index.shape[-1]
+            timing, levels = tail[:n_changes], tail[n_changes:]
             prior = ctx.held_out_change * (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
+            if ctx.level_sigma is not None:  # a held-out level's error, under its prior
+                prior = jnp.concatenate([prior, ctx.held_out_level * levels])
             out = jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])
             train = jnp.sum((a * ctx.train / ctx.sigma_ref) ** 2) + jnp.sum(m["penalties"] ** 2)
             return out, (out, train)
@@ -400,6 +423,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         deltas, train_costs = jax.vmap(refine)(jnp.stack([w, polished]))
         better = train_costs[1] < 2 * cost
         w = jnp.where(better, polished, w)
+        trained = w  # the training optimum, before the held-out nuisances move
         best_delta = jnp.where(better, deltas[1], deltas[0])
         w = moved(w, best_delta)
         # The fitted model and the same model with the device at its prior values (what
@@ -407,7 +431,23 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         _, predictions, a, log_v = jax.vmap(error_of, in_axes=(0, None))(
             jnp.stack([w, w.at[:4].set(0.0)]), candidate
         )
-        return w, predictions[0], a[0], log_v[0], converged, steps[best], predictions[1], decrement
+        # The objective the solver minimised (Σ of the squared training residuals and of
+        # every prior and penalty: ½ of it is −ln of the penalised likelihood) at the
+        # training optimum kept, and that optimum: what a nested model can never end above
+        # the nominal's on (`nested_failed`), and where its restart begins.
+        objective = jnp.where(better, train_costs[1], train_costs[0])
+        return (
+            w,
+            predictions[0],
+            a[0],
+            log_v[0],
+            converged,
+            steps[best],
+            predictions[1],
+            decrement,
+            objective,
+            trained,
+        )
 
     # Every (candidate, start) pair fitted in turn (`lax.map`), not vmapped: a vmapped
     # solver turns each of its branches into both branches and each loop into a masked

@@ -143,6 +143,9 @@ def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
         train=pad(ctx.train, n_padded),
         test=pad(ctx.test, n_padded),
         max_block=max_block,
+        # The joint fit takes a measured input's levels as read (no errors in variables).
+        level_sigma=None,
+        held_out_level=None,
     )
 
 
@@ -337,8 +340,8 @@ def prepare_set(datasets: list[StepData], nominal: NominalDevice) -> PreparedSet
         raise DataError("no records to diagnose.")
     preps = [prepare(d, nominal, []) for d in datasets]
     v_stop = nominal_stop_voltage(nominal.params)
-    for d, p in zip(datasets, preps, strict=True):
-        reach = float(np.max(np.abs(np.asarray(d.u_test)))) * p["k_test"]
+    for p in preps:  # the inputs as read (a measured column's spikes are not levels)
+        reach = float(np.max(np.abs(np.asarray(p["data"].u_test)))) * p["k_test"]
         p["on_stops"] = bool(reach >= STOP_REACH * v_stop)
     return stack(preps, v_stop)
 
@@ -386,7 +389,7 @@ def _start(prepared: PreparedSet) -> np.ndarray:
         own[r, _R_MOMENT] = w[_I_MOMENT]
         own[r, _R_DV] = w[_I_DV]
         own[r, _R_DW] = w[_I_DW]
-        timing = w[_I_TIMING:]
+        timing = w[_I_TIMING : _I_TIMING + p["group"][1]]  # (not a measured input's levels)
         own[r, _R_TIMING : _R_TIMING + timing.size] = timing
         if p["on_stops"]:
             own[r, _R_DV] = own[r, _R_DW] = 0.0
@@ -613,7 +616,11 @@ def diagnose_step_set(
     prepared = prepare_set(list(datasets), nominal)
     fits = fit_set(prepared, nominal)
     scores, ranking = _rank(fits, prepared, nominal)
-    notes = []
+    notes = [
+        f"{name}: {note}"
+        for name, p in zip(names, prepared.preps, strict=True)
+        for note in p["notes"]
+    ]
     if not any(r["all_at_floor"] for r in ranking):
         first = min(r["worst_excess_over_floor"] for r in ranking)
         prepared, fits = release_lag_states(prepared, nominal, fits)

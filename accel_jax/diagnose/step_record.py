@@ -17,6 +17,7 @@ from .._params import ServoParams
 from .._servo import closed_loop_test_gain, damping_ratio, time_constant
 from .._simulate.sequence import accel_moment
 from . import openworld
+from .step_input import read_inputs
 from .step_fit import (
     _I_DV,
     _I_GAIN,
@@ -176,8 +177,8 @@ def _changes(data: StepData, path=None) -> tuple[np.ndarray, np.ndarray, np.ndar
         what = "u_test" if data.a_in is None else "u_test or a_in"
         raise DataError(
             f"{path or '<data>'}: {what} changes at {index.size} samples; the step diagnosis "
-            f"needs a piecewise-constant input sequence (at most {MAX_CHANGES} changes). Is "
-            "it a noisy measurement? Round it to its levels."
+            f"takes at most {MAX_CHANGES} changes in one record (split it into shorter "
+            "records)."
         )
     return index, u[index] - u[index - 1], a[index] - a[index - 1]
 
@@ -216,7 +217,13 @@ class RecordView(eqx.Module):
 
 
 def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
-    """Host-side context of one record: blocks, floor, domain check, polarity, starts."""
+    """Host-side context of one record: blocks, floor, domain check, polarity, starts.
+
+    A measured input (noise, ADC steps, relay spikes: `step_input.read_inputs`) is read
+    as its plateaus first; `prep["data"]` is the record as fitted, `prep["notes"]` says
+    what was read, and the levels' standard error (times the test gain) joins the floor."""
+    inputs = read_inputs(data, max_changes=MAX_CHANGES)
+    data = inputs.data
     t, u, y = np.asarray(data.t), np.asarray(data.u_test), np.asarray(data.u_out)
     n = y.size
     dt = data.sample_period
@@ -250,8 +257,13 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     q = full_floor["quantum"]
     dithered = full_floor["sigma_differences"] >= 0.5 * q
     quantised = q / math.sqrt(12) / (math.sqrt(m) if dithered else 1.0)
+    # A measured input's levels are known to their standard error only: each plateau's
+    # output level is then uncertain by the test gain times it (added in quadrature).
+    input_floor = abs(float(closed_loop_test_gain(base))) * inputs.level_sigma
     sigma = max(
-        block_floor["sigma_differences"], quantised, 1e-12 * max(float(np.max(np.abs(y))), 1.0)
+        math.hypot(block_floor["sigma_differences"], input_floor),
+        quantised,
+        1e-12 * max(float(np.max(np.abs(y))), 1.0),
     )
     floor = {
         "sigma_V": sigma,
@@ -262,6 +274,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "block_samples": m,
         "method": "median absolute 4th difference of the block means (and the ADC step's "
         "q/√12), without any model",
+        "input_levels_V": input_floor,
     }
     problems, domain = _domain(data, nominal, full_floor["sigma"])
     held_samples, held_rule = held_out_samples(key)
@@ -315,6 +328,15 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     starts_held = np.zeros(j_padded, dtype=bool)
     starts_held[: index.size] = held_samples[index]
     held_out_change = (starts_held & ((change_step != 0) | (change_accel != 0))).astype(np.float64)
+    # A measured test input: each change's level known to its standard error (errors in
+    # variables, `step_fit.unpack`); not with an acceleration column, whose changes share
+    # the test levels' segments.
+    level_sigma = held_out_level = None
+    if inputs.level_sigma > 0 and a is None:
+        level_sigma = np.zeros(j_padded)
+        level_sigma[: index.size] = inputs.level_sigmas[1:]
+        held_out_level = starts_held.astype(np.float64)
+    n_levels = 0 if level_sigma is None else j_padded
     train = np.zeros(n_padded)
     test = np.zeros(n_padded)
     train[:n_blocks] = ~held
@@ -338,8 +360,10 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         max_block=max_block,
         change_accel=jnp.asarray(change_accel),
         accel_sign=jnp.asarray(accel_sign),
+        level_sigma=None if level_sigma is None else jnp.asarray(level_sigma),
+        held_out_level=None if held_out_level is None else jnp.asarray(held_out_level),
     )
-    common = np.zeros(_N_FIXED + j_padded)
+    common = np.zeros(_N_FIXED + j_padded + n_levels)
     common[_I_MOMENT] = moment / scale
     common[_I_GAIN] = w_gain
     common[_I_DV] = dv / scale
@@ -353,6 +377,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "duration": dt * (n_blocks * m - 1),
         "torquer_gain": float(base.torquer_gain),
         "accel_per_g": float(accel_moment(base)),
+        "changes": j_padded,
         "nominal_lags": {
             "torquer_time_constant": float(base.torquer_time_constant),
             "filter_time_constant": float(base.filter_time_constant),
@@ -361,6 +386,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     linear = [e for e in effects if not e.nonlinear]
     nonlinear = [e for e in effects if e.nonlinear]
     return {
+        "data": data,
+        "notes": list(inputs.notes),
         "ctx": ctx,
         "view": view,
         "u_out": np.concatenate([yb, np.zeros(n_padded - n_blocks)]),
@@ -386,7 +413,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "accel_slope": accel_slope,
         "has_accel": a is not None,
         "period": period,
-        "group": (n_padded, j_padded, max_block),
+        "group": (n_padded, j_padded, max_block, level_sigma is not None),
         "guesses_linear": _guesses(common, linear, host, nominal_first=True),
         "guesses_nonlinear": _guesses(common, nonlinear, host, nominal_first=False),
         "host": host,
@@ -402,7 +429,8 @@ def _guesses(common, effects, host, *, nominal_first: bool) -> np.ndarray:
     """Starts, shape (candidates, STARTS, parameters): an effect's own starts, then the
     nominal's second start (changes half a sample earlier) with its last start."""
     late = common.copy()
-    late[_I_TIMING:] = TIMING_PRIOR[0]
+    n_changes = host["changes"]
+    late[_I_TIMING : _I_TIMING + n_changes] = TIMING_PRIOR[0]
     rows = [[common, late]] if nominal_first else []
     for effect in effects:
         per = []

@@ -93,7 +93,7 @@ def _fit_entry(
 
 
 def fit_entries(prep, effects_all, candidates, outputs, u_out):
-    w, prediction, innovations, log_v, converged, steps, prior, decrement = (
+    w, prediction, innovations, log_v, converged, steps, prior, decrement, objective, trained = (
         np.asarray(o) for o in outputs
     )
     n = prep["n"]  # the record's blocks, without the padding
@@ -119,8 +119,111 @@ def fit_entries(prep, effects_all, candidates, outputs, u_out):
         )
         entry["steps"] = int(steps[c])
         entry["decrement"] = float(decrement[c])
+        entry["objective"] = float(objective[c])
+        entry["w_trained"] = trained[c]
         entries.append(entry)
     return entries
+
+
+NESTED_TOLERANCE = 1e-6
+"""An effect's maximised penalised log-likelihood may fall below the nominal's by this share
+of the nominal's objective (and at least `NESTED_ABSOLUTE`) before its fit counts as failed:
+the nominal model is the effect at z = 0, so a fit that ends lower stopped in the wrong
+basin (round-off and the solver's tolerance aside)."""
+
+NESTED_ABSOLUTE = 1e-3
+"""The least shortfall [in ln L units] that counts as a failed nested fit."""
+
+
+def nested_shortfall(fit, nominal_fit) -> float:
+    """How far `fit`'s maximised penalised log-likelihood (−½ the solver's objective: the
+    training residuals, the priors of the refit, the nuisances and the effect) ends below
+    the nominal fit's (≤ 0: not below). The reported ln L, which leaves out the change
+    times' and the effect's own priors, may differ from it by those terms."""
+    return 0.5 * (float(fit["objective"]) - float(nominal_fit["objective"]))
+
+
+def nested_failed(fit, nominal_fit) -> bool:
+    """Whether a nested fit ended below the nominal's penalised likelihood beyond
+    round-off (`NESTED_TOLERANCE`)."""
+    scale = 0.5 * abs(float(nominal_fit["objective"]))
+    return nested_shortfall(fit, nominal_fit) > max(NESTED_TOLERANCE * scale, NESTED_ABSOLUTE)
+
+
+def nested_losers(fits) -> list[str]:
+    """The candidates of one record (`fits[0]` the nominal) whose fit lost to the nominal."""
+    return [f["effect"] for f in fits[1:] if nested_failed(f, fits[0])]
+
+
+NUISANCE_ALPHA = 0.01
+"""Family-wise level of the joint test of a fit's nuisances (`nuisance_test`): on records
+whose nuisances are what their priors say, it trips in at most this share (Bonferroni over
+the standardised shifts, each at most N(0, 1) under its prior: fitted shifts are shrunk)."""
+
+
+def nuisance_test(fit, prep) -> dict:
+    """Every fitted nuisance of `fit` with its shift in σ of its prior, judged together.
+
+    Standardised: the test winding's gain (log-normal, `GAIN_SIGMA`); each change time
+    about the record's mean change time (the mean is the delay between the input and
+    output channels and the sampling phase, reported apart; N(0, 1) in samples); for a
+    measured input, each level's error in its standard errors. Shown without a prior:
+    the output offset (external moment) and the initial state, free in every model.
+    The test: the largest |z| against Bonferroni over the K standardised shifts, p =
+    min(1, K · 2Φ(−max|z|)); `strained` when p < `NUISANCE_ALPHA`."""
+    from scipy import stats
+
+    w = np.asarray(fit["w"])
+    n_changes = int(prep["change_index"].size)
+    j_padded = int(prep["ctx"].change_index.shape[-1])
+    timing = np.clip(w[_I_TIMING : _I_TIMING + n_changes], -TIMING_LIMIT, TIMING_LIMIT)
+    delay = float(np.mean(timing)) if n_changes else 0.0
+    shifts = [("test_winding_gain", float(fit["z_gain"]))]
+    if n_changes > 1:
+        shifts += [(f"change_time_{j + 1}", float(x - delay)) for j, x in enumerate(timing)]
+    if prep["ctx"].level_sigma is not None:
+        levels = w[_I_TIMING + j_padded : _I_TIMING + j_padded + n_changes]
+        shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
+    z = np.abs(np.asarray([v for _, v in shifts]))
+    worst = int(np.argmax(z))
+    p_value = min(1.0, len(shifts) * 2 * float(stats.norm.sf(z[worst])))
+    return {
+        "standardised": {name: value for name, value in shifts},
+        "largest": shifts[worst][0],
+        "largest_sigma": shifts[worst][1],
+        "count": len(shifts),
+        "family_p_value": p_value,
+        "alpha": NUISANCE_ALPHA,
+        "strained": bool(p_value < NUISANCE_ALPHA),
+        "input_delay_samples": -delay,
+        "method": "Bonferroni over the standardised nuisance shifts (gain, change times about "
+        "their mean, measured input levels)",
+    }
+
+
+def strained_sentence(test: dict, fit) -> str:
+    """What a failed joint nuisance test says, with the effects that make such a record."""
+    name, value = test["largest"], test["largest_sigma"]
+    where = f"(family-wise p = {test['family_p_value']:.2g} over {test['count']} nuisances)"
+    if name == "test_winding_gain":
+        gain = math.exp(GAIN_SIGMA * value)
+        return (
+            f"the test winding's gain came out {gain:.3g} of nominal ({value:+.1f}σ) {where}: "
+            "a winding fault, or a device resting on a stop when the record starts (the "
+            "first change then moves the output less than the gain says: stop contact), or "
+            "a different device"
+        )
+    if name.startswith("change_time"):
+        return (
+            f"change {name.rsplit('_', 1)[1]} of the test input came {value:+.1f} samples off "
+            f"the others' timing {where}: the input switched at another time than its column "
+            "shows (a relay's delay or bounce), or a lag the model lacks"
+        )
+    return (
+        f"level {name.rsplit('_', 1)[1]} of the test input differs from what its channel "
+        f"recorded by {value:+.1f} standard errors {where}: a gain or offset error of the "
+        "input channel, or an output that is not linear in the input at that level"
+    )
 
 
 def _assess(fit, prep, nominal_fit=None):
@@ -261,15 +364,20 @@ def evaluate(data, nominal: NominalDevice, prep, fits) -> DiagnosisResult:
         if not np.isfinite(evidence):
             evidence = -np.inf
         fraction = openworld.explained_fraction(nominal_fit["gap_held"], fit["gap_held"])
+        # A nested fit that ended below the nominal's likelihood is a solver failure (it
+        # was restarted from the nominal optimum first): flagged, never an effect.
+        failed = nested_failed(fit, nominal_fit)
         entry = {
             "effect": fit["effect"],
             "evidence": float(evidence),
-            "significant": bool(evidence - slack >= SIGNIFICANCE and improves),
+            "fit_failed": failed,
+            "objective_below_nominal": max(nested_shortfall(fit, nominal_fit), 0.0),
+            "significant": bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
             "stochastic": fit["stochastic"],
             "explains": fit["explains"],
             "explains_up_to_model_form": fit.get("explains_model_form", False),
-            "plausible": fit["plausible"],
-            "explained_fraction": fraction,
+            "plausible": fit["plausible"] and not failed,
+            "explained_fraction": 0.0 if failed else fraction,
             "gap_after_V": fit["gap_held"],
             "gap_shrink": (
                 1 - fit["gap_held"] / nominal_fit["gap_held"]
@@ -297,7 +405,12 @@ def evaluate(data, nominal: NominalDevice, prep, fits) -> DiagnosisResult:
         "plausible": nominal_fit["plausible"],
     }
     decision = openworld.decide(nominal_status, entries, domain=prep["domain_problems"])
-    entries.sort(key=lambda r: (r["significant"], r["evidence"]), reverse=True)
+    # The nuisances judged together: a record whose nominal refit needs strained nuisances
+    # is not `none` (an effect they absorbed would go unseen).
+    nuisances = nuisance_test(nominal_fit, prep)
+    if decision["verdict"] == "none" and nuisances["strained"]:
+        decision = {**decision, "verdict": "unexplained", "path": "nuisances"}
+    entries.sort(key=lambda r: (not r["fit_failed"], r["significant"], r["evidence"]), reverse=True)
     verdict = decision["verdict"]
     by_name = {f["effect"]: f for f in fits}
     shown = decision["chosen"] or decision["best_partial"]
@@ -336,6 +449,7 @@ def evaluate(data, nominal: NominalDevice, prep, fits) -> DiagnosisResult:
         decision, nominal_fit, by_name, entries, prep, predictable, remaining, sigma, where_text
     )
     refit = _refit_report(nominal, nominal_fit, by_name, shown, prep, sigma, verdict)
+    refit["nuisance_test"] = nuisances
     where = _localise(prep["view"], nominal_fit["error"], sigma, prep)
     where["predictability"] = predictable
     where["noise_floor"] = prep["floor"]
@@ -384,6 +498,12 @@ def _reason(decision, nominal_fit, by_name, entries, prep, predictable, remainin
     floor = f"{sigma:.3g} V noise floor"
     if path == "domain":
         return "; ".join(prep["domain_problems"]) + "."
+    if path == "nuisances":
+        return (
+            "the refitted nominal model reaches the noise floor only with strained nuisances: "
+            + strained_sentence(nuisance_test(nominal_fit, prep), nominal_fit)
+            + "."
+        )
     if verdict == "none":
         return (
             "the refitted nominal model leaves the held-out residual at the noise floor "

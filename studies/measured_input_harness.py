@@ -1,0 +1,219 @@
+"""Blind check of the step diagnosis on test stands' records: the input channel measured, a
+device that starts against its stop, nested fits and the joint nuisance test.
+
+Every record comes from the independent truth simulator (`step_truth.py`, SciPy, written
+without the library's code) in two twins: the `u_test` column as the command sequence
+sampled (clean) and as a test stand digitises it (`step_truth.measure_input`: a delay of
+0–2 samples and a fraction, a first-order anti-alias edge, 0.3–1.5 mV of white noise, an
+LSB of up to 0.6 mV, relay spikes at the switches, an offset and a drift). A class of
+records that start with the pendulum resting on a stop (`step_truth.draw_truth_on_stop`)
+is added to the truth's classes. The diagnosis runs in a fresh process that sees only the
+CSV files (`--params`-like nominal device: the reference with T_dm = T_f = 0, as the blind
+validation's).
+
+Scored: the measured twin's verdict against the clean twin's (agreement), refusals of a
+measured input, fits that ended below the nominal model's penalised likelihood (flagged
+`fit_failed`; counted over every ranking), `none` on a record whose truth has an effect
+(false assurance; the start-on-stop class included) and the joint nuisance test's trips on
+records whose truth is `none`. Float64.
+
+    python studies/measured_input_harness.py --per-class 12 --out out/measured_inputs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import step_truth  # noqa: E402
+
+CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT,)
+NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
+
+_BLIND = (
+    f"NOMINAL_LAGS = {NOMINAL_LAGS!r}\n"
+    + """
+import json, pathlib, sys
+import accel_jax
+from accel_jax._runtime import apply_device, enable_compilation_cache
+apply_device(latency_bound=True)
+enable_compilation_cache()
+import jax
+jax.config.update("jax_enable_x64", True)
+from accel_jax import DataError, NominalDevice, read_csv
+from accel_jax.diagnose import diagnose_many
+nominal = NominalDevice.reference(**NOMINAL_LAGS)
+out = {}
+
+def row(result):
+    test = result.refit.get("nuisance_test", {})
+    return {
+        "verdict": result.verdict,
+        "tied": list(result.tied),
+        "fit_failed": [e["effect"] for e in result.ranking if e.get("fit_failed")],
+        "below_nominal": {e["effect"]: e.get("objective_below_nominal", 0.0)
+                          for e in result.ranking},
+        "nuisance_p": test.get("family_p_value"),
+        "nuisance_strained": test.get("strained"),
+        "nuisance_largest": [test.get("largest"), test.get("largest_sigma")],
+        "input_delay_samples": test.get("input_delay_samples"),
+        "notes": list(result.notes),
+    }
+
+for folder in map(pathlib.Path, sys.argv[2:]):
+    files = sorted(folder.glob("*.csv"))
+    data, names = [], []
+    for f in files:
+        try:
+            data.append(read_csv(f)); names.append(f.stem)
+        except DataError as error:
+            out[f"{folder.name}/{f.stem}"] = {"refused": str(error)}
+    try:
+        results = diagnose_many(data, nominal, recommend=False)
+        for name, result in zip(names, results):
+            out[f"{folder.name}/{name}"] = row(result)
+    except DataError:
+        for name, d in zip(names, data):
+            try:
+                out[f"{folder.name}/{name}"] = row(diagnose_many([d], nominal, recommend=False)[0])
+            except DataError as error:
+                out[f"{folder.name}/{name}"] = {"refused": str(error)}
+pathlib.Path(sys.argv[1]).write_text(json.dumps(out, default=float))
+"""
+)
+
+
+def draw(per_class: int, seed: int) -> list[dict]:
+    """The truths: `per_class` of each class, drawn in a fixed order."""
+    rng = np.random.default_rng(seed)
+    truths = []
+    for effect in CLASSES:
+        for _ in range(per_class):
+            if effect == step_truth.ON_STOP_EFFECT:
+                truths.append(step_truth.draw_truth_on_stop(rng))
+            else:
+                truths.append(step_truth.draw_truth(rng, effect))
+    return truths
+
+
+def write_twins(truths: list[dict], folder: Path, seed: int) -> list[dict]:
+    """Simulate each truth, write its clean and measured twins; returns the channel draws."""
+    from accel_jax import StepData, write_csv
+
+    rng = np.random.default_rng(seed + 1)
+    channels = []
+    for i, truth in enumerate(truths):
+        t, u, y, _ = step_truth.make(truth, rng)
+        measured, info = step_truth.measure_input(u, truth["rate"], rng)
+        write_csv(folder / "clean" / f"{i:04d}.csv", StepData(t, u, y))
+        write_csv(folder / "measured" / f"{i:04d}.csv", StepData(t, measured, y))
+        channels.append(info)
+    return channels
+
+
+def diagnose_blind(folders: list[Path]) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "rows.json"
+        subprocess.run(
+            [sys.executable, "-c", _BLIND, str(out), *map(str, folders)],
+            check=True,
+            cwd=Path(__file__).resolve().parent.parent,
+        )
+        return json.loads(out.read_text())
+
+
+def score(truths: list[dict], rows: dict) -> dict:
+    per_class = {}
+    failed_fits = rankings = 0
+    for i, truth in enumerate(truths):
+        clean, measured = rows[f"clean/{i:04d}"], rows[f"measured/{i:04d}"]
+        entry = per_class.setdefault(
+            truth["effect"],
+            {"records": 0, "agree": 0, "refused": 0, "none_clean": 0, "none_measured": 0,
+             "nuisance_trips": 0, "verdicts": []},
+        )
+        entry["records"] += 1
+        for row in (clean, measured):
+            if "refused" not in row:
+                rankings += 1
+                failed_fits += len(row["fit_failed"])
+        if "refused" in measured:
+            entry["refused"] += 1
+            entry["verdicts"].append([clean.get("verdict"), "refused"])
+            continue
+        same = clean.get("verdict") == measured["verdict"] and sorted(
+            clean.get("tied", [])
+        ) == sorted(measured["tied"])
+        entry["agree"] += int(same)
+        entry["none_clean"] += int(clean.get("verdict") == "none")
+        entry["none_measured"] += int(measured["verdict"] == "none")
+        entry["nuisance_trips"] += int(bool(clean.get("nuisance_strained")))
+        entry["verdicts"].append([clean.get("verdict"), measured["verdict"]])
+    total = sum(e["records"] for e in per_class.values())
+    agree = sum(e["agree"] for e in per_class.values())
+    false_assurance = sum(
+        e["none_clean"] + e["none_measured"] for c, e in per_class.items() if c != "none"
+    )
+    return {
+        "per_class": per_class,
+        "agreement": agree / max(total, 1),
+        "records": total,
+        "refused_measured": sum(e["refused"] for e in per_class.values()),
+        "nested_fit_failures": failed_fits,
+        "rankings": rankings,
+        "false_assurance": false_assurance,
+        "nuisance_trips_on_clean_none": per_class.get("none", {}).get("nuisance_trips"),
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--per-class", type=int, default=12)
+    parser.add_argument("--seed", type=int, default=2027)
+    parser.add_argument("--out", type=Path, default=Path("out/measured_inputs"))
+    args = parser.parse_args(argv)
+    started = time.perf_counter()
+    truths = draw(args.per_class, args.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        channels = write_twins(truths, folder, args.seed)
+        rows = diagnose_blind([folder / "clean", folder / "measured"])
+    result = {
+        "assumptions": {
+            "truth": "studies/step_truth.py (SciPy), classes " + ", ".join(CLASSES),
+            "input_channel": "step_truth.measure_input, every part drawn per record",
+            "nominal": "reference device, T_dm = T_f = 0 (as the blind validation)",
+            "per_class": args.per_class,
+            "seed": args.seed,
+            "precision": "float64",
+        },
+        "score": score(truths, rows),
+        "truths": truths,
+        "channels": channels,
+        "rows": rows,
+        "seconds": time.perf_counter() - started,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "result.json").write_text(json.dumps(result, indent=1, default=float))
+    s = result["score"]
+    print(json.dumps({k: v for k, v in s.items() if k != "per_class"}, indent=1))
+    for name, e in s["per_class"].items():
+        print(
+            f"{name:22s} agree {e['agree']}/{e['records']} refused {e['refused']} "
+            f"none clean/measured {e['none_clean']}/{e['none_measured']} "
+            f"nuisance trips {e['nuisance_trips']}"
+        )
+    print(f"written: {args.out / 'result.json'} ({result['seconds']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

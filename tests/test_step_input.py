@@ -1,0 +1,114 @@
+"""A step record's measured inputs (accel_jax/diagnose/step_input.py): plateaus and change
+times read from a digitised test-voltage column — noise, ADC steps, relay spikes, a delay,
+an anti-alias edge, a drift — and the refusal of an input without plateaus. The measured
+columns come from the independent truth's input-channel model (`step_truth.measure_input`,
+written without this code), and the diagnosis of a measured twin is checked against the
+clean record's."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from accel_jax._data import DataError, StepData
+from accel_jax.diagnose.step_input import read_input, read_inputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import step_truth  # noqa: E402
+
+N = 12_000
+CHANGES = (1500, 3100, 4800, 6500, 8000, 9900)
+LEVELS = (0.0, 2.0, -2.0, 1.0, -1.0, 0.0, 2.0)
+
+
+def _column():
+    column = np.full(N, LEVELS[0])
+    for k, level in zip(CHANGES, LEVELS[1:], strict=True):
+        column[k:] = level
+    return column
+
+
+def test_an_exact_input_is_used_as_it_is():
+    column = _column()
+    reading = read_input(column)
+    assert not reading.measured and reading.note == ""
+    np.testing.assert_array_equal(reading.values, column)
+    assert reading.change_index.tolist() == list(CHANGES)
+    data = StepData(np.arange(N) * 1e-6, column, column)
+    assert read_inputs(data).data is data  # nothing rebuilt, nothing noted
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_measured_inputs_give_their_plateaus_and_change_times(seed):
+    rng = np.random.default_rng(seed)
+    measured, info = step_truth.measure_input(_column(), 1e6, rng)
+    reading = read_input(measured)
+    assert reading.measured
+    assert reading.levels.size == len(LEVELS), info
+    # Each level: the true one plus the channel's offset (and its drift, ±0.5 mV at most),
+    # within 5 standard errors and the drift.
+    expected = np.asarray(LEVELS) + info["offset_V"]
+    tolerance = 5 * reading.level_sigma + abs(info["drift_V"]) + 1e-12
+    assert np.all(np.abs(reading.levels - expected) <= tolerance), (reading.levels, info)
+    # Each change where the channel shows it: the delay, its fraction and the filter's
+    # edge put it up to 4 samples after the command's sample.
+    shift = reading.change_index - np.asarray(CHANGES)
+    assert np.all((shift >= 0) & (shift <= 4)), (shift, info)
+    assert "plateaus" in reading.note and "7 plateaus" in reading.note
+    # The reconstruction is the plateaus held between the changes.
+    starts = np.concatenate([[0], reading.change_index])
+    for k, (a, b) in enumerate(zip(starts, np.append(starts[1:], N), strict=True)):
+        assert np.all(reading.values[a:b] == reading.levels[k])
+
+
+def test_a_prbs_sequence_of_hundreds_of_changes():
+    rng = np.random.default_rng(3)
+    rate, duration = 1e6, 0.03
+    levels, times = step_truth.prbs_levels(
+        rng, n_changes=240, duration_s=duration, low_V=-1.0, high_V=1.0, min_bit_s=20e-6
+    )
+    t = np.arange(int(duration * rate)) / rate
+    column = np.asarray(levels)[np.searchsorted(times, t, side="right")]
+    measured, _ = step_truth.measure_input(column, rate, rng)
+    reading = read_input(measured)
+    true_changes = np.flatnonzero(np.diff(column)) + 1
+    assert reading.change_index.size == true_changes.size >= 240
+    assert np.all(np.abs(reading.change_index - true_changes) <= 4)
+    assert set(np.round(reading.levels).astype(int)) == {-1, 1}
+    # A cap on the changes is said plainly.
+    with pytest.raises(DataError, match="changes 2[0-9][0-9] times; the step diagnosis takes"):
+        read_input(measured, max_changes=64)
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["chirp", "slow sine", "random walk", "white noise"],
+)
+def test_an_input_without_plateaus_is_refused_with_one_message(name):
+    rng = np.random.default_rng(1)
+    t = np.arange(N) * 1e-6
+    signals = {
+        "chirp": step_truth.sweep_column(t, 50.0, 2000.0, 2.0),
+        "slow sine": 2.0 * np.sin(2 * np.pi * 20.0 * t),
+        "random walk": np.cumsum(rng.standard_normal(N)) * 0.01,
+        "white noise": rng.standard_normal(N),
+    }
+    x = signals[name] + 1e-3 * rng.standard_normal(N)
+    message = "no change of the test input" if name == "white noise" else "u_test has no plateaus"
+    with pytest.raises(DataError, match=message):
+        read_input(x)
+
+
+def test_read_inputs_rebuilds_the_record_and_notes_what_it_read():
+    rng = np.random.default_rng(7)
+    measured, _ = step_truth.measure_input(_column(), 1e6, rng)
+    t = np.arange(N) * 1e-6
+    out = rng.standard_normal(N)
+    inputs = read_inputs(StepData(t, measured, out, notes=("kept",)))
+    assert inputs.data.notes == ("kept",)
+    np.testing.assert_array_equal(inputs.data.u_out, out)
+    # Each plateau read on its own (a return to a commanded level is a new estimate).
+    assert np.unique(inputs.data.u_test).size == len(LEVELS)
+    assert len(inputs.notes) == 1 and inputs.notes[0].startswith("u_test read as a measurement")
+    assert inputs.level_sigma > 0 and inputs.level_sigmas.size == len(LEVELS)
