@@ -67,8 +67,10 @@ class StepContext(eqx.Module):
     acceleration at each change and `accel_sign` ±1 the input axis's direction in the
     record (None: a record without `a_in`). For a measured test input
     (`step_input.read_inputs`): `level_sigma` (J,) [V] the standard error of the test
-    level after each change (0 pads) and `held_out_level` (J,) 1 where that level's segment
-    is held out; None for an exact input (then the fit has no level parameters).
+    level after each change (0 pads), `held_out_level` (J + 1,) 1 where that level's segment
+    is held out (the last entry, the drift nuisance's, 0) and `drift_step` (J,) [V] each
+    step's change per unit of the input channel's drift nuisance; None for an exact input
+    (then the fit has no level parameters).
     """
 
     dt: jax.Array
@@ -91,6 +93,7 @@ class StepContext(eqx.Module):
     accel_sign: jax.Array | None = None
     level_sigma: jax.Array | None = None
     held_out_level: jax.Array | None = None
+    drift_step: jax.Array | None = None
 
 
 def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:
@@ -110,7 +113,8 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     parameters w = [refit z (4), moment, gain z, dv, dw, effect slot (2), change times (J)]
     and, for a measured test input (`ctx.level_sigma`), the errors of the levels after each
     change (J, in units of their standard error: errors in variables, a standard normal
-    prior; the first level's error is an output offset, the moment's)."""
+    prior; the first level's error is an output offset, the moment's) and the input
+    channel's drift (1, standard normal)."""
     z = w[:4]
     params = refitted_device(base, z, prior_sigma)
     gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[_I_GAIN])
@@ -140,10 +144,12 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     levels = w[_I_TIMING + n_changes :]
     step = ctx.change_step
     if ctx.level_sigma is not None:
-        # ΔU_j moves by e_j − e_{j−1} (e the level errors [V]); pads carry none.
-        error = ctx.level_sigma * levels
+        # ΔU_j moves by e_j − e_{j−1} (e the level errors [V]; pads carry none) and by the
+        # input channel's drift nuisance (the last level parameter) along `drift_step`.
+        error = ctx.level_sigma * levels[:-1]
         previous = jnp.concatenate([jnp.zeros(1, w.dtype), error[:-1]])
         step = step + jnp.where(ctx.level_sigma > 0, error - previous, 0.0)
+        step = step + ctx.drift_step * levels[-1]
     penalties = jnp.concatenate(
         [
             z,  # the standard normal prior of the refit

@@ -43,6 +43,10 @@ MERGE_SIGMAS = 10.0
 STEADY_SHARE = 0.6
 """An input is piecewise constant when at least this share of its samples lie on plateaus."""
 
+DRIFT_SIGMAS = 4.0
+"""A drift of the input within its plateaus (their pooled slope) is taken into the levels'
+errors when it is this many standard errors from zero."""
+
 SPREAD_SIGMAS = 4.0
 """A plateau's samples spread (robust σ) by at most this many noise σ (a slow drift of the
 input within `MERGE_SIGMAS` noise σ included)."""
@@ -62,7 +66,9 @@ class InputReading:
     column was a measurement that had to be read (False: already piecewise constant, used
     as it is); `levels` each plateau's level; `change_index` the first sample of each level
     after the first; `noise` the input's noise σ per sample; `level_sigma` each level's
-    standard error; `spikes` samples set aside as spikes; `note` what was found, in words.
+    standard error; `spikes` samples set aside as spikes; `note` what was found, in words;
+    `level_drift` each level's error per unit of the input channel's drift nuisance (a
+    standard normal: the drift found, or the largest the plateaus cannot rule out).
     """
 
     values: np.ndarray
@@ -73,6 +79,7 @@ class InputReading:
     level_sigma: np.ndarray
     spikes: int
     note: str
+    level_drift: np.ndarray | None = None
 
 
 def _median5(x: np.ndarray) -> np.ndarray:
@@ -166,12 +173,40 @@ def read_input(
         else:
             plateaus.append([a, b, level])
     levels, sigmas, spikes = [], [], 0
+    slope_sums = np.zeros(2)  # Σ s_k w_k, Σ w_k: the plateaus' pooled within-slope
+    middles = []
     for a, b, median in plateaus:
         values = x[a:b]
         keep = np.abs(values - median) <= 5 * noise_level + step
         spikes += int(np.sum(~keep))
         levels.append(float(np.mean(values[keep])))
         sigmas.append(noise_level / math.sqrt(max(int(np.sum(keep)), 1)))
+        k = np.flatnonzero(keep).astype(np.float64)
+        middles.append(a + (float(k.mean()) if k.size else 0.5 * (b - a)))
+        if k.size >= 3:
+            centred = k - k.mean()
+            weight = float(np.sum(centred**2))
+            if weight > 0:
+                slope_sums += (float(np.sum(centred * values[keep])), weight)
+    # A drift of the input channel (its level moving within the plateaus alike): the
+    # levels are then known only to where on the drift each plateau sits. `drift_shape`
+    # is each level's error per unit of one drift nuisance (standard normal): the pooled
+    # slope — or the largest one the plateaus cannot rule out — times the plateau's
+    # distance from the record's middle. The output then tells a drifting measurement
+    # from a drifting input (errors in variables).
+    drift = 0.0
+    drift_shape = [0.0] * len(plateaus)
+    if slope_sums[1] > 0:
+        slope = slope_sums[0] / slope_sums[1]
+        slope_sigma = noise_level / math.sqrt(slope_sums[1])
+        if abs(slope) > DRIFT_SIGMAS * slope_sigma:
+            drift = slope * n
+        # The drift the levels allow for: the one found, or the largest the input's own
+        # record could not have found (`DRIFT_SIGMAS` standard errors of the slope): one
+        # nuisance of the fit, each level moved by it in proportion to its place.
+        allowance = max(abs(slope), DRIFT_SIGMAS * slope_sigma)
+        centre = float(np.mean(middles))
+        drift_shape = [allowance * (mid - centre) for mid in middles]
     levels_arr = np.asarray(levels)
     steps = np.abs(np.diff(levels_arr))
     for k, (a, b, _) in enumerate(plateaus):
@@ -222,7 +257,8 @@ def read_input(
         noise=float(noise_level),
         level_sigma=np.asarray(sigmas),
         spikes=spikes,
-        note=_describe(name, unit, levels_arr, change_arr, noise_level, step, spikes, n),
+        level_drift=np.asarray(drift_shape),
+        note=_describe(name, unit, levels_arr, change_arr, noise_level, step, spikes, n, drift),
     )
 
 
@@ -230,7 +266,7 @@ def _share(runs, n) -> float:
     return sum(b - a for a, b in runs) / max(n, 1)
 
 
-def _describe(name, unit, levels, change, noise, step, spikes, n) -> str:
+def _describe(name, unit, levels, change, noise, step, spikes, n, drift=0.0) -> str:
     shown = ", ".join(f"{v:.4g}" for v in levels[:8]) + (" …" if levels.size > 8 else "")
     at = ", ".join(str(int(i)) for i in change[:8]) + (" …" if change.size > 8 else "")
     parts = [
@@ -241,6 +277,11 @@ def _describe(name, unit, levels, change, noise, step, spikes, n) -> str:
     ]
     if change.size:
         parts.append(f"changes at samples {at} (of {n})")
+    if drift:
+        parts.append(
+            f"the channel drifts by {drift:+.2g} {unit} over the record within its plateaus "
+            "(a drift nuisance of the fit moves the levels along it)"
+        )
     parts.append(
         "each change time is then fitted to a fraction of a sample, which takes up a delay "
         "between the input and output channels"
@@ -260,6 +301,7 @@ class StepInputs:
     notes: tuple
     level_sigma: float
     level_sigmas: np.ndarray | None = None
+    level_drift: np.ndarray | None = None
 
 
 def read_inputs(data: StepData, *, max_changes: int | None = None) -> StepInputs:
@@ -285,4 +327,5 @@ def read_inputs(data: StepData, *, max_changes: int | None = None) -> StepInputs
         notes=tuple(r.note for r in readings),
         level_sigma=sigma,
         level_sigmas=u.level_sigma if u.measured else None,
+        level_drift=u.level_drift if u.measured else None,
     )

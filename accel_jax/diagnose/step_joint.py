@@ -146,6 +146,7 @@ def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
         # The joint fit takes a measured input's levels as read (no errors in variables).
         level_sigma=None,
         held_out_level=None,
+        drift_step=None,
     )
 
 

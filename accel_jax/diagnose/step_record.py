@@ -331,12 +331,15 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     # A measured test input: each change's level known to its standard error (errors in
     # variables, `step_fit.unpack`); not with an acceleration column, whose changes share
     # the test levels' segments.
-    level_sigma = held_out_level = None
+    level_sigma = held_out_level = drift_step = None
     if inputs.level_sigma > 0 and a is None:
         level_sigma = np.zeros(j_padded)
         level_sigma[: index.size] = inputs.level_sigmas[1:]
-        held_out_level = starts_held.astype(np.float64)
-    n_levels = 0 if level_sigma is None else j_padded
+        held_out_level = np.append(starts_held.astype(np.float64), 0.0)  # (the drift: not)
+        drift_step = np.zeros(j_padded)
+        drift_step[: index.size] = np.diff(inputs.level_drift)
+    # The level errors (one per change) and the input channel's drift nuisance.
+    n_levels = 0 if level_sigma is None else j_padded + 1
     train = np.zeros(n_padded)
     test = np.zeros(n_padded)
     train[:n_blocks] = ~held
@@ -362,6 +365,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         accel_sign=jnp.asarray(accel_sign),
         level_sigma=None if level_sigma is None else jnp.asarray(level_sigma),
         held_out_level=None if held_out_level is None else jnp.asarray(held_out_level),
+        drift_step=None if drift_step is None else jnp.asarray(drift_step),
     )
     common = np.zeros(_N_FIXED + j_padded + n_levels)
     common[_I_MOMENT] = moment / scale

@@ -184,6 +184,7 @@ def nuisance_test(fit, prep) -> dict:
     if prep["ctx"].level_sigma is not None:
         levels = w[_I_TIMING + j_padded : _I_TIMING + j_padded + n_changes]
         shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
+        shifts.append(("input_channel_drift", float(w[-1])))
     z = np.abs(np.asarray([v for _, v in shifts]))
     worst = int(np.argmax(z))
     p_value = min(1.0, len(shifts) * 2 * float(stats.norm.sf(z[worst])))
@@ -218,6 +219,12 @@ def strained_sentence(test: dict, fit) -> str:
             f"change {name.rsplit('_', 1)[1]} of the test input came {value:+.1f} samples off "
             f"the others' timing {where}: the input switched at another time than its column "
             "shows (a relay's delay or bounce), or a lag the model lacks"
+        )
+    if name == "input_channel_drift":
+        return (
+            f"the input channel's drift came out {value:+.1f}σ of what its plateaus allow "
+            f"{where}: the test input's level moved during the record, or a slow drift "
+            "of the output the model lacks (disturbance drift)"
         )
     return (
         f"level {name.rsplit('_', 1)[1]} of the test input differs from what its channel "

@@ -1,0 +1,132 @@
+"""The step diagnosis on test stands' records: measured inputs (their twins diagnosed like
+the clean records), a swept input refused, nested fits that never end below the nominal
+model, and every nuisance shown and judged together. The records come from the
+independent truth simulator (studies/step_truth.py, written without the diagnosis code)."""
+
+import math
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from accel_jax._data import StepData, write_csv
+from accel_jax.cli import main
+from accel_jax.diagnose import diagnose_many
+from accel_jax.diagnose.step_fit import _I_TIMING, GAIN_SIGMA
+from accel_jax.diagnose.step_verdict import (
+    NUISANCE_ALPHA,
+    nested_failed,
+    nested_losers,
+    nested_shortfall,
+    nuisance_test,
+    strained_sentence,
+)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import step_truth  # noqa: E402
+from test_diagnose_step import CASES, RATE, _record  # noqa: E402
+
+TWINS = ("clean", "clean_conventions", "torquer_lag", "disturbance_drift", "colored_noise")
+
+
+@pytest.fixture(scope="module")
+def twins():
+    rng = np.random.default_rng(42)
+    clean = [_record(10 + list(CASES).index(name), **CASES[name]) for name in TWINS]
+    measured = []
+    for data in clean:
+        column, _ = step_truth.measure_input(np.asarray(data.u_test), RATE, rng)
+        measured.append(StepData(data.t, column, data.u_out))
+    results = diagnose_many(clean + measured, recommend=False)
+    return clean, measured, results[: len(TWINS)], results[len(TWINS) :]
+
+
+@pytest.mark.slow
+def test_a_measured_input_gives_the_clean_records_verdict(twins):
+    _, _, clean, measured = twins
+    for name, a, b in zip(TWINS, clean, measured, strict=True):
+        assert (b.verdict, sorted(b.tied)) == (a.verdict, sorted(a.tied)), name
+        assert any(n.startswith("u_test read as a measurement") for n in b.notes), name
+        assert not any(n.startswith("u_test read") for n in a.notes), name
+        # The measured levels are nuisances of the fit, shown and judged with the rest.
+        test = b.refit["nuisance_test"]
+        assert any(k.startswith("input_level_") for k in test["standardised"]), name
+        if a.verdict == "none":
+            assert not test["strained"], (name, test)
+        for entry in a.ranking + b.ranking:  # no nested fit ended below the nominal
+            assert not entry["fit_failed"], (name, entry["effect"])
+
+
+@pytest.mark.slow
+def test_the_summary_shows_every_nuisance_and_the_joint_test(twins):
+    _, _, _, measured = twins
+    text = measured[0].summary()
+    assert "nuisances: test winding gain" in text and "input delay" in text
+    assert "output offset (external moment)" in text and "initial state" in text
+    assert "nuisances judged together: largest" in text and "family-wise p =" in text
+
+
+def test_a_swept_input_is_refused_in_one_line(tmp_path):
+    t = np.arange(20_000) / 1e6
+    u = step_truth.sweep_column(t, 100.0, 5000.0, 2.0) + 1e-3 * np.sin(7e5 * t)
+    path = tmp_path / "sweep.csv"
+    write_csv(path, StepData(t, u, 0.9 * u + 1e-3))
+    result = CliRunner().invoke(main, ["diagnose", str(path)])
+    assert result.exit_code == 1
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "u_test has no plateaus" in lines[0], result.output
+    assert "Traceback" not in result.output
+
+
+def _prep(n_changes=5, j_padded=8, levels=False):
+    ctx = SimpleNamespace(
+        change_index=np.zeros(j_padded, int),
+        level_sigma=np.full(j_padded, 1e-5) if levels else None,
+    )
+    return {"change_index": np.arange(n_changes), "ctx": ctx}
+
+
+def _fit(gain_sigma=0.0, timing=(), levels=(), j_padded=8):
+    w = np.zeros(_I_TIMING + 2 * j_padded + 1)  # timing, levels, the input channel's drift
+    w[_I_TIMING : _I_TIMING + len(timing)] = timing
+    w[_I_TIMING + j_padded : _I_TIMING + j_padded + len(levels)] = levels
+    return {"w": w, "z_gain": gain_sigma}
+
+
+def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
+    prep = _prep()
+    calm = nuisance_test(_fit(0.4, timing=(-0.3, -0.6, -0.4, -0.5, -0.2)), prep)
+    assert not calm["strained"] and calm["count"] == 6  # the gain and five change times
+    # A delay of two samples between the channels moves every change alike: reported as
+    # the delay, not a strain.
+    delayed = nuisance_test(_fit(0.4, timing=(-2.4, -2.6, -2.5, -2.3, -2.5)), prep)
+    assert not delayed["strained"]
+    assert delayed["input_delay_samples"] == pytest.approx(2.46)
+    # The −3.2σ test winding gain of a device resting on its stop at the start.
+    strained = nuisance_test(_fit(-3.2, timing=(-0.5,) * 5), prep)
+    assert strained["strained"] and strained["largest"] == "test_winding_gain"
+    assert strained["family_p_value"] == pytest.approx(6 * 2 * 0.000687, rel=0.01)
+    text = strained_sentence(strained, None)
+    assert f"{math.exp(-3.2 * GAIN_SIGMA):.3g} of nominal (-3.2σ)" in text
+    assert "resting on a stop" in text and "winding fault" in text
+    # A measured input's levels are judged with them; Bonferroni keeps the family's level.
+    measured = nuisance_test(_fit(0.0, timing=(-0.5,) * 5, levels=(0.5, -4.0)), _prep(levels=True))
+    assert measured["count"] == 12 and measured["largest"] == "input_level_3"
+    assert measured["strained"] == (measured["family_p_value"] < NUISANCE_ALPHA)
+    assert "level 3 of the test input" in strained_sentence(measured, None)
+
+
+def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
+    nominal = {"effect": "nominal", "objective": 2000.0}
+    better = {"effect": "torquer_lag", "objective": 1990.0}
+    roundoff = {"effect": "output_filter", "objective": 2000.0 + 1e-4}
+    lost = {"effect": "stop_saturation", "objective": 2010.0}
+    assert nested_shortfall(better, nominal) < 0 and not nested_failed(better, nominal)
+    assert not nested_failed(roundoff, nominal)  # within round-off
+    assert nested_shortfall(lost, nominal) == pytest.approx(5.0)  # ½ of the objective
+    assert nested_failed(lost, nominal)
+    assert nested_losers([nominal, better, roundoff, lost]) == ["stop_saturation"]
