@@ -95,6 +95,22 @@ def _run(fn, nominal, preps, indices, guesses_key, candidates, desc):
     return [np.asarray(o) for o in outputs]
 
 
+def _fit_grouped(fn, nominal, preps, indices, key, candidates, effects, desc) -> dict:
+    """Fit `candidates` of the records `indices` from their starts `preps[i][key]`, one
+    batch per record shape (one compiled program each); returns {i: fit entries}."""
+    groups: dict[tuple, list[int]] = {}
+    for i in indices:
+        groups.setdefault(preps[i]["group"], []).append(i)
+    entries = {}
+    for members in groups.values():
+        outputs = _run(fn, nominal, preps, members, key, candidates, desc)
+        for j, i in enumerate(members):
+            entries[i] = fit_entries(
+                preps[i], effects, candidates, [o[j] for o in outputs], preps[i]["u_out"]
+            )
+    return entries
+
+
 LAG_PAIR = frozenset({"torquer_lag", "output_filter"})
 """The tie that another experiment can break (`step_joint.next_experiments`)."""
 
@@ -130,18 +146,13 @@ def diagnose_step(
         prep = prepare(data, nominal, effects)
         prep["prior_sigma"] = prior_sigma
         preps.append(prep)
-    groups: dict[tuple, list[int]] = {}
-    for i, prep in enumerate(preps):
-        groups.setdefault(prep["group"], []).append(i)
     fits: list[list | None] = [None] * len(datasets)
-    for indices in groups.values():
-        outputs = _run(
-            fit_linear, nominal, preps, indices, "guesses_linear", linear, "diagnose step"
-        )
-        for j, i in enumerate(indices):
-            fits[i] = fit_entries(
-                preps[i], effects, linear, [o[j] for o in outputs], preps[i]["u_out"]
-            )
+    entries = _fit_grouped(
+        fit_linear, nominal, preps, range(len(preps)), "guesses_linear", linear, effects,
+        "diagnose step",
+    )
+    for i, record_fits in entries.items():
+        fits[i] = record_fits
     # Nested fits never lose: an effect at z = 0 is the nominal model, so a linear
     # candidate whose best fit ends below the nominal's log-likelihood started in the wrong
     # basin. Its record is fitted again with every candidate's second start at the nominal
@@ -172,23 +183,12 @@ def diagnose_step(
                 _at_nominal(fits[i][0]["w_trained"]), guesses[:, :1].shape
             )
             prep["guesses_nonlinear"] = np.concatenate([guesses, at_nominal], axis=1)
-    groups = {}
-    for i in need:
-        groups.setdefault(preps[i]["group"], []).append(i)
-    for indices in groups.values():
-        outputs = _run(
-            fit_nonlinear,
-            nominal,
-            preps,
-            indices,
-            "guesses_nonlinear",
-            nonlinear,
-            "diagnose step (stops)",
-        )
-        for j, i in enumerate(indices):
-            fits[i] = fits[i] + fit_entries(
-                preps[i], effects, nonlinear, [o[j] for o in outputs], preps[i]["u_out"]
-            )
+    entries = _fit_grouped(
+        fit_nonlinear, nominal, preps, need, "guesses_nonlinear", nonlinear, effects,
+        "diagnose step (stops)",
+    )
+    for i, record_fits in entries.items():
+        fits[i] = fits[i] + record_fits
     results = []
     for data, prep, record_fits in zip(datasets, preps, fits, strict=True):
         if len(record_fits) < 1 + len(effects):
@@ -220,33 +220,21 @@ def _restart_from_nominal(fits, preps, losing, effects, linear, nominal) -> None
         guesses = np.array(preps[i]["guesses_linear"])
         guesses[:, 1, :] = _at_nominal(fits[i][0]["w_trained"])
         preps[i]["guesses_linear_again"] = guesses
-    groups: dict[tuple, list[int]] = {}
-    for i in losing:
-        groups.setdefault(preps[i]["group"], []).append(i)
-    for indices in groups.values():
-        outputs = _run(
-            fit_linear,
-            nominal,
-            preps,
-            indices,
-            "guesses_linear_again",
-            linear,
-            "diagnose step (nested restarts)",
+    entries = _fit_grouped(
+        fit_linear, nominal, preps, losing, "guesses_linear_again", linear, effects,
+        "diagnose step (nested restarts)",
+    )
+    for i, again in entries.items():
+        fits[i] = [
+            new if new["objective"] < old["objective"] else old
+            for old, new in zip(fits[i], again, strict=True)
+        ]
+        note = (
+            "a candidate's fit ended below the nominal model's likelihood; refitted from "
+            "the nominal optimum"
         )
-        for j, i in enumerate(indices):
-            again = fit_entries(
-                preps[i], effects, linear, [o[j] for o in outputs], preps[i]["u_out"]
-            )
-            fits[i] = [
-                new if new["objective"] < old["objective"] else old
-                for old, new in zip(fits[i], again, strict=True)
-            ]
-            note = (
-                "a candidate's fit ended below the nominal model's likelihood; refitted "
-                "from the nominal optimum"
-            )
-            if note not in preps[i].setdefault("notes", []):
-                preps[i]["notes"].append(note)
+        if note not in preps[i].setdefault("notes", []):
+            preps[i]["notes"].append(note)
 
 
 def _at_nominal(w_nominal) -> np.ndarray:
