@@ -6,8 +6,9 @@ without the library's code) in two twins: the `u_test` column as the command seq
 sampled (clean) and as a test stand digitises it (`step_truth.measure_input`: a delay of
 0–2 samples and a fraction, a first-order anti-alias edge, 0.3–1.5 mV of white noise, an
 LSB of up to 0.6 mV, relay spikes at the switches, an offset and a drift). A class of
-records that start with the pendulum resting on a stop (`step_truth.draw_truth_on_stop`)
-is added to the truth's classes. The diagnosis runs in a fresh process that sees only the
+records that start with the pendulum resting on a stop (`step_truth.draw_truth_on_stop`:
+leaving it at the first sample, and held on it by the record's first level until the first
+change) is added to the truth's classes. The diagnosis runs in a fresh process that sees only the
 CSV files (`--params`-like nominal device: the reference with T_dm = T_f = 0, as the blind
 validation's).
 
@@ -35,7 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402
 
-CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT,)
+CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT)
 NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
 
 _BLIND = (
@@ -91,14 +92,16 @@ pathlib.Path(sys.argv[1]).write_text(json.dumps(out, default=float))
 )
 
 
-def draw(per_class: int, seed: int) -> list[dict]:
+def draw(per_class: int, seed: int, classes=CLASSES) -> list[dict]:
     """The truths: `per_class` of each class, drawn in a fixed order."""
     rng = np.random.default_rng(seed)
     truths = []
-    for effect in CLASSES:
+    for effect in classes:
         for _ in range(per_class):
             if effect == step_truth.ON_STOP_EFFECT:
                 truths.append(step_truth.draw_truth_on_stop(rng))
+            elif effect == step_truth.ON_STOP_HELD_EFFECT:
+                truths.append(step_truth.draw_truth_on_stop(rng, held=True))
             else:
                 truths.append(step_truth.draw_truth(rng, effect))
     return truths
@@ -179,9 +182,13 @@ def main(argv=None) -> int:
     parser.add_argument("--per-class", type=int, default=12)
     parser.add_argument("--seed", type=int, default=2027)
     parser.add_argument("--out", type=Path, default=Path("out/measured_inputs"))
+    parser.add_argument(
+        "--classes", nargs="+", choices=CLASSES, default=list(CLASSES),
+        help="truth classes to draw (default: all)",
+    )
     args = parser.parse_args(argv)
     started = time.perf_counter()
-    truths = draw(args.per_class, args.seed)
+    truths = draw(args.per_class, args.seed, tuple(args.classes))
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         channels = write_twins(truths, folder, args.seed)
@@ -192,6 +199,7 @@ def main(argv=None) -> int:
             "input_channel": "step_truth.measure_input, every part drawn per record",
             "nominal": "reference device, T_dm = T_f = 0 (as the blind validation)",
             "per_class": args.per_class,
+            "classes": list(args.classes),
             "seed": args.seed,
             "precision": "float64",
         },

@@ -441,6 +441,13 @@ for the stop effect (the loop and its stops are the library's model), but the st
 is neither of the library's (at rest inside the stops, or in a transient): the honest
 verdict is not `none`."""
 
+ON_STOP_HELD_EFFECT = "held_on_stop"
+"""The effect name of `draw_truth_on_stop(held=True)`'s records: as `ON_STOP_EFFECT`'s, but
+the record's own first level is the holding voltage, so the pendulum rests on the stop
+through the whole first segment and leaves it at the first change (a device left pressed
+against its stop by the test sequence when the recorder started). The stop acts inside the
+record: the honest verdict is the stop effect or `unexplained`, never `none`."""
+
 ON_STOP_STOP = (1.8, 2.3)
 """stop_over_u_max of an on-stop record, uniform: the stop voltage k_dp k_y h_max over the
 settled output of the full small level (U_max), beyond the reach of the later small steps'
@@ -562,6 +569,8 @@ def make(truth: dict, rng: np.random.Generator):
     elif effect == ON_STOP_EFFECT:
         device.h_max = truth["stop_over_u_max"] * u_max * k_test / (device.k_dp * device.k_y)
         record.hold_level = truth["start_level_V"]
+    elif effect == ON_STOP_HELD_EFFECT:  # held by the record's own first level
+        device.h_max = truth["stop_over_u_max"] * u_max * k_test / (device.k_dp * device.k_y)
     elif effect == "disturbance_drift":
         # Ṁ such that the settled output moves by drift_V over the record.
         record.moment_rate = truth["drift_V"] * loop_k / gain / DURATION
@@ -591,7 +600,7 @@ def make(truth: dict, rng: np.random.Generator):
     return t - t[0], u, y, y - clean
 
 
-def draw_truth_on_stop(rng: np.random.Generator) -> dict:
+def draw_truth_on_stop(rng: np.random.Generator, held: bool = False) -> dict:
     """One record of a device that rests on a mechanical stop when the record starts
     (effect `ON_STOP_EFFECT`), then driven off it by a small-step test sequence.
 
@@ -607,7 +616,10 @@ def draw_truth_on_stop(rng: np.random.Generator) -> dict:
     the stops, so the pendulum leaves the stop from t0 (the devices here have no torquer
     lag: at once), from rest, and the record's first samples sit at the stop voltage
     (output_sign × ±k_dp k_y h_max + output_offset) while it starts to move. The conventions'
-    drawn `start` and `start_level_V` are replaced by the on-stop start and this level."""
+    drawn `start` and `start_level_V` are replaced by the on-stop start and this level.
+
+    `held`: the record's first level is that holding voltage (effect `ON_STOP_HELD_EFFECT`):
+    the pendulum stays on the stop until the first change, then the small steps drive it."""
     device = _draw_device(rng)
     u_max, levels, bounds = _draw_small_steps(rng)
     truth = {
@@ -630,6 +642,9 @@ def draw_truth_on_stop(rng: np.random.Generator) -> dict:
     stop_V = truth["stop_over_u_max"] * u_max * k_test
     reach = (side * stop_V - gain * truth["moment_Nm"] / loop_k) / (k_test * device["test_gain"])
     truth["start_level_V"] = float(truth["hold_over_stop"] * reach)
+    if held:
+        truth["effect"] = ON_STOP_HELD_EFFECT
+        truth["levels_V"] = [truth["start_level_V"]] + list(truth["levels_V"][1:])
     return truth
 
 
