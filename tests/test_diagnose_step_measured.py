@@ -86,6 +86,7 @@ def _prep(n_changes=5, j_padded=8, levels=False):
     ctx = SimpleNamespace(
         change_index=np.zeros(j_padded, int),
         level_sigma=np.full(j_padded, 1e-5) if levels else None,
+        timing_map=None,
     )
     return {"change_index": np.arange(n_changes), "ctx": ctx}
 

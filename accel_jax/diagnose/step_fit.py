@@ -71,6 +71,15 @@ class StepContext(eqx.Module):
     is held out (the last entry, the drift nuisance's, 0) and `drift_step` (J,) [V] each
     step's change per unit of the input channel's drift nuisance; None for an exact input
     (then the fit has no level parameters).
+
+    A sequence of many changes on one clock (a PRBS or random telegraph: `step_record`'s
+    clocked layout) is fitted with few nuisances instead of one per change:
+    `timing_map` (J, P) and `timing_offset` (J,) [samples] give each change's shift as
+    offset + map·p from P clock parameters p (the common shift, the clock's rate), whose
+    prior means are `timing_mean` (P,) (σ 1); `level_map` (J + 1, L) [V] gives each level's
+    error from L level-group errors (one per distinct level of the input: a DAC puts out the
+    same value each time), standard normal. None (the default): one timing and one level
+    parameter per change, as above.
     """
 
     dt: jax.Array
@@ -94,6 +103,29 @@ class StepContext(eqx.Module):
     level_sigma: jax.Array | None = None
     held_out_level: jax.Array | None = None
     drift_step: jax.Array | None = None
+    timing_map: jax.Array | None = None
+    timing_offset: jax.Array | None = None
+    timing_mean: jax.Array | None = None
+    level_map: jax.Array | None = None
+
+
+def n_timing(ctx) -> int:
+    """Number of timing parameters in w: one per change, or the clock's (`timing_map`)."""
+    if ctx.timing_map is not None:
+        return ctx.timing_map.shape[-1]
+    return ctx.change_index.shape[-1]
+
+
+def timing_terms(timing, ctx):
+    """(each change's shift [samples], the timing parameters' prior residuals) from the
+    timing parameters `timing`. Each parameter is clipped to ±`TIMING_LIMIT` samples: a
+    change's own shift, or the clock's shift and rate (the grid's offsets then added as
+    they are: a measured channel's delay puts them beyond the limit)."""
+    clipped = jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT)
+    if ctx.timing_map is None:
+        return clipped, (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
+    shift = ctx.timing_offset + ctx.timing_map @ clipped
+    return shift, (timing - ctx.timing_mean) / TIMING_PRIOR[1]
 
 
 def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:
@@ -139,15 +171,20 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
         bound = jnp.asarray(effect.bounds + (jnp.inf,) * (SLOT - len(effect.bounds)), w.dtype)
         bounds = jnp.where(on, bound, bounds)
         prior = jnp.where(on, effect.prior(ze, ctx), prior)
-    n_changes = ctx.change_index.shape[-1]
-    timing = w[_I_TIMING : _I_TIMING + n_changes]
-    levels = w[_I_TIMING + n_changes :]
+    n_t = n_timing(ctx)
+    timing = w[_I_TIMING : _I_TIMING + n_t]
+    levels = w[_I_TIMING + n_t :]
+    shift, timing_prior = timing_terms(timing, ctx)
     step = ctx.change_step
     if ctx.level_sigma is not None:
         # ΔU_j moves by e_j − e_{j−1} (e the level errors [V]; pads carry none) and by the
         # input channel's drift nuisance (the last level parameter) along `drift_step`.
-        error = ctx.level_sigma * levels[:-1]
-        previous = jnp.concatenate([jnp.zeros(1, w.dtype), error[:-1]])
+        if ctx.level_map is None:
+            error = ctx.level_sigma * levels[:-1]
+            previous = jnp.concatenate([jnp.zeros(1, w.dtype), error[:-1]])
+        else:  # each level's error from its level group's
+            both = ctx.level_map @ levels[:-1]
+            error, previous = both[1:], both[:-1]
         step = step + jnp.where(ctx.level_sigma > 0, error - previous, 0.0)
         step = step + ctx.drift_step * levels[-1]
     penalties = jnp.concatenate(
@@ -159,7 +196,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
             slot * (1 - used),  # an effect's unused parameters are pinned at 0
             _barrier(slot, bounds) * used,
             prior * used,  # an effect's own prior, where it has one
-            (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1],
+            timing_prior,
             levels,  # the level errors' standard normal prior (empty for an exact input)
         ]
     )
@@ -170,7 +207,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
         "rate": rate,
         "dv": ctx.scale * w[_I_DV],
         "dw": ctx.scale * w[_I_DW],
-        "shift": jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT),
+        "shift": shift,
         "step": step,
         "inverse_stop": inverse,
         "output_offset": offset,
@@ -390,9 +427,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
             cost Σr² of `residuals` there."""
             m, _, a, _ = error_of(moved(base, delta), candidate)
             tail = moved(base, delta)[_I_TIMING:]
-            n_changes = ctx.change_index.shape[-1]
-            timing, levels = tail[:n_changes], tail[n_changes:]
-            prior = ctx.held_out_change * (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
+            n_t = n_timing(ctx)
+            timing, levels = tail[:n_t], tail[n_t:]
+            prior = ctx.held_out_change * timing_terms(timing, ctx)[1]
             if ctx.level_sigma is not None:  # a held-out level's error, under its prior
                 prior = jnp.concatenate([prior, ctx.held_out_level * levels])
             out = jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])

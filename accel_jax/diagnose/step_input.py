@@ -290,6 +290,74 @@ def _describe(name, unit, levels, change, noise, step, spikes, n, drift=0.0) -> 
 
 
 @dataclasses.dataclass(frozen=True)
+class Clock:
+    """The bit clock of a sequence whose changes all fall on one grid (`clock_grid`):
+    `period` [samples] one bit, `phase` [samples] the grid's origin, `bits` (J,) each
+    change's bit count from the first, `residual` (J,) [samples] each change's index less
+    the grid's time for it."""
+
+    period: float
+    phase: float
+    bits: np.ndarray
+    residual: np.ndarray
+
+
+CLOCK_TOLERANCE = 1.5
+"""A sequence is clocked when every change's index lies within this many samples of the
+fitted grid (a sampled column shows a change up to one sample late; a measured one's
+crossing moves by its noise)."""
+
+
+def clock_grid(change_index) -> Clock | None:
+    """The bit clock of a many-change sequence (a PRBS or random telegraph from a clocked
+    generator), or None when its changes are on no common grid.
+
+    The bit length starts as the median of the shortest intervals (those below 1.5× the
+    shortest), each interval is rounded to whole bits, and the grid index ≈ phase +
+    period·bits is fitted by least squares (twice: the bit counts again from the fitted
+    period). Clocked when every residual is within `CLOCK_TOLERANCE` samples and a bit is at
+    least 3 samples long."""
+    index = np.asarray(change_index, dtype=float)
+    if index.size < 3:
+        return None
+    gaps = np.diff(index)
+    if np.any(gaps <= 0):
+        return None
+    period = float(np.median(gaps[gaps < 1.5 * gaps.min()]))
+    for _ in range(2):
+        if period < 3:
+            return None
+        counts = np.maximum(np.round(gaps / period), 1)
+        bits = np.concatenate([[0.0], np.cumsum(counts)])
+        slope, intercept = np.polyfit(bits, index, 1)
+        period = float(slope)
+    residual = index - (intercept + period * bits)
+    if period < 3 or np.max(np.abs(residual)) > CLOCK_TOLERANCE:
+        return None
+    return Clock(period=period, phase=float(intercept), bits=bits, residual=residual)
+
+
+def level_groups(levels, sigmas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct levels of a measured sequence: (each plateau's group (J+1,), each
+    group's level [V] as the inverse-variance mean of its plateaus, each group's standard
+    error [V]). Plateaus whose sorted levels lie within 10 of their standard errors (the
+    larger) of the previous one join its group: a DAC puts out the same value each time."""
+    levels = np.asarray(levels, dtype=float)
+    sigmas = np.maximum(np.asarray(sigmas, dtype=float), 1e-15)
+    order = np.argsort(levels)
+    group = np.zeros(levels.size, dtype=int)
+    current = 0
+    for previous, k in zip(order[:-1], order[1:], strict=True):
+        if levels[k] - levels[previous] > 10 * max(sigmas[k], sigmas[previous]):
+            current += 1
+        group[k] = current
+    weights = 1 / sigmas**2
+    total = np.bincount(group, weights)
+    means = np.bincount(group, weights * levels) / total
+    return group, means, 1 / np.sqrt(total)
+
+
+@dataclasses.dataclass(frozen=True)
 class StepInputs:
     """A step record with its inputs read as piecewise-constant sequences (`read_inputs`):
     `data` the record the diagnosis fits (the measured columns replaced by their plateaus),

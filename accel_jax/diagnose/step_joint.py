@@ -83,7 +83,7 @@ from .step_fit import (
     moment_jumps,
     refitted_device,
 )
-from .step_record import prepare, prior_sigma_of, stack_on_host, time_text
+from .step_record import MAX_CHANGES, prepare, prior_sigma_of, stack_on_host, time_text
 
 CANDIDATES = ("nominal", "torquer_lag", "output_filter")
 """The joint fit's models: the nominal device and the two lags that a small step cannot
@@ -340,6 +340,13 @@ def prepare_set(datasets: list[StepData], nominal: NominalDevice) -> PreparedSet
     if not datasets:
         raise DataError("no records to diagnose.")
     preps = [prepare(d, nominal, []) for d in datasets]
+    for i, p in enumerate(preps):
+        if p["clock"] is not None:
+            raise DataError(
+                f"record {i + 1}: a clocked sequence of {p['change_index'].size} changes; the "
+                f"joint diagnosis of a set takes at most {MAX_CHANGES} changes per record "
+                "(diagnose it alone, or split it into shorter records)."
+            )
     v_stop = nominal_stop_voltage(nominal.params)
     for p in preps:  # the inputs as read (a measured column's spikes are not levels)
         reach = float(np.max(np.abs(np.asarray(p["data"].u_test)))) * p["k_test"]

@@ -17,7 +17,7 @@ from .._params import ServoParams
 from .._servo import closed_loop_test_gain, damping_ratio, time_constant
 from .._simulate.sequence import accel_moment
 from . import openworld
-from .step_input import read_inputs
+from .step_input import clock_grid, level_groups, read_inputs
 from .step_fit import (
     _I_DV,
     _I_GAIN,
@@ -39,7 +39,12 @@ HELD_OUT_FRACTION = 1 / 3
 """A record of fewer than four segments holds out about this much at its end."""
 
 MAX_CHANGES = 64
-"""Most test-voltage changes a record may have (a piecewise-constant test sequence)."""
+"""Most test-voltage changes a record may have with a change time (and, measured, a level)
+fitted for each."""
+
+MAX_CLOCKED_CHANGES = 1024
+"""Most changes of a sequence on one bit clock (a PRBS or random telegraph, `clock_grid`):
+fitted with the clock's shift and rate and one error per distinct level instead."""
 
 
 def held_out_samples(u_test: np.ndarray) -> tuple[np.ndarray, str]:
@@ -173,12 +178,12 @@ def _changes(data: StepData, path=None) -> tuple[np.ndarray, np.ndarray, np.ndar
     u = np.asarray(data.u_test)
     a = np.zeros_like(u) if data.a_in is None else np.asarray(data.a_in)
     index = np.flatnonzero(np.diff(sequence_key(data)) != 0) + 1
-    if index.size > MAX_CHANGES:
+    limit = MAX_CLOCKED_CHANGES if data.a_in is None else MAX_CHANGES
+    if index.size > limit:
         what = "u_test" if data.a_in is None else "u_test or a_in"
         raise DataError(
             f"{path or '<data>'}: {what} changes at {index.size} samples; the step diagnosis "
-            f"takes at most {MAX_CHANGES} changes in one record (split it into shorter "
-            "records)."
+            f"takes at most {limit} changes in one record (split it into shorter records)."
         )
     return index, u[index] - u[index - 1], a[index] - a[index - 1]
 
@@ -216,14 +221,97 @@ class RecordView(eqx.Module):
     u_out: np.ndarray
 
 
+def _clocked(inputs):
+    """(the record as fitted, its `Clock` or None, its level groups or None).
+
+    A sequence of more than `MAX_CHANGES` changes must run on one bit clock
+    (`step_input.clock_grid`; else `DataError`); measured, its plateaus are then replaced
+    by their level groups' means (`step_input.level_groups`), (group of each plateau,
+    group means, group standard errors) returned beside it."""
+    data = inputs.data
+    index = np.flatnonzero(np.diff(sequence_key(data)) != 0) + 1
+    if index.size <= MAX_CHANGES:
+        return data, None, None
+    clock = clock_grid(index) if data.a_in is None else None
+    if clock is None:
+        raise DataError(
+            f"u_test changes {index.size} times, not on one bit clock (the intervals between "
+            f"changes are not whole multiples of one bit within {CLOCK_TEXT}); the step "
+            f"diagnosis takes more than {MAX_CHANGES} changes only from a clocked sequence "
+            "(a PRBS or random telegraph). Split the record into shorter ones."
+        )
+    if inputs.level_sigmas is None:
+        return data, clock, None
+    u = np.asarray(data.u_test)
+    levels = u[np.concatenate([[0], index])]
+    group, means, sigmas = level_groups(levels, inputs.level_sigmas)
+    if np.any(group[1:] == group[:-1]):
+        raise DataError(
+            "u_test: two neighbouring plateaus of the measured clocked sequence read as one "
+            "level; the step diagnosis cannot tell its changes apart. Split the record."
+        )
+    plateau = np.searchsorted(index, np.arange(u.size), side="right")
+    rebuilt = StepData(
+        t=data.t, u_test=means[group][plateau], u_out=data.u_out, notes=tuple(data.notes)
+    )
+    return rebuilt, clock, (group, means, sigmas)
+
+
+CLOCK_TEXT = "1.5 samples"
+
+
+def _response_fit(t, u, y, base) -> tuple[float, float]:
+    """(intercept, slope) of the output against the nominal loop's unit-gain response to
+    the test voltage (SciPy's `lsim` of ω²/(s² + 2ζωs + ω²), from rest under the first
+    level): the polarity, gain and offset starts of a sequence whose plateaus never settle."""
+    from scipy import signal
+
+    omega = 1 / float(time_constant(base))
+    zeta = float(damping_ratio(base))
+    system = signal.lti([omega**2], [1.0, 2 * zeta * omega, omega**2])
+    _, response, _ = signal.lsim(system, u - u[0], t - t[0])
+    columns = np.stack([np.ones_like(y), u[0] + response], 1)
+    intercept, slope = np.linalg.lstsq(columns, y, rcond=None)[0]
+    return float(intercept), float(slope)
+
+
+def _clock_notes(clock, grouped, changes: int) -> list[str]:
+    if clock is None:
+        return []
+    text = (
+        f"u_test: {changes} changes on one bit clock (a bit {clock.period:.4g} samples; every "
+        f"change within {np.max(np.abs(clock.residual)):.2g} samples of the grid): the change "
+        "times fitted as the clock's shift and rate, not one by one"
+    )
+    if grouped is not None:
+        levels = ", ".join(f"{v:.4g}" for v in grouped[1])
+        text += f"; the measured levels as {grouped[1].size} distinct levels ({levels} V), each fitted once"
+    return [text]
+
+
+def _clock_layout(clock, index, j_padded):
+    """The timing map (J, 2) and offsets (J,) [samples] of a clocked sequence: change j's
+    shift from its index is (grid − index) + p₀ + p₁ (b_j − b̄)/(half the span of b), p₀ the
+    common shift (the sampling's half sample and the channels' delay), p₁ the clock's rate
+    error in samples at the ends; pads zero."""
+    bits = clock.bits
+    centre, half = bits.mean(), max(float(np.ptp(bits)) / 2, 1.0)
+    timing_map = np.zeros((j_padded, 2))
+    timing_map[: index.size, 0] = 1.0
+    timing_map[: index.size, 1] = (bits - centre) / half
+    offset = np.zeros(j_padded)
+    offset[: index.size] = clock.phase + clock.period * bits - index
+    return timing_map, offset
+
+
 def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     """Host-side context of one record: blocks, floor, domain check, polarity, starts.
 
     A measured input (noise, ADC steps, relay spikes: `step_input.read_inputs`) is read
     as its plateaus first; `prep["data"]` is the record as fitted, `prep["notes"]` says
     what was read, and the levels' standard error (times the test gain) joins the floor."""
-    inputs = read_inputs(data, max_changes=MAX_CHANGES)
-    data = inputs.data
+    inputs = read_inputs(data, max_changes=MAX_CLOCKED_CHANGES)
+    data, clock, grouped = _clocked(inputs)
     t, u, y = np.asarray(data.t), np.asarray(data.u_test), np.asarray(data.u_out)
     n = y.size
     dt = data.sample_period
@@ -259,7 +347,11 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     quantised = q / math.sqrt(12) / (math.sqrt(m) if dithered else 1.0)
     # A measured input's levels are known to their standard error only: each plateau's
     # output level is then uncertain by the test gain times it (added in quadrature).
-    input_floor = abs(float(closed_loop_test_gain(base))) * inputs.level_sigma
+    plateau_sigmas = inputs.level_sigmas
+    if grouped is not None:  # each plateau known to its level group's standard error
+        plateau_sigmas = grouped[2][grouped[0]]
+    rms_sigma = 0.0 if plateau_sigmas is None else float(np.sqrt(np.mean(plateau_sigmas**2)))
+    input_floor = abs(float(closed_loop_test_gain(base))) * rms_sigma
     sigma = max(
         math.hypot(block_floor["sigma_differences"], input_floor),
         quantised,
@@ -298,6 +390,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     coef = np.linalg.lstsq(np.stack(columns, 1), outputs, rcond=None)[0]
     intercept = float(coef[0])
     slope = float(coef[1]) if np.ptp(levels) > 0 else 1.0
+    if clock is not None:  # bits shorter than the response: no settled levels to read
+        intercept, slope = _response_fit(t, u, y, base)
     accel_slope = float(coef[-1]) if np.ptp(accels) > 0 else 1.0
     polarity = -1.0 if slope < 0 else 1.0
     accel_sign = -1.0 if accel_slope < 0 else 1.0
@@ -331,15 +425,29 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     # A measured test input: each change's level known to its standard error (errors in
     # variables, `step_fit.unpack`); not with an acceleration column, whose changes share
     # the test levels' segments.
-    level_sigma = held_out_level = drift_step = None
-    if inputs.level_sigma > 0 and a is None:
+    level_sigma = held_out_level = drift_step = level_map = None
+    if rms_sigma > 0 and a is None:
         level_sigma = np.zeros(j_padded)
-        level_sigma[: index.size] = inputs.level_sigmas[1:]
+        level_sigma[: index.size] = plateau_sigmas[1:]
         held_out_level = np.append(starts_held.astype(np.float64), 0.0)  # (the drift: not)
         drift_step = np.zeros(j_padded)
         drift_step[: index.size] = np.diff(inputs.level_drift)
-    # The level errors (one per change) and the input channel's drift nuisance.
-    n_levels = 0 if level_sigma is None else j_padded + 1
+        if grouped is not None:  # one error per distinct level, shared by train and test
+            group, _, group_sigma = grouped
+            level_map = np.zeros((j_padded + 1, group_sigma.size))
+            level_map[np.arange(group.size), group] = group_sigma[group]
+            held_out_level = np.zeros(group_sigma.size + 1)
+    # The level errors (one per change, or per level group) and the input channel's drift
+    # nuisance.
+    n_levels = 0 if level_sigma is None else held_out_level.size
+    # The change times: one shift per change, or a clock's shift and rate (`_clock_layout`).
+    timing_map = timing_offset = timing_mean = None
+    timing_late = np.full(j_padded, TIMING_PRIOR[0])
+    if clock is not None:
+        timing_map, timing_offset = _clock_layout(clock, index, j_padded)
+        timing_mean = np.array([TIMING_PRIOR[0], 0.0])
+        timing_late = timing_mean.copy()
+        held_out_change = np.zeros(2)
     train = np.zeros(n_padded)
     test = np.zeros(n_padded)
     train[:n_blocks] = ~held
@@ -366,8 +474,12 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         level_sigma=None if level_sigma is None else jnp.asarray(level_sigma),
         held_out_level=None if held_out_level is None else jnp.asarray(held_out_level),
         drift_step=None if drift_step is None else jnp.asarray(drift_step),
+        timing_map=None if timing_map is None else jnp.asarray(timing_map),
+        timing_offset=None if timing_offset is None else jnp.asarray(timing_offset),
+        timing_mean=None if timing_mean is None else jnp.asarray(timing_mean),
+        level_map=None if level_map is None else jnp.asarray(level_map),
     )
-    common = np.zeros(_N_FIXED + j_padded + n_levels)
+    common = np.zeros(_N_FIXED + timing_late.size + n_levels)
     common[_I_MOMENT] = moment / scale
     common[_I_GAIN] = w_gain
     common[_I_DV] = dv / scale
@@ -382,6 +494,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "torquer_gain": float(base.torquer_gain),
         "accel_per_g": float(accel_moment(base)),
         "changes": j_padded,
+        "timing_late": timing_late,
         "nominal_lags": {
             "torquer_time_constant": float(base.torquer_time_constant),
             "filter_time_constant": float(base.filter_time_constant),
@@ -391,7 +504,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     nonlinear = [e for e in effects if e.nonlinear]
     return {
         "data": data,
-        "notes": list(inputs.notes),
+        "notes": list(inputs.notes) + _clock_notes(clock, grouped, index.size),
         "ctx": ctx,
         "view": view,
         "u_out": np.concatenate([yb, np.zeros(n_padded - n_blocks)]),
@@ -417,7 +530,10 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         "accel_slope": accel_slope,
         "has_accel": a is not None,
         "period": period,
-        "group": (n_padded, j_padded, max_block, level_sigma is not None),
+        "group": (n_padded, j_padded, max_block, level_sigma is not None, clock is not None)
+        + (n_levels,),
+        "clock": clock,
+        "level_groups": grouped,
         "guesses_linear": _guesses(common, linear, host, nominal_first=True),
         "guesses_nonlinear": _guesses(common, nonlinear, host, nominal_first=False),
         "host": host,
@@ -433,8 +549,8 @@ def _guesses(common, effects, host, *, nominal_first: bool) -> np.ndarray:
     """Starts, shape (candidates, STARTS, parameters): an effect's own starts, then the
     nominal's second start (changes half a sample earlier) with its last start."""
     late = common.copy()
-    n_changes = host["changes"]
-    late[_I_TIMING : _I_TIMING + n_changes] = TIMING_PRIOR[0]
+    timing = host["timing_late"]
+    late[_I_TIMING : _I_TIMING + timing.size] = timing
     rows = [[common, late]] if nominal_first else []
     for effect in effects:
         per = []

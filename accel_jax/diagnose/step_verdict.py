@@ -24,6 +24,7 @@ from .step_fit import (
     GAIN_SIGMA,
     REFIT_FIELDS,
     TIMING_LIMIT,
+    n_timing,
     refitted_device,
 )
 from .step_record import segments, time_text
@@ -174,16 +175,24 @@ def nuisance_test(fit, prep) -> dict:
     from scipy import stats
 
     w = np.asarray(fit["w"])
+    ctx = prep["ctx"]
     n_changes = int(prep["change_index"].size)
-    j_padded = int(prep["ctx"].change_index.shape[-1])
-    timing = np.clip(w[_I_TIMING : _I_TIMING + n_changes], -TIMING_LIMIT, TIMING_LIMIT)
+    n_t = n_timing(ctx)
+    timing = change_shifts(w, ctx)[:n_changes]
     delay = float(np.mean(timing)) if n_changes else 0.0
     shifts = [("test_winding_gain", float(fit["z_gain"]))]
-    if n_changes > 1:
+    if prep.get("clock") is not None:  # the clock's rate (its shift is the delay)
+        shifts.append(("input_clock_rate", float(w[_I_TIMING + 1])))
+    elif n_changes > 1:
         shifts += [(f"change_time_{j + 1}", float(x - delay)) for j, x in enumerate(timing)]
-    if prep["ctx"].level_sigma is not None:
-        levels = w[_I_TIMING + j_padded : _I_TIMING + j_padded + n_changes]
-        shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
+    if ctx.level_sigma is not None:
+        if prep.get("level_groups") is not None:
+            count = prep["level_groups"][1].size
+            levels = w[_I_TIMING + n_t : _I_TIMING + n_t + count]
+            shifts += [(f"input_level_group_{g + 1}", float(e)) for g, e in enumerate(levels)]
+        else:
+            levels = w[_I_TIMING + n_t : _I_TIMING + n_t + n_changes]
+            shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
         shifts.append(("input_channel_drift", float(w[-1])))
     z = np.abs(np.asarray([v for _, v in shifts]))
     worst = int(np.argmax(z))
@@ -200,6 +209,16 @@ def nuisance_test(fit, prep) -> dict:
         "method": "Bonferroni over the standardised nuisance shifts (gain, change times about "
         "their mean, measured input levels)",
     }
+
+
+def change_shifts(w, ctx) -> np.ndarray:
+    """Each change's fitted shift [samples] from where `u_test` shows it (clipped as the
+    fit clips it), from a fit's parameters w: its own, or its clock's (`timing_terms`)."""
+    n_t = n_timing(ctx)
+    shift = np.clip(np.asarray(w[_I_TIMING : _I_TIMING + n_t], np.float64), -TIMING_LIMIT, TIMING_LIMIT)
+    if ctx.timing_map is not None:  # (host NumPy: `step_fit.timing_terms` without JAX)
+        shift = np.asarray(ctx.timing_offset) + np.asarray(ctx.timing_map) @ shift
+    return shift
 
 
 def strained_sentence(test: dict, fit) -> str:
@@ -220,11 +239,23 @@ def strained_sentence(test: dict, fit) -> str:
             f"the others' timing {where}: the input switched at another time than its column "
             "shows (a relay's delay or bounce), or a lag the model lacks"
         )
+    if name == "input_clock_rate":
+        return (
+            f"the test sequence's clock came out {value:+.1f} samples off its grid over the "
+            f"record {where}: the generator's clock and the recorder's differ in rate, or a "
+            "lag the model lacks"
+        )
     if name == "input_channel_drift":
         return (
             f"the input channel's drift came out {value:+.1f}σ of what its plateaus allow "
             f"{where}: the test input's level moved during the record, or a slow drift "
             "of the output the model lacks (disturbance drift)"
+        )
+    if name.startswith("input_level_group"):
+        return (
+            f"level {name.rsplit('_', 1)[1]} of the clocked test sequence differs from what "
+            f"its channel recorded by {value:+.1f} standard errors {where}: a gain or offset "
+            "error of the input channel, or an output that is not linear in the input"
         )
     return (
         f"level {name.rsplit('_', 1)[1]} of the test input differs from what its channel "
@@ -668,7 +699,7 @@ def _refit_report(nominal, nominal_fit, by_name, shown, prep, sigma, verdict):
     parameters = _parameter_shifts(nominal, model_fit, prep)
     w = nominal_fit["w"]
     ctx_scale = float(prep["ctx"].scale)
-    shifts = np.clip(w[_I_TIMING:], -TIMING_LIMIT, TIMING_LIMIT)[: prep["change_index"].size]
+    shifts = change_shifts(np.asarray(w), prep["ctx"])[: prep["change_index"].size]
     measured = np.asarray(nominal_fit["prediction"]) + nominal_fit["error"]
     rms_prior = float(np.sqrt(np.mean((measured - nominal_fit["prior_prediction"]) ** 2)))
     rms_refit = float(np.sqrt(np.mean(nominal_fit["error"] ** 2)))

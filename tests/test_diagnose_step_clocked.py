@@ -1,0 +1,109 @@
+"""Clocked test sequences of hundreds of changes (a PRBS or random telegraph): their bit
+clock found from the change indices, their measured levels grouped into the generator's
+distinct levels, and the step diagnosis of such a record (clean and measured input) giving
+its step-sequence twin's verdict. Records from the independent truth simulator
+(studies/step_truth.py, written without the diagnosis code). Float64 (conftest)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from accel_jax._data import DataError, NominalDevice, StepData
+from accel_jax.diagnose import diagnose_many
+from accel_jax.diagnose.step_input import CLOCK_TOLERANCE, clock_grid, level_groups
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import step_truth  # noqa: E402
+
+NOMINAL = dict(torquer_time_constant=0.0, filter_time_constant=0.0)
+
+
+def _prbs_column(seed, rate=1e6, duration=0.03, changes=220):
+    rng = np.random.default_rng(seed)
+    levels, times = step_truth.prbs_levels(
+        rng, n_changes=changes, duration_s=duration, low_V=-2.0, high_V=2.0, min_bit_s=2e-5
+    )
+    t = np.arange(int(duration * rate)) / rate
+    return t, np.asarray(levels)[np.searchsorted(times, t, side="right")], times
+
+
+def test_the_bit_clock_of_a_sampled_prbs_is_found():
+    for seed in range(5):
+        t, column, times = _prbs_column(seed, rate=float(1e6 / (1 + seed / 3)))
+        index = np.flatnonzero(np.diff(column)) + 1
+        clock = clock_grid(index)
+        assert clock is not None, seed
+        rate = 1 / (t[1] - t[0])
+        true_bit = np.min(np.diff(times)) * rate  # (the shortest run is one bit)
+        assert abs(clock.period - true_bit) < 0.01 * true_bit, (clock.period, true_bit)
+        assert np.max(np.abs(clock.residual)) <= CLOCK_TOLERANCE
+        # The grid against the exact change times: the sampled column shows each change up
+        # to one sample late, so the grid sits 0–1 sample after them.
+        late = clock.phase + clock.period * clock.bits - np.asarray(times) * rate
+        assert -0.2 < np.mean(late) < 1.2, np.mean(late)
+
+
+def test_changes_on_no_common_clock_are_not_clocked():
+    rng = np.random.default_rng(0)
+    index = np.cumsum(rng.uniform(20, 90, 200)).astype(int)
+    assert clock_grid(index) is None
+    assert clock_grid([10, 20]) is None  # too few to tell
+
+
+def test_measured_plateaus_group_into_the_generators_levels():
+    rng = np.random.default_rng(1)
+    truth = np.where(np.arange(41) % 2 == 0, 1.5, -0.5)
+    sigmas = rng.uniform(1e-4, 3e-4, truth.size)
+    levels = truth + sigmas * rng.normal(size=truth.size)
+    group, means, errors = level_groups(levels, sigmas)
+    assert means.size == 2 and np.all(group[::2] == group[0]) and group[1] != group[0]
+    assert np.allclose(np.sort(means), [-0.5, 1.5], atol=5 * errors.max())
+    assert np.all(errors < sigmas.min())  # the plateaus of a level averaged together
+
+
+def test_many_changes_off_any_clock_are_refused_in_one_line():
+    rng = np.random.default_rng(2)
+    n = 20000
+    edges = np.cumsum(rng.uniform(30, 120, 250)).astype(int)
+    edges = edges[edges < n]
+    u = np.where(np.searchsorted(edges, np.arange(n), side="right") % 2 == 0, 1.0, -1.0)
+    t = np.arange(n) * 1e-6
+    y = 0.9 * u + 1e-3 * rng.normal(size=n)
+    with pytest.raises(DataError, match="not on one bit clock") as error:
+        diagnose_many([StepData(t, u, y)], NominalDevice.reference(**NOMINAL))
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.slow
+def test_a_prbs_record_is_diagnosed_like_its_step_sequence_twin():
+    """One truth (a device with a torquer lag, the truth's conventions) driven by its small
+    steps and by a 220-change PRBS; the PRBS's input also measured (delay, anti-alias,
+    noise, ADC, relay spikes). The same verdict from all three."""
+    rng = np.random.default_rng(4)
+    truth = step_truth.draw_truth(rng, "torquer_lag")
+    t, u, y, _ = step_truth.make(truth, rng)
+    step_twin = StepData(t, u, y)
+    prbs = dict(truth)
+    levels, times = step_truth.prbs_levels(
+        rng, n_changes=220, duration_s=step_truth.DURATION * 2.5, low_V=-truth["u_max_V"],
+        high_V=truth["u_max_V"], min_bit_s=2e-5,
+    )
+    prbs["levels_V"], prbs["change_times_s"] = levels, times
+    duration = step_truth.DURATION
+    try:
+        step_truth.DURATION = duration * 2.5  # (make reads the record's length from it)
+        tp, up, yp, _ = step_truth.make(prbs, rng)
+    finally:
+        step_truth.DURATION = duration
+    measured, _ = step_truth.measure_input(up, prbs["rate"], rng)
+    records = [step_twin, StepData(tp, up, yp), StepData(tp, measured, yp)]
+    results = diagnose_many(records, NominalDevice.reference(**NOMINAL), recommend=False)
+    verdicts = [(r.verdict, sorted(r.tied)) for r in results]
+    assert verdicts[1] == verdicts[0] and verdicts[2] == verdicts[0], verdicts
+    assert verdicts[0][0] != "none"
+    for r in results[1:]:
+        assert any(n.startswith("u_test: 220 changes on one bit clock") for n in r.notes)
+        assert not r.refit["nuisance_test"]["strained"], r.refit["nuisance_test"]
+    assert any("2 distinct levels" in n for n in results[2].notes)
