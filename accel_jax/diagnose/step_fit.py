@@ -44,6 +44,13 @@ exactly there. Clipped to ±`TIMING_LIMIT` samples."""
 
 TIMING_LIMIT = 4.0
 
+DELAY_PRIOR_SIGMA = 4.0
+"""Prior σ [samples] of a measured input channel's delay behind the output's, N(0, σ): a
+common shift of every change (an ADC's group delay, an anti-alias filter); clipped to
+±`DELAY_LIMIT`."""
+
+DELAY_LIMIT = 8.0
+
 SLOT = 2
 _I_MOMENT, _I_GAIN, _I_DV, _I_DW = 4, 5, 6, 7
 _I_SLOT = 8
@@ -78,8 +85,10 @@ class StepContext(eqx.Module):
     offset + map·p from P clock parameters p (the common shift, the clock's rate), whose
     prior means are `timing_mean` (P,) (σ 1); `level_map` (J + 1, L) [V] gives each level's
     error from L level-group errors (one per distinct level of the input: a DAC puts out the
-    same value each time), standard normal. None (the default): one timing and one level
-    parameter per change, as above.
+    same value each time), standard normal; `timing_sigma`, `timing_limit` (P,) the timing
+    parameters' prior σ and clip [samples]. A measured input of few changes has one shift
+    per change and the input channel's delay, common to all (the map [I | 1]). None (the
+    default): one timing and one level parameter per change, as above.
     """
 
     dt: jax.Array
@@ -106,6 +115,8 @@ class StepContext(eqx.Module):
     timing_map: jax.Array | None = None
     timing_offset: jax.Array | None = None
     timing_mean: jax.Array | None = None
+    timing_sigma: jax.Array | None = None
+    timing_limit: jax.Array | None = None
     level_map: jax.Array | None = None
 
 
@@ -121,11 +132,12 @@ def timing_terms(timing, ctx):
     timing parameters `timing`. Each parameter is clipped to ±`TIMING_LIMIT` samples: a
     change's own shift, or the clock's shift and rate (the grid's offsets then added as
     they are: a measured channel's delay puts them beyond the limit)."""
-    clipped = jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT)
     if ctx.timing_map is None:
+        clipped = jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT)
         return clipped, (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
+    clipped = jnp.clip(timing, -ctx.timing_limit, ctx.timing_limit)
     shift = ctx.timing_offset + ctx.timing_map @ clipped
-    return shift, (timing - ctx.timing_mean) / TIMING_PRIOR[1]
+    return shift, (timing - ctx.timing_mean) / ctx.timing_sigma
 
 
 def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:

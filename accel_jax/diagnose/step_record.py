@@ -25,9 +25,12 @@ from .step_fit import (
     _I_SLOT,
     _I_TIMING,
     _N_FIXED,
+    DELAY_LIMIT,
+    DELAY_PRIOR_SIGMA,
     GAIN_SIGMA,
     REFIT_BOUND,
     REFIT_FIELDS,
+    TIMING_LIMIT,
     TIMING_PRIOR,
     StepContext,
 )
@@ -441,13 +444,26 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     # nuisance.
     n_levels = 0 if level_sigma is None else held_out_level.size
     # The change times: one shift per change, or a clock's shift and rate (`_clock_layout`).
-    timing_map = timing_offset = timing_mean = None
+    timing_map = timing_offset = timing_mean = timing_sigma = timing_limit = None
     timing_late = np.full(j_padded, TIMING_PRIOR[0])
+    measured = level_sigma is not None
+    delay = (DELAY_PRIOR_SIGMA, DELAY_LIMIT) if measured else (TIMING_PRIOR[1], TIMING_LIMIT)
     if clock is not None:
         timing_map, timing_offset = _clock_layout(clock, index, j_padded)
         timing_mean = np.array([TIMING_PRIOR[0], 0.0])
+        timing_sigma = np.array([delay[0], TIMING_PRIOR[1]])
+        timing_limit = np.array([delay[1], TIMING_LIMIT])
         timing_late = timing_mean.copy()
         held_out_change = np.zeros(2)
+    elif measured:  # one shift per change and the input channel's delay, common to all
+        timing_map = np.concatenate([np.eye(j_padded), np.ones((j_padded, 1))], axis=1)
+        timing_map[index.size :] = 0.0
+        timing_offset = np.zeros(j_padded)
+        timing_mean = np.append(np.full(j_padded, TIMING_PRIOR[0]), 0.0)
+        timing_sigma = np.append(np.full(j_padded, TIMING_PRIOR[1]), DELAY_PRIOR_SIGMA)
+        timing_limit = np.append(np.full(j_padded, TIMING_LIMIT), DELAY_LIMIT)
+        timing_late = timing_mean.copy()
+        held_out_change = np.append(held_out_change, 0.0)
     train = np.zeros(n_padded)
     test = np.zeros(n_padded)
     train[:n_blocks] = ~held
@@ -477,6 +493,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
         timing_map=None if timing_map is None else jnp.asarray(timing_map),
         timing_offset=None if timing_offset is None else jnp.asarray(timing_offset),
         timing_mean=None if timing_mean is None else jnp.asarray(timing_mean),
+        timing_sigma=None if timing_sigma is None else jnp.asarray(timing_sigma),
+        timing_limit=None if timing_limit is None else jnp.asarray(timing_limit),
         level_map=None if level_map is None else jnp.asarray(level_map),
     )
     common = np.zeros(_N_FIXED + timing_late.size + n_levels)

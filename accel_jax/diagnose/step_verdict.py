@@ -215,10 +215,11 @@ def change_shifts(w, ctx) -> np.ndarray:
     """Each change's fitted shift [samples] from where `u_test` shows it (clipped as the
     fit clips it), from a fit's parameters w: its own, or its clock's (`timing_terms`)."""
     n_t = n_timing(ctx)
-    shift = np.clip(np.asarray(w[_I_TIMING : _I_TIMING + n_t], np.float64), -TIMING_LIMIT, TIMING_LIMIT)
-    if ctx.timing_map is not None:  # (host NumPy: `step_fit.timing_terms` without JAX)
-        shift = np.asarray(ctx.timing_offset) + np.asarray(ctx.timing_map) @ shift
-    return shift
+    timing = np.asarray(w[_I_TIMING : _I_TIMING + n_t], np.float64)
+    if ctx.timing_map is None:
+        return np.clip(timing, -TIMING_LIMIT, TIMING_LIMIT)
+    limit = np.asarray(ctx.timing_limit)  # (host NumPy: `step_fit.timing_terms`)
+    return np.asarray(ctx.timing_offset) + np.asarray(ctx.timing_map) @ np.clip(timing, -limit, limit)
 
 
 def strained_sentence(test: dict, fit) -> str:
