@@ -15,7 +15,9 @@ validation's).
 Scored: the measured twin's verdict against the clean twin's (agreement), refusals of a
 measured input, fits that ended below the nominal model's penalised likelihood (flagged
 `fit_failed`; counted over every ranking), `none` on a record whose truth has an effect
-(false assurance; the start-on-stop class included) and the joint nuisance test's trips on
+(false assurance; the held-on-stop class included; the class that leaves its stop at the
+first sample is counted apart: no stop acts within those records, and the state it starts
+in is one the model's free initial state covers) and the joint nuisance test's trips on
 records whose truth is `none`. Float64.
 
     python studies/measured_input_harness.py --per-class 12 --out out/measured_inputs
@@ -163,7 +165,9 @@ def score(truths: list[dict], rows: dict) -> dict:
     total = sum(e["records"] for e in per_class.values())
     agree = sum(e["agree"] for e in per_class.values())
     false_assurance = sum(
-        e["none_clean"] + e["none_measured"] for c, e in per_class.items() if c != "none"
+        e["none_clean"] + e["none_measured"]
+        for c, e in per_class.items()
+        if c not in ("none", step_truth.ON_STOP_EFFECT)
     )
     return {
         "per_class": per_class,
@@ -173,6 +177,19 @@ def score(truths: list[dict], rows: dict) -> dict:
         "nested_fit_failures": failed_fits,
         "rankings": rankings,
         "false_assurance": false_assurance,
+        "false_assurance_excludes": {
+            step_truth.ON_STOP_EFFECT: "the pendulum leaves the stop at the first sample and "
+            "never reaches it again: no stop acts within the record, and a device without "
+            "lags resting on the stop is one of the initial states (displacement, velocity) "
+            "the model's free initial state covers; its none is counted apart "
+            "(start_on_stop_none)"
+        },
+        "start_on_stop_none": (
+            per_class[step_truth.ON_STOP_EFFECT]["none_clean"]
+            + per_class[step_truth.ON_STOP_EFFECT]["none_measured"]
+            if step_truth.ON_STOP_EFFECT in per_class
+            else None
+        ),
         "nuisance_trips_on_clean_none": per_class.get("none", {}).get("nuisance_trips"),
     }
 

@@ -437,9 +437,12 @@ CLASSES = ("none",) + IN_LIBRARY + OUT_OF_LIBRARY
 ON_STOP_EFFECT = "start_on_stop"
 """The effect name of `draw_truth_on_stop`'s records (not in `CLASSES`): a device with
 stops whose record starts with the pendulum resting on one of them. An in-library situation
-for the stop effect (the loop and its stops are the library's model), but the start state
-is neither of the library's (at rest inside the stops, or in a transient): the honest
-verdict is not `none`."""
+for the stop effect (the loop and its stops are the library's model). With no torquer lag
+the pendulum leaves the stop at t0 and the small steps never bring it back: no stop acts
+within the record, and its start (displaced, at rest) is a state a transient of an
+earlier input could leave, so a record of this class cannot show the stop (the blind
+harness counts its `none` apart). `ON_STOP_HELD_EFFECT` is the class whose stop acts in
+the record."""
 
 ON_STOP_HELD_EFFECT = "held_on_stop"
 """The effect name of `draw_truth_on_stop(held=True)`'s records: as `ON_STOP_EFFECT`'s, but

@@ -268,3 +268,26 @@ def test_draw_truth_on_stop_and_make():
     out = (clean - truth["output_offset_V"]) * truth["output_sign"]
     away = np.argmax(side * out < 0.5 * stop)
     assert away > 0 and np.abs(out[away:]).max() < stop
+
+
+def test_draw_truth_held_on_stop_rests_on_it_until_the_first_change():
+    """`draw_truth_on_stop(held=True)`: the record's first level presses the pendulum onto
+    the stop, so the output sits at the stop voltage through the first segment and leaves
+    it after the first change, never to return."""
+    truth = step_truth.draw_truth_on_stop(np.random.default_rng(21), held=True)
+    assert truth["effect"] == step_truth.ON_STOP_HELD_EFFECT
+    assert truth["levels_V"][0] == truth["start_level_V"]
+    json.dumps(truth)
+    t, u, y, noise = step_truth.make(truth, np.random.default_rng(22))
+    d = truth["device"]
+    gain = d["k_dp"] * d["k_y"] * step_truth.Device().l
+    k_test = d["k_dm"] * gain / (d["c"] + d["k_dm"] * gain)
+    stop = truth["stop_over_u_max"] * truth["u_max_V"] * k_test
+    side = 1 if truth["start"] == "on_stop_high" else -1
+    at_stop = truth["output_sign"] * side * stop + truth["output_offset_V"]
+    clean = y - noise
+    first = int(np.searchsorted(t, truth["change_times_s"][0]))
+    assert np.allclose(clean[:first], at_stop, atol=1e-9)
+    out = (clean - truth["output_offset_V"]) * truth["output_sign"]
+    later = first + int(2e-3 * truth["rate"])
+    assert np.abs(out[later:]).max() < 0.9 * stop
