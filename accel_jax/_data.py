@@ -1,4 +1,4 @@
-"""Reading and validating the data a user brings (SPEC.md §5): CSV records and TOML devices.
+"""Reading and validating the data a user brings (docs/models.md §5): CSV records and TOML devices.
 
 One experiment per CSV file, a header row, SI units (accelerations in g). The kind of
 experiment is inferred from the columns:
@@ -81,7 +81,7 @@ UNCERTAIN_BY_DEFAULT: dict[str, float] = {
     "stiffness": 0.05,
     "torquer_gain": 0.05,
 }
-"""Relative (1σ) uncertainty of the reference device's values (SPEC.md §5): J, μ, c and k_dm
+"""Relative (1σ) uncertainty of the reference device's values (docs/models.md §5): J, μ, c and k_dm
 are known to ±5 %; the other values are taken as exact."""
 
 # Relative uncertainty above which a log-normal prior of that width is meaningless here.

@@ -1,6 +1,6 @@
 """Linear Kalman filter, its consistency statistics, and the single-channel INS test bed.
 
-SPEC.md §4 (Chernodarov, Patrikeev & Ivanov): a Kalman filter estimating INS errors
+docs/models.md §4 (Chernodarov, Patrikeev & Ivanov): a Kalman filter estimating INS errors
 diverges — its actual error leaves the ±3σ band its own covariance predicts — when the
 sensor-noise models it carries are wrong. The test bed is the single-channel INS (Schuler
 loop) with state x = [ΔV, δ, Δa, Δω] (velocity error [m/s], vertical error [rad],
@@ -319,7 +319,7 @@ def normalised_innovation_squared(output: FilterOutput) -> Array:
 
 
 # ---------------------------------------------------------------------------------------
-# The single-channel INS of SPEC.md §4
+# The single-channel INS of docs/models.md §4
 
 
 def _positive(name: str, unit: str):
@@ -348,7 +348,7 @@ _INS_UNITS = {
 class INSChannel(eqx.Module):
     """Single-channel INS error model (Schuler loop) with Gauss-Markov sensor errors.
 
-    State x = [ΔV [m/s], δ [rad], Δa [m/s²], Δω [rad/s]]; continuous dynamics (SPEC.md §4)
+    State x = [ΔV [m/s], δ [rad], Δa [m/s²], Δω [rad/s]]; continuous dynamics (docs/models.md §4)
 
         ΔV' = −g δ + Δa,   δ' = ΔV/R + Δω,
         Δa' = −Δa/τ_a + σ_a √(2/τ_a) w_a,   Δω' = −Δω/τ_ω + σ_ω √(2/τ_ω) w_ω,

@@ -1,4 +1,4 @@
-"""Device parameters of the closed-loop pendulum (servo) accelerometer (SPEC.md §1)."""
+"""Device parameters of the closed-loop pendulum (servo) accelerometer (docs/models.md §1)."""
 
 from __future__ import annotations
 
@@ -85,7 +85,7 @@ class ServoParams(eqx.Module):
         T_dm M_dm' = k_dm (U_test − U_amp) − M_dm,       U_amp = k_dp k_y l θ
         T_f U_f' = U_amp − U_f,                           U_out = U_f + ε w
 
-    giving the closed-loop transfer function of SPEC.md eq. (1).
+    giving the closed-loop transfer function of docs/models.md eq. (1).
 
     Every field is an array leaf (so `jax.grad`, `jax.vmap` and optimistix fits act on
     them); positivity is checked on construction when the values are concrete.
@@ -142,7 +142,7 @@ class ServoParams(eqx.Module):
 
     @classmethod
     def reference(cls, **overrides) -> ServoParams:
-        """The reference device of SPEC.md §1 (Raspopov's values, used by Mironov et al.).
+        """The reference device of docs/models.md §1 (Raspopov's values, used by Mironov et al.).
 
         Oscillatory case: T ≈ 2.90e-4 s, ξ ≈ 0.52. Any field can be overridden by keyword,
         e.g. `ServoParams.reference(torquer_time_constant=0.0)`.
@@ -182,7 +182,7 @@ REFERENCE_VALUES: dict[str, float] = {
     "external_moment": 1e-6,
     "noise_std": 1e-5,
 }
-"""SPEC.md §1 reference parameters (SI units)."""
+"""docs/models.md §1 reference parameters (SI units)."""
 
 APERIODIC_DAMPING = 1.01e-4
 """Damping μ [N·m·s] of the paper's aperiodic example (ξ ≈ 2.07)."""

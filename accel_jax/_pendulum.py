@@ -1,4 +1,4 @@
-"""Motion of the sensing element of a linear-acceleration meter (SPEC.md §2).
+"""Motion of the sensing element of a linear-acceleration meter (docs/models.md §2).
 
 Bezvesilna & Podchashinskyi: the pickoff angle is α(t) = α_P + α_zm(t), with α_P constant
 (proportional to the measured acceleration) and α_zm the free precession oscillation

@@ -1,4 +1,4 @@
-"""Closed forms of the closed-loop servo accelerometer (SPEC.md §1, eqs. (1)-(7), (13)-(15)).
+"""Closed forms of the closed-loop servo accelerometer (docs/models.md §1, eqs. (1)-(7), (13)-(15)).
 
 Every function takes a `ServoParams` and returns arrays of its dtype; all are jit-, vmap-
 and grad-safe. Units are SI: output volts per m/s² of input acceleration.
@@ -26,7 +26,7 @@ def feedback_stiffness(params: ServoParams) -> Float[Array, ""]:
 
 
 def transfer_function(params: ServoParams) -> tuple[Float[Array, 2], Float[Array, 4]]:
-    """Coefficients of W(p) = U_out/a, SPEC.md eq. (1), highest power first.
+    """Coefficients of W(p) = U_out/a, docs/models.md eq. (1), highest power first.
 
     W(p) = m l² k_dp k_y (T_dm p + 1) / [(J p² + μ p + c)(T_dm p + 1) + k_dm l k_dp k_y]
 
@@ -59,7 +59,7 @@ def transfer_function_test_signal(
 
     W_test(p) = k_dm l k_dp k_y / [(J p² + μ p + c)(T_dm p + 1) + k_dm l k_dp k_y],
 
-    which is SPEC.md eq. (3) when T_dm = 0. Sign convention: a positive test voltage gives a
+    which is docs/models.md eq. (3) when T_dm = 0. Sign convention: a positive test voltage gives a
     positive output.
     """
     _, denominator = transfer_function(params)
@@ -67,7 +67,7 @@ def transfer_function_test_signal(
 
 
 def scale_factor(params: ServoParams) -> Float[Array, ""]:
-    """K_a = m l² k_dp k_y / (c + k_dm l k_dp k_y) [V/(m/s²)], SPEC.md eq. (2)."""
+    """K_a = m l² k_dp k_y / (c + k_dm l k_dp k_y) [V/(m/s²)], docs/models.md eq. (2)."""
     p = params
     gain = p.pendulum_mass * p.pendulum_length**2 * p.pickoff_gain * p.amplifier_gain
     return gain / loop_stiffness(p)
@@ -163,7 +163,7 @@ def damping_for_ratio(params: ServoParams, ratio) -> Float[Array, ...]:
 
 
 def dominant_pole_scale_factor(params: ServoParams, shape_factor, pickoff_amplifier_gain) -> float:
-    """The scale factor K̂_a the oscillatory method (SPEC.md §1, steps (8)-(10)) converges to
+    """The scale factor K̂_a the oscillatory method (docs/models.md §1, steps (8)-(10)) converges to
     on a noise-free, finely sampled record of a loop with a torquer lag, predicted without
     simulating: once the fast real pole of the lag has died out, the record is a damped
     sinusoid of the dominant pole pair s = −σ ± jω_d, for which the steps return exactly

@@ -1,4 +1,4 @@
-"""Static transfer function of a navigation accelerometer and its basic error (SPEC.md §3).
+"""Static transfer function of a navigation accelerometer and its basic error (docs/models.md §3).
 
 The static transfer function works in units of g, as the paper does; ppm and mg appear only
 at the edges (presets, tables, reports). Every unit conversion of this part of the package
@@ -227,5 +227,5 @@ def basic_error(
 
 
 PASSPORTS = {"AKS-05": StaticTransferFunction.aks05, "AL-1M": StaticTransferFunction.al1m}
-"""The paper's two accelerometers (SPEC.md §3, Table 4) by name: the constructors of their
+"""The paper's two accelerometers (docs/models.md §3, Table 4) by name: the constructors of their
 passport transfer functions."""

@@ -1,4 +1,4 @@
-"""Tolerance limits on the static transfer-function coefficients (SPEC.md §3, eqs. 7-15):
+"""Tolerance limits on the static transfer-function coefficients (docs/models.md §3, eqs. 7-15):
 the paper's fixed-ratio method, a gradient-based allocation with exact sensitivities, the
 joint admissible region, the worst case over a flight profile, and a Monte Carlo yield.
 
@@ -155,7 +155,7 @@ def paper_limits(scenario: ToleranceScenario, *, reading: str = "exact") -> dict
         k4 ≤ 0.24δ*/(3a² (b3² + 2σ3²))  (mult.)    k5 ≤ 0.24δ*/(5a³ (b3² + 2σ3²))
 
     `reading` chooses the fourth-moment coefficients of the random part: `"exact"` (default)
-    c4 = 3, c5 = 15, the Gaussian moments E v⁴ = 3σ⁴ and E (a+v)⁵ − a⁵ ⊃ 15 a σ⁴ (SPEC.md §3);
+    c4 = 3, c5 = 15, the Gaussian moments E v⁴ = 3σ⁴ and E (a+v)⁵ − a⁵ ⊃ 15 a σ⁴ (docs/models.md §3);
     `"printed"` c4 = 1, c5 = 5, the coefficients as printed in the paper's (4)/(13) and
     (5)/(15). The two agree for sinusoidal vibration alone (σ = 0).
 

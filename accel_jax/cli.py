@@ -35,7 +35,7 @@ TYPICAL_SECONDS = {
     "sensing_element_ml": 113,
     "vibration_compensation": 16,
     "tolerance_limits": 10,
-    "noise_identification": 245,  # with seed 001's filter loop (issue 23), alone, 2026-11-25
+    "noise_identification": 245,  # with the §4 paper's filter loop (issue 23), alone, 2026-11-25
     "sim_to_real_validation": 815,  # 520 blind records (issue 19)
     "table5_gap": 1,
 }
@@ -389,7 +389,7 @@ def _read_psd(path: Path):
 def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out, force):
     """Admissible nonlinearity coefficients A1, k2..k5, m for a vibration environment.
 
-    Limits by the paper's fixed budget shares (SPEC.md §3, eqs. 7-15) and by exact
+    Limits by the paper's fixed budget shares (docs/models.md §3, eqs. 7-15) and by exact
     sensitivities (jax.grad of the vibration error, same shares), in ppm units. With --unit,
     each passport coefficient is judged against the gradient limit, and the unit's total
     vibration error δ_V at the mean a3 against δ*. Example (the paper's Cyclone-4):
@@ -625,7 +625,7 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
 
     FILE is a CSV with a header row and columns t [s], u_test [V], u_out [V] (uniform
     sampling, u_test held between samples). The first change of u_test is used. Prints the
-    paper's graph-analytic estimate (SPEC.md §1) and a least-squares fit of the whole
+    paper's graph-analytic estimate (docs/models.md §1) and a least-squares fit of the whole
     response: each parameter against the nominal device with its σ, the fit percentage and
     NRMSE as MATLAB's compare defines them, and a Ljung-Box test of the residual's whiteness.
 

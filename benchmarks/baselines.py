@@ -149,7 +149,7 @@ def nonlinear_record(v: dict, ts, test_voltage, rtol, atol, stop_stiffness_ratio
 
 
 # --------------------------------------------------------------------------------------
-# Exact vibration error (SPEC §3) in NumPy, the same quadrature as accel_jax
+# Exact vibration error (docs/models.md §3) in NumPy, the same quadrature as accel_jax
 
 
 def vibration_error(coefficients: dict, environment: dict, a3: float, n_phase=512, n_hermite=6):

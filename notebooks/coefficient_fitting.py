@@ -11,7 +11,7 @@
 # %% [markdown]
 # # Fitting the static transfer-function coefficients from a test table
 #
-# SPEC.md §3, eq. (1): a_F = a0 + (1 + 0.5 A1 sign a3 + δ) a3 + k2 a3² + … + k5 a3⁵ [g].
+# docs/models.md §3, eq. (1): a_F = a0 + (1 + 0.5 A1 sign a3 + δ) a3 + k2 a3² + … + k5 a3⁵ [g].
 # From a table of tests (the `vibration` CSV format: `a_in, vib_amp, vib_freq, vib_rms,
 # a_out`) the coefficients are fitted by least squares on the exact expectation of the
 # output under vibration (optimistix Levenberg–Marquardt), with standard errors and

@@ -15,7 +15,7 @@
 # # Design tolerances for a navigation accelerometer under flight vibration
 #
 # Pick a vibration environment and an admissible vibration error δ*, and see how large the
-# transfer-function coefficients A1, k2..k5 and m may be (SPEC.md §3, eqs. 7-15):
+# transfer-function coefficients A1, k2..k5 and m may be (docs/models.md §3, eqs. 7-15):
 #
 # - by the paper's method: fixed shares of δ* per term and the paper's closed forms;
 # - by the gradient method: exact sensitivities ∂δ_V/∂k (`jax.grad` of the exact expectation of

@@ -11,7 +11,7 @@
 # %% [markdown]
 # # Monte Carlo sweep: scale-factor identification error versus damping and noise
 #
-# SPEC.md §1: the in-flight identification of K_a from a test-signal step (oscillatory
+# docs/models.md §1: the in-flight identification of K_a from a test-signal step (oscillatory
 # method, steps (7)-(10)). Each point of the sweep is a batch of noisy records of one
 # device, simulated and identified in one compiled, vmapped kernel
 # (`aj.monte_carlo_oscillatory`); the batch axis is sharded over every device JAX sees by
@@ -150,7 +150,7 @@ for x, err, why in zip(xis, err_xi, why_xi, strict=True):
 # %% [markdown]
 # At small ξ the oscillation has not decayed within the 10 ms record, so the steady state
 # taken from its tail is wrong and the method refuses the record (`too_short`): record for
-# longer (`RECORD`) there. At large ξ the undershoot sinks into the noise (SPEC.md §1).
+# longer (`RECORD`) there. At large ξ the undershoot sinks into the noise (docs/models.md §1).
 
 # %%
 assert np.all(np.isfinite(err_xi[1:5])), "records at 0.3 ≤ ξ ≤ 0.6 must all be usable"

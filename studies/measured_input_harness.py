@@ -21,6 +21,7 @@ in is one the model's free initial state covers) and the joint nuisance test's t
 records whose truth is `none`. Float64.
 
     python studies/measured_input_harness.py --per-class 12 --out out/measured_inputs
+    python studies/measured_input_harness.py --per-class 4 --prbs 1   # with PRBS twins
 """
 
 from __future__ import annotations
@@ -124,6 +125,67 @@ def write_twins(truths: list[dict], folder: Path, seed: int) -> list[dict]:
     return channels
 
 
+PRBS_CHANGES = 220
+"""Changes of a PRBS twin: a random telegraph between ±U_max (`step_truth.prbs_levels`,
+bits of at least 20 µs) over `PRBS_LENGTH` times the truth's record length."""
+
+PRBS_LENGTH = 2.5
+
+
+def write_prbs_twins(truths: list[dict], picked: list[int], folder: Path, seed: int) -> dict:
+    """For each picked truth, the same world driven by a PRBS instead of its small steps:
+    written clean and measured (`prbs_clean/`, `prbs_measured/`); returns the sequences."""
+    from accel_jax import StepData, write_csv
+
+    rng = np.random.default_rng(seed + 2)
+    sequences = {}
+    duration = step_truth.DURATION
+    for i in picked:
+        truth = dict(truths[i])
+        levels, times = step_truth.prbs_levels(
+            rng,
+            n_changes=PRBS_CHANGES,
+            duration_s=duration * PRBS_LENGTH,
+            low_V=-truth["u_max_V"],
+            high_V=truth["u_max_V"],
+            min_bit_s=2e-5,
+        )
+        truth["levels_V"], truth["change_times_s"] = levels, times
+        if truth["effect"] == step_truth.ON_STOP_HELD_EFFECT:
+            truth["levels_V"] = [truths[i]["levels_V"][0]] + levels[1:]
+        try:
+            step_truth.DURATION = duration * PRBS_LENGTH  # (`make` reads the length from it)
+            t, u, y, _ = step_truth.make(truth, rng)
+        finally:
+            step_truth.DURATION = duration
+        measured, _ = step_truth.measure_input(u, truth["rate"], rng)
+        write_csv(folder / "prbs_clean" / f"{i:04d}.csv", StepData(t, u, y))
+        write_csv(folder / "prbs_measured" / f"{i:04d}.csv", StepData(t, measured, y))
+        sequences[i] = {"changes": PRBS_CHANGES, "duration_s": duration * PRBS_LENGTH}
+    return sequences
+
+
+def score_prbs(truths: list[dict], rows: dict, picked: list[int]) -> dict:
+    """Each PRBS twin's verdict (clean and measured input) against the step record's."""
+    out = {"records": len(picked), "agree_clean": 0, "agree_measured": 0, "refused": 0,
+           "verdicts": []}
+    for i in picked:
+        step = rows[f"clean/{i:04d}"]
+        key = (step.get("verdict"), sorted(step.get("tied", [])))
+        pair = []
+        for name in ("prbs_clean", "prbs_measured"):
+            row = rows.get(f"{name}/{i:04d}", {"refused": "missing"})
+            if "refused" in row:
+                out["refused"] += 1
+                pair.append("refused")
+                continue
+            same = (row["verdict"], sorted(row["tied"])) == key
+            out["agree_clean" if name == "prbs_clean" else "agree_measured"] += int(same)
+            pair.append(row["verdict"])
+        out["verdicts"].append([truths[i]["effect"], step.get("verdict")] + pair)
+    return out
+
+
 def diagnose_blind(folders: list[Path]) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "rows.json"
@@ -203,13 +265,22 @@ def main(argv=None) -> int:
         "--classes", nargs="+", choices=CLASSES, default=list(CLASSES),
         help="truth classes to draw (default: all)",
     )
+    parser.add_argument(
+        "--prbs", type=int, default=0, metavar="K",
+        help="the first K truths of each class also driven by a PRBS (clean and measured)",
+    )
     args = parser.parse_args(argv)
     started = time.perf_counter()
     truths = draw(args.per_class, args.seed, tuple(args.classes))
+    picked = [i for i in range(len(truths)) if i % args.per_class < args.prbs]
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         channels = write_twins(truths, folder, args.seed)
-        rows = diagnose_blind([folder / "clean", folder / "measured"])
+        folders = [folder / "clean", folder / "measured"]
+        if picked:
+            write_prbs_twins(truths, picked, folder, args.seed)
+            folders += [folder / "prbs_clean", folder / "prbs_measured"]
+        rows = diagnose_blind(folders)
     result = {
         "assumptions": {
             "truth": "studies/step_truth.py (SciPy), classes " + ", ".join(CLASSES),
@@ -221,6 +292,7 @@ def main(argv=None) -> int:
             "precision": "float64",
         },
         "score": score(truths, rows),
+        "prbs": score_prbs(truths, rows, picked) if picked else None,
         "truths": truths,
         "channels": channels,
         "rows": rows,
@@ -235,6 +307,13 @@ def main(argv=None) -> int:
             f"{name:22s} agree {e['agree']}/{e['records']} refused {e['refused']} "
             f"none clean/measured {e['none_clean']}/{e['none_measured']} "
             f"nuisance trips {e['nuisance_trips']}"
+        )
+    if result["prbs"]:
+        p = result["prbs"]
+        print(
+            f"PRBS twins ({PRBS_CHANGES} changes): verdict as the step record's: clean "
+            f"{p['agree_clean']}/{p['records']}, measured {p['agree_measured']}/{p['records']}; "
+            f"refused {p['refused']}"
         )
     print(f"written: {args.out / 'result.json'} ({result['seconds']:.0f} s)")
     return 0

@@ -1,4 +1,4 @@
-"""Study: noise-model identification and the Kalman filter it tunes (SPEC.md §4).
+"""Study: noise-model identification and the Kalman filter it tunes (docs/models.md §4).
 
 Chernodarov, Patrikeev & Ivanov: a Kalman filter estimating INS errors diverges when the
 sensor-noise models it carries are wrong; identify them from the autocorrelation of the
@@ -781,7 +781,7 @@ def _summary_rows(result: dict) -> list[dict]:
         last = row["iteration"] == loop["iterations"][-1]["iteration"]
         model = row["model"]
         entry = {
-            "quantity": f"seed 001's loop (rule (15) on the smoothed estimates), iteration "
+            "quantity": f"the §4 paper's loop (rule (15) on the smoothed estimates), iteration "
             f"{row['iteration']}: vertical error outside ±3σ [% of time] / NEES",
             "ours": f"{100 * row['fraction_outside_3sigma']:.2f} / {row['mean_nees']:.1f}",
             "paper": "consistent after retuning (Fig. 5)" if last else "—",
@@ -829,7 +829,7 @@ def _summary_rows(result: dict) -> list[dict]:
     oracle = loop["oracle"]
     rows.append(
         {
-            "quantity": "seed 001's loop, oracle (the true models): outside ±3σ [%] / NEES",
+            "quantity": "the §4 paper's loop, oracle (the true models): outside ±3σ [%] / NEES",
             "ours": f"{100 * oracle['fraction_outside_3sigma']:.2f} / {oracle['mean_nees']:.1f}",
             "paper": "—",
             "note": f"{loop['runs']} runs of {loop['hours']:g} h; log {loop['log_hours']:g} h. "

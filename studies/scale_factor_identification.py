@@ -1,6 +1,6 @@
 """Study: in-flight identification of the scale factor K_a from a test-signal step response.
 
-Reproduces SPEC.md §1 (Mironov, Fominov, Maletin): the oscillatory method's δK_a = 0.141 %
+Reproduces docs/models.md §1 (Mironov, Fominov, Maletin): the oscillatory method's δK_a = 0.141 %
 and the aperiodic method's δK_a = 0.682 %, decomposes the oscillatory error into its
 causes, sweeps δK_a against ξ, noise ε and the torquer lag T_dm for both methods (the
 paper's Fig. 3 and Fig. 5) as vmapped Monte Carlo batches sharded across devices, checks
@@ -258,7 +258,7 @@ def _mu_for(base: aj.ServoParams, ratios) -> np.ndarray:
 
 
 def _devices(params: aj.ServoParams | None) -> tuple[aj.ServoParams, aj.ServoParams, str]:
-    """The oscillatory and aperiodic devices: the SPEC.md pair, or a user's device and its
+    """The oscillatory and aperiodic devices: the docs/models.md pair, or a user's device and its
     twin with the damping μ changed to the reference pair's other damping ratio."""
     if params is None:
         return aj.ServoParams.reference(), aj.ServoParams.reference_aperiodic(), "reference"
@@ -284,7 +284,7 @@ def run(
 ) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict.
 
-    `params`: a device to study instead of the SPEC.md reference pair (its twin with the
+    `params`: a device to study instead of the docs/models.md reference pair (its twin with the
     other damping regime is made by changing μ); the published numbers belong to the
     reference device only."""
     out_dir = Path(out_dir)

@@ -1,5 +1,5 @@
 """Study: maximum-likelihood estimate of the sensing-element state, its linearisation bias,
-the paper's compensation and a full nonlinear fit (SPEC.md §2, Bezvesilna & Podchashinskyi).
+the paper's compensation and a full nonlinear fit (docs/models.md §2, Bezvesilna & Podchashinskyi).
 
 Truth: the exact-sine motion α'' + 2ξα' + ω0² sin α = 0 (diffrax, Dopri8, rtol 1e-12) plus a
 known constant α_P, sampled at t_i = i·δ. For each record three estimators of α_P are run:

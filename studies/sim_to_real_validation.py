@@ -1,4 +1,4 @@
-"""Study: blind validation of the sim-to-real diagnosis (SPEC.md §5) on step records,
+"""Study: blind validation of the sim-to-real diagnosis (docs/models.md §5) on step records,
 vibration tables and static noise records.
 
 For each kind a truth simulator makes datasets in which one unmodelled effect of the kind's

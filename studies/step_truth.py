@@ -1,6 +1,6 @@
 """An independent truth simulator of closed-loop test-signal records (SciPy, not JAX).
 
-Written from the equations of SPEC.md §1 with none of the library's code: its own state
+Written from the equations of docs/models.md §1 with none of the library's code: its own state
 equations, SciPy's `solve_ivp` (DOP853) integrating between events, and its own handling
 of the mechanical stops as exact events. The blind validation uses it so that the
 diagnosis is checked on records made with other conventions than its own:
@@ -663,7 +663,7 @@ REFERENCE_LAG = 1e-5
 """T_dm = T_f [s] of the reference device: every set's baseline."""
 
 REFERENCE_STOP = 1.9e-6
-"""h_max [m] of the reference device (SPEC.md §1); a set's device draws it × e^{N(0, 0.03)}."""
+"""h_max [m] of the reference device (docs/models.md §1); a set's device draws it × e^{N(0, 0.03)}."""
 
 STOP_LEVEL = (5.0, 6.0)
 """U [V] of the stops record, uniform: its settled output ≈ U lies beyond the stop voltage

@@ -1,4 +1,4 @@
-"""Study: the sim-to-real gap of the measured Table 5 (SPEC.md §3 and §5).
+"""Study: the sim-to-real gap of the measured Table 5 (docs/models.md §3 and §5).
 
 Table 5 of the navigation-accelerometer paper is a real shaker measurement of two units
 (AKS-05, AL-1M): 1 g along the input axis, a 2 g sinusoid at 30 Hz. With the passport
@@ -57,7 +57,7 @@ from accel_jax.report import (  # noqa: E402
 
 STUDY = "table5_gap"
 
-# --- the measurement (SPEC.md §3, Table 5) ---------------------------------------------
+# --- the measurement (docs/models.md §3, Table 5) ---------------------------------------------
 INPUT_G = 1.0  # along the input axis
 SINE_G = 2.0  # sinusoidal vibration amplitude along the input axis
 SINE_HZ = 30.0

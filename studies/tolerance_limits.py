@@ -1,5 +1,5 @@
 """Study: tolerance limits on the static transfer-function coefficients of a navigation
-accelerometer under flight vibration (SPEC.md §3, eqs. 7-15).
+accelerometer under flight vibration (docs/models.md §3, eqs. 7-15).
 
 Reproduces the paper's Table 1 (σ_V3) and Table 2 (admissible A1, k2..k5, m for Cyclone-4
 and the tactical missile) by the paper's fixed-ratio method, with every entry that does not
@@ -675,7 +675,7 @@ _LIMIT_UNITS = tuple(aj.PPM_UNITS[{"A1": "asymmetry", "m": "m31"}.get(k, k)] for
 
 
 def _overview_table(result: dict) -> dict:
-    """Table 2 of SPEC.md §3 for the report's "At a glance": the paper's limits, ours by its
+    """Table 2 of docs/models.md §3 for the report's "At a glance": the paper's limits, ours by its
     method, ours by gradients."""
     cases = [("Cyclone-4", result.get("cyclone4"))]
     tactical = result.get("tactical")

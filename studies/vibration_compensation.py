@@ -1,5 +1,5 @@
 """Study: vibration error of a navigation accelerometer, its shaker test and its in-flight
-compensation (SPEC.md §3, eqs. 1-5, 16-20, Tables 3-5).
+compensation (docs/models.md §3, eqs. 1-5, 16-20, Tables 3-5).
 
 For the two passport units of Table 4 (AKS-05, AL-1M) under the Table 5 condition (1 g
 along the input axis, a 2 g sinusoid at 30 Hz): the basic error (2), the vibration error

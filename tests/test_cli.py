@@ -44,7 +44,7 @@ def test_identify_recovers_the_scale_factor(step_csv, tmp_path):
     doc = json.loads(out.read_text())
     assert doc["segment"]["step_time_s"] == pytest.approx(PRE * 1e-6)
     assert doc["graph"]["method"].startswith("oscillatory")
-    # The graph method carries the T_dm bias of the reference device (0.12-0.14 %, SPEC.md
+    # The graph method carries the T_dm bias of the reference device (0.12-0.14 %, docs/models.md
     # §1 and the scale-factor study) plus noise scatter (±0.02 %).
     assert 0.05 < doc["graph"]["dKa_percent"] < 0.25
     # The order-3 fit with the known T_f is unbiased: within 4σ of the true K_a.
@@ -96,7 +96,7 @@ def test_tolerance_reproduces_the_paper_method_and_checks_a_unit(tmp_path):
     )
     assert result.exit_code == 0, result.output
     limits = json.loads(out.read_text())["limits_ppm"]
-    # SPEC.md §3's reconstruction: A1 ≤ 0.44δ*/(0.673 b3 + 0.125 σ3) ≈ 430 ppm; m ≈ 48.7 ppm/g.
+    # docs/models.md §3's reconstruction: A1 ≤ 0.44δ*/(0.673 b3 + 0.125 σ3) ≈ 430 ppm; m ≈ 48.7 ppm/g.
     assert limits["asymmetry"]["paper_method"] == pytest.approx(
         0.44 * 5e-4 / (0.673 * 0.5 + 0.125 * 1.4) * 1e6
     )

@@ -1,6 +1,6 @@
 """The `accel-jax tolerance` subcommand as a designer reads it: the README's command runs on
 the shipped examples/bands.csv, the table's ok/EXCEEDS and the total δ_V agree with limits
-recomputed here from the SPEC.md §3 moments, and implausible options are refused."""
+recomputed here from the docs/models.md §3 moments, and implausible options are refused."""
 
 import csv
 import json
@@ -18,7 +18,7 @@ from accel_jax.cli import main
 ROOT = Path(__file__).resolve().parent.parent
 BANDS = ROOT / "examples" / "bands.csv"
 CYCLONE4 = ["--budget", "5e-4", "--mean-accel", "2", "--sine", "1.2", "1.2", "0.5"]
-PASSPORTS_PPM = {  # SPEC.md §3 Table 4 (m31, m32 not given: 0)
+PASSPORTS_PPM = {  # docs/models.md §3 Table 4 (m31, m32 not given: 0)
     "aks05": {"asymmetry": 15, "k2": 2, "k3": 7, "k4": 0.02, "k5": 0.3, "m31": 0, "m32": 0},
     "al1m": {"asymmetry": 25, "k2": 105, "k3": 87, "k4": 10, "k5": 0.9, "m31": 0, "m32": 0},
 }
@@ -46,7 +46,7 @@ def _readme_command() -> list[str]:
 
 
 def _paper_sigma(path: Path) -> float:
-    # σ = sqrt((1/n) Σ η S Δf), the paper's formula (SPEC.md §3).
+    # σ = sqrt((1/n) Σ η S Δf), the paper's formula (docs/models.md §3).
     with open(path, newline="") as handle:
         rows = list(csv.DictReader(handle))
     power = [
@@ -56,7 +56,7 @@ def _paper_sigma(path: Path) -> float:
 
 
 def _expected(budget, a, b, sigma):
-    """Exact sensitivities ∂δ_V/∂k of the moments in SPEC.md §3 (in-phase sine b on OA, PA,
+    """Exact sensitivities ∂δ_V/∂k of the moments in docs/models.md §3 (in-phase sine b on OA, PA,
     IA plus fully correlated Gaussian σ on every axis), and the limits from them [ppm]."""
     b1, b2, b3 = b
     v2 = 0.5 * b3**2 + sigma**2  # E v3²
@@ -77,7 +77,7 @@ def _expected(budget, a, b, sigma):
         "m32": 0.5 * b3 * b2 + sigma**2,
     }
     gradient = {k: SHARES[k] * budget / abs(s) * 1e6 for k, s in sens.items()}
-    paper = {  # eqs. (13), (15) as SPEC.md §3 reconstructs them
+    paper = {  # eqs. (13), (15) as docs/models.md §3 reconstructs them
         "asymmetry": 0.44 * budget / (0.673 * b3 + 0.125 * sigma),
         "k2": 0.44 * budget / (0.5 * b3**2 + sigma**2),
         "k3": 0.35 * budget / (a * (1.5 * b3**2 + 3 * sigma**2)),

@@ -1,4 +1,4 @@
-"""Tests of accel_jax._identify: the paper's identification methods (SPEC.md §1, eqs.
+"""Tests of accel_jax._identify: the paper's identification methods (docs/models.md §1, eqs.
 (7)-(16)) and the least-squares fit.
 
 Records are made here from closed forms (the second-order step response, the two-exponential
@@ -26,7 +26,7 @@ from accel_jax._identify import (
 from accel_jax._simulate.modal import _third_order_step, second_order_step
 
 R = IdentificationResult
-# The reference device (SPEC.md §1): T ≈ 2.90e-4 s, ξ ≈ 0.52; aperiodic ξ ≈ 2.07.
+# The reference device (docs/models.md §1): T ≈ 2.90e-4 s, ξ ≈ 0.52; aperiodic ξ ≈ 2.07.
 T_REF = 2.9e-4
 XI_OSC = 0.52
 XI_AP = 2.07

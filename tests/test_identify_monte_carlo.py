@@ -15,7 +15,7 @@ import accel_jax as aj
 from accel_jax._identify.monte_carlo import _monte_carlo, monte_carlo_oscillatory
 from accel_jax._simulate import fast_step_response
 
-TS = jnp.arange(2501) / 2.5e5  # 10 ms at 250 kHz: settled, δK_a ≈ 0.12 % (SPEC §1)
+TS = jnp.arange(2501) / 2.5e5  # 10 ms at 250 kHz: settled, δK_a ≈ 0.12 % (docs/models.md §1)
 GAIN = 2.5e5 * 8.5  # k_dp k_y [V/m]
 
 
@@ -55,7 +55,7 @@ def test_monte_carlo_matches_identify_oscillatory():
     assert bool(jnp.all(fused.result == expected.result))
     for name in ("scale_factor", "t1", "t2", "overshoot", "undershoot", "steady_state"):
         np.testing.assert_allclose(getattr(fused, name), getattr(expected, name), rtol=1e-10)
-    # Physically (exact γ and k_dp k_y): what is left is the lags' bias, ≈ 0.12 % (SPEC §1),
+    # Physically (exact γ and k_dp k_y): what is left is the lags' bias, ≈ 0.12 % (docs/models.md §1),
     # plus at 1e-4 V noise a spread of a few 0.01 %.
     truth = jax.vmap(aj.scale_factor)(devices)
     error = np.asarray(aj.relative_error_percent(fused.scale_factor, truth))

@@ -1,4 +1,4 @@
-"""Kalman filter and the single-channel INS test bed (SPEC.md §4), checked against a NumPy
+"""Kalman filter and the single-channel INS test bed (docs/models.md §4), checked against a NumPy
 loop, SciPy's expm and quadrature, χ² statistics, and finite differences."""
 
 import equinox as eqx

@@ -1,5 +1,5 @@
 """ML (GLS) state estimate, linearisation error, compensation and the nonlinear fit
-(SPEC.md §2), checked against NumPy brute force, Cramer's rule, Monte Carlo and
+(docs/models.md §2), checked against NumPy brute force, Cramer's rule, Monte Carlo and
 simulate-then-fit-then-recover on the exact sine motion."""
 
 import equinox as eqx

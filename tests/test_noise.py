@@ -1,4 +1,4 @@
-"""Noise-model identification (SPEC.md §4): autocorrelation against a NumPy loop, every
+"""Noise-model identification (docs/models.md §4): autocorrelation against a NumPy loop, every
 estimator by simulate-then-fit-recover, the exact likelihood against a dense Gaussian
 density, structure selection, the Allan deviation against brute force (and allantools),
 and bad input."""

@@ -171,3 +171,59 @@ def test_import_layers_catch_an_upward_import(monkeypatch):
     monkeypatch.setattr(sys.modules[__name__], "_internal_imports", lambda: graph)
     with pytest.raises(AssertionError, match="_servo imports diagnose"):
         test_import_layers()
+
+
+def _tracked_text_files():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    listed = subprocess.run(
+        ["git", "ls-files"], cwd=root, capture_output=True, text=True, check=False
+    )
+    names = listed.stdout.split() if listed.returncode == 0 else []
+    if not names:  # (not a git checkout: every file under the package's folders)
+        names = [
+            str(p.relative_to(root))
+            for folder in ("accel_jax", "studies", "tests", "notebooks", "docs", "benchmarks")
+            for p in (root / folder).rglob("*")
+            if p.is_file()
+        ]
+    for name in names:
+        path = root / name
+        if path.suffix in {".py", ".md", ".ipynb", ".toml", ".txt", ".cfg", ".yml"} or path.name in {
+            "Makefile"
+        }:
+            yield name, path.read_text(encoding="utf-8", errors="replace")
+
+
+def test_nothing_points_outside_the_repository():
+    """The papers' models, equations and numbers live in docs/models.md; no file names the
+    developers' notes outside the repository (a person who clones it cannot follow them)."""
+    import re
+
+    outside = re.compile(r"SPEC\.md|\bSPEC\b|\.\./shared|shared/(SPEC|STYLE|ARCHITECTURE)|seeds/|seed 00\d")
+    found = [
+        f"{name}:{i}: {line.strip()[:80]}"
+        for name, text in _tracked_text_files()
+        if name != "tests/test_package.py"
+        for i, line in enumerate(text.splitlines(), 1)
+        if outside.search(line)
+    ]
+    assert not found, "\n".join(found)
+
+
+def test_every_cited_section_and_table_of_the_models_page_exists():
+    import re
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parent.parent / "docs" / "models.md").read_text()
+    sections = set(re.findall(r"^## (\d)\. ", page, flags=re.M))
+    tables = set(re.findall(r"Table (\d)", page))
+    cited_sections, cited_tables = set(), set()
+    for _, text in _tracked_text_files():
+        for ref in re.findall(r"docs/models\.md[ ,]*§(\d)", text):
+            cited_sections.add(ref)
+        for ref in re.findall(r"docs/models\.md §3, Table (\d)", text):
+            cited_tables.add(ref)
+    assert cited_sections and cited_sections <= sections, (cited_sections, sections)
+    assert cited_tables <= tables, (cited_tables, tables)

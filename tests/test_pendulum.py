@@ -1,4 +1,4 @@
-"""Sensing-element ODE (SPEC.md §2, eq. 1): diffrax solutions checked against closed forms,
+"""Sensing-element ODE (docs/models.md §2, eq. 1): diffrax solutions checked against closed forms,
 the paper's approximate solution (11), and the solver's convergence order."""
 
 import diffrax

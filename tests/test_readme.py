@@ -15,5 +15,5 @@ def test_readme_api_example_runs(capsys):
     import accel_jax as aj
 
     assert abs(float(aj.relative_error_percent(est.scale_factor, aj.scale_factor(p)))) < 0.5
-    assert 60e-6 < float(namespace["vib"]) < 70e-6  # 64.6 ppm of g at 1 g, 2 g sine (SPEC §3)
+    assert 60e-6 < float(namespace["vib"]) < 70e-6  # 64.6 ppm of g at 1 g, 2 g sine (docs/models.md §3)
     assert "verdict: gauss_markov" in capsys.readouterr().out

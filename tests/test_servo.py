@@ -1,4 +1,4 @@
-"""Closed forms of SPEC.md §1 against independent references."""
+"""Closed forms of docs/models.md §1 against independent references."""
 
 import equinox as eqx
 import jax
@@ -13,7 +13,7 @@ REF = aj.REFERENCE_VALUES
 
 
 def test_reference_values_match_spec():
-    # SPEC.md §1: T ≈ 2.90e-4 s (549 Hz), ξ ≈ 0.52, K_test ≈ 0.996, γ ≈ 0.7493;
+    # docs/models.md §1: T ≈ 2.90e-4 s (549 Hz), ξ ≈ 0.52, K_test ≈ 0.996, γ ≈ 0.7493;
     # aperiodic ξ ≈ 2.07.
     p = aj.ServoParams.reference()
     assert float(aj.time_constant(p)) == pytest.approx(2.90e-4, rel=2e-3)
@@ -43,7 +43,7 @@ def test_closed_forms_by_hand():
     kahat = aj.scale_factor_from_time_constant(aj.time_constant(p), kdp * ky, aj.shape_factor(p))
     np.testing.assert_allclose(kahat, aj.scale_factor(p), rtol=1e-14)
     rounded = aj.scale_factor_from_time_constant(aj.time_constant(p), kdp * ky, aj.PAPER_GAMMA)
-    # The γ rounding alone: (3/4 − 0.74927)/0.75 ≈ 0.097 % (SPEC.md: "≈ 0.10 %").
+    # The γ rounding alone: (3/4 − 0.74927)/0.75 ≈ 0.097 % (docs/models.md: "≈ 0.10 %").
     assert float(aj.relative_error_percent(rounded, aj.scale_factor(p))) == pytest.approx(
         0.0971, abs=5e-4
     )

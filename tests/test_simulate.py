@@ -54,7 +54,7 @@ def _pickoff_per_radian(params):
 
 
 def test_linear_matches_analytic_second_order_step():
-    # T_dm = T_f = 0: W_test = K_test/(T²p² + 2ξTp + 1), SPEC.md eq. (3). M_ext is constant
+    # T_dm = T_f = 0: W_test = K_test/(T²p² + 2ξTp + 1), docs/models.md eq. (3). M_ext is constant
     # and the device starts at its equilibrium, so only the test step shows.
     params = _reference(torquer_time_constant=0.0, filter_time_constant=0.0)
     test_voltage = 1.3
@@ -82,7 +82,7 @@ def _scaled_tf(numerator, denominator, time_unit):
 @pytest.mark.parametrize("lags", [(1e-5, 1e-5), (3e-5, 4e-6)])
 def test_linear_matches_scipy_transfer_functions(lags):
     # Independent check of the state-space assembly: the closed-loop transfer functions
-    # of _servo (SPEC.md eq. (1)) with the output filter appended, discretised by scipy.
+    # of _servo (docs/models.md eq. (1)) with the output filter appended, discretised by scipy.
     torquer_lag, filter_lag = lags
     params = _reference(torquer_time_constant=torquer_lag, filter_time_constant=filter_lag)
     rng = np.random.default_rng(0)
@@ -130,7 +130,7 @@ def test_steady_state_matches_closed_forms():
         + _pickoff_per_radian(params) * moment / float(loop_stiffness(params))
     )
     assert abs(float(u_out[-1]) - expected) / expected < 1e-10
-    # Acceleration alone: U_amp/a → K_a (SPEC.md eq. (2)); starts settled at a = 0.
+    # Acceleration alone: U_amp/a → K_a (docs/models.md eq. (2)); starts settled at a = 0.
     accel = jnp.where(ts > 0, acceleration, 0.0)
     u_accel = simulate_linear(params, ts, 0.0, accel, 0.0)
     assert abs(float(u_accel[-1]) / acceleration / float(scale_factor(params)) - 1) < 1e-10
@@ -302,7 +302,7 @@ def test_nonlinear_gradient_matches_finite_differences():
 
 @pytest.mark.parametrize("held", [False, True])
 def test_gradient_of_stopped_output(held):
-    # The settled output on the stop (what SPEC.md eq. (11) uses) is differentiable exactly.
+    # The settled output on the stop (what docs/models.md eq. (11) uses) is differentiable exactly.
     # (A functional spanning the impact itself is not: the dashpot switches on
     # discontinuously, and differentiating the discretised solve misses that jump.)
     # A scalar test voltage takes the adaptive path (steps left to the error control); the

@@ -14,7 +14,7 @@ import accel_jax as aj
 from accel_jax._identify.monte_carlo import monte_carlo_oscillatory
 from accel_jax._simulate import fast_step_response
 
-TS = jnp.arange(2501) / 2.5e5  # 10 ms at 250 kHz: settled, δK_a ≈ 0.12 % (SPEC §1)
+TS = jnp.arange(2501) / 2.5e5  # 10 ms at 250 kHz: settled, δK_a ≈ 0.12 % (docs/models.md §1)
 GAIN = 2.5e5 * 8.5  # k_dp k_y [V/m]
 
 

@@ -37,7 +37,7 @@ def test_expm_minus_identity_small_and_stiff():
 @pytest.mark.parametrize("dt", [1e-6, 1e-4])
 def test_the_three_exponentials_agree_on_the_loop(torquer_lag, dt):
     """e^{[[A, B], [0, 0]]Δ} of the loop in the simulators' scaled internal units
-    (`_Loop`; SPEC.md reference device, and a stiff torquer lag of 10 ns): the Taylor
+    (`_Loop`; docs/models.md reference device, and a stiff torquer lag of 10 ns): the Taylor
     `_expm` of the identification fits, `expm_minus_identity` + I of the sequence simulator
     and `jax.scipy.linalg.expm` (Padé) of `discretise` agree to 2e-12 of the largest entry
     (measured: ≤ 1.9e-12, the stiff lag at Δ = 0.1 ms; ≤ 3e-14 otherwise).

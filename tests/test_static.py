@@ -1,4 +1,4 @@
-"""Static transfer function (1) and basic error (2), SPEC.md §3, checked against
+"""Static transfer function (1) and basic error (2), docs/models.md §3, checked against
 independent NumPy evaluation and hand sums of the paper's Table 4 coefficients."""
 
 import equinox as eqx
@@ -80,7 +80,7 @@ def test_presets_table4_and_basic_error_at_1g():
         }
     )
     assert float(al.k2) == pytest.approx(105 * PPM)
-    # Hand sums: ½A1 + k2 + k3 + k4 + k5 at 1 g (SPEC: 16.8 and 215.4 ppm; Table 5 step 1→2).
+    # Hand sums: ½A1 + k2 + k3 + k4 + k5 at 1 g (docs/models.md: 16.8 and 215.4 ppm; Table 5 step 1→2).
     assert float(to_ppm(basic_error(aks, 1.0, include_bias=False))) == pytest.approx(
         16.82, abs=1e-6
     )

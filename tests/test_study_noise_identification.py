@@ -81,4 +81,4 @@ def test_study_filter_identification_loop(quick_report):
         assert rows[1]["model"] != rows[0]["model"]
     assert 2.0 < loops["rule_15"]["oracle"]["mean_nees"] < 8.0
     summary = [row["quantity"] for row in saved["summary"]]
-    assert any("seed 001's loop" in q and "oracle" in q for q in summary)
+    assert any("the §4 paper's loop" in q and "oracle" in q for q in summary)

@@ -12,7 +12,7 @@ def test_table5_gap_study(quick_report):
     tmp_path, saved = study_result(quick_report, "table5_gap")
     assert set(saved) >= {"title", "summary", "figures", "units", "conclusions", "provenance"}
     aks, al = saved["units"]["AKS-05"], saved["units"]["AL-1M"]
-    # SPEC.md §3: basic error 16.8 / 215.4 ppm; exact vibration error 64.6 / 962.4 ppm.
+    # docs/models.md §3: basic error 16.8 / 215.4 ppm; exact vibration error 64.6 / 962.4 ppm.
     assert aks["basic_error_ppm"] == pytest.approx(16.82, abs=0.01)
     assert al["basic_error_ppm"] == pytest.approx(215.4, abs=0.01)
     assert aks["explained_exact_ppm"] == pytest.approx(64.6, abs=0.05)

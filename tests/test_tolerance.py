@@ -1,4 +1,4 @@
-"""Tolerance limits (SPEC.md §3, eqs. 7-15): the paper's method by hand against Table 2,
+"""Tolerance limits (docs/models.md §3, eqs. 7-15): the paper's method by hand against Table 2,
 the gradient-based limits against finite differences and closed-form moments, yield."""
 
 import equinox as eqx

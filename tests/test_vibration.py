@@ -1,4 +1,4 @@
-"""Vibration error (SPEC.md §3): the exact expectation against closed-form moments and
+"""Vibration error (docs/models.md §3): the exact expectation against closed-form moments and
 SciPy quadrature, the paper's closed forms beside it, a vmapped time-domain Monte Carlo,
 gradients against finite differences, the shaker estimator (16) and compensation (17)-(20)."""
 
@@ -146,7 +146,7 @@ def test_paper_closed_forms_agree_with_exact_except_where_they_should_not():
 
 
 def test_table5_exact_sine_average():
-    # SPEC: the exact sinusoidal average at a = 1 g, b = 2 g is 64.6 and 962.4 ppm.
+    # docs/models.md: the exact sinusoidal average at a = 1 g, b = 2 g is 64.6 and 962.4 ppm.
     env = VibrationEnvironment(sine_amplitude=(0, 0, 2.0), sine_frequency=30.0)
     aks = float(to_ppm(vibration_error(StaticTransferFunction.aks05(), env, 1.0)))
     al = float(to_ppm(vibration_error(StaticTransferFunction.al1m(), env, 1.0)))

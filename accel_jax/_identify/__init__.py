@@ -1,6 +1,6 @@
 """In-flight identification of the scale factor from the test-signal step response.
 
-SPEC.md §1 (Mironov, Fominov & Maletin): a constant test voltage U_test applied to an extra
+docs/models.md §1 (Mironov, Fominov & Maletin): a constant test voltage U_test applied to an extra
 torquer winding gives the second-order step response of W_test = K_test/(T²p² + 2ξTp + 1).
 
 - Oscillatory case (ξ < 1, section 3.1): crossings of the steady-state line give the period,

@@ -1,4 +1,4 @@
-"""The aperiodic method (ξ > 1), SPEC.md §1 section 3.2: the tangent at the maximum slope
+"""The aperiodic method (ξ > 1), docs/models.md §1 section 3.2: the tangent at the maximum slope
 gives T1 = T3 + T4 and the tangent estimate T2 = √(T3 T4), eqs. (13)-(15); T2 is refined
 by solving t_inflection(T1, T2) = T0 (step 8) with a root finder; lag correction (16)."""
 
@@ -33,7 +33,7 @@ from .record import (
 
 
 class AperiodicEstimate(eqx.Module):
-    """Result of `identify_aperiodic` (SPEC.md §1, eqs. (12)-(16), steps 1-10).
+    """Result of `identify_aperiodic` (docs/models.md §1, eqs. (12)-(16), steps 1-10).
 
     W_test = K_test/((T3 p + 1)(T4 p + 1)) = K_test/(T2² p² + T1 p + 1), T3 ≥ T4. All times
     are measured from the step time.
@@ -270,7 +270,7 @@ def identify_aperiodic(
     saturation_level: ScalarLike | None = None,
     throw: bool = True,
 ) -> AperiodicEstimate:
-    """Scale factor from an aperiodic step response (ξ > 1), SPEC.md §1 section 3.2.
+    """Scale factor from an aperiodic step response (ξ > 1), docs/models.md §1 section 3.2.
 
     Steps 1-10 of the paper: the largest slope tg α of U_out at T0 (corrected for the lags
     by `lag_correction`, eq. (16)); T1 = (U_ss − U0)/tg α = T3 + T4 (exact for the two-

@@ -1,4 +1,4 @@
-"""The oscillatory method (ξ < 1), SPEC.md §1 section 3.1: crossings of the steady-state
+"""The oscillatory method (ξ < 1), docs/models.md §1 section 3.1: crossings of the steady-state
 line give the period, eq. (8); the overshoot/undershoot ratio gives ξ, eq. (9);
 T = √(1 − ξ²)/ω, eq. (10)."""
 
@@ -33,7 +33,7 @@ from .record import (
 
 
 class OscillatoryEstimate(eqx.Module):
-    """Result of `identify_oscillatory` (SPEC.md §1, eqs. (7)-(10)).
+    """Result of `identify_oscillatory` (docs/models.md §1, eqs. (7)-(10)).
 
     **Fields:**
 
@@ -438,7 +438,7 @@ def identify_oscillatory(
     saturation_level: ScalarLike | None = None,
     throw: bool = True,
 ) -> OscillatoryEstimate:
-    """Scale factor from an oscillatory step response (ξ < 1), SPEC.md §1 section 3.1.
+    """Scale factor from an oscillatory step response (ξ < 1), docs/models.md §1 section 3.1.
 
     The deviation from the steady state crosses the steady-state line at t1, half a period
     later, and at t2 one period after t1: ω = 2π/(t2 − t1) (8); A1, A2 are the overshoot

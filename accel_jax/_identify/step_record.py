@@ -1,7 +1,7 @@
 """Scale-factor identification of a user's own step record (the `accel-jax identify` job).
 
 A measured test-signal record (`StepData`: t, u_test, u_out) may hold several changes of the
-test voltage; the paper's methods (SPEC.md §1) use one step. This module picks the first
+test voltage; the paper's methods (docs/models.md §1) use one step. This module picks the first
 step, runs the graph-analytic method that fits the response (oscillatory for ξ < 1,
 aperiodic otherwise) and, beside it, the least-squares fit of the whole segment, and states
 every assumption it made, with the fit's quality as System Identification Toolbox users

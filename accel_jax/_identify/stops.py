@@ -1,4 +1,4 @@
-"""k_dp k_y from the outputs on the mechanical stops, SPEC.md eq. (11)."""
+"""k_dp k_y from the outputs on the mechanical stops, docs/models.md eq. (11)."""
 
 from __future__ import annotations
 
@@ -18,13 +18,13 @@ def pickoff_gain_from_stops(
     h_plus: ValuesLike,
     h_minus: ValuesLike,
 ) -> Values:
-    """k_dp k_y = ½ (U⁺/h⁺ − U⁻/h⁻) [V/m], SPEC.md eq. (11).
+    """k_dp k_y = ½ (U⁺/h⁺ − U⁻/h⁻) [V/m], docs/models.md eq. (11).
 
     With ±U_test large enough to hold the pendulum on its stops, the output is
     U± = ±k_dp k_y h± + U_offset. Averaging the two slopes cancels the offset exactly when
     h⁺ = h⁻ (in general it leaves ½ U_offset (1/h⁺ − 1/h⁻)).
 
-    A reinterpretation of the paper: eq. (11) as printed (SPEC.md §1, seed 000) divides the
+    A reinterpretation of the paper: eq. (11) as printed (docs/models.md §1) divides the
     *test signals* U_test± by h_max±. Read literally that is not k_dp k_y — the test voltage
     sets the torque, not the pick-off output, so the value would change with U_test — and on
     the reference device with the study's U_test = 5 V it is 24 % off (5 V / 1.9 µm =

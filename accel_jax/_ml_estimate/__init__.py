@@ -1,5 +1,5 @@
 """Maximum-likelihood state estimate of the sensing element, its linearisation error and
-the paper's compensation (SPEC.md §2, Bezvesilna & Podchashinskyi, eqs. 2-18).
+the paper's compensation (docs/models.md §2, Bezvesilna & Podchashinskyi, eqs. 2-18).
 
 Pickoff samples α*_i = α(t_i) + δ_α(t_i), t_i = i·δ, i = 1..K. The linear model (2)
 

@@ -1,4 +1,4 @@
-"""Compensation of the linearisation error of the ML estimate (SPEC.md §2)."""
+"""Compensation of the linearisation error of the ML estimate (docs/models.md §2)."""
 
 from __future__ import annotations
 

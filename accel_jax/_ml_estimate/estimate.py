@@ -1,5 +1,5 @@
 """The maximum-likelihood (GLS) state estimate of the linearised sensing element and its
-linearisation error (SPEC.md §2, eqs. 11-17)."""
+linearisation error (docs/models.md §2, eqs. 11-17)."""
 
 from __future__ import annotations
 

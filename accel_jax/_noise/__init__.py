@@ -1,4 +1,4 @@
-"""Noise models of inertial sensors and their identification (SPEC.md §4).
+"""Noise models of inertial sensors and their identification (docs/models.md §4).
 
 Chernodarov, Patrikeev & Ivanov identify the noise model of a sensor error from its sample
 autocorrelation: the first-order Gauss-Markov (GM) model by a log-linear rule and the

@@ -1,4 +1,4 @@
-"""Time-domain simulation of the closed-loop servo accelerometer (SPEC.md §1): every
+"""Time-domain simulation of the closed-loop servo accelerometer (docs/models.md §1): every
 simulator of the loop lives here, once.
 
 - `state_space` (`state_space`, `discretise`, `equilibrium_state`): the loop's matrices,

@@ -1,4 +1,4 @@
-"""`step_response`: the identification record of SPEC.md §1 (a constant test voltage
+"""`step_response`: the identification record of docs/models.md §1 (a constant test voltage
 switched on at t_0 = 0 on a settled device), by either simulator."""
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def step_response(
 
     The device starts settled (the default initial state: equilibrium with zero test
     voltage, under `params.external_moment` and zero acceleration), and U_test is applied
-    from t_0 on: the record of SPEC.md §1's identification (step 1).
+    from t_0 on: the record of docs/models.md §1's identification (step 1).
 
     **Arguments:**
 

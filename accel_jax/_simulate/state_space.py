@@ -1,4 +1,4 @@
-"""The servo loop's state-space model (SPEC.md §1): `state_space` (with the ideal-lag
+"""The servo loop's state-space model (docs/models.md §1): `state_space` (with the ideal-lag
 limits T_dm = 0, T_f = 0), its exact zero-order-hold discretisation `discretise`, and
 the settled state `equilibrium_state`."""
 
@@ -57,7 +57,7 @@ def state_space(
         T_dm M_dm' = k_dm (U_test − U_amp) − M_dm,    U_amp = k_dp k_y l θ
         T_f U_f' = U_amp − U_f,                       U_out = U_f.
 
-    Its transfer functions are SPEC.md eq. (1) (`transfer_function`) and
+    Its transfer functions are docs/models.md eq. (1) (`transfer_function`) and
     `transfer_function_test_signal`, each followed by 1/(T_f p + 1).
 
     The ideal lags are handled without branching on values (so that the matrices are

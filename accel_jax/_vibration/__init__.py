@@ -1,4 +1,4 @@
-"""Vibration error of a navigation accelerometer (SPEC.md §3): exact expectation,
+"""Vibration error of a navigation accelerometer (docs/models.md §3): exact expectation,
 the paper's closed forms (3)-(5), (19), (20), a time-domain Monte Carlo check, the shaker
 estimator (16), the in-flight compensation algorithm (17)-(20) and coefficient fitting from
 a table of vibration tests.

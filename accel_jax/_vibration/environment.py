@@ -1,4 +1,4 @@
-"""The vibration acting on the accelerometer (SPEC.md §3): `VibrationEnvironment` (a
+"""The vibration acting on the accelerometer (docs/models.md §3): `VibrationEnvironment` (a
 sinusoid of one frequency on each axis plus zero-mean stationary Gaussian random vibration),
 `BandSpectrum` and `random_rms` (the random part's RMS from band PSDs with the η(f) factors
 of the paper's Table 1), and the per-axis vector converters they share.

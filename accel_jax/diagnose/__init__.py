@@ -1,4 +1,4 @@
-"""Sim-to-real diagnosis (SPEC.md §5): where the gap between a measured record and the
+"""Sim-to-real diagnosis (docs/models.md §5): where the gap between a measured record and the
 nominal model lies, which unmodelled effect causes it, and how far it shrinks once that
 effect is added.
 

@@ -1,6 +1,6 @@
 """The effect interface and the kind-independent logic of a sim-to-real diagnosis.
 
-A diagnosis (SPEC.md §5) compares a measured record with the nominal model of its kind:
+A diagnosis (docs/models.md §5) compares a measured record with the nominal model of its kind:
 
 1. it refits the nominal parameters under their prior (a gap that this closes is a
    parameter error, not missing physics);
@@ -362,7 +362,7 @@ class DiagnosisResult:
     next_experiment: list = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
-        """The JSON document of SPEC.md §5's CLI contract (plain numbers and strings)."""
+        """The JSON document of docs/models.md §5's CLI contract (plain numbers and strings)."""
         return {
             "kind": self.kind,
             "verdict": self.verdict,

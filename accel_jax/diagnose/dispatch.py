@@ -45,7 +45,7 @@ def diagnose(data: Dataset, nominal: NominalDevice | None = None) -> DiagnosisRe
 
     - `data`: a validated record (`accel_jax._data.read_csv` / `parse_csv`).
     - `nominal`: the nominal device and the relative uncertainty of its values; default the
-        SPEC.md reference device with J, μ, c, k_dm known to ±5 %. Only the `step` kind
+        docs/models.md reference device with J, μ, c, k_dm known to ±5 %. Only the `step` kind
         uses it (the vibration and noise nominal models have no servo parameters).
 
     **Returns:** a `DiagnosisResult` (`.verdict`, `.ranking`, `.gap`, `.where`, `.refit`,

@@ -1,6 +1,6 @@
 """The `noise` kind: a static record, its nominal model (white noise) and its effects.
 
-**Nominal model** (what a white-noise assumption means, SPEC.md §4): the indicated
+**Nominal model** (what a white-noise assumption means, docs/models.md §4): the indicated
 acceleration of a static sensor is an unknown constant level plus white noise,
 
     a_out(t_k) = ℓ + σ_w w_k                                                          [g].
@@ -456,7 +456,7 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
 def diagnose_noise(
     datasets: list[NoiseData], nominal: NominalDevice | None = None
 ) -> list[DiagnosisResult]:
-    """Diagnose static noise records (SPEC.md §5, `noise` kind).
+    """Diagnose static noise records (docs/models.md §5, `noise` kind).
 
     Records of one length are fitted together (one compilation, every candidate of every
     record vmapped, in chunks of `BATCH_CHUNK` records): Whittle start and exact maximum

@@ -1,6 +1,6 @@
 """The open-world verdict: a diagnosis that can say "not something I know".
 
-The verdict of a diagnosis is one of four (SPEC.md §5, issue 19):
+The verdict of a diagnosis is one of four (docs/models.md §5, issue 19):
 
 - `none`: nothing is missing. Only when the refitted nominal model leaves held-out residuals
   consistent with the noise floor (their excess RMS over the floor at most

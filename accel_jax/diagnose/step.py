@@ -118,7 +118,7 @@ LAG_PAIR = frozenset({"torquer_lag", "output_filter"})
 def diagnose_step(
     datasets: list[StepData], nominal: NominalDevice, *, recommend: bool = True
 ) -> list[DiagnosisResult]:
-    """Diagnose step records against a nominal device (SPEC.md §5, `step` kind).
+    """Diagnose step records against a nominal device (docs/models.md §5, `step` kind).
 
     Records of one length and test sequence size are fitted together: one compilation, the
     batch vmapped and sharded across devices (`accel_jax.sweep`), every candidate model and

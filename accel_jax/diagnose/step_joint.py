@@ -5,7 +5,7 @@ tie.
 A torquer lag inside the loop and a filter on the output give the same all-pole cubic from
 a small test step, so one small-step record cannot tell them apart. Two experiments do:
 
-- **stop-level test steps** (the in-flight test of SPEC.md §1, eq. (11)): the pendulum is
+- **stop-level test steps** (the in-flight test of docs/models.md §1, eq. (11)): the pendulum is
   driven onto its mechanical stops, where the loop is open. The output filter then rounds
   the corner of the clipped deflection; the torquer lag does not (it delays the release);
 - **an acceleration step** (`a_in`, a tilt or centrifuge step): through W(p) the torquer lag
@@ -321,7 +321,7 @@ def _fit(
 
 
 def nominal_stop_voltage(params) -> float:
-    """k_dp k_y h_max [V]: the deflection voltage at the stops (SPEC.md §1, eq. (11))."""
+    """k_dp k_y h_max [V]: the deflection voltage at the stops (docs/models.md §1, eq. (11))."""
     return float(params.pickoff_gain * params.amplifier_gain * params.stop_displacement)
 
 

@@ -1,7 +1,7 @@
 """The `vibration` kind: a table of shaker/tumble tests, its nominal model and its effects.
 
 **Nominal model** (the idealised transfer function the paper's shaker method assumes,
-SPEC.md §3): a linear transfer function, bias and scale factor only,
+docs/models.md §3): a linear transfer function, bias and scale factor only,
 
     a_out = a0 + (1 + δ) a_in                                                        [g],
 
@@ -9,7 +9,7 @@ fitted freely to the rows (there is no prior: `NominalDevice` describes the serv
 does not enter this kind). With a single input level a_in the scale factor cannot be told
 from the bias; δ is then held at 0 and the bias absorbs both (a note says so).
 
-**Effects** (each adds coefficients of the static transfer function, SPEC.md §3 eq. (1),
+**Effects** (each adds coefficients of the static transfer function, docs/models.md §3 eq. (1),
 and is exactly the nominal model when they are zero):
 
 - `k2`, `k3`, `k4`, `k5`: the nonlinearity k_n a3ⁿ, whose time average under vibration
@@ -531,7 +531,7 @@ def _reason(decision, entry, lack, gap, sigma) -> str:
 def diagnose_vibration(
     datasets: list[VibrationData], nominal: NominalDevice | None = None
 ) -> list[DiagnosisResult]:
-    """Diagnose vibration tables (SPEC.md §5, `vibration` kind).
+    """Diagnose vibration tables (docs/models.md §5, `vibration` kind).
 
     For each table: the exact-expectation design matrix (`accel_jax._vibration`), then the
     nominal model and each available effect fitted to all rows and to every
