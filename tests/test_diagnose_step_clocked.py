@@ -107,3 +107,28 @@ def test_a_prbs_record_is_diagnosed_like_its_step_sequence_twin():
         assert any(n.startswith("u_test: 220 changes on one bit clock") for n in r.notes)
         assert not r.refit["nuisance_test"]["strained"], r.refit["nuisance_test"]
     assert any("2 distinct levels" in n for n in results[2].notes)
+
+
+def test_mapped_timing_parameters_keep_a_gradient_beyond_their_limit():
+    """The clock's (or a measured channel's delay's) parameters are limited smoothly: a fit
+    that overshoots its limit in a first step can come back (a hard clip has no gradient
+    there; a measured record's delay once stayed at the clip with every level strained)."""
+    from types import SimpleNamespace
+
+    import jax
+    import jax.numpy as jnp
+
+    from accel_jax.diagnose.step_fit import timing_terms
+
+    ctx = SimpleNamespace(
+        timing_map=jnp.array([[1.0, 1.0], [0.0, 1.0]]),
+        timing_offset=jnp.array([0.25, -0.5]),
+        timing_mean=jnp.array([-0.5, 0.0]),
+        timing_sigma=jnp.array([1.0, 4.0]),
+        timing_limit=jnp.array([4.0, 8.0]),
+    )
+    shift, prior = timing_terms(jnp.array([-0.5, 1.0]), ctx)
+    assert jnp.allclose(prior, jnp.array([0.0, 0.25]))
+    assert abs(float(shift[1]) - (-0.5 + 8 * np.tanh(1 / 8))) < 1e-12
+    beyond = jax.jacfwd(lambda p: timing_terms(p, ctx)[0])(jnp.array([6.0, 12.0]))
+    assert np.all(np.asarray(beyond)[ctx.timing_map > 0] > 0.01)

@@ -219,7 +219,8 @@ def change_shifts(w, ctx) -> np.ndarray:
     if ctx.timing_map is None:
         return np.clip(timing, -TIMING_LIMIT, TIMING_LIMIT)
     limit = np.asarray(ctx.timing_limit)  # (host NumPy: `step_fit.timing_terms`)
-    return np.asarray(ctx.timing_offset) + np.asarray(ctx.timing_map) @ np.clip(timing, -limit, limit)
+    limited = limit * np.tanh(timing / limit)
+    return np.asarray(ctx.timing_offset) + np.asarray(ctx.timing_map) @ limited
 
 
 def strained_sentence(test: dict, fit) -> str:
