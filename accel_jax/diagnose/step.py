@@ -200,8 +200,14 @@ def diagnose_step(
             )
         results.append(evaluate(prep["data"], nominal, prep, record_fits))
     if recommend:
-        for data, result in zip(datasets, results, strict=True):
+        for data, prep, result in zip(datasets, preps, results, strict=True):
             if result.verdict == "cannot_tell" and set(result.tied) == LAG_PAIR:
+                if prep.get("clock") is not None:  # the joint fit takes ≤ MAX_CHANGES
+                    result.notes.append(
+                        "no next experiment designed: the joint fit that designs it takes "
+                        "step sequences, not a clocked sequence of hundreds of changes"
+                    )
+                    continue
                 _recommend(result, data, nominal)
     return results
 

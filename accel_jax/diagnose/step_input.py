@@ -95,12 +95,19 @@ def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
 
 
+UNCLOCKED_CHANGES = 64
+"""A column of more changes is taken as piecewise constant only when they fall on one bit
+clock (`clock_grid`): an ADC's flicker can leave runs as long as a plateau's."""
+
+
 def _exact(x: np.ndarray, max_changes: int | None) -> bool:
     """Already piecewise constant: every run of equal values at least `MIN_PLATEAU` long
-    (its first and last may be shorter: the record cuts them) and, where given, at most
-    `max_changes` changes."""
+    (its first and last may be shorter: the record cuts them), where given at most
+    `max_changes` changes, and more than `UNCLOCKED_CHANGES` only on one clock."""
     change = np.flatnonzero(np.diff(x) != 0) + 1
     if max_changes is not None and change.size > max_changes:
+        return False
+    if change.size > UNCLOCKED_CHANGES and clock_grid(change) is None:
         return False
     lengths = np.diff(np.concatenate([[0], change, [x.size]]))
     return bool(lengths.size <= 2 or np.all(lengths[1:-1] >= MIN_PLATEAU))
@@ -312,10 +319,9 @@ def clock_grid(change_index) -> Clock | None:
     """The bit clock of a many-change sequence (a PRBS or random telegraph from a clocked
     generator), or None when its changes are on no common grid.
 
-    The bit length starts as the median of the shortest intervals (those below 1.5× the
+    The bit length starts as the mean of the shortest intervals (those below 1.5× the
     shortest), each interval is rounded to whole bits, and the grid index ≈ phase +
-    period·bits is fitted by least squares (twice: the bit counts again from the fitted
-    period). Clocked when every residual is within `CLOCK_TOLERANCE` samples and a bit is at
+    period·bits is fitted by least squares, again until the bit counts stop changing. Clocked when every residual is within `CLOCK_TOLERANCE` samples and a bit is at
     least 3 samples long."""
     index = np.asarray(change_index, dtype=float)
     if index.size < 3:
@@ -323,16 +329,21 @@ def clock_grid(change_index) -> Clock | None:
     gaps = np.diff(index)
     if np.any(gaps <= 0):
         return None
-    period = float(np.median(gaps[gaps < 1.5 * gaps.min()]))
-    for _ in range(2):
-        if period < 3:
+    shortest = 3 - 1e-9  # (a fitted period of exactly 3 comes out 2.9999999999999987)
+    period = float(np.mean(gaps[gaps < 1.5 * gaps.min()]))
+    counts = None
+    for _ in range(20):  # until the bit counts stop changing
+        if period < shortest:
             return None
-        counts = np.maximum(np.round(gaps / period), 1)
+        new = np.maximum(np.round(gaps / period), 1)
+        if counts is not None and np.array_equal(new, counts):
+            break
+        counts = new
         bits = np.concatenate([[0.0], np.cumsum(counts)])
         slope, intercept = np.polyfit(bits, index, 1)
         period = float(slope)
     residual = index - (intercept + period * bits)
-    if period < 3 or np.max(np.abs(residual)) > CLOCK_TOLERANCE:
+    if period < shortest or np.max(np.abs(residual)) > CLOCK_TOLERANCE:
         return None
     return Clock(period=period, phase=float(intercept), bits=bits, residual=residual)
 
@@ -340,16 +351,21 @@ def clock_grid(change_index) -> Clock | None:
 def level_groups(levels, sigmas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The distinct levels of a measured sequence: (each plateau's group (J+1,), each
     group's level [V] as the inverse-variance mean of its plateaus, each group's standard
-    error [V]). Plateaus whose sorted levels lie within 10 of their standard errors (the
-    larger) of the previous one join its group: a DAC puts out the same value each time."""
+    error [V]). In order of level, a plateau within 10 standard errors (its own or the
+    group's largest) of the group's mean so far joins it: a DAC puts out the same value
+    each time."""
     levels = np.asarray(levels, dtype=float)
     sigmas = np.maximum(np.asarray(sigmas, dtype=float), 1e-15)
     order = np.argsort(levels)
     group = np.zeros(levels.size, dtype=int)
-    current = 0
-    for previous, k in zip(order[:-1], order[1:], strict=True):
-        if levels[k] - levels[previous] > 10 * max(sigmas[k], sigmas[previous]):
-            current += 1
+    current, members = 0, [order[0]]
+    for k in order[1:]:
+        # Against the group's mean so far (not its last member: no chains of close levels).
+        w = 1 / sigmas[members] ** 2
+        mean, error = np.sum(w * levels[members]) / np.sum(w), 1 / np.sqrt(np.sum(w))
+        if levels[k] - mean > 10 * max(sigmas[k], error, float(np.max(sigmas[members]))):
+            current, members = current + 1, []
+        members.append(k)
         group[k] = current
     weights = 1 / sigmas**2
     total = np.bincount(group, weights)

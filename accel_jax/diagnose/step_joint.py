@@ -138,7 +138,8 @@ def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
         ctx,
         change_index=pad(ctx.change_index, j_padded),
         change_step=pad(ctx.change_step, j_padded),
-        held_out_change=pad(ctx.held_out_change, j_padded),
+        # (one entry per change: a measured input's common delay is not fitted jointly)
+        held_out_change=pad(ctx.held_out_change[: ctx.change_index.shape[0]], j_padded),
         change_accel=pad(ctx.change_accel, j_padded),
         train=pad(ctx.train, n_padded),
         test=pad(ctx.test, n_padded),
@@ -147,6 +148,12 @@ def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
         level_sigma=None,
         held_out_level=None,
         drift_step=None,
+        timing_map=None,
+        timing_offset=None,
+        timing_mean=None,
+        timing_sigma=None,
+        timing_limit=None,
+        level_map=None,
     )
 
 

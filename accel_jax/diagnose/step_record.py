@@ -17,7 +17,7 @@ from .._params import ServoParams
 from .._servo import closed_loop_test_gain, damping_ratio, time_constant
 from .._simulate.sequence import accel_moment
 from . import openworld
-from .step_input import clock_grid, level_groups, read_inputs
+from .step_input import UNCLOCKED_CHANGES, clock_grid, level_groups, read_inputs
 from .step_fit import (
     _I_DV,
     _I_GAIN,
@@ -41,7 +41,7 @@ HELD_OUT_EVERY = 3
 HELD_OUT_FRACTION = 1 / 3
 """A record of fewer than four segments holds out about this much at its end."""
 
-MAX_CHANGES = 64
+MAX_CHANGES = UNCLOCKED_CHANGES
 """Most test-voltage changes a record may have with a change time (and, measured, a level)
 fitted for each."""
 
@@ -235,7 +235,13 @@ def _clocked(inputs):
     index = np.flatnonzero(np.diff(sequence_key(data)) != 0) + 1
     if index.size <= MAX_CHANGES:
         return data, None, None
-    clock = clock_grid(index) if data.a_in is None else None
+    if data.a_in is not None:
+        raise DataError(
+            f"u_test and a_in change {index.size} times together; the step diagnosis takes "
+            f"at most {MAX_CHANGES} changes in a record with an acceleration column (more "
+            "only from a clocked u_test alone). Split the record into shorter ones."
+        )
+    clock = clock_grid(index)
     if clock is None:
         raise DataError(
             f"u_test changes {index.size} times, not on one bit clock (the intervals between "

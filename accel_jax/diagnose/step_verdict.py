@@ -243,8 +243,8 @@ def strained_sentence(test: dict, fit) -> str:
         )
     if name == "input_clock_rate":
         return (
-            f"the test sequence's clock came out {value:+.1f} samples off its grid over the "
-            f"record {where}: the generator's clock and the recorder's differ in rate, or a "
+            f"the test sequence's clock rate came out {value:+.1f}σ off the grid read from its "
+            f"changes {where}: the generator's clock and the recorder's differ in rate, or a "
             "lag the model lacks"
         )
     if name == "input_channel_drift":
