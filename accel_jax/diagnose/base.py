@@ -471,7 +471,7 @@ class DiagnosisResult:
 
 def _nuisance_lines(refit: dict) -> list[str]:
     """The step refit's nuisances, each with its shift in σ of its prior where it has one,
-    and their joint test (`step_verdict.nuisance_test`)."""
+    and their joint test (`step_nuisance.nuisance_test`)."""
     test, values = refit.get("nuisance_test"), refit.get("nuisances") or {}
     if not test:
         return []
