@@ -900,12 +900,12 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
     from ._data import DataError, read_csv
     from ._io import write_json_atomic
     from ._noise import analysis, export
-    from ._noise.sensor import (
-        UNEXPLAINED_Z,
+    from ._noise.sensor import UNEXPLAINED_Z
+    from ._noise.sensor_text import (
         level_shift_sentence,
         non_gaussian_sentence,
-        spectral_change_sentence,
         saturation_sentence,
+        spectral_change_sentence,
     )
 
     try:

@@ -149,13 +149,13 @@ def test_fits_on_threads_give_the_same_selection(monkeypatch):
     """The forward, backward and exchange steps fit their candidates on threads where the
     process has several cores (`_evaluate_many`); one core gives the same selection, to the
     bit (the same XLA calls, in another order)."""
-    from accel_jax._noise import sensor
+    from accel_jax._noise import sensor_model
 
     truth = {"white": 2e-3, "gauss_markov": (1e-3, 0.3), "lines": [(3.1, 1e-3)], "level": 0.5}
     x = noise_truth.record(np.random.default_rng(21), 6000, 0.01, truth)
     found = {}
     for cores in (1, 2):
-        monkeypatch.setattr(sensor, "_cores", lambda cores=cores: cores)
+        monkeypatch.setattr(sensor_model, "_cores", lambda cores=cores: cores)
         found[cores] = aj.select_sensor_noise(x, 0.01)
     assert found[1].verdict == found[2].verdict and "gauss_markov" in found[1].effects
     assert found[1].steps == found[2].steps
@@ -199,17 +199,17 @@ def test_backward_check_removes_an_effect_the_data_do_not_hold():
     """A white record fitted with a random walk and a Gauss–Markov noise it does not have:
     the backward check drops both (each below the bar against the model without it), and
     keeps a real one."""
-    from accel_jax._noise import sensor
+    from accel_jax._noise import sensor, sensor_model, sensor_refine
 
     rng = np.random.default_rng(12)
     dt = 0.01
     x = noise_truth.record(rng, 4000, dt, {"white": 1e-3, "gauss_markov": (2e-3, 0.2)})
-    rec = sensor._Record(x, dt)
+    rec = sensor_model._Record(x, dt)
     floor = 1e-9 * rec.variance
     train, held = rec.grams((), None)
     log_j = math.log(train.n_bins + held.n_bins)
-    padded = sensor._evaluate(rec, floor, ("gauss_markov", "random_walk", "flicker"), (), None)
-    model, removed = sensor._backward(rec, floor, padded, log_j, sensor.EVIDENCE)
+    padded = sensor_model._evaluate(rec, floor, ("gauss_markov", "random_walk", "flicker"), (), None)
+    model, removed = sensor_refine._backward(rec, floor, padded, log_j, sensor.EVIDENCE)
     assert model.names == ("gauss_markov",)
     assert {r["effect"] for r in removed} == {"random_walk", "flicker"}
     assert all(r["evidence"] < sensor.EVIDENCE for r in removed)
@@ -222,17 +222,17 @@ def test_exchange_puts_the_better_low_frequency_effect_in_place_and_reports_ties
     within the bar is named with that tie reported, not silently."""
     import sensor_noise_harness as harness
 
-    from accel_jax._noise import sensor
+    from accel_jax._noise import sensor, sensor_model, sensor_refine
 
     rng = np.random.default_rng(14)
     dt, n = 0.01, 4000
     x = noise_truth.record(rng, n, dt, {"white": 1e-3, "random_walk": (8e-3) ** 2 / (n * dt)})
-    rec = sensor._Record(x, dt)
+    rec = sensor_model._Record(x, dt)
     floor = 1e-9 * rec.variance
     train, held = rec.grams((), None)
     log_j = math.log(train.n_bins + held.n_bins)
-    wrong = sensor._evaluate(rec, floor, ("flicker",), (), None)
-    model, exchanged, _ = sensor._exchanges(rec, floor, wrong, log_j, sensor.EVIDENCE)
+    wrong = sensor_model._evaluate(rec, floor, ("flicker",), (), None)
+    model, exchanged, _ = sensor_refine._exchanges(rec, floor, wrong, log_j, sensor.EVIDENCE)
     assert model.names == ("random_walk",)
     assert exchanged[0]["effect"] == "flicker" and exchanged[0]["by"] == "random_walk"
     assert exchanged[0]["evidence"] >= sensor.EVIDENCE
@@ -257,11 +257,11 @@ def test_a_failed_fit_does_not_scramble_the_ranking():
     sorted behind it."""
     import sensor_noise_harness as harness
 
-    from accel_jax._noise import sensor
+    from accel_jax._noise import sensor_model
 
-    nan = sensor._Model((), (), None, np.zeros(1), math.nan, 0.0, np.zeros(3), False)
-    ok = sensor._Model((), (), None, np.zeros(1), 0.0, 0.0, np.zeros(3), True)
-    assert sensor._evidence(nan, ok, 1, 8.0) == -math.inf
+    nan = sensor_model._Model((), (), None, np.zeros(1), math.nan, 0.0, np.zeros(3), False)
+    ok = sensor_model._Model((), (), None, np.zeros(1), 0.0, 0.0, np.zeros(3), True)
+    assert sensor_model._evidence(nan, ok, 1, 8.0) == -math.inf
 
     rng = np.random.default_rng(158690399)
     truth = harness.draw(rng, ("startup_transient",), 10000)
@@ -276,18 +276,18 @@ def test_held_out_check_refuses_a_consistent_loss_not_a_scattered_one():
     """The held-out check is a paired z over the held-out periodogram entries: a model
     that loses a little in every entry is refused, one whose held-out change is a few
     large terms of either sign (an effect at the lowest frequencies) is not."""
-    from accel_jax._noise import sensor
+    from accel_jax._noise import sensor_model
 
     def model(terms):
-        return sensor._Model((), (), None, np.zeros(1), 0.0, float(np.sum(terms)), terms, True)
+        return sensor_model._Model((), (), None, np.zeros(1), 0.0, float(np.sum(terms)), terms, True)
 
     rng = np.random.default_rng(3)
     parent = model(np.zeros(1000))
     consistent = model(-0.05 + 0.05 * rng.normal(size=1000))
     scattered = model(np.concatenate([[6.0, -9.0, 4.0, -5.0], np.zeros(996)]))
-    assert sensor._held_out_z(consistent, parent) < -sensor.HELD_OUT_Z
+    assert sensor_model._held_out_z(consistent, parent) < -sensor_model.HELD_OUT_Z
     assert np.sum(scattered.held_terms) < 0
-    assert sensor._held_out_z(scattered, parent) > -sensor.HELD_OUT_Z
+    assert sensor_model._held_out_z(scattered, parent) > -sensor_model.HELD_OUT_Z
 
 
 def test_flicker_named_though_its_held_out_gain_is_negative():
@@ -298,7 +298,7 @@ def test_flicker_named_though_its_held_out_gain_is_negative():
     the whole-record evidence and the paired held-out check name it."""
     import sensor_noise_harness as harness
 
-    from accel_jax._noise import sensor
+    from accel_jax._noise import sensor, sensor_model
 
     rng = np.random.default_rng(1450924183)
     truth = harness.draw(rng, ("flicker",), 10000)
@@ -307,7 +307,7 @@ def test_flicker_named_though_its_held_out_gain_is_negative():
     assert found.verdict == "flicker", found.steps
     step = found.steps[1]
     assert step["held_out_gain"] < 0
-    assert step["held_out_check_z"] > -sensor.HELD_OUT_Z
+    assert step["held_out_check_z"] > -sensor_model.HELD_OUT_Z
     assert step["evidence"] > 5 * sensor.EVIDENCE
 
 
@@ -380,16 +380,16 @@ def test_haar_variance_of_the_model_matches_monte_carlo():
     sample variance of D_w on records drawn directly: white + random walk + Gauss–Markov."""
     from scipy.signal import lfilter
 
-    from accel_jax._noise import sensor
+    from accel_jax._noise import sensor_model, sensor_screens
 
     z = np.full(spectral.N_PARAMS, -30.0)
     white, q, sigma_gm, tau = 1.0, 0.01, 2.0, 20.0
     z[0], z[6] = math.log(white**2), math.log(q)
     z[1], z[2] = math.log(sigma_gm**2), math.log(tau)
-    model = sensor._Model(("random_walk", "gauss_markov"), (), None, z, 0.0, 0.0, np.zeros(1), True)
-    v = sensor._variogram(model, 0.0, 512)
+    model = sensor_model._Model(("random_walk", "gauss_markov"), (), None, z, 0.0, 0.0, np.zeros(1), True)
+    v = sensor_model._variogram(model, 0.0, 512)
     # white noise of unit variance (V(h) = 1 for h ≥ 1): 2σ²/w
-    assert sensor._haar_variance(np.r_[0.0, np.ones(511)], 8) == pytest.approx(2 / 8)
+    assert sensor_screens._haar_variance(np.r_[0.0, np.ones(511)], 8) == pytest.approx(2 / 8)
     rng = np.random.default_rng(3)
     n, reps, phi = 1024, 2000, math.exp(-1 / tau)
     e = rng.normal(size=(reps, n))
@@ -402,7 +402,7 @@ def test_haar_variance_of_the_model_matches_monte_carlo():
     for w in (4, 32, 256):
         d = x[:, j : j + w].mean(1) - x[:, j - w : j].mean(1)
         # sample variance of 2000 draws: relative standard error √(2/2000) = 3.2 %
-        assert np.var(d) == pytest.approx(sensor._haar_variance(v, w), rel=0.1), w
+        assert np.var(d) == pytest.approx(sensor_screens._haar_variance(v, w), rel=0.1), w
 
 
 def test_a_level_shift_is_unexplained_not_a_random_walk():
@@ -476,7 +476,7 @@ def test_level_shift_screen_rarely_fires_on_noise_and_sees_a_step():
     generator) it fires rarely (a false trigger costs one selection run, not a verdict);
     a 6 mg step in 2 mg white + a 1 mg Gauss–Markov process it sees at its place, and then
     the diagnosis runs the selection where it would not have."""
-    from accel_jax._noise.sensor import level_shift_screen
+    from accel_jax._noise.sensor_screens import level_shift_screen
     from accel_jax.diagnose.noise_sensor import needs_selection
 
     rng = np.random.default_rng(8)
@@ -506,7 +506,7 @@ def test_a_clipped_record_sits_on_a_rail_and_is_unexplained():
     and the real MPU-6050 record — show no rail; the clipped ones do, on the clipped side
     alone, and the selection and the diagnosis call them unexplained with the rail said
     (the exact one-effect diagnosis alone calls clipped white noise `none`)."""
-    from accel_jax._noise.sensor import detect_quantization, detect_saturation
+    from accel_jax._noise.sensor_screens import detect_quantization, detect_saturation
     from accel_jax.diagnose import diagnose
 
     rng = np.random.default_rng(21)
@@ -557,7 +557,7 @@ def _telegraph(rng, n, dwell, peak_to_peak):
 
 
 def test_non_gaussian_residual_is_calibrated_and_sees_two_levels_and_heavy_tails():
-    from accel_jax._noise.sensor import NON_GAUSSIAN_Z, _non_gaussian
+    from accel_jax._noise.sensor_screens import NON_GAUSSIAN_Z, _non_gaussian
 
     rng = np.random.default_rng(21)
     n, dt = 10_000, 0.01
@@ -661,7 +661,7 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     flicker) never fire and their family-wise p is roughly uniform; a 1 mg line sweeping
     1 → 3 Hz over 100 s (half the white σ) is found in the band it sweeps and makes the
     selection (which names an exp-cosine process for it) unexplained, in words."""
-    from accel_jax._noise.sensor import _spectral_change
+    from accel_jax._noise.sensor_screens import _spectral_change
     from accel_jax.diagnose.noise_sensor import _describe
 
     rng = np.random.default_rng(31)

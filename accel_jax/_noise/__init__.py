@@ -86,10 +86,10 @@ from .selection import StructureSelection as StructureSelection
 from .selection import initial_model as initial_model
 from .selection import select_noise_model as select_noise_model
 from .sensor import SensorNoiseSelection as SensorNoiseSelection
-from .sensor import detect_non_gaussian as detect_non_gaussian
-from .sensor import detect_quantization as detect_quantization
-from .sensor import detect_saturation as detect_saturation
-from .sensor import detect_spectral_change as detect_spectral_change
+from .sensor_screens import detect_non_gaussian as detect_non_gaussian
+from .sensor_screens import detect_quantization as detect_quantization
+from .sensor_screens import detect_saturation as detect_saturation
+from .sensor_screens import detect_spectral_change as detect_spectral_change
 from .sensor import select_sensor_noise as select_sensor_noise
 from .whiteness import ljung_box as ljung_box
 

@@ -32,19 +32,21 @@ import math
 import numpy as np
 
 from .._noise import allan_deviation_intervals, detect_quantization, select_sensor_noise
-from .._noise.sensor import (
-    DEVIANCE_VARIANCE,
+from .._noise.sensor import SensorNoiseSelection
+from .._noise.sensor_model import DEVIANCE_VARIANCE
+from .._noise.sensor_screens import (
     QUANTIZATION_SHARE,
-    SensorNoiseSelection,
     detect_non_gaussian,
     detect_saturation,
     detect_spectral_change,
     grid_noise_share,
     level_shift_screen,
+)
+from .._noise.sensor_text import (
     level_shift_sentence,
     non_gaussian_sentence,
-    spectral_change_sentence,
     saturation_sentence,
+    spectral_change_sentence,
 )
 from .base import DiagnosisResult
 

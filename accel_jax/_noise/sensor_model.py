@@ -1,0 +1,397 @@
+"""The sensor-noise selection's candidate models and how they are judged.
+
+A candidate (`_Model`) is a set of named stochastic effects (fitted by the Whittle
+likelihood of `accel_jax._noise.spectral`), periodic lines (`_fit_line`, each found by a
+golden-section search around a periodogram peak) and a start-up transient
+a e^{−t/τ}, fitted to a record (`_Record`) on its training part (the first 2/3) and
+scored on the whole record. Here: the fits (`_evaluate`; `_evaluate_many` runs several
+on threads, one per core), the evidence of a larger model against a smaller one
+(`_evidence`: 2 Δ ln L − k ln J, k from `PARAMETER_COUNT`), the paired held-out check
+(`_held_out_z`), the transient's exact time-domain likelihood ratio (`_transient_test`:
+Durbin–Levinson on the record's first differences), the held-out excess deviance and the
+explained fraction, the model's variogram (for the level-shift test) and its fitted values
+in physical units (`_physical`). `accel_jax._noise.sensor` drives the selection.
+
+Float64, NumPy on the host; one jitted, vmapped Whittle fit per record length.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import spectral
+
+
+HELD_OUT_FRACTION = 1 / 3
+
+
+HELD_OUT_Z = 2.0
+"""An addition is refused when the held-out part prefers the model without it at this
+paired z (`_held_out_z`)."""
+
+
+EULER_GAMMA = 0.5772156649015329
+
+
+DEVIANCE_VARIANCE = math.pi**2 / 6 - 1
+
+
+PARAMETER_COUNT = {
+    "gauss_markov": 2,
+    "exp_cosine": 3,
+    "random_walk": 1,
+    "flicker": 1,
+    "bandlimit": 1,
+    "sinusoid": 3,
+    "startup_transient": 2,
+}
+
+
+def _line_design(t, f):
+    return np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t), np.ones_like(t)], 1)
+
+
+LINE_BLOCK = 32
+"""Samples per block of the demodulated record in the line's frequency search."""
+
+
+def _fit_line(r: np.ndarray, t: np.ndarray, f0: float, width: float) -> dict:
+    """A sinusoid at the frequency near f0 (±width) that best fits r: the frequency that
+    maximises the periodogram |Σ r_k e^{−i2πf t_k}|² (a grid, then golden-section search),
+    evaluated on the record demodulated at f0 and summed over blocks of `LINE_BLOCK`
+    samples (the residual frequency |f − f0| ≤ width turns the phase by at most
+    2π·width·`LINE_BLOCK`Δ within a block: ~1 % of a turn for a record of 300 blocks and
+    more); then cos, sin and a constant by least squares at that frequency."""
+    r = r - np.mean(r)
+    usable = r.size // LINE_BLOCK * LINE_BLOCK
+    z = (r[:usable] * np.exp(-2j * np.pi * f0 * t[:usable])).reshape(-1, LINE_BLOCK)
+    centre = t[:usable].reshape(-1, LINE_BLOCK).mean(1)
+    offsets = np.arange(LINE_BLOCK) * (t[1] - t[0]) if r.size > 1 else np.zeros(1)
+    offsets = offsets - offsets.mean()
+
+    def power(delta):
+        inner = np.exp(-2j * np.pi * delta * offsets)  # the phase within a block, exactly
+        blocks = z @ inner
+        return float(np.abs(np.sum(blocks * np.exp(-2j * np.pi * delta * centre))) ** 2)
+
+    grid = np.linspace(-width, width, 41)
+    values = [power(d) for d in grid]
+    i = int(np.argmax(values))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    golden = (math.sqrt(5) - 1) / 2
+    c, d = hi - golden * (hi - lo), lo + golden * (hi - lo)
+    pc, pd = power(c), power(d)
+    for _ in range(40):  # each step keeps one of the two inner points and its power
+        if pc > pd:
+            hi, d, pd = d, c, pc
+            c = hi - golden * (hi - lo)
+            pc = power(c)
+        else:
+            lo, c, pc = c, d, pd
+            d = lo + golden * (hi - lo)
+            pd = power(d)
+    f = f0 + 0.5 * (lo + hi)
+    design = _line_design(t, f)
+    coef, *_ = np.linalg.lstsq(design, r, rcond=None)
+    return {"frequency_Hz": float(f), "cos": float(coef[0]), "sin": float(coef[1])}
+
+
+def _line_signal(line: dict, t: np.ndarray) -> np.ndarray:
+    w = 2 * np.pi * line["frequency_Hz"] * t
+    return line["cos"] * np.cos(w) + line["sin"] * np.sin(w)
+
+
+def _transient_signal(transient: dict, t: np.ndarray) -> np.ndarray:
+    return transient["amplitude"] * np.exp(-(t - t[0]) / transient["time_constant_s"])
+
+
+@dataclasses.dataclass
+class _Model:
+    names: tuple
+    lines: tuple
+    transient: dict | None
+    z: np.ndarray
+    train: float
+    held: float
+    held_terms: np.ndarray
+    converged: bool
+
+
+class _Record:
+    def __init__(self, x, dt):
+        self.x = x
+        self.dt = dt
+        self.n = x.size
+        self.split = int(round((1 - HELD_OUT_FRACTION) * self.n))
+        self.t = np.arange(self.n) * dt
+        self.variance = float(np.var(np.diff(x[: self.split]))) / 2
+        self._grams = {}
+
+    def residual(self, lines, transient):
+        r = self.x - np.mean(self.x[: self.split])
+        for line in lines:
+            r = r - _line_signal(line, self.t)
+        if transient is not None:
+            r = r - _transient_signal(transient, self.t)
+        return r
+
+    def grams(self, lines, transient):
+        key = repr((lines, transient))
+        if key not in self._grams:
+            r = self.residual(lines, transient)
+            self._grams[key] = (
+                spectral.periodogram(r[: self.split]),
+                spectral.periodogram(r[self.split :]),
+            )
+        return self._grams[key]
+
+
+def _evaluate(record, floor, names, lines, transient, parent=None) -> _Model:
+    train, held = record.grams(lines, transient)
+    parent_z, parent_names = (parent.z, parent.names) if parent is not None else (None, ())
+    z, log_lik, ok = spectral.fit_structure(
+        list(names), train, floor, record.variance, parent_z, parent_names
+    )
+    mask = jnp.asarray(spectral._mask(names))
+    terms = np.asarray(spectral.whittle_terms(jnp.asarray(z), mask, held, jnp.asarray(floor)))
+    held_lik = float(np.sum(terms))
+    return _Model(tuple(names), tuple(lines), transient, z, log_lik, held_lik, terms, ok)
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))  # what this process may use (a pinned job: 1)
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _evaluate_many(record, floor, specs: list) -> list:
+    """`_evaluate` of each spec (names, lines, transient, parent), in order. Independent
+    fits run on as many threads as the process has cores: a fit is one XLA call that runs
+    on one core and releases the GIL (the first forward step of a 10⁶-sample record 3.3 s
+    → 1.9 s on the 2-core machine). The same fits, the same results, in either case."""
+    workers = min(len(specs), _cores())
+    if workers < 2:
+        return [_evaluate(record, floor, *spec) for spec in specs]
+
+    def one(spec):
+        with jax.enable_x64(True):  # thread-local: each worker sets it again
+            return _evaluate(record, floor, *spec)
+
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(one, specs))
+
+
+def _evidence(model: _Model, smaller: _Model, k: int, log_j: float) -> float:
+    """2 ln B of `model` over `smaller` (nested): 2 Δ ln L on the whole record (the
+    training part's likelihood at the parameters fitted there plus the held-out part's at
+    the same parameters: the held-out part only confirms, and an addition that fits the
+    training part's noise loses its gain there) − k ln J, J the whole record's bins."""
+    score = 2 * ((model.train + model.held) - (smaller.train + smaller.held)) - k * log_j
+    # a fit that failed (a non-finite likelihood) is no evidence, and must not scramble
+    # the ranking (NaN compares false with everything)
+    return score if math.isfinite(score) else -math.inf
+
+
+def _held_out_z(model: _Model, smaller: _Model) -> float:
+    """The held-out check of an addition: a paired z of the held-out log-likelihood gain
+    over its entries, Σ d_j / √(Σ d_j²) with d_j each periodogram entry's change (Vuong's
+    statistic with the spread taken about zero, not about the mean: never larger in size,
+    so the check is conservative). The addition is refused when the held-out part prefers
+    the smaller model significantly (z < −`HELD_OUT_Z`). Not a demand that the held-out
+    part gain: an effect whose evidence lies at the lowest frequencies (flicker, a random
+    walk) has its gain in a few bins that the held-out part, a third of the record, does
+    not even resolve, and its held-out gain then scatters about zero."""
+    d = model.held_terms - smaller.held_terms
+    scale = float(np.sqrt(np.sum(d * d)))
+    if not np.isfinite(scale):
+        return -math.inf
+    return float(np.sum(d)) / scale if scale > 0 else 0.0
+
+
+TRANSIENT_WINDOW = 1 << 12
+"""The start-up transient is tested on the first `TRANSIENT_WINDOW` first differences of
+the record (time constants up to a quarter of that)."""
+
+
+TRANSIENT_TAUS = 24
+
+
+def _differenced_autocovariance(model: _Model, floor: float, size: int) -> np.ndarray:
+    """γ_y(h), h = 0..size−1, of the model's differenced record y = Δx: the inverse Fourier
+    transform of its spectral density f_y (`spectral.spectrum`) on a grid of 8·size."""
+    grid = 8 * size
+    w = 2 * np.pi * np.arange(grid) / grid
+    folded = np.minimum(w, 2 * np.pi - w)
+    f = np.asarray(
+        spectral.spectrum(
+            jnp.asarray(model.z), jnp.asarray(spectral._mask(model.names)), folded, floor
+        )
+    )
+    return np.real(np.fft.ifft(f))[:size]
+
+
+def _innovations(gamma: np.ndarray, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The one-step prediction errors of the columns of `vectors` under the stationary
+    autocovariance γ (the Durbin–Levinson recursion: each sample predicted from all the
+    earlier ones of the window) and their variances D_k; Σ_k e_k e'_k/D_k is then the exact
+    Gaussian inner product uᵀ C⁻¹ v."""
+    size = gamma.size
+    out = np.empty_like(vectors)
+    variance = np.empty(size)
+    phi = np.zeros(0)
+    d = float(gamma[0])
+    out[0] = vectors[0]
+    variance[0] = d
+    for k in range(1, size):
+        kappa = (gamma[k] - phi @ gamma[k - 1 : 0 : -1]) / d if k > 1 else gamma[1] / d
+        phi = np.concatenate([phi - kappa * phi[::-1], [kappa]])
+        d = d * (1 - kappa * kappa)
+        if not d > 0:
+            return out[:k], variance[:k]
+        out[k] = vectors[k] - phi[::-1] @ vectors[:k]
+        variance[k] = d
+    return out, variance
+
+
+def _transient_test(r: np.ndarray, dt: float, model: _Model, floor: float) -> dict:
+    """The start-up transient a e^{−t/τ} that best explains the start of r, and its
+    evidence 2 ln Λ against `model`'s noise, by generalised least squares in the time
+    domain: on the first `TRANSIENT_WINDOW` first differences y of r (the difference takes
+    the level out and makes a random walk stationary), the exact Gaussian likelihood ratio
+    of y − a Δh_τ − b against y − b under the model's autocovariance of y (Durbin–Levinson;
+    b, a constant rate of the level, is a nuisance: a linear drift is not a transient),
+    2 ln Λ = (Δhᵀ C⁻¹ y)² / (Δhᵀ C⁻¹ Δh) with b projected out of both, maximised over a
+    geometric grid of τ from 2Δ to a quarter of the window.
+
+    The spectral (Whittle) likelihood cannot judge a transient: its taper gives the first
+    samples of the record, where the transient lives, almost no weight."""
+    y = np.diff(r)[:TRANSIENT_WINDOW]
+    size = y.size
+    taus = np.geomspace(2 * dt, max(size * dt / 4, 3 * dt), TRANSIENT_TAUS)
+    k = np.arange(size + 1) * dt
+    templates = np.diff(np.exp(-k[:, None] / taus[None, :]), axis=0)
+    gamma = _differenced_autocovariance(model, floor, size)
+    columns = np.concatenate([y[:, None], np.ones((size, 1)), templates], axis=1)
+    e, d = _innovations(gamma, columns)
+    weighted = e / d[:, None]
+    gram = weighted.T @ e  # the C⁻¹ inner products of every pair of columns
+    # the level's drift (a constant mean of y) taken out: a ramp is not a transient
+    drift = gram[1, 1]
+    cross = gram[2:, 0] - gram[2:, 1] * gram[1, 0] / drift
+    energy = np.diag(gram)[2:] - gram[2:, 1] ** 2 / drift
+    z2 = np.where(energy > 0, cross**2 / np.where(energy > 0, energy, 1.0), 0.0)
+    i = int(np.argmax(z2))
+    return {
+        "evidence": float(z2[i]),
+        "time_constant_s": float(taus[i]),
+        "amplitude": float(cross[i] / energy[i]) if energy[i] > 0 else 0.0,
+    }
+
+
+def _held_out_deviance(record, floor, model: _Model) -> dict:
+    r = record.residual(model.lines, model.transient)[record.split :]
+    gram = spectral.periodogram(r, banded=False)
+    mask = jnp.asarray(spectral._mask(model.names))
+    _, dev = spectral.deviance_terms(jnp.asarray(model.z), mask, gram, jnp.asarray(floor))
+    dev = np.asarray(dev)
+    excess = float(np.sum(dev) - EULER_GAMMA * dev.size)
+    return {
+        "excess_deviance": excess,
+        "z": excess / math.sqrt(DEVIANCE_VARIANCE * dev.size),
+        "bins": int(dev.size),
+    }
+
+
+def _standardised_peak(record, floor, model: _Model):
+    """The largest standardised periodogram ordinate I/f of the training residual (full
+    resolution): where a line would be."""
+    r = record.residual(model.lines, model.transient)[: record.split]
+    gram = spectral.periodogram(r, banded=False)
+    mask = jnp.asarray(spectral._mask(model.names))
+    ratio, _ = spectral.deviance_terms(jnp.asarray(model.z), mask, gram, jnp.asarray(floor))
+    ratio = np.array(ratio)
+    # Not the lowest bins: a drift there is a line's impostor.
+    ratio[:2] = 0
+    j = int(np.argmax(ratio))
+    m = r.size - 1
+    return float(np.asarray(gram.omega)[j] / (2 * np.pi * record.dt)), 1 / (m * record.dt)
+
+
+def _physical(model: _Model, dt: float, floor: float) -> dict:
+    z = model.z
+    out = {"white_sigma": math.sqrt(math.exp(z[0]))}
+    if "gauss_markov" in model.names:
+        out["gauss_markov"] = {
+            "sigma": math.sqrt(math.exp(z[1])),
+            "correlation_time_s": math.exp(z[2]) * dt,
+        }
+    if "exp_cosine" in model.names:
+        out["exp_cosine"] = {
+            "sigma": math.sqrt(math.exp(z[3])),
+            "decay_rate_per_s": math.exp(z[4]) / dt,
+            "angular_frequency_rad_per_s": math.exp(z[5]) / dt,
+        }
+    if "random_walk" in model.names:
+        out["random_walk"] = {"intensity_per_s": math.exp(z[6]) / dt}
+    if "flicker" in model.names:
+        b = math.sqrt(math.exp(z[7]))
+        out["flicker"] = {
+            "bias_instability_B": b,
+            "allan_floor": b * math.sqrt(2 * math.log(2) / math.pi),
+        }
+    if "bandlimit" in model.names:
+        corner = float(jax.nn.sigmoid(z[8])) * math.pi / 2
+        out["bandlimit"] = {"corner_Hz": corner / (math.pi * dt)}
+    if model.lines:
+        out["sinusoid"] = [
+            {
+                "frequency_Hz": line["frequency_Hz"],
+                "amplitude": math.hypot(line["cos"], line["sin"]),
+            }
+            for line in model.lines
+        ]
+    if model.transient is not None:
+        out["startup_transient"] = dict(model.transient)
+    out["post_filter_floor_variance"] = floor
+    return out
+
+
+def _explained(dev: dict, nominal: dict) -> float:
+    """The share of the nominal model's held-out excess deviance that a model removes."""
+    if not nominal["excess_deviance"] > 0:
+        return 0.0
+    return min(max(1 - dev["excess_deviance"] / nominal["excess_deviance"], 0.0), 1.0)
+
+
+def _variogram(model: _Model, floor: float, size: int) -> np.ndarray:
+    """V(h) = ½ E (x_{t+h} − x_t)², h = 0..size−1, of the model (defined for a random walk
+    and flicker too): ½ Σ_{i,j=1}^{h} γ_y(i − j) of the differenced record's γ_y."""
+    g = _differenced_autocovariance(model, floor, size)
+    h = np.arange(size, dtype=np.float64)
+    tau = np.arange(1, size, dtype=np.float64)
+    s1 = np.concatenate([[0.0, 0.0], np.cumsum(g[1:])[: size - 2]])
+    s2 = np.concatenate([[0.0, 0.0], np.cumsum(tau * g[1:])[: size - 2]])
+    return 0.5 * (h * g[0] + 2 * (h * s1 - s2))
+
+
+def _parameters(model: _Model) -> int:
+    k = sum(PARAMETER_COUNT[n] for n in model.names)
+    k += PARAMETER_COUNT["sinusoid"] * len(model.lines)
+    return k + (PARAMETER_COUNT["startup_transient"] if model.transient is not None else 0)
+
+
+def _named(model: _Model) -> list:
+    names = list(model.names)
+    if model.lines:
+        names.append("sinusoid")
+    if model.transient is not None:
+        names.append("startup_transient")
+    return names
