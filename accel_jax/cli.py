@@ -804,7 +804,8 @@ def _diagnose_set(files, kind, params_file, json_out, plot_out, text_out) -> Non
     """`diagnose A.csv B.csv …`: the joint diagnosis of several step records of one device."""
     from ._data import DataError, NominalDevice, read_csv, read_params_toml
     from ._io import save_figure_atomic, write_json_atomic
-    from .diagnose.step_joint import diagnose_step_set, set_figure
+    from .diagnose.report import set_figure
+    from .diagnose.step_joint_verdict import diagnose_step_set
 
     if kind not in (None, "step"):
         raise click.ClickException(

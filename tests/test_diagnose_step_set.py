@@ -1,5 +1,5 @@
-"""Several step records of one device diagnosed together (accel_jax.diagnose.step_joint,
-issue 20): the joint fit on records of the independent SciPy truth simulator
+"""Several step records of one device diagnosed together (accel_jax.diagnose.step_joint
+and step_joint_verdict, issue 20): the joint fit on records of the independent SciPy truth simulator
 (studies/step_truth.py), the expected evidence of a next experiment against a Monte Carlo of
 2 ln B, acceleration records, and the CLI with several files."""
 
@@ -14,7 +14,9 @@ from click.testing import CliRunner
 
 from accel_jax._data import DataError, NominalDevice, StepData, parse_csv, write_csv
 from accel_jax.cli import main
+from accel_jax.diagnose import step_design as sd
 from accel_jax.diagnose import step_joint as sj
+from accel_jax.diagnose import step_joint_verdict as sjv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -74,9 +76,9 @@ def test_stop_level_steps_separate_the_lags_and_the_joint_fit_recovers_the_devic
     device = {"T_dm": lag} if effect == "torquer_lag" else {"T_f": lag}
     small = _record(1, SMALL, device=device)
     stops = _record(2, STOPS, device=device, offset=-0.01)
-    alone = sj.diagnose_step_set([small], NOMINAL, recommend=False)
+    alone = sjv.diagnose_step_set([small], NOMINAL, recommend=False)
     assert alone.verdict == "cannot_tell"  # the all-pole cubic: one small step cannot tell
-    both = sj.diagnose_step_set([small, stops], NOMINAL, recommend=False)
+    both = sjv.diagnose_step_set([small, stops], NOMINAL, recommend=False)
     assert both.verdict == effect, both.summary()
     by = {r["effect"]: r for r in both.ranking}
     other = "output_filter" if effect == "torquer_lag" else "torquer_lag"
@@ -102,7 +104,7 @@ def test_a_stop_record_that_starts_in_a_long_filters_transient_is_named_in_the_s
     device = {"T_f": 5e-5}
     small = _record(1, SMALL, device=device)
     stops = _record(2, STOPS, device=device, offset=-0.01, start=5e-4, start_level=2.8)
-    result = sj.diagnose_step_set([small, stops], NOMINAL, recommend=False)
+    result = sjv.diagnose_step_set([small, stops], NOMINAL, recommend=False)
     assert result.verdict == "output_filter", result.summary()
     assert any("second stage" in note for note in result.notes)
     assert all(r["at_floor"] for r in result.records)
@@ -115,7 +117,7 @@ def test_an_acceleration_step_separates_the_lags():
     small = _record(3, SMALL, device=device)
     accel = _record(4, [0.0] * 5, accel=[0.0, 0.8, -0.8, 0.4, 0.0], device=device)
     assert accel.a_in is not None and np.ptp(accel.u_test) == 0
-    result = sj.diagnose_step_set([small, accel], NOMINAL, recommend=False)
+    result = sjv.diagnose_step_set([small, accel], NOMINAL, recommend=False)
     assert result.verdict == "output_filter", result.summary()
     assert result.shared["filter_time_constant"] == pytest.approx(3e-5, rel=0.05)
     # The acceleration's gain m l g₀/k_dm: the pendulosity's factor over the refitted k_dm
@@ -128,7 +130,7 @@ def test_an_acceleration_step_separates_the_lags():
 def test_the_default_device_is_none_across_records():
     small = _record(5, SMALL)
     stops = _record(6, STOPS, offset=0.03)
-    result = sj.diagnose_step_set([small, stops], NOMINAL, recommend=False)
+    result = sjv.diagnose_step_set([small, stops], NOMINAL, recommend=False)
     assert result.verdict == "none", result.summary()
 
 
@@ -149,7 +151,7 @@ def test_a_drift_outside_the_joint_model_is_not_named_a_lag():
     )
     t, u, y = step_truth.simulate(step_truth.Device(**DEVICE), rec, rng=rng)
     drifting = StepData(t - t[0], u, y)
-    result = sj.diagnose_step_set([drifting, _record(8, STOPS)], NOMINAL, recommend=False)
+    result = sjv.diagnose_step_set([drifting, _record(8, STOPS)], NOMINAL, recommend=False)
     assert result.verdict == "unexplained", result.summary()
 
 
@@ -160,12 +162,12 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
     small = _record(9, SMALL, device={"T_dm": 3e-5}, noise=2e-3)
     prepared = sj.prepare_set([small], NOMINAL)
     fits = sj.fit_set(prepared, NOMINAL)
-    design = sj.experiment_menu(NOMINAL, RATE, 0.0)[1]  # the acceleration steps
+    design = sd.experiment_menu(NOMINAL, RATE, 0.0)[1]  # the acceleration steps
     assert design["accel_levels_g"] is not None
     design["noise_V"] = 0.2  # V per sample: an expected 2 ln B of tens
-    expected = sj.expected_evidence(prepared, NOMINAL, fits, "torquer_lag", "output_filter", design)
+    expected = sd.expected_evidence(prepared, NOMINAL, fits, "torquer_lag", "output_filter", design)
     assert 20 < expected < 500
-    truth = sj._simulate_design(fits["torquer_lag"], prepared, NOMINAL, "torquer_lag", design)
+    truth = sd._simulate_design(fits["torquer_lag"], prepared, NOMINAL, "torquer_lag", design)
     base = prepared.preps[0]
     clean = fits["torquer_lag"]["prediction"][0, : base["n"]]
     draws = []
@@ -204,7 +206,7 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
 
 def test_a_single_small_step_tie_carries_the_experiment_that_breaks_it():
     small = _record(11, SMALL, device={"T_dm": 3e-5})
-    result = sj.diagnose_step_set([small], NOMINAL)
+    result = sjv.diagnose_step_set([small], NOMINAL)
     assert result.verdict == "cannot_tell"
     menu = {e["description"]: e["expected_2lnB"] for e in result.next_experiment}
     assert len(menu) == 4

@@ -8,7 +8,8 @@ effect is added.
     result = diagnose(data)                      # the reference device, ±5 % prior
     print(result.summary()); result.to_dict()
 
-Several step records of one device together: `diagnose_step_set` (`step_joint.py`).
+Several step records of one device together: `diagnose_step_set` (`step_joint_verdict.py`;
+the joint fit in `step_joint.py`).
 
 Kinds: `step` (`step.py`), `vibration` (`vibration.py`) and `noise` (`noise.py`). A kind
 module provides its nominal model, an effect base class with hooks, the effects registered
@@ -54,7 +55,7 @@ from .noise import diagnose_noise as diagnose_noise
 from .noise_effects import AbstractNoiseEffect as AbstractNoiseEffect
 from .step import AbstractStepEffect as AbstractStepEffect
 from .step import diagnose_step as diagnose_step
-from .step_joint import SetDiagnosis as SetDiagnosis
-from .step_joint import diagnose_step_set as diagnose_step_set
+from .step_joint_verdict import SetDiagnosis as SetDiagnosis
+from .step_joint_verdict import diagnose_step_set as diagnose_step_set
 from .vibration import diagnose_vibration as diagnose_vibration
 from .vibration_effects import AbstractVibrationEffect as AbstractVibrationEffect

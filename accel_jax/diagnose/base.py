@@ -344,7 +344,7 @@ class DiagnosisResult:
     - `reason`: one or two sentences: why this verdict.
     - `next_experiment`: with a `cannot_tell` that another experiment can break (the step
         kind's two lags), the experiments a user can run, best first, each with its
-        expected 2 ln B (`step_joint.next_experiments`); else empty.
+        expected 2 ln B (`step_design.next_experiments`); else empty.
     """
 
     kind: str

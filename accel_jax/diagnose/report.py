@@ -10,6 +10,7 @@ import numpy as np
 from .._format import number
 from .._io import save_figure_atomic, write_json_atomic
 from .base import DiagnosisResult
+from .step_joint_verdict import SetDiagnosis
 
 
 def write_json(
@@ -305,3 +306,39 @@ def save_plot(result: DiagnosisResult, path: str | os.PathLike) -> Path:
         return save_figure_atomic(fig, path)
     finally:
         plt.close(fig)
+
+
+def set_figure(result: SetDiagnosis):
+    """One row per record: the measured block means with the chosen model (left), and each
+    candidate's residual in units of the record's noise floor (right)."""
+    import matplotlib
+
+    if matplotlib.get_backend().lower() not in ("agg", "pdf", "svg", "cairo"):
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result.traces["records"]
+    fig, axes = plt.subplots(len(rows), 2, figsize=(13, 2.6 * len(rows) + 0.8), squeeze=False)
+    chosen = result.traces["chosen"]
+    for (left, right), row in zip(axes, rows, strict=True):
+        t = 1e3 * (row["t"] - row["t"][0])
+        left.plot(t, row["u_out"], lw=0.8, color="0.3", label="measured (block means)")
+        left.plot(t, row["predictions"][chosen], lw=0.8, color="C3", ls="--", label=chosen)
+        left.set_ylabel("U_out [V]")
+        left.set_title(str(row["name"]), fontsize=9, loc="left")
+        left.legend(fontsize=7, loc="best")
+        for k, (name, prediction) in enumerate(row["predictions"].items()):
+            residual = (row["u_out"] - prediction) / row["sigma"]
+            right.plot(t, residual, lw=0.6, color=f"C{k}", label=name)
+        right.axhspan(-1, 1, color="0.85", zorder=0)
+        right.set_ylabel("residual / floor")
+        right.set_yscale("symlog", linthresh=3)
+        right.legend(fontsize=7, loc="best")
+    for ax in axes[-1]:
+        ax.set_xlabel("time [ms]")
+    title = f"joint step diagnosis: {result.verdict}"
+    if result.tied:
+        title += f" ({result.tied[0]} or {result.tied[1]})"
+    fig.suptitle(title + "; residual band ±1 noise floor", fontsize=10)
+    fig.tight_layout()
+    return fig

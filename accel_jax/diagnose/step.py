@@ -112,7 +112,7 @@ def _fit_grouped(fn, nominal, preps, indices, key, candidates, effects, desc) ->
 
 
 LAG_PAIR = frozenset({"torquer_lag", "output_filter"})
-"""The tie that another experiment can break (`step_joint.next_experiments`)."""
+"""The tie that another experiment can break (`step_design.next_experiments`)."""
 
 
 def diagnose_step(
@@ -253,7 +253,8 @@ def _at_nominal(w_nominal) -> np.ndarray:
 
 def _recommend(result: DiagnosisResult, data: StepData, nominal: NominalDevice) -> None:
     """Attach the next experiment to a lag tie (the record alone, fitted as a set of one)."""
-    from .step_joint import fit_set, next_experiments, prepare_set
+    from .step_design import next_experiments
+    from .step_joint import fit_set, prepare_set
 
     prepared = prepare_set([data], nominal)
     fits = fit_set(prepared, nominal)
