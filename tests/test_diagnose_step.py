@@ -493,7 +493,7 @@ def test_lag_forced_choice_ceiling():
 def test_evidence_slack_in_the_likelihoods_units():
     # A nominal fit that stopped short: the Newton decrement D (cost in noise-floor units)
     # is worth about 2D of 2 ln L at the floor and far less when the fit misses widely.
-    from accel_jax.diagnose.step_verdict import evidence_slack
+    from accel_jax.diagnose.step_assess import evidence_slack
 
     n, sigma, decrement = 800, 1e-3, 5.0
     prep = {"sigma": sigma}

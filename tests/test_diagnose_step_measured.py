@@ -16,14 +16,8 @@ from accel_jax._data import StepData, write_csv
 from accel_jax.cli import main
 from accel_jax.diagnose import diagnose_many
 from accel_jax.diagnose.step_fit import _I_TIMING, GAIN_SIGMA
-from accel_jax.diagnose.step_verdict import (
-    NUISANCE_ALPHA,
-    nested_failed,
-    nested_losers,
-    nested_shortfall,
-    nuisance_test,
-    strained_sentence,
-)
+from accel_jax.diagnose.step_assess import nested_failed, nested_losers, nested_shortfall
+from accel_jax.diagnose.step_nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))

@@ -72,7 +72,8 @@ from .step_effects import (
 from .step_effects import step_effects
 from .step_fit import _I_SLOT, _I_TIMING, BATCH_CHUNK, fit_linear, fit_nonlinear
 from .step_record import prepare, prior_sigma_of, stack_on_host
-from .step_verdict import evaluate, explains_deterministically, fit_entries, nested_losers
+from .step_assess import explains_deterministically, fit_entries, nested_losers
+from .step_verdict import evaluate
 
 
 def _run(fn, nominal, preps, indices, guesses_key, candidates, desc):
