@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: report test venv clean
+.PHONY: report test docs venv clean
 
 venv: $(STAMP)
 
@@ -20,6 +20,17 @@ report: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 -q
+
+# The documentation site (docs/ and the API reference from the docstrings), warnings as
+# errors; its tools are pinned in requirements-docs.lock. CI runs it after the tests.
+DOCS_STAMP := $(VENV)/.docs-installed
+
+$(DOCS_STAMP): $(STAMP) requirements-docs.lock
+	$(PY) -m pip install --quiet -r requirements-docs.lock
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(VENV)/bin/mkdocs build --strict --quiet
 
 clean:
 	rm -rf $(VENV) out

@@ -42,7 +42,7 @@ class AbstractDisturbance(eqx.Module):
 
     @abc.abstractmethod
     def covariance(self, ts: SeriesLike) -> Matrix:
-        """Covariance E[δ(t_i) δ(t_j)] [rad²] at the sample times `ts` [s], shape (K, K)."""
+        """Covariance E[δ(t_i) δ(t_j)] in rad² at the sample times `ts` [s], shape (K, K)."""
 
     @abc.abstractmethod
     def sample(self, ts: SeriesLike, *, key: PRNGKeyArray) -> Series:

@@ -67,7 +67,7 @@ def simulate_linear(
     - `external_moment`: M_ext [N·m], shape (n,) or a scalar; `None` (default) means the
         constant `params.external_moment`.
     - `key`: a JAX PRNG key for the output noise ε = `params.noise_std`; `None` for none.
-    - `initial_state`: [θ, θ', M_dm, U_f] [rad, rad/s, N·m, V] at t_0 (before U_test(t_0)
+    - `initial_state`: [θ, θ', M_dm, U_f] in [rad, rad/s, N·m, V] at t_0 (before U_test(t_0)
         acts). `None` (default): the settled device, `equilibrium_state` with zero test
         voltage and the first samples of acceleration and external moment. With
         T_dm = 0 (T_f = 0) the M_dm (U_f) entry is the value just before t_0.

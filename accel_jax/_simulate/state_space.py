@@ -218,7 +218,7 @@ def equilibrium_state(
 
     **Returns:**
 
-    The state [θ, θ', M_dm, U_f] [rad, rad/s, N·m, V], shape (4,).
+    The state [θ, θ', M_dm, U_f] in [rad, rad/s, N·m, V], shape (4,).
     """
     if external_moment is None:
         external_moment = params.external_moment

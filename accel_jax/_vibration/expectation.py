@@ -107,7 +107,7 @@ def mean_indicated_acceleration(
     - `a3`, `a1`, `a2`: the steady (mean) apparent accelerations [g]; broadcast together.
     - `n_phase`, `n_hermite`: quadrature orders (Python ints, static).
 
-    **Returns:** E[a_F] [g]. jit/vmap/grad-safe in every argument. float64 advised.
+    **Returns:** E[a_F] in [g]. jit/vmap/grad-safe in every argument. float64 advised.
     """
     _check_orders(n_phase, n_hermite)
     a3, a1, a2 = jnp.broadcast_arrays(*(jnp.asarray(x) for x in (a3, a1, a2)))
