@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: report test docs venv clean
+.PHONY: report test docs typecheck venv clean
 
 venv: $(STAMP)
 
@@ -21,16 +21,21 @@ report: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -n 2 -q
 
-# The documentation site (docs/ and the API reference from the docstrings), warnings as
-# errors; its tools are pinned in requirements-docs.lock. CI runs it after the tests.
-DOCS_STAMP := $(VENV)/.docs-installed
+# The project's own checks (not needed to use the package), their tools pinned in
+# requirements-dev.lock; CI runs both after the tests. `docs`: the documentation site
+# (docs/ and the API reference from the docstrings) with warnings as errors. `typecheck`:
+# pyright in its standard mode on accel_jax/ ([tool.pyright] in pyproject.toml).
+DEV_STAMP := $(VENV)/.dev-installed
 
-$(DOCS_STAMP): $(STAMP) requirements-docs.lock
-	$(PY) -m pip install --quiet -r requirements-docs.lock
-	touch $(DOCS_STAMP)
+$(DEV_STAMP): $(STAMP) requirements-dev.lock
+	$(PY) -m pip install --quiet -r requirements-dev.lock
+	touch $(DEV_STAMP)
 
-docs: $(DOCS_STAMP)
+docs: $(DEV_STAMP)
 	$(VENV)/bin/mkdocs build --strict --quiet
+
+typecheck: $(DEV_STAMP)
+	$(PY) -m pyright
 
 clean:
 	rm -rf $(VENV) out
