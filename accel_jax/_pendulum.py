@@ -151,6 +151,7 @@ def linear_solution(
     element: SensingElement, amplitude: ScalarLike, phase: ScalarLike, ts: SeriesLike
 ) -> Series:
     """Closed form of the linear model: α_zm(t) = A e^{−ξt} sin(ω_d t + φ) [rad] at ts [s]."""
+    amplitude = jnp.asarray(amplitude)
     ts = jnp.asarray(ts)
     return (
         amplitude
@@ -238,6 +239,7 @@ def _solve(
         throw=throw,
     )
     failed = solution.result != diffrax.RESULTS.successful
+    assert solution.ys is not None  # SaveAt(ts=ts) saves the states
     ys = jnp.where(failed, jnp.nan, solution.ys)
     return SensingElementSolution(
         ts=ts,

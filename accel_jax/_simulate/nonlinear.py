@@ -44,11 +44,11 @@ class _HeldInputPath(diffrax.AbstractPath):
     samples: Array  # (n, m)
 
     @property
-    def t0(self):
+    def t0(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # diffrax's AbstractVar
         return self.ts[0]
 
     @property
-    def t1(self):
+    def t1(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # diffrax's AbstractVar
         return self.ts[-1]
 
     def _index(self, t):

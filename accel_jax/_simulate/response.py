@@ -4,7 +4,7 @@ switched on at t_0 = 0 on a settled device), by either simulator."""
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, cast
 
 import jax.numpy as jnp
 import numpy as np
@@ -76,4 +76,5 @@ def step_response(
     dtype = _common_dtype(params, test_voltage)
     ts = jnp.arange(n, dtype=dtype) / jnp.asarray(sample_rate, dtype=dtype)
     simulate = simulate_linear if method == "linear" else simulate_nonlinear
-    return ts, simulate(params, ts, test_voltage, key=key, **kwargs)
+    # The output alone: `kwargs` are the simulator's inputs and options (not return_states).
+    return ts, cast(_Samples, simulate(params, ts, test_voltage, key=key, **kwargs))

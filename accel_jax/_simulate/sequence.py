@@ -138,17 +138,17 @@ class SequenceInputs(NamedTuple):
       their first-order rule (`initial_state`; default none).
     """
 
-    first_level: object
-    gain: object
-    moment: object
-    rate: object
-    dv: object
-    dw: object
-    change_index: object
-    change_step: object
-    change_shift: object
-    change_moment: object = None
-    lag_states: object = (0.0, 0.0)
+    first_level: float | jax.Array
+    gain: float | jax.Array
+    moment: float | jax.Array
+    rate: float | jax.Array
+    dv: float | jax.Array
+    dw: float | jax.Array
+    change_index: jax.Array
+    change_step: jax.Array
+    change_shift: jax.Array
+    change_moment: jax.Array | None = None
+    lag_states: tuple[float | jax.Array, float | jax.Array] = (0.0, 0.0)
 
 
 def _moment_jumps(sequence: SequenceInputs, dtype):
@@ -377,6 +377,7 @@ def stop_record(
             def released(_):
                 low, high = jnp.zeros_like(at), remaining
                 p_low, p_high = press_start, jnp.where(release, press_end, -1.0)
+                mid = low  # set by the first iteration (RELEASE_ITERATIONS ≥ 1)
                 for _ in range(RELEASE_ITERATIONS):
                     mid = low + (high - low) * p_low / jnp.where(release, p_low - p_high, 1.0)
                     p_mid = press(held_flow(on_stop, mid))
