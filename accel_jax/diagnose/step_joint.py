@@ -51,6 +51,7 @@ import numpy as np
 import optimistix as optx
 
 from .._data import DataError, NominalDevice, StepData
+from .._deprecated import moved_names
 from .._simulate.sequence import SequenceInputs, linear_record, stop_record
 from . import openworld
 from .step_effects import OutputFilter, TorquerLag
@@ -565,3 +566,17 @@ def release_lag_states(prepared: PreparedSet, nominal: NominalDevice, fits: dict
     wide = stack(prepared.preps, prepared.stop_voltage, lag_states=True)
     starts = {c: _transfer_start(fits[c]["x"], prepared, wide) for c in fits}
     return wide, fit_set(wide, nominal, candidates=list(fits), starts=starts)
+
+
+# Moved in 0.2 (CHANGELOG.md): the set's verdict, the next experiment and the figure.
+__getattr__ = moved_names(
+    __name__,
+    {
+        "SetDiagnosis": "accel_jax.diagnose.step_joint_verdict",
+        "diagnose_step_set": "accel_jax.diagnose.step_joint_verdict",
+        "experiment_menu": "accel_jax.diagnose.step_design",
+        "expected_evidence": "accel_jax.diagnose.step_design",
+        "next_experiments": "accel_jax.diagnose.step_design",
+        "set_figure": "accel_jax.diagnose.report",
+    },
+)

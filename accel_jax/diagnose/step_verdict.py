@@ -10,11 +10,12 @@ import math
 import numpy as np
 
 from .._data import NominalDevice
+from .._deprecated import moved_names
 from . import openworld
 from .base import SIGNIFICANCE, DiagnosisResult, held_out_gap
-from .step_assess import _assess, evidence_slack, nested_failed, nested_shortfall
+from . import step_assess, step_nuisance
+from .step_assess import _assess
 from .step_fit import REFIT_FIELDS
-from .step_nuisance import nuisance_test, strained_sentence
 from .step_refit import _describe_where, _localise, _ranges, _refit_report
 
 LOCK_WINDOW = 10.0
@@ -49,7 +50,9 @@ def evaluate(data, nominal: NominalDevice, prep, fits) -> DiagnosisResult:
     )
     # The nominal fit may stop short of its minimum: an effect's evidence is then overstated
     # by up to what the rest of the way would add to the nominal's log-likelihood.
-    slack = 0.0 if nominal_fit["converged"] else evidence_slack(nominal_fit, prep, n_train)
+    slack = (
+        0.0 if nominal_fit["converged"] else step_assess.evidence_slack(nominal_fit, prep, n_train)
+    )
     nominal_fit["plausible"] = bool(nominal_fit["converged"] and not nominal_fit["out_of_prior"])
     entries = []
     for fit in candidates:
@@ -67,12 +70,12 @@ def evaluate(data, nominal: NominalDevice, prep, fits) -> DiagnosisResult:
         fraction = openworld.explained_fraction(nominal_fit["gap_held"], fit["gap_held"])
         # A nested fit that ended below the nominal's likelihood is a solver failure (it
         # was restarted from the nominal optimum first): flagged, never an effect.
-        failed = nested_failed(fit, nominal_fit)
+        failed = step_assess.nested_failed(fit, nominal_fit)
         entry = {
             "effect": fit["effect"],
             "evidence": float(evidence),
             "fit_failed": failed,
-            "objective_below_nominal": max(nested_shortfall(fit, nominal_fit), 0.0),
+            "objective_below_nominal": max(step_assess.nested_shortfall(fit, nominal_fit), 0.0),
             "significant": bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
             "stochastic": fit["stochastic"],
             "explains": fit["explains"],
@@ -108,7 +111,7 @@ def evaluate(data, nominal: NominalDevice, prep, fits) -> DiagnosisResult:
     decision = openworld.decide(nominal_status, entries, domain=prep["domain_problems"])
     # The nuisances judged together: a record whose nominal refit needs strained nuisances
     # is not `none` (an effect they absorbed would go unseen).
-    nuisances = nuisance_test(nominal_fit, prep)
+    nuisances = step_nuisance.nuisance_test(nominal_fit, prep)
     if decision["verdict"] == "none" and nuisances["strained"]:
         decision = {**decision, "verdict": "unexplained", "path": "nuisances"}
     entries.sort(key=lambda r: (not r["fit_failed"], r["significant"], r["evidence"]), reverse=True)
@@ -202,7 +205,9 @@ def _reason(decision, nominal_fit, by_name, entries, prep, predictable, remainin
     if path == "nuisances":
         return (
             "the refitted nominal model reaches the noise floor only with strained nuisances: "
-            + strained_sentence(nuisance_test(nominal_fit, prep), nominal_fit)
+            + step_nuisance.strained_sentence(
+                step_nuisance.nuisance_test(nominal_fit, prep), nominal_fit
+            )
             + "."
         )
     if verdict == "none":
@@ -296,3 +301,24 @@ def _reason(decision, nominal_fit, by_name, entries, prep, predictable, remainin
     if where:
         parts.append(where)
     return "; ".join(parts) + "."
+
+
+# Moved in 0.2 (CHANGELOG.md): each candidate's assessment, and the nuisance test (which
+# this module re-exported).
+__getattr__ = moved_names(
+    __name__,
+    {
+        "fit_entries": "accel_jax.diagnose.step_assess",
+        "nested_shortfall": "accel_jax.diagnose.step_assess",
+        "nested_failed": "accel_jax.diagnose.step_assess",
+        "nested_losers": "accel_jax.diagnose.step_assess",
+        "evidence_slack": "accel_jax.diagnose.step_assess",
+        "explains_deterministically": "accel_jax.diagnose.step_assess",
+        "NESTED_TOLERANCE": "accel_jax.diagnose.step_assess",
+        "NESTED_ABSOLUTE": "accel_jax.diagnose.step_assess",
+        "NUISANCE_ALPHA": "accel_jax.diagnose.step_nuisance",
+        "nuisance_test": "accel_jax.diagnose.step_nuisance",
+        "strained_sentence": "accel_jax.diagnose.step_nuisance",
+        "change_shifts": "accel_jax.diagnose.step_nuisance",
+    },
+)

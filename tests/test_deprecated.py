@@ -1,0 +1,59 @@
+"""Names that moved keep their old place for one release, with a warning naming the new one
+(`accel_jax._deprecated.moved_names`; the moves are listed in CHANGELOG.md)."""
+
+import importlib
+import re
+from pathlib import Path
+
+import pytest
+
+MOVES = {
+    "accel_jax.diagnose.step_joint": {
+        "SetDiagnosis": "accel_jax.diagnose.step_joint_verdict",
+        "diagnose_step_set": "accel_jax.diagnose.step_joint_verdict",
+        "next_experiments": "accel_jax.diagnose.step_design",
+        "set_figure": "accel_jax.diagnose.report",
+    },
+    "accel_jax.diagnose.step_verdict": {
+        "nested_failed": "accel_jax.diagnose.step_assess",
+        "nuisance_test": "accel_jax.diagnose.step_nuisance",
+    },
+}
+
+
+@pytest.mark.parametrize(
+    "old, name, new",
+    [(old, name, new) for old, names in MOVES.items() for name, new in names.items()],
+)
+def test_a_moved_name_warns_and_is_the_same_object(old, name, new):
+    module = importlib.import_module(old)
+    with pytest.warns(DeprecationWarning, match=re.escape(f"{new}.{name}")):
+        value = getattr(module, name)
+    assert value is getattr(importlib.import_module(new), name)
+
+
+def test_from_import_of_a_moved_name_warns_too():
+    with pytest.warns(DeprecationWarning, match="step_joint_verdict"):
+        from accel_jax.diagnose.step_joint import diagnose_step_set  # noqa: F401
+
+
+def test_an_unknown_name_is_still_an_attribute_error():
+    module = importlib.import_module("accel_jax.diagnose.step_joint")
+    with pytest.raises(AttributeError, match="no attribute 'no_such_name'"):
+        module.no_such_name  # noqa: B018
+
+
+def test_every_alias_is_in_the_changelog():
+    """Each deprecated alias (`moved_names(...)` in the package) names its old and new place
+    in CHANGELOG.md, so that a user told of a move can read why."""
+    root = Path(__file__).resolve().parent.parent
+    changelog = (root / "CHANGELOG.md").read_text()
+    found = 0
+    for path in sorted((root / "accel_jax").rglob("*.py")):
+        text = path.read_text()
+        if "moved_names(" not in text or path.name == "_deprecated.py":
+            continue
+        for name, target in re.findall(r'"(\w+)": "(accel_jax[\w.]+)"', text):
+            found += 1
+            assert f"`{name}`" in changelog and target in changelog, (path.name, name)
+    assert found >= 6
