@@ -22,6 +22,14 @@ records whose truth is `none`. Float64.
 
     python studies/measured_input_harness.py --per-class 12 --out out/measured_inputs
     python studies/measured_input_harness.py --per-class 4 --prbs 1   # with PRBS twins
+    python studies/measured_input_harness.py --per-class 100 --shard 0/4 --out out/s0  # …
+    python studies/measured_input_harness.py --merge out/s*/result.json --out out/all
+
+A run can be spread over machines (or sessions): `--shard k/n` diagnoses records k, k+n, …
+of the same draw (each record's simulation and input channel come from its own generator,
+seeded by (seed, index), so a record is the same in every shard), and `--merge` joins the
+shards' results and scores them together. Results are written whole (a partial file
+renamed into place).
 """
 
 from __future__ import annotations
@@ -110,19 +118,35 @@ def draw(per_class: int, seed: int, classes=CLASSES) -> list[dict]:
     return truths
 
 
-def write_twins(truths: list[dict], folder: Path, seed: int) -> list[dict]:
-    """Simulate each truth, write its clean and measured twins; returns the channel draws."""
+def record_rng(seed: int, stream: int, index: int) -> np.random.Generator:
+    """The generator of one record's simulation and input channel (`stream` 1: the step
+    twins, 2: the PRBS twin): drawn from (seed, stream, index) alone, so that a record is
+    the same whichever shard writes it."""
+    return np.random.default_rng([seed, stream, index])
+
+
+def write_twins(truths: list[dict], indices: list[int], folder: Path, seed: int) -> list[dict]:
+    """Simulate the truths at `indices`, write their clean and measured twins (named by the
+    index); returns the channel draws, in the order of `indices`."""
     from accel_jax import StepData, write_csv
 
-    rng = np.random.default_rng(seed + 1)
     channels = []
-    for i, truth in enumerate(truths):
-        t, u, y, _ = step_truth.make(truth, rng)
-        measured, info = step_truth.measure_input(u, truth["rate"], rng)
+    for i in indices:
+        rng = record_rng(seed, 1, i)
+        t, u, y, _ = step_truth.make(truths[i], rng)
+        measured, info = step_truth.measure_input(u, truths[i]["rate"], rng)
         write_csv(folder / "clean" / f"{i:04d}.csv", StepData(t, u, y))
         write_csv(folder / "measured" / f"{i:04d}.csv", StepData(t, measured, y))
         channels.append(info)
     return channels
+
+
+def shard_indices(count: int, shard: tuple[int, int]) -> list[int]:
+    """The record indices of shard k of n (`--shard k/n`): every n-th from k."""
+    k, n = shard
+    if not (n >= 1 and 0 <= k < n):
+        raise ValueError(f"--shard {k}/{n}: it must be k/n with 0 ≤ k < n")
+    return list(range(k, count, n))
 
 
 PRBS_CHANGES = 220
@@ -137,10 +161,10 @@ def write_prbs_twins(truths: list[dict], picked: list[int], folder: Path, seed: 
     written clean and measured (`prbs_clean/`, `prbs_measured/`); returns the sequences."""
     from accel_jax import StepData, write_csv
 
-    rng = np.random.default_rng(seed + 2)
     sequences = {}
     duration = step_truth.DURATION
     for i in picked:
+        rng = record_rng(seed, 2, i)
         truth = dict(truths[i])
         levels, times = step_truth.prbs_levels(
             rng,
@@ -198,14 +222,17 @@ def diagnose_blind(folders: list[Path]) -> dict:
 
 
 def score(truths: list[dict], rows: dict) -> dict:
+    """The scores over the records in `rows` (`truths` indexed by the records' indices)."""
     per_class = {}
     failed_fits = rankings = 0
-    for i, truth in enumerate(truths):
+    indices = sorted(int(key.split("/")[1]) for key in rows if key.startswith("clean/"))
+    for i in indices:
+        truth = truths[i]
         clean, measured = rows[f"clean/{i:04d}"], rows[f"measured/{i:04d}"]
         entry = per_class.setdefault(
             truth["effect"],
             {"records": 0, "agree": 0, "refused": 0, "none_clean": 0, "none_measured": 0,
-             "nuisance_trips": 0, "verdicts": []},
+             "nuisance_trips": 0, "nuisance_trips_measured": 0, "verdicts": []},
         )
         entry["records"] += 1
         for row in (clean, measured):
@@ -223,6 +250,7 @@ def score(truths: list[dict], rows: dict) -> dict:
         entry["none_clean"] += int(clean.get("verdict") == "none")
         entry["none_measured"] += int(measured["verdict"] == "none")
         entry["nuisance_trips"] += int(bool(clean.get("nuisance_strained")))
+        entry["nuisance_trips_measured"] += int(bool(measured.get("nuisance_strained")))
         entry["verdicts"].append([clean.get("verdict"), measured["verdict"]])
     total = sum(e["records"] for e in per_class.values())
     agree = sum(e["agree"] for e in per_class.values())
@@ -253,7 +281,65 @@ def score(truths: list[dict], rows: dict) -> dict:
             else None
         ),
         "nuisance_trips_on_clean_none": per_class.get("none", {}).get("nuisance_trips"),
+        "nuisance_trips_on_measured_none": per_class.get("none", {}).get(
+            "nuisance_trips_measured"
+        ),
     }
+
+
+def _shard(text: str) -> tuple[int, int]:
+    try:
+        k, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give the shard as k/n, e.g. 0/4") from None
+    if not (n >= 1 and 0 <= k < n):
+        raise argparse.ArgumentTypeError(f"{text!r}: it must be k/n with 0 ≤ k < n")
+    return k, n
+
+
+def merge(results: list[dict]) -> dict:
+    """Shards' results (`--shard k/n` runs of the same draw) as one: their rows joined and
+    scored together. Refused (ValueError) when the shards drew differently or overlap."""
+    if not results:
+        raise ValueError("nothing to merge")
+    first = results[0]["assumptions"]
+    keys = ("truth", "per_class", "classes", "seed", "prbs", "shard_count", "commit")
+    for other in results[1:]:
+        differ = [k for k in keys if other["assumptions"].get(k) != first.get(k)]
+        if differ:
+            raise ValueError(f"the shards differ in {', '.join(differ)}: not one draw")
+    rows, channels, shards, seconds = {}, {}, [], 0.0
+    for r in results:
+        overlap = set(rows) & set(r["rows"])
+        if overlap:
+            raise ValueError(f"the shards overlap in {len(overlap)} records (e.g. {min(overlap)})")
+        rows.update(r["rows"])
+        channels.update(r["channels"])
+        shards.append(r["assumptions"]["shard"])
+        seconds += r["seconds"]
+    truths = results[0]["truths"]
+    picked = sorted({i for r in results for i in r["prbs_picked"]})
+    return {
+        "assumptions": {**first, "shard": None, "merged_shards": sorted(shards)},
+        "score": score(truths, rows),
+        "prbs": score_prbs(truths, rows, picked) if picked else None,
+        "prbs_picked": picked,
+        "truths": truths,
+        "channels": channels,
+        "rows": rows,
+        "seconds": seconds,
+    }
+
+
+def _commit() -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
+            cwd=Path(__file__).resolve().parent,
+        )
+        return out.stdout.strip() or None
+    except (OSError, subprocess.CalledProcessError):
+        return None
 
 
 def main(argv=None) -> int:
@@ -269,44 +355,36 @@ def main(argv=None) -> int:
         "--prbs", type=int, default=0, metavar="K",
         help="the first K truths of each class also driven by a PRBS (clean and measured)",
     )
+    parser.add_argument(
+        "--shard", type=_shard, default=(0, 1), metavar="k/n",
+        help="diagnose only records k, k+n, k+2n, … of the draw (spread a run over machines; "
+        "join the shards' result.json files with --merge)",
+    )
+    parser.add_argument(
+        "--merge", nargs="+", type=Path, metavar="RESULT_JSON",
+        help="join shards' result.json files (one draw) into --out/result.json and score them",
+    )
     args = parser.parse_args(argv)
-    started = time.perf_counter()
-    truths = draw(args.per_class, args.seed, tuple(args.classes))
-    picked = [i for i in range(len(truths)) if i % args.per_class < args.prbs]
-    with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp)
-        channels = write_twins(truths, folder, args.seed)
-        folders = [folder / "clean", folder / "measured"]
-        if picked:
-            write_prbs_twins(truths, picked, folder, args.seed)
-            folders += [folder / "prbs_clean", folder / "prbs_measured"]
-        rows = diagnose_blind(folders)
-    result = {
-        "assumptions": {
-            "truth": "studies/step_truth.py (SciPy), classes " + ", ".join(CLASSES),
-            "input_channel": "step_truth.measure_input, every part drawn per record",
-            "nominal": "reference device, T_dm = T_f = 0 (as the blind validation)",
-            "per_class": args.per_class,
-            "classes": list(args.classes),
-            "seed": args.seed,
-            "precision": "float64",
-        },
-        "score": score(truths, rows),
-        "prbs": score_prbs(truths, rows, picked) if picked else None,
-        "truths": truths,
-        "channels": channels,
-        "rows": rows,
-        "seconds": time.perf_counter() - started,
-    }
+    if args.merge:
+        try:
+            result = merge([json.loads(p.read_text()) for p in args.merge])
+        except (OSError, ValueError, KeyError) as error:
+            print(f"measured_input_harness: cannot merge: {error}", file=sys.stderr)
+            return 1
+    else:
+        result = run(args)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "result.json").write_text(json.dumps(result, indent=1, default=float))
+    target = args.out / "result.json"
+    partial = target.with_suffix(".json.partial")
+    partial.write_text(json.dumps(result, indent=1, default=float))
+    partial.replace(target)  # whole or not at all
     s = result["score"]
     print(json.dumps({k: v for k, v in s.items() if k != "per_class"}, indent=1))
     for name, e in s["per_class"].items():
         print(
             f"{name:22s} agree {e['agree']}/{e['records']} refused {e['refused']} "
             f"none clean/measured {e['none_clean']}/{e['none_measured']} "
-            f"nuisance trips {e['nuisance_trips']}"
+            f"nuisance trips clean/measured {e['nuisance_trips']}/{e['nuisance_trips_measured']}"
         )
     if result["prbs"]:
         p = result["prbs"]
@@ -315,8 +393,48 @@ def main(argv=None) -> int:
             f"{p['agree_clean']}/{p['records']}, measured {p['agree_measured']}/{p['records']}; "
             f"refused {p['refused']}"
         )
-    print(f"written: {args.out / 'result.json'} ({result['seconds']:.0f} s)")
+    print(f"written: {target} ({result['seconds']:.0f} s)")
     return 0
+
+
+def run(args) -> dict:
+    """One run (or one shard) of the harness: draw, simulate, diagnose blind, score."""
+    started = time.perf_counter()
+    truths = draw(args.per_class, args.seed, tuple(args.classes))
+    indices = shard_indices(len(truths), args.shard)
+    picked = [i for i in indices if i % args.per_class < args.prbs]
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        channels = write_twins(truths, indices, folder, args.seed)
+        folders = [folder / "clean", folder / "measured"]
+        if picked:
+            write_prbs_twins(truths, picked, folder, args.seed)
+            folders += [folder / "prbs_clean", folder / "prbs_measured"]
+        rows = diagnose_blind(folders)
+    return {
+        "assumptions": {
+            "truth": "studies/step_truth.py (SciPy), classes " + ", ".join(CLASSES),
+            "input_channel": "step_truth.measure_input, every part drawn per record",
+            "nominal": "reference device, T_dm = T_f = 0 (as the blind validation)",
+            "per_class": args.per_class,
+            "classes": list(args.classes),
+            "seed": args.seed,
+            "prbs": args.prbs,
+            "random_streams": "per record: numpy default_rng([seed, 1, index]) for the step "
+            "twins, [seed, 2, index] for the PRBS twin",
+            "shard": list(args.shard),
+            "shard_count": args.shard[1],
+            "commit": _commit(),
+            "precision": "float64",
+        },
+        "score": score(truths, rows),
+        "prbs": score_prbs(truths, rows, picked) if picked else None,
+        "prbs_picked": picked,
+        "truths": truths,
+        "channels": {str(i): c for i, c in zip(indices, channels, strict=True)},
+        "rows": rows,
+        "seconds": time.perf_counter() - started,
+    }
 
 
 if __name__ == "__main__":

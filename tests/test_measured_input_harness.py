@@ -1,0 +1,86 @@
+"""The measured-input harness spread over machines: shards of one draw, each record the same
+whichever shard writes it, and the shards' results merged and scored together
+(studies/measured_input_harness.py; the diagnoses themselves are not run here)."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import measured_input_harness as harness  # noqa: E402
+
+
+def test_shards_partition_the_draw():
+    shards = [harness.shard_indices(23, (k, 4)) for k in range(4)]
+    joined = sorted(i for s in shards for i in s)
+    assert joined == list(range(23))
+    assert harness.shard_indices(5, (0, 1)) == [0, 1, 2, 3, 4]
+    with pytest.raises(ValueError, match="0 ≤ k < n"):
+        harness.shard_indices(5, (4, 4))
+
+
+def test_a_record_is_the_same_whichever_shard_writes_it(tmp_path):
+    truths = harness.draw(2, 5, ("none",))
+    alone = harness.write_twins(truths, [1], tmp_path / "a", 5)
+    both = harness.write_twins(truths, [0, 1], tmp_path / "b", 5)
+    assert alone[0] == both[1]
+    for twin in ("clean", "measured"):
+        a = (tmp_path / "a" / twin / "0001.csv").read_bytes()
+        assert a == (tmp_path / "b" / twin / "0001.csv").read_bytes()
+    assert not (tmp_path / "a" / "clean" / "0000.csv").exists()
+
+
+def _row(verdict, strained=False):
+    return {"verdict": verdict, "tied": [], "fit_failed": [], "nuisance_strained": strained}
+
+
+def _shard_result(shard, rows, seed=7):
+    truths = [{"effect": "none"}, {"effect": "torquer_lag"}, {"effect": "none"}]
+    return {
+        "assumptions": {"truth": "t", "per_class": 2, "classes": ["none", "torquer_lag"],
+                        "seed": seed, "prbs": 0, "shard": list(shard), "shard_count": 2,
+                        "commit": "abc"},
+        "score": harness.score(truths, rows),
+        "prbs": None,
+        "prbs_picked": [],
+        "truths": truths,
+        "channels": {k.split("/")[1]: {} for k in rows if k.startswith("clean/")},
+        "rows": rows,
+        "seconds": 1.5,
+    }
+
+
+def test_merged_shards_are_scored_together():
+    a = _shard_result((0, 2), {
+        "clean/0000": _row("none"), "measured/0000": _row("none", strained=True),
+        "clean/0002": _row("none"), "measured/0002": _row("unexplained"),
+    })
+    b = _shard_result((1, 2), {"clean/0001": _row("none"), "measured/0001": _row("none")})
+    assert a["score"]["records"] == 2 and b["score"]["records"] == 1
+    merged = harness.merge([a, b])
+    s = merged["score"]
+    assert s["records"] == 3 and s["agreement"] == pytest.approx(2 / 3)
+    assert s["false_assurance"] == 2  # the torquer-lag record read none in both twins
+    assert s["nuisance_trips_on_measured_none"] == 1 and s["nuisance_trips_on_clean_none"] == 0
+    assert merged["assumptions"]["merged_shards"] == [[0, 2], [1, 2]]
+    assert merged["seconds"] == 3.0
+
+
+def test_merge_refuses_shards_of_different_draws_or_overlapping_ones():
+    rows = {"clean/0000": _row("none"), "measured/0000": _row("none")}
+    with pytest.raises(ValueError, match="seed"):
+        harness.merge([_shard_result((0, 2), rows), _shard_result((1, 2), {}, seed=8)])
+    with pytest.raises(ValueError, match="overlap"):
+        harness.merge([_shard_result((0, 2), rows), _shard_result((1, 2), rows)])
+
+
+def test_the_command_line_refuses_a_bad_shard_and_a_bad_merge(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        harness.main(["--shard", "3/2"])
+    assert "0 ≤ k < n" in capsys.readouterr().err
+    bad = tmp_path / "r.json"
+    bad.write_text("{}")
+    assert harness.main(["--merge", str(bad), "--out", str(tmp_path / "o")]) == 1
+    assert "cannot merge" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
