@@ -3,7 +3,7 @@
 Every comparison runs in this one process on the same work, accel_jax and the baseline
 interleaved, each repeated (median of ≥ 3 unless stated); ratios are the point, since the
 machine may be shared. Float64 throughout. Writes OUT/result.json (default out/bench) and
-prints a Markdown table for the README.
+prints a Markdown table for docs/performance.md.
 
     python benchmarks/bench.py [--quick] [--out DIR]
 

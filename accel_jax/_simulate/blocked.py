@@ -26,7 +26,7 @@ Speed (`benchmarks/bench.py`, 2-core CPU, 5 001-sample records, chunks of 16, on
 the record costs ~1/8 of the `lax.scan` one: 42 µs per trajectory, ~29 of them the ZOH
 matrix exponential (`jax.scipy.linalg.expm` runs all 64 allowed squarings under vmap);
 `monte_carlo_oscillatory` adds 37 µs of float32 noise and 74 µs of identification (the
-README's Speed section has the whole profile).
+docs/performance.md has the whole profile).
 """
 
 from __future__ import annotations
