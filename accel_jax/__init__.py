@@ -67,6 +67,9 @@ from ._identify import (
     identify_step_record as identify_step_record,
 )
 from ._identify import (
+    identify_step_records as identify_step_records,
+)
+from ._identify import (
     inflection_time_ratio as inflection_time_ratio,
 )
 from ._identify import (
@@ -281,6 +284,7 @@ from ._tolerance import sample_batch as sample_batch
 from ._tolerance import sensitivities as sensitivities
 from ._tolerance import sensitivity_profile as sensitivity_profile
 from ._tolerance import tactical_missile as tactical_missile
+from ._tolerance import tolerance_table as tolerance_table
 from ._tolerance import unit_vibration_error as unit_vibration_error
 from ._tolerance import within_rms_region as within_rms_region
 from ._vibration import ASYMMETRY_RANDOM_FACTOR as ASYMMETRY_RANDOM_FACTOR
@@ -307,6 +311,7 @@ from ._vibration import paper_random_error as paper_random_error
 from ._vibration import paper_vibration_error as paper_vibration_error
 from ._vibration import predict_table as predict_table
 from ._vibration import random_rms as random_rms
+from ._vibration import read_band_spectrum as read_band_spectrum
 from ._vibration import read_vibration_table as read_vibration_table
 from ._vibration import shaker_vibration_error as shaker_vibration_error
 from ._vibration import synthesize_vibration as synthesize_vibration

@@ -1,6 +1,7 @@
 """Tolerance limits on the static transfer-function coefficients (docs/models.md §3, eqs. 7-15):
 the paper's fixed-ratio method, a gradient-based allocation with exact sensitivities, the
-joint admissible region, the worst case over a flight profile, and a Monte Carlo yield.
+joint admissible region, the worst case over a flight profile, a Monte Carlo yield, and the
+limits side by side with a unit's passport judged against them (`tolerance_table`).
 
 Everything is in g (coefficients in g-units, 1 ppm = 1e-6; see `accel_jax._static`).
 Precision: limits are ratios of O(1e-4 g) budgets to O(1..1e4) sensitivities, fine in
@@ -19,7 +20,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._params import _concrete
-from ._static import COEFFICIENTS, StaticTransferFunction, _as_float
+from ._static import COEFFICIENTS, PPM_UNITS, StaticTransferFunction, _as_float
 from ._vibration import VibrationEnvironment, vibration_error
 
 # --- the paper's fixed budget ratios (7)-(14) -------------------------------------------
@@ -270,6 +271,53 @@ def gradient_limits(
         "full_budget": {k: d / v for k, v in s.items()},
         "equal_rms": {k: d / (math.sqrt(n) * v) for k, v in s.items()},
     }
+
+
+def tolerance_table(
+    scenario: ToleranceScenario, device: StaticTransferFunction | None = None
+) -> dict:
+    """The limits on each toleranced coefficient side by side, in the paper's display units
+    (×1e6: ppm, ppm/g, …), and a unit's passport judged against them (the `accel-jax
+    tolerance` table).
+
+    **Arguments:**
+
+    - `scenario`: the flight; the limits hold at its mean a3.
+    - `device`: a unit's transfer function (e.g. `StaticTransferFunction.aks05()`), or None.
+
+    **Returns:** a dict: `rows`, {name: row} over `TOLERANCED`, each row with `unit` (its
+    display unit), `paper_method` (`paper_limits`), `gradient_paper_shares` and
+    `gradient_full_budget` (`gradient_limits`), `sensitivity_g_per_ppm`; with a device also
+    `passport` (its |coefficient|), `within` (at most the gradient limit with the paper's
+    share) and `vibration_error_part_g` (its signed part s_k·k of the unit's δ_V at a3,
+    `error_contributions`). `total_vibration_error_g` (the parts' sum, δ_V at a3) and
+    `within_budget` (|δ_V| ≤ δ*) are None without a device. Host floats: evaluate in
+    float64 for ppm work.
+    """
+    paper = paper_limits(scenario)
+    grad = gradient_limits(scenario)
+    unit_ppm = device.as_ppm() if device is not None else {}
+    parts = {}
+    if device is not None:
+        parts = error_contributions(device, scenario.environment, scenario.mean_acceleration)
+    rows = {}
+    for name in TOLERANCED:
+        row = {
+            "unit": PPM_UNITS[name],
+            "paper_method": float(paper[name]) * 1e6,
+            "gradient_paper_shares": float(grad["paper_shares"][name]) * 1e6,
+            "gradient_full_budget": float(grad["full_budget"][name]) * 1e6,
+            "sensitivity_g_per_ppm": float(grad["sensitivity"][name]) * 1e-6,
+        }
+        if unit_ppm:
+            value = abs(unit_ppm.get(name, 0.0))
+            row["passport"] = value
+            row["within"] = bool(value <= row["gradient_paper_shares"])
+            row["vibration_error_part_g"] = float(parts[name])
+        rows[name] = row
+    total = float(sum(parts.values())) if parts else None
+    within = None if total is None else abs(total) <= float(scenario.admissible_error)
+    return {"rows": rows, "total_vibration_error_g": total, "within_budget": within}
 
 
 def sensitivity_profile(

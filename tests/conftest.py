@@ -156,7 +156,7 @@ def quick_report(tmp_path_factory, worker_id):
     import subprocess
     import sys
 
-    from accel_jax.cli import STUDIES
+    from accel_jax.report._studies import STUDIES
 
     base = tmp_path_factory.getbasetemp()
     shared = base.parent if worker_id != "master" else base

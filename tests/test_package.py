@@ -175,6 +175,63 @@ def test_import_layers_catch_an_upward_import(monkeypatch):
         test_import_layers()
 
 
+def _imported_modules(path, package: list[str]) -> set[str]:
+    """The dotted names a Python file imports ("accel_jax.report.text", and for `from X
+    import name` also "X.name"), relative imports resolved from `package` (its package's
+    parts, e.g. ["accel_jax", "report"])."""
+    import ast
+
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                module = ".".join(base + (node.module.split(".") if node.module else []))
+            else:
+                module = node.module or ""
+            found.add(module)
+            found.update(f"{module}.{alias.name}" for alias in node.names)
+    return found
+
+
+def test_report_text_is_presentation_only():
+    """`accel_jax.report.text` renders the CLI's and the report's text: only the entry points
+    (cli.py, accel_jax/report/) import it, and it imports neither click nor matplotlib (nor
+    changes JAX's settings): data in, strings out."""
+    from pathlib import Path
+
+    package = Path(aj.__file__).resolve().parent
+    root = package.parent
+    text = package / "report" / "text"
+    assert (text / "__init__.py").exists()
+    users, wrong = [], []
+    files = sorted(package.rglob("*.py")) + [
+        p
+        for folder in ("studies", "notebooks", "benchmarks")
+        for p in (root / folder).rglob("*.py")
+    ]
+    for path in files:
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        inside = parts[:2] == ["accel_jax", "report"] or parts == ["accel_jax", "cli"]
+        imported = _imported_modules(path, parts[:-1])
+        if any(
+            m == "accel_jax.report.text" or m.startswith("accel_jax.report.text.") for m in imported
+        ):
+            users.append(path.relative_to(root).as_posix())
+            if not inside:
+                wrong.append(f"{path.relative_to(root)} imports accel_jax.report.text")
+        if path.is_relative_to(text):
+            for m in sorted(imported):
+                if m.split(".")[0] in ("click", "matplotlib"):
+                    wrong.append(f"{path.relative_to(root)} imports {m}")
+            if "config.update" in path.read_text() or "enable_x64" in path.read_text():
+                wrong.append(f"{path.relative_to(root)} changes JAX's settings")
+    assert "accel_jax/cli.py" in users  # the check sees the CLI's imports
+    assert wrong == []
+
+
 def _tracked_text_files():
     from pathlib import Path
 

@@ -19,7 +19,7 @@ def report_dir(quick_report):
 
 @pytest.mark.slow
 def test_report_has_every_study_and_figure(report_dir):
-    from accel_jax.cli import STUDIES
+    from accel_jax.report._studies import STUDIES
 
     index = (report_dir / "index.html").read_text()
     embedded = 0
@@ -73,7 +73,7 @@ def test_each_study_script_runs_alone_to_completion(report_dir):
     """Every study, run as a user would (`python studies/<name>.py --quick --out DIR` in a
     fresh process, XLA_FLAGS unset: the deadlock workaround comes from `import accel_jax`),
     finishes within the fixture's time limit, and the report then reuses its result."""
-    from accel_jax.cli import STUDIES
+    from accel_jax.report._studies import STUDIES
 
     status = json.loads((report_dir.parent.parent / "quick_report.done").read_text())
     scripts = status["study_scripts"]
@@ -106,7 +106,7 @@ def test_quick_report_ran_where_xla_rejects_one_of_the_options(report_dir):
     skipped and named in each study's provenance, the options XLA accepts were applied,
     and every study records where its work ran."""
     from accel_jax._runtime import CPU_SCHEDULER_FLAG, FAST_COMPILE_FLAGS
-    from accel_jax.cli import STUDIES
+    from accel_jax.report._studies import STUDIES
 
     unknown = "--xla_accel_jax_simulated_unknown_option=false"
     for name in STUDIES:
@@ -157,7 +157,7 @@ def test_no_study_starts_jax_at_import():
     import subprocess
     import sys
 
-    from accel_jax.cli import STUDIES
+    from accel_jax.report._studies import STUDIES
 
     program = (
         "import importlib.util, sys\n"

@@ -23,7 +23,7 @@ Precision follows the dtype of the record; times, volts and gains are SI.
 Modules: `record` (shared record handling, result codes), `oscillatory`, `aperiodic`,
 `stops`, `fit` (least squares; its models are `_simulate.modal`'s), `monte_carlo` (the
 fused simulate-and-identify kernel), `step_record` (a `StepData` record identified with
-the method chosen for it, for the CLI's `identify`).
+the method chosen for it, and several records of one device, for the CLI's `identify`).
 """
 
 from .aperiodic import AperiodicEstimate as AperiodicEstimate
@@ -42,4 +42,5 @@ from .record import IdentificationResult as IdentificationResult
 from .report import identification_figure as identification_figure
 from .report import identification_summary as identification_summary
 from .step_record import identify_step_record as identify_step_record
+from .step_record import identify_step_records as identify_step_records
 from .stops import pickoff_gain_from_stops as pickoff_gain_from_stops

@@ -8,6 +8,7 @@ every assumption it made, with the fit's quality as System Identification Toolbo
 read it (fit percentage, NRMSE, residual whiteness) and each fitted parameter against its
 nominal value. Host-side glue around the jit-compiled estimators of `accel_jax._identify`;
 it computes in the dtype JAX is configured for (the CLI enables float64).
+`identify_step_records` takes several records of one device, a stop-level one by eq. (11).
 `accel_jax._identify.report` turns the result into text and a figure.
 """
 
@@ -36,6 +37,7 @@ from . import (
     identify_oscillatory,
     scale_factor_from_fit,
 )
+from .stops import stop_record_gain
 
 # Codes after which the oscillatory method hands the record to the aperiodic one.
 _USE_APERIODIC = (IdentificationResult.not_oscillatory, IdentificationResult.too_few_crossings)
@@ -382,3 +384,28 @@ def identify_step_record(
         },
         "traces": traces,
     }
+
+
+def identify_step_records(
+    datasets: list[StepData],
+    params: ServoParams,
+    *,
+    method: str = "auto",
+    gamma: str | float = "exact",
+) -> list[dict]:
+    """Several records of one device (the `accel-jax identify A.csv B.csv …` job), in order.
+
+    A record whose test levels drive the pendulum onto its stops (max |u_test| · K_test at
+    least half the output at a stop, k_dp k_y h_max / 2) gives k_dp k_y by eq. (11):
+    `{"stops": stop_record_gain(data, params)}`; every other record is identified as by
+    `identify_step_record`. A record that cannot be used raises `DataError`.
+    """
+    reach = 0.5 * float(params.pickoff_gain * params.amplifier_gain * params.stop_displacement)
+    k_test = float(closed_loop_test_gain(params))
+    results = []
+    for data in datasets:
+        if float(abs(data.u_test).max()) * k_test >= reach:
+            results.append({"stops": stop_record_gain(data, params)})
+        else:
+            results.append(identify_step_record(data, params, method=method, gamma=gamma))
+    return results

@@ -27,7 +27,8 @@ Modules:
 - `compensation`: in-flight compensation (17)-(20) — `CompensationSteps`,
   `compensate_in_flight`;
 - `table`: test tables — `TABLE_COLUMNS`, `validate_vibration_table`,
-  `read_vibration_table`, `write_vibration_table` (CSV through `accel_jax._data`);
+  `read_vibration_table`, `write_vibration_table` (CSV through `accel_jax._data`) — and
+  band PSDs, `read_band_spectrum`;
 - `fitting`: `predict_table`, `design_matrix`, `Identifiability`, `identifiability`,
   `CoefficientFit`, `fit_coefficients`, `FIT_PARAMETERS`, `PPM_SCALE`.
 """
@@ -60,6 +61,7 @@ from .paper import paper_vibration_error as paper_vibration_error
 from .shaker import ShakerEstimate as ShakerEstimate
 from .shaker import shaker_vibration_error as shaker_vibration_error
 from .table import TABLE_COLUMNS as TABLE_COLUMNS
+from .table import read_band_spectrum as read_band_spectrum
 from .table import read_vibration_table as read_vibration_table
 from .table import validate_vibration_table as validate_vibration_table
 from .table import write_vibration_table as write_vibration_table

@@ -1,11 +1,13 @@
 """Tables of vibration tests (one row per shaker/tumble test condition): the columns
 (`TABLE_COLUMNS` and the optional cross-axis amplitudes), their validation
 (`validate_vibration_table`) and CSV reading/writing in the data layer's `vibration`
-format, through `accel_jax._data`'s CSV reader and writer.
+format, through `accel_jax._data`'s CSV reader and writer; and a vibration environment's band
+PSDs (`read_band_spectrum`).
 """
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
@@ -14,11 +16,13 @@ from .._data import (
     COLUMNS,
     OPTIONAL_COLUMNS,
     UNITS,
+    DataError,
     VibrationData,
     _parse_columns,
     _read_text,
     write_csv,
 )
+from .environment import BandSpectrum
 
 TABLE_COLUMNS = COLUMNS["vibration"]
 """Required columns of a `vibration` CSV table: the input-axis acceleration a_in [g], the
@@ -84,3 +88,36 @@ def write_vibration_table(path, table: dict) -> None:
     writer (`accel_jax.write_csv`: full float64 precision, atomically)."""
     cols = validate_vibration_table(table)
     write_csv(path, VibrationData(**cols))
+
+
+def read_band_spectrum(path) -> BandSpectrum:
+    """Read a band-PSD CSV (header f_low,f_high,psd[,eta]; Hz, Hz, g²/Hz, 1) as a
+    `BandSpectrum`. A file that cannot be read, has no bands, misses a column or holds a
+    non-numeric or invalid value raises `accel_jax.DataError` naming the file."""
+    try:
+        with open(path, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file.") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise DataError(f"{path}: cannot be read ({error}).") from None
+    if not rows:
+        raise DataError(f"{path}: no bands (a header f_low,f_high,psd[,eta] and rows).")
+    missing = {"f_low", "f_high", "psd"} - set(rows[0])
+    if missing:
+        raise DataError(
+            f"{path}: missing column(s) {sorted(missing)}; expected f_low,f_high,psd[,eta] "
+            "(Hz, Hz, g²/Hz, 1)."
+        )
+    columns = {}
+    for name in ("f_low", "f_high", "psd", "eta"):
+        if name not in rows[0]:
+            continue
+        try:
+            columns[name] = [float(row[name]) for row in rows]
+        except (TypeError, ValueError):
+            raise DataError(f"{path}: column {name!r} has a non-numeric value.") from None
+    try:
+        return BandSpectrum(**columns)
+    except ValueError as error:
+        raise DataError(f"{path}: {error}") from None

@@ -1,5 +1,6 @@
 """Reports and study plumbing: the HTML report the CLI's `report` writes, the command line
-and run rules every study script shares, and the atomic file writers with provenance."""
+and run rules every study script shares, what the `accel-jax` commands share on theirs
+(`_command`) and what they print (`text`), and the atomic file writers with provenance."""
 
 from .._io import provenance as provenance
 from .._io import save_figure_atomic as save_figure_atomic
