@@ -57,6 +57,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Sequence
+from typing import cast
 
 import jax
 import numpy as np
@@ -84,7 +85,7 @@ def _flicker_size(n: int) -> int:
     """Length of the FFT record the flicker simulator draws (≥ 2n, the record a part)."""
     from scipy import fft
 
-    return fft.next_fast_len(2 * n, real=True)
+    return cast(int, fft.next_fast_len(2 * n, real=True))  # pyright reads None from its placeholder
 
 
 def _sampled_flicker(taus: np.ndarray, dt: float, n: int) -> np.ndarray:
@@ -103,7 +104,9 @@ def _sampled_flicker(taus: np.ndarray, dt: float, n: int) -> np.ndarray:
     return (np.sin(np.pi * f * taus.reshape(-1, 1)) ** 4 / m**2) @ weight
 
 
-def _design(terms, taus, sample_interval=None, n_samples=None) -> np.ndarray:
+def _design(
+    terms, taus, sample_interval: float | None = None, n_samples: int | None = None
+) -> np.ndarray:
     """σ²(τ) of each term per unit squared coefficient, shape (len(taus), len(terms)).
 
     Without `sample_interval`: the IEEE Std 952 formula. With it (and the record's length
@@ -112,12 +115,18 @@ def _design(terms, taus, sample_interval=None, n_samples=None) -> np.ndarray:
     `_sampled_flicker` for B, both → the formula for τ ≫ Δ."""
     taus = np.asarray(taus, np.float64)
     dt = sample_interval
+
+    def flicker():
+        if dt is None:
+            return np.full_like(taus, _FLICKER)
+        if n_samples is None:
+            raise ValueError("the sampled flicker's variance needs the record's n_samples.")
+        return _sampled_flicker(taus, dt, n_samples)
+
     columns = {
         "Q": lambda: 3 / taus**2,
         "N": lambda: 1 / taus,
-        "B": lambda: (
-            np.full_like(taus, _FLICKER) if dt is None else _sampled_flicker(taus, dt, n_samples)
-        ),
+        "B": flicker,
         "K": lambda: taus / 3 if dt is None else taus / 3 + dt**2 / (6 * taus),
         "R": lambda: taus**2 / 2,
     }
@@ -211,6 +220,7 @@ def _fit(avar, design, root_edf, ramp=None, *, max_iter=100, rtol=1e-10):
     # Start: weights from the measurement itself, at the least EDF of the terms.
     var = 2 * avar**2 / root_edf.min(axis=0) ** 2
     model = None
+    c = np.zeros(design.shape[1])  # replaced by the first iteration (max_iter ≥ 1)
     for _ in range(max_iter):
         w = 1 / np.sqrt(var)
         c = _nnls(design * w[:, None], avar * w)
@@ -254,7 +264,8 @@ def _simulate(coefficients, n, dt, rng, batch):
         spectrum *= amplitude / math.sqrt(2)
         if size % 2 == 0:  # the Nyquist bin is real
             spectrum[:, -1] = spectrum[:, -1].real * math.sqrt(2)
-        x += fft.irfft(spectrum, n=size, axis=1)[:, :n]
+        # (cast: pyright reads SciPy's uarray-dispatched transforms as returning a tuple)
+        x += cast(np.ndarray, fft.irfft(spectrum, n=size, axis=1))[:, :n]
     k = coefficients.get("K", 0.0)
     if k > 0:
         x += np.cumsum(rng.standard_normal((batch, n)), axis=1) * (k * math.sqrt(dt))

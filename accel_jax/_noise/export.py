@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -208,7 +209,7 @@ class AccelNoiseTerms:
             if value is None and f.name != "noise_density":
                 continue
             try:
-                if isinstance(value, (bool, str, bytes)) or np.ndim(value) != 0:
+                if value is None or isinstance(value, (bool, str, bytes)) or np.ndim(value) != 0:
                     raise TypeError
                 number = float(value)
             except (TypeError, ValueError):
@@ -269,7 +270,7 @@ class AccelNoiseTerms:
             )
         if value("N") is None:
             raise ValueError("from_mapping needs the white noise term 'N'.")
-        kwargs = {name: value(key) for key, name in _TERM_KEYS.items()}
+        kwargs: dict[str, Any] = {name: value(key) for key, name in _TERM_KEYS.items()}
         return cls(
             **kwargs,
             unit=unit,
@@ -293,7 +294,7 @@ def _terms(terms) -> AccelNoiseTerms:
     return terms.in_si()
 
 
-def _present(value) -> bool:
+def _present(value: float | None) -> TypeGuard[float]:
     return value is not None and value > 0
 
 

@@ -17,6 +17,8 @@ lists its parameters as plain floats.
 
 from __future__ import annotations
 
+from typing import cast
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -207,11 +209,11 @@ class NoiseSum(AbstractNoiseModel):
         q = jsl.block_diag(*[p[1] for p in parts])
         h = jnp.concatenate([p[2] for p in parts], axis=1)
         p0 = jsl.block_diag(*[p[3] for p in parts])
-        r = sum(p[4] for p in parts)
+        r = cast(Array, sum(p[4] for p in parts))  # an array: ≥ 2 components, not the 0 start
         return f, q, h, p0, r
 
     def autocovariance(self, lag_times):
-        return sum(c.autocovariance(lag_times) for c in self.components)
+        return cast(Array, sum(c.autocovariance(lag_times) for c in self.components))
 
 
 def simulate_noise(

@@ -35,7 +35,7 @@ class PaperExpCosineFit(eqx.Module):
     result: NoiseFitResult
 
 
-def _leading_positive(r, floor=0.0):
+def _leading_positive(r, floor: float | Array = 0.0):
     """Mask of lags 1..K before the first r_j ≤ floor (ln r_j must exist: floor ≥ 0)."""
     positive = r[1:] > floor
     return jnp.concatenate([jnp.zeros(1, bool), jnp.cumprod(positive).astype(bool)])

@@ -21,6 +21,7 @@ import dataclasses
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -327,7 +328,7 @@ def _standardised_peak(record, floor, model: _Model):
 
 def _physical(model: _Model, dt: float, floor: float) -> dict:
     z = model.z
-    out = {"white_sigma": math.sqrt(math.exp(z[0]))}
+    out: dict[str, Any] = {"white_sigma": math.sqrt(math.exp(z[0]))}
     if "gauss_markov" in model.names:
         out["gauss_markov"] = {
             "sigma": math.sqrt(math.exp(z[1])),

@@ -84,7 +84,7 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
 
     Returns (model, exchanged: [{"effect", "by", "evidence"}], ties: [{"effect",
     "alternative", "evidence"}])."""
-    exchanged = []
+    exchanged, ties = [], []  # (ties: rebound by every pass)
     for _ in range(len(EXCHANGED) + 1):
         ties, best = [], None
         pairs, specs = [], []
