@@ -17,7 +17,9 @@ from tqdm.auto import tqdm
 
 _ENABLED = contextvars.ContextVar("accel_jax_progress", default=False)
 _LABEL = contextvars.ContextVar("accel_jax_progress_label", default="")
-_POSITION = contextvars.ContextVar("accel_jax_progress_position", default=None)
+_POSITION: contextvars.ContextVar[int | None] = contextvars.ContextVar(
+    "accel_jax_progress_position", default=None
+)
 
 
 @contextlib.contextmanager

@@ -355,7 +355,9 @@ def _write_options_cache(version: str, decisions: dict[str, bool]) -> None:
     if path is None or not decisions:
         return
     cached = _read_options_cache()
-    entry = cached.get(version) if isinstance(cached.get(version), dict) else {}
+    entry = cached.get(version)
+    if not isinstance(entry, dict):
+        entry = {}
     cached[version] = {**entry, **decisions}
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -425,7 +427,7 @@ def accepted_xla_flags(flags) -> list[str]:
             answer.update(dict.fromkeys(undecided, together))
         else:
             answer.update({flag: _probe_xla_flags([flag]) for flag in undecided})
-        decided = {xla_option_name(f): answer[f] for f in undecided if answer[f] is not None}
+        decided = {xla_option_name(f): ok for f in undecided if (ok := answer[f]) is not None}
         _decided.update({(version, name): ok for name, ok in decided.items()})
         _write_options_cache(version, decided)
     for flag in flags:
@@ -556,7 +558,8 @@ def placement_record() -> dict:
         placement = json.loads(os.environ.get(_PLACEMENT_ENV, "") or "{}")
     except ValueError:
         placement = {}
-    default = jax.config.jax_default_device or jax.devices()[0]
+    placed = jax.config.jax_default_device  # pyright: ignore[reportAttributeAccessIssue]  # dynamic
+    default = placed or jax.devices()[0]
     devices = jax.devices()
     return {
         "device": placement.get("device", "not set"),

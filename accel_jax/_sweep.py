@@ -76,7 +76,7 @@ def sweep(
     fn: Callable,
     *args,
     in_axes: Sequence[int | None] | None = None,
-    devices: Sequence[jax.Device] | None = None,
+    devices: Sequence[jax.Device] | None = None,  # pyright: ignore[reportInvalidTypeForm]  # alias
     chunk_size: int | None = None,
     desc: str = "sweep",
 ):

@@ -209,7 +209,7 @@ def _identify_aperiodic(
     critical = 0.5 * (1 + _CRITICAL_TOLERANCE)
     has_root = (t1 > 0) & (ratio > 0) & (ratio <= critical)
     target = jnp.clip(jnp.where(has_root, ratio, 0.25), 0.0, 0.5)
-    eps = jnp.finfo(dtype).eps
+    eps = float(jnp.finfo(dtype).eps)
     solver = optx.Bisection(rtol=64 * eps, atol=64 * eps, flip=False)
     r0 = jnp.clip(2 * t2_initial / safe_t1, 0.0, 1.0)
     solution = optx.root_find(

@@ -312,5 +312,5 @@ def scale_factor_from_fit(
 
     `(scale_factor, std)` [V/(m/s²)]; the relative std is 2 σ_T/T.
     """
-    scale_factor = shape_factor * fit.time_constant**2 * pickoff_amplifier_gain
+    scale_factor = jnp.asarray(shape_factor) * fit.time_constant**2 * pickoff_amplifier_gain
     return scale_factor, scale_factor * 2 * fit.time_constant_std / fit.time_constant

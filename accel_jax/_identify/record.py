@@ -299,7 +299,10 @@ def _record_arguments(
     """The record's arguments in its one floating dtype, as the jitted estimators take them:
     ((ts, u_out, k_dp k_y, γ), (step time, steady state, saturation level), dtype)."""
     dtype = _record_dtype(ts, u_out)
-    head = tuple(jnp.asarray(v, dtype) for v in (ts, u_out, pickoff_amplifier_gain, shape_factor))
+    record_ts, u, gain, shape = (
+        jnp.asarray(v, dtype) for v in (ts, u_out, pickoff_amplifier_gain, shape_factor)
+    )
+    head = (record_ts, u, gain, shape)
     tail = (
         _step_time(step_time, ts, dtype),
         _as_dtype(steady_state, dtype),

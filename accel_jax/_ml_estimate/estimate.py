@@ -244,7 +244,7 @@ def linearisation_residual(
     omega = angular_frequency
     psi = omega * ts + phase
     offset = element.damped_frequency * (1 - amplitude**2 / 16) - omega
-    return (
+    return jnp.asarray(  # (an array already: ts is one; the arguments may be NumPy's)
         amplitude**3 / 192 * jnp.sin(3 * psi)
         + amplitude * offset * ts * jnp.cos(psi)
         - amplitude * element.decay_rate * ts * jnp.sin(psi)

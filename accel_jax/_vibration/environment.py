@@ -179,9 +179,10 @@ class BandSpectrum(eqx.Module):
     eta: Float[Array, " n"] = eqx.field(converter=_vec, default=1.0)
 
     def __check_init__(self):
-        values = {n: _concrete(getattr(self, n)) for n in ("f_low", "f_high", "psd", "eta")}
-        if any(v is None for v in values.values()):
+        maybe = {n: _concrete(getattr(self, n)) for n in ("f_low", "f_high", "psd", "eta")}
+        if any(v is None for v in maybe.values()):
             return
+        values = {n: v for n, v in maybe.items() if v is not None}  # all of them
         lo, hi, psd, eta = (values[n] for n in ("f_low", "f_high", "psd", "eta"))
         n = lo.shape[-1]
         for name, v in values.items():

@@ -311,6 +311,8 @@ def greedy_test_plan(
             value = np.linalg.slogdet(rows.T @ rows + 1e-12 * np.eye(n_coefficients))[1]
             if value > best_value:
                 best, best_value = i, value
+        if best is None:  # every candidate's log-determinant NaN or −∞
+            raise ValueError("greedy_test_plan: no candidate row gives a finite log-determinant.")
         chosen.append(best)
         rows = design[chosen]
         if len(chosen) >= n_coefficients and np.linalg.matrix_rank(rows) == n_coefficients:
