@@ -85,7 +85,8 @@ class AbstractEffect(eqx.Module):
 def require_float64(why: str) -> None:
     """Raise the one clear `ValueError` a diagnosis gives when x64 is off (`why`: what
     float32 would lose)."""
-    if not jax.config.jax_enable_x64:
+    x64 = jax.config.jax_enable_x64  # pyright: ignore[reportAttributeAccessIssue]  # run-time attr
+    if not x64:
         raise ValueError(
             f"diagnose needs float64: call jax.config.update('jax_enable_x64', True) first ({why})."
         )

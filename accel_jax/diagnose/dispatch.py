@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from .._data import DataError, Dataset, NominalDevice
+from typing import cast
+
+from .._data import DataError, Dataset, NominalDevice, StepData
 from .base import DiagnosisResult
 from .noise import diagnose_noise
 from .step import diagnose_step
@@ -28,7 +30,8 @@ def diagnose_many(
         raise DataError(f"there is no diagnosis of {kind!r} records; available: {sorted(_KINDS)}.")
     nominal = NominalDevice.reference() if nominal is None else nominal
     if kind == "step":
-        return diagnose_step(list(datasets), nominal, recommend=recommend)
+        steps = cast(list[StepData], list(datasets))  # every record of kind "step"
+        return diagnose_step(steps, nominal, recommend=recommend)
     return _KINDS[kind](list(datasets), nominal)
 
 

@@ -509,17 +509,19 @@ def diagnose_noise(
             results[i] = _postprocess(datasets[i], hosts[i], effects, [o[j] for o in outputs])
     # Beyond the three noises: the forward selection where the exact verdict leaves it open,
     # on a coarse output grid, and alone on long records (noise_sensor.py).
-    for i, data in enumerate(datasets):
+    done: list[DiagnosisResult] = []
+    for data, result in zip(datasets, results, strict=True):
         x = np.asarray(data.a_out, dtype=np.float64)
         dt = float(data.sample_period)
-        if results[i] is None:
+        if result is None:
             try:
                 selection = noise_sensor.run_selection(x, dt)
             except ValueError as error:
                 raise DataError(f"noise record: {error}") from None
-            results[i] = noise_sensor.from_selection(x, np.asarray(data.t), dt, selection, _welch)
-            results[i].notes = [*results[i].notes, *getattr(data, "notes", ())]
-        elif noise_sensor.needs_selection(x, results[i].verdict):
-            results[i] = noise_sensor.combine(results[i], noise_sensor.run_selection(x, dt))
-        results[i].where["allan"] = noise_sensor.allan_summary(x, dt)
-    return results
+            result = noise_sensor.from_selection(x, np.asarray(data.t), dt, selection, _welch)
+            result.notes = [*result.notes, *getattr(data, "notes", ())]
+        elif noise_sensor.needs_selection(x, result.verdict):
+            result = noise_sensor.combine(result, noise_sensor.run_selection(x, dt))
+        result.where["allan"] = noise_sensor.allan_summary(x, dt)
+        done.append(result)
+    return done

@@ -184,7 +184,7 @@ def _noise_panels(result: DiagnosisResult, axes) -> None:
     model = result.refit.get("model_parameters")
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     fitted = _model_psd(model, f, dt) if model else None
-    if fitted is not None:
+    if model and fitted is not None:
         white = model["parameters"]["white_sigma_g"]["value"]
         ax.axhline(
             2 * white**2 * dt,

@@ -147,13 +147,11 @@ def diagnose_step(
         prep = prepare(data, nominal, effects)
         prep["prior_sigma"] = prior_sigma
         preps.append(prep)
-    fits: list[list | None] = [None] * len(datasets)
     entries = _fit_grouped(
         fit_linear, nominal, preps, range(len(preps)), "guesses_linear", linear, effects,
         "diagnose step",
     )
-    for i, record_fits in entries.items():
-        fits[i] = record_fits
+    fits: list[list] = [entries[i] for i in range(len(preps))]  # every record's linear fits
     # Nested fits never lose: an effect at z = 0 is the nominal model, so a linear
     # candidate whose best fit ends below the nominal's log-likelihood started in the wrong
     # basin. Its record is fitted again with every candidate's second start at the nominal

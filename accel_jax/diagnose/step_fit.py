@@ -232,7 +232,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     }
 
 
-def moment_jumps(params, ctx, gain=1.0):
+def moment_jumps(params, ctx, gain: float | jax.Array = 1.0):
     """ΔM̃ [V] of the record's acceleration steps (None without `a_in`): Δa·g₀·m·l/k_dm
     along the record's input axis (`accel_sign`), times the pendulosity's `gain`."""
     if ctx.change_accel is None:

@@ -92,7 +92,8 @@ def _median5(x: np.ndarray) -> np.ndarray:
 def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
     """(start, stop) of each run of True in `flags`."""
     edges = np.diff(np.concatenate([[0], flags.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
+    starts, stops = np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()
+    return list(zip(starts, stops, strict=True))
 
 
 UNCLOCKED_CHANGES = 64
@@ -171,14 +172,14 @@ def read_input(
         raise DataError(refuse + f" ({_share(runs, n):.0%} of the samples lie on plateaus).")
     noise_level = max(sigma, step / math.sqrt(12), 1e-12 * scale)
     merge = MERGE_SIGMAS * noise_level + 2 * step
-    plateaus: list[list[int]] = []
+    plateaus: list[tuple[int, int, float]] = []  # (start, stop, median level)
     for a, b in runs:
         level = float(np.median(x[a:b]))
         if plateaus and abs(level - plateaus[-1][2]) <= merge:
-            plateaus[-1][1] = b
-            plateaus[-1][2] = float(np.median(x[plateaus[-1][0] : b]))
+            start = plateaus[-1][0]
+            plateaus[-1] = (start, b, float(np.median(x[start:b])))
         else:
-            plateaus.append([a, b, level])
+            plateaus.append((a, b, level))
     levels, sigmas, spikes = [], [], 0
     slope_sums = np.zeros(2)  # Σ s_k w_k, Σ w_k: the plateaus' pooled within-slope
     middles = []
@@ -332,6 +333,7 @@ def clock_grid(change_index) -> Clock | None:
     shortest = 3 - 1e-9  # (a fitted period of exactly 3 comes out 2.9999999999999987)
     period = float(np.mean(gaps[gaps < 1.5 * gaps.min()]))
     counts = None
+    bits, intercept = np.zeros(1), 0.0  # (set by the first pass, which always runs)
     for _ in range(20):  # until the bit counts stop changing
         if period < shortest:
             return None

@@ -6,6 +6,7 @@ starting points of the fits.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -134,7 +135,7 @@ def _domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[list[
                 "rise_s": float(crossed[0] * dt) if crossed.size and abs(target) > 0 else None,
             }
         )
-    measured = {"changes_checked": len(rows)}
+    measured: dict[str, Any] = {"changes_checked": len(rows)}
     problems = []
     if not rows:
         measured["note"] = (
@@ -436,6 +437,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
     # the test levels' segments.
     level_sigma = held_out_level = drift_step = level_map = None
     if rms_sigma > 0 and a is None:
+        # (rms_sigma > 0: a measured input, which has level errors and a drift shape)
+        assert plateau_sigmas is not None and inputs.level_drift is not None
         level_sigma = np.zeros(j_padded)
         level_sigma[: index.size] = plateau_sigmas[1:]
         held_out_level = np.append(starts_held.astype(np.float64), 0.0)  # (the drift: not)
@@ -448,7 +451,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> dict:
             held_out_level = np.zeros(group_sigma.size + 1)
     # The level errors (one per change, or per level group) and the input channel's drift
     # nuisance.
-    n_levels = 0 if level_sigma is None else held_out_level.size
+    n_levels = 0 if held_out_level is None else held_out_level.size  # (set with level_sigma)
     # The change times: one shift per change, or a clock's shift and rate (`_clock_layout`).
     timing_map = timing_offset = timing_mean = timing_sigma = timing_limit = None
     timing_late = np.full(j_padded, TIMING_PRIOR[0])

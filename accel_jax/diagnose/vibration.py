@@ -294,6 +294,7 @@ def _postprocess(data: VibrationData, prep: dict, effects, thetas, converged) ->
     floor_rss = _rss_floor(target)
     fits, full_predictions, cv_errors = [], {}, {}
     standard_errors = {}
+    nominal_se = None
     for c, name in enumerate(prep["candidates"]):
         theta_full = thetas[c, 0]
         prediction = design @ theta_full
@@ -331,6 +332,7 @@ def _postprocess(data: VibrationData, prep: dict, effects, thetas, converged) ->
         )
         if name == "nominal":
             nominal_se = se_all
+    assert nominal_se is not None  # "nominal" is always the first candidate (`_prepare`)
     _, ranking, _ = rank_candidates(fits[0], fits[1:])
     floor = min(f.train_ms for f in fits)
     by_name = {f.effect: f for f in fits}
@@ -552,7 +554,7 @@ def diagnose_vibration(
     del nominal
     effects = _effects()
     preps = [_prepare(data, effects) for data in datasets]
-    results: list[DiagnosisResult | None] = [None] * len(datasets)
+    results: dict[int, DiagnosisResult] = {}  # by table, every one in one group
     groups: dict[tuple, list[int]] = {}
     for i, prep in enumerate(preps):
         key = (prep["design"].shape[0], tuple(prep["candidates"]))
@@ -567,4 +569,4 @@ def diagnose_vibration(
         thetas, converged = np.asarray(thetas), np.asarray(converged)
         for j, i in enumerate(indices):
             results[i] = _postprocess(datasets[i], preps[i], effects, thetas[j], converged[j])
-    return results
+    return [results[i] for i in range(len(datasets))]
