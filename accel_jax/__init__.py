@@ -52,12 +52,6 @@ from ._identify import (
     fit_step_response as fit_step_response,
 )
 from ._identify import (
-    identification_figure as identification_figure,
-)
-from ._identify import (
-    identification_summary as identification_summary,
-)
-from ._identify import (
     identify_aperiodic as identify_aperiodic,
 )
 from ._identify import (
@@ -321,3 +315,18 @@ from ._vibration import vibration_error as vibration_error
 from ._vibration import write_vibration_table as write_vibration_table
 
 __version__ = "0.1.0"
+
+
+# Moved in 0.2 (CHANGELOG.md): the identify command's text and figure are presentation,
+# now under `accel_jax.report` (read lazily here, so that importing the package does not
+# import its presentation layer).
+from ._deprecated import moved_names as _moved_names
+
+__getattr__ = _moved_names(
+    __name__,
+    {
+        "identification_summary": "accel_jax.report",
+        "identification_figure": "accel_jax.report",
+    },
+)
+del _moved_names

@@ -257,14 +257,8 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 @outputs("identify")
 def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, force, device):
     paths = _start("identify", out_dir, force, device, json_out, plot_out)
-    from . import (
-        identification_figure,
-        identification_summary,
-        identify_step_record,
-        identify_step_records,
-        read_csv,
-    )
-    from .report import save_figure_atomic
+    from . import identify_step_record, identify_step_records, read_csv
+    from .report import identification_figure, identification_summary, save_figure_atomic
     from .report.text.identify import identify_set_lines, identify_set_records
 
     try:
@@ -368,6 +362,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
     paths = _start("noise", out_dir, force, device, json_out, plot_out, (export_out, "--out"))
     from . import read_csv
     from ._noise import analysis
+    from .report.figures.noise import plot_analysis
     from .report.text.noise import ExportRefused, export_text, noise_lines
 
     with _refused(ValueError):
@@ -387,7 +382,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
     write(paths["text"], "\n".join(printed), "summary")
     doc = lambda: {"source": str(file), **analysis.analysis_to_json(result)}  # noqa: E731
     write(paths["json_out"], json_writer(doc), "json")
-    plot = lambda path: analysis.plot_analysis(result, path, title=str(file))  # noqa: E731
+    plot = lambda path: plot_analysis(result, path, title=str(file))  # noqa: E731
     write(paths["plot_out"], plot, "plot")
 
 

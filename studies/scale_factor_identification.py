@@ -37,6 +37,7 @@ import accel_jax as aj  # noqa: E402
 from accel_jax._runtime import fast_compile  # noqa: E402
 from accel_jax.report import (  # noqa: E402
     Figures,
+    identification_figure,
     provenance,
     study_main,
     study_run,
@@ -1024,7 +1025,7 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     )
     record = aj.StepData(np.asarray(ts_id), u_test, np.asarray(u_out))
     identified = aj.identify_step_record(record, ref)
-    fig = aj.identification_figure(identified, title="one record of the reference device")
+    fig = identification_figure(identified, title="one record of the reference device")
     quality = identified["fit"]["quality"]
     figures.save(
         fig,

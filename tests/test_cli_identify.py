@@ -13,7 +13,8 @@ import scipy.signal
 from click.testing import CliRunner
 
 import accel_jax as aj
-from accel_jax._identify import report
+from accel_jax import report
+from accel_jax.report.text import identification
 from accel_jax._identify.step_record import identify_step_record
 from accel_jax.cli import main
 
@@ -203,6 +204,6 @@ def test_report_without_a_fit(records):
     del result["traces"]["model_V"]
     text = report.identification_summary(result)
     assert "least-squares fit failed" in text and "δK_a" in text
-    assert report.parameter_table(result) == [] and report.damping_note(result) is None
+    assert identification.parameter_table(result) == [] and identification.damping_note(result) is None
     figure = report.identification_figure(result, title="no fit")
     assert len(figure.axes) == 3

@@ -8,6 +8,10 @@ from pathlib import Path
 import pytest
 
 MOVES = {
+    "accel_jax": {
+        "identification_summary": "accel_jax.report",
+        "identification_figure": "accel_jax.report",
+    },
     "accel_jax.diagnose.step_joint": {
         "SetDiagnosis": "accel_jax.diagnose.step_joint_verdict",
         "diagnose_step_set": "accel_jax.diagnose.step_joint_verdict",

@@ -232,6 +232,30 @@ def test_report_text_is_presentation_only():
     assert wrong == []
 
 
+# The modules below the entry points that may still import matplotlib, each with why.
+_MATPLOTLIB_BELOW_ENTRY = {
+    "accel_jax/diagnose/report.py": "the diagnosis's figures: still to move to report/figures",
+}
+
+
+def test_figures_are_drawn_only_in_the_presentation_layer():
+    """matplotlib is imported by the entry points (cli.py, accel_jax/report/: its `figures`
+    package) and nowhere below them, except the modules listed in `_MATPLOTLIB_BELOW_ENTRY`;
+    `_io.save_figure_atomic` writes a figure it is given without importing matplotlib."""
+    from pathlib import Path
+
+    package = Path(aj.__file__).resolve().parent
+    root = package.parent
+    found = set()
+    for path in sorted(package.rglob("*.py")):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        if parts[:2] == ["accel_jax", "report"] or parts == ["accel_jax", "cli"]:
+            continue
+        if any(m.split(".")[0] == "matplotlib" for m in _imported_modules(path, parts[:-1])):
+            found.add(path.relative_to(root).as_posix())
+    assert found == set(_MATPLOTLIB_BELOW_ENTRY)
+
+
 def _tracked_text_files():
     from pathlib import Path
 

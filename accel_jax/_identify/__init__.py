@@ -39,8 +39,6 @@ from .oscillatory import OscillatoryEstimate as OscillatoryEstimate
 from .oscillatory import _weighted_moments as _weighted_moments
 from .oscillatory import identify_oscillatory as identify_oscillatory
 from .record import IdentificationResult as IdentificationResult
-from .report import identification_figure as identification_figure
-from .report import identification_summary as identification_summary
 from .step_record import identify_step_record as identify_step_record
 from .step_record import identify_step_records as identify_step_records
 from .stops import pickoff_gain_from_stops as pickoff_gain_from_stops

@@ -9,7 +9,8 @@ read it (fit percentage, NRMSE, residual whiteness) and each fitted parameter ag
 nominal value. Host-side glue around the jit-compiled estimators of `accel_jax._identify`;
 it computes in the dtype JAX is configured for (the CLI enables float64).
 `identify_step_records` takes several records of one device, a stop-level one by eq. (11).
-`accel_jax._identify.report` turns the result into text and a figure.
+`accel_jax.report` turns the result into text (`identification_summary`) and a figure
+(`identification_figure`).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-from ..._identify.report import identification_summary
+from .identification import identification_summary
 
 
 def _stops_line(file, stops: dict) -> str:
