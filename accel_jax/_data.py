@@ -31,6 +31,7 @@ import io
 import math
 import os
 from pathlib import Path
+from typing import Literal, overload
 
 import equinox as eqx
 import numpy as np
@@ -408,8 +409,17 @@ def _read_text(path: Path) -> str:
         raise DataError(f"{path}: cannot be read ({error.strerror}).") from None
 
 
+@overload
+def read_csv(path: str | os.PathLike, *, kind: Literal["step"]) -> StepData: ...
+@overload
+def read_csv(path: str | os.PathLike, *, kind: Literal["vibration"]) -> VibrationData: ...
+@overload
+def read_csv(path: str | os.PathLike, *, kind: Literal["noise"]) -> NoiseData: ...
+@overload
+def read_csv(path: str | os.PathLike, *, kind: str | None = None) -> Dataset: ...
 def read_csv(path: str | os.PathLike, *, kind: str | None = None) -> Dataset:
-    """Read and validate one experiment from a CSV file (see `parse_csv`)."""
+    """Read and validate one experiment from a CSV file (see `parse_csv`); with `kind`
+    given, the type checker knows the dataset's class."""
     path = Path(path)
     return parse_csv(_read_text(path), kind=kind, path=path)
 

@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import sys
 from pathlib import Path
@@ -56,15 +55,21 @@ def _start(command: str, out_dir, force: bool, device: str, json_out, plot_out, 
     return paths
 
 
-@contextlib.contextmanager
-def _refused(*errors: type[Exception]):
-    """Bad user input (`DataError`, or one of `errors`) is one line and exit status 1."""
-    from . import DataError
+class _refused:
+    """Bad user input (`DataError`, or one of `errors`) is one line and exit status 1 (its
+    `__exit__` returns None: the type checker sees that it never swallows an exception)."""
 
-    try:
-        yield
-    except (DataError, *errors) as error:
-        raise click.ClickException(str(error)) from None
+    def __init__(self, *errors: type[Exception]):
+        self.errors = errors
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind, error, traceback) -> None:
+        from . import DataError
+
+        if error is not None and isinstance(error, (DataError, *self.errors)):
+            raise click.ClickException(str(error)) from None
 
 
 def _nominal(params_file: Path | None):
@@ -269,29 +274,29 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
         ) from None
     if len(set(files)) != len(files):
         raise click.ClickException("a file is named twice; give each record once.")
-    with _refused():
-        if len(files) > 1:
+    if len(files) > 1:
+        with _refused():
             params = _nominal(params_file).params
             datasets = [read_csv(file, kind="step") for file in files]
             results = identify_step_records(datasets, params, method=method, gamma=gamma_value)
-        else:
+        text = "\n".join(identify_set_lines(files, results))
+        doc = {"records": identify_set_records(files, results)}
+        figure = None
+    else:
+        with _refused():
             data = read_csv(files[0], kind="step")
             params = _nominal(params_file).params
             result = identify_step_record(data, params, method=method, gamma=gamma_value)
-    if len(files) > 1:
-        text = "\n".join(identify_set_lines(files, results))
-        doc = {"records": identify_set_records(files, results)}
-    else:
         text = identification_summary(result)
         # The traces (the record and the model, sample by sample) stay out of the JSON.
         doc = {"source": str(files[0]), **{k: v for k, v in result.items() if k != "traces"}}
+        figure = lambda: identification_figure(result, title=str(files[0]))  # noqa: E731
     click.echo(text)
     write(paths["text"], text, "summary")
     write(paths["json_out"], json_writer(lambda: doc), "json")
-    if len(files) > 1 and paths["plot_out"] is not None:
+    if figure is None and paths["plot_out"] is not None:
         click.echo("note: --plot draws one record; with several files it is not drawn")
-    elif len(files) == 1:
-        figure = lambda: identification_figure(result, title=str(files[0]))  # noqa: E731
+    elif figure is not None:
         write(paths["plot_out"], lambda path: save_figure_atomic(figure(), path), "plot")
 
 
@@ -302,9 +307,9 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
 @outputs("diagnose", out="diagnosis")
 def diagnose(files, kind, params_file, json_out, plot_out, out_dir, force, device):
     paths = _start("diagnosis", out_dir, force, device, json_out, plot_out)
-    from . import DataError, read_csv
+    from . import DataError, StepData, read_csv
+    from .diagnose import SetDiagnosis, diagnose_step_set
     from .diagnose import diagnose as run_diagnosis
-    from .diagnose import diagnose_step_set
     from .diagnose.report import save_plot, set_figure
     from .report import save_figure_atomic
 
@@ -325,20 +330,24 @@ def diagnose(files, kind, params_file, json_out, plot_out, out_dir, force, devic
                     "several files are diagnosed together only when every one is a step "
                     f"record (t, u_test, u_out[, a_in]) of one device; got {listed}."
                 )
-            result = diagnose_step_set(datasets, _nominal(params_file), names=list(kinds))
+            steps = [d for d in datasets if isinstance(d, StepData)]  # all of them, checked
+            result = diagnose_step_set(steps, _nominal(params_file), names=list(kinds))
+            sources: dict = {"sources": list(kinds)}
+            unused_params = None
         else:
             data = read_csv(files[0], kind=kind)
             result = run_diagnosis(data, _nominal(params_file))
+            sources = {"source": str(files[0])}
+            unused_params = data.kind if params_file is not None and data.kind != "step" else None
     click.echo(result.summary())
     write(paths["text"], result.summary(), "summary")
-    if len(files) == 1 and params_file is not None and data.kind != "step":
+    if unused_params is not None:
         click.echo(
-            f"note: --params is not used by the {data.kind} diagnosis (its nominal model "
+            f"note: --params is not used by the {unused_params} diagnosis (its nominal model "
             "has no servo-loop parameters)"
         )
-    sources = {"sources": list(kinds)} if len(files) > 1 else {"source": str(files[0])}
     write(paths["json_out"], json_writer(lambda: {**sources, **result.to_dict()}), "json")
-    if len(files) > 1:
+    if isinstance(result, SetDiagnosis):  # several files
         write(paths["plot_out"], lambda path: save_figure_atomic(set_figure(result), path), "plot")
     else:
         write(paths["plot_out"], lambda path: save_plot(result, path), "plot")

@@ -170,7 +170,9 @@ def _parameter_rows(fit, k_fit, k_std, params: ServoParams, test_step: float) ->
                 "nominal": nominal,
                 "estimate": estimate,
                 "std": sigma,
-                "shift_in_std": (estimate - nominal) / sigma if usable else None,
+                "shift_in_std": (
+                    (estimate - nominal) / sigma if nominal is not None and usable else None
+                ),
             }
         )
     return out

@@ -85,7 +85,7 @@ class AbstractEffect(eqx.Module):
 def require_float64(why: str) -> None:
     """Raise the one clear `ValueError` a diagnosis gives when x64 is off (`why`: what
     float32 would lose)."""
-    x64 = jax.config.jax_enable_x64  # pyright: ignore[reportAttributeAccessIssue]  # run-time attr
+    x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64
     if not x64:
         raise ValueError(
             f"diagnose needs float64: call jax.config.update('jax_enable_x64', True) first ({why})."

@@ -29,6 +29,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
+import numpy as np
 
 from .._io import _atomic_write_bytes
 from .._progress import bar, show_progress
@@ -100,9 +101,14 @@ def cache_key(name: str, study_file: Path, options: dict) -> str:
         "code": code_fingerprint(study_file),
         "accel_jax": __version__,
         "jax": jax.__version__,
-        "x64": bool(jax.config.jax_enable_x64),
+        "x64": _x64(),
     }
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def _x64() -> bool:
+    """Whether JAX computes in float64 here (the setting, as `jax.enable_x64` leaves it)."""
+    return bool(jax.dtypes.canonicalize_dtype(np.float64) == np.float64)
 
 
 def load_study(name: str, folder: Path):
@@ -111,6 +117,8 @@ def load_study(name: str, folder: Path):
     if not path.exists():
         raise ReportError(f"study script not found: {path}")
     spec = importlib.util.spec_from_file_location(f"accel_jax_study_{name}", path)
+    if spec is None or spec.loader is None:
+        raise ReportError(f"study script cannot be loaded as a module: {path}")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
@@ -331,7 +339,7 @@ def run_report(
         )
     if jobs is not None and not (isinstance(jobs, int) and jobs >= 1):
         raise ReportError(f"jobs must be a positive whole number, got {jobs!r}.")
-    options = {"quick": bool(quick)}
+    options: dict[str, object] = {"quick": bool(quick)}
     params_fields = None
     if params is not None:
         params_fields = {k: float(v) for k, v in params.as_dict().items()}
@@ -442,7 +450,7 @@ def _run_parallel(todo, task, jobs, echo, overall, finished, task_folder) -> Non
     # the fork context, which a spawned process cannot share).
     lock, previous_lock = context.RLock(), tqdm.get_lock()
     tqdm.set_lock(lock)
-    x64 = bool(jax.config.jax_enable_x64)
+    x64 = _x64()
     waiting, running = list(todo), {}
     free = list(range(1, jobs + 1))  # terminal line of each slot (0 is the overall bar)
     try:

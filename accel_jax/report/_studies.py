@@ -14,7 +14,7 @@ STUDIES = (
 # pinned to one core (a fresh clone with a cold compilation cache, 2026-11-25) [s]: the
 # report starts the longest first when it runs studies side by side (its order stays
 # STUDIES).
-TYPICAL_SECONDS = {
+TYPICAL_SECONDS: dict[str, float] = {
     "scale_factor_identification": 92,
     "sensing_element_ml": 113,
     "vibration_compensation": 16,

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -86,7 +87,7 @@ def _default_summary(result: dict) -> None:
 
 def study_main(
     run: Callable[..., dict],
-    study_file: str,
+    study_file: str | os.PathLike,
     doc: str | None,
     *,
     argv=None,
@@ -115,10 +116,10 @@ def study_main(
     )
     from ._run import ERROR_LOG, ReportError, _record_failure, cache_key, one_line, run_study
 
-    study_file = Path(study_file).resolve()
-    name = study_file.stem
+    script = Path(study_file).resolve()
+    name = script.stem
     parser = argparse.ArgumentParser(
-        prog=f"python {study_file.parent.name}/{study_file.name}",
+        prog=f"python {script.parent.name}/{script.name}",
         description=(doc or name).strip().splitlines()[0],
     )
     parser.add_argument("--out", type=Path, default=Path("out") / name, help="output folder")
@@ -155,7 +156,7 @@ def study_main(
     except ValueError as error:  # a bad option value: one line, as argparse's own errors
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2
-    key = cache_key(name, study_file, {"quick": bool(args.quick), **key_options})
+    key = cache_key(name, script, {"quick": bool(args.quick), **key_options})
     try:
         result, cached = run_study(
             name, run, Path(args.out), key, quick=args.quick, force=args.force, **run_kwargs
