@@ -310,7 +310,7 @@ def diagnose(files, kind, params_file, json_out, plot_out, out_dir, force, devic
     from . import DataError, StepData, read_csv
     from .diagnose import SetDiagnosis, diagnose_step_set
     from .diagnose import diagnose as run_diagnosis
-    from .diagnose.report import save_plot, set_figure
+    from .report.figures.diagnosis import save_plot, set_figure
     from .report import save_figure_atomic
 
     if len(files) > 1 and kind not in (None, "step"):

@@ -16,7 +16,11 @@ MOVES = {
         "SetDiagnosis": "accel_jax.diagnose.step_joint_verdict",
         "diagnose_step_set": "accel_jax.diagnose.step_joint_verdict",
         "next_experiments": "accel_jax.diagnose.step_design",
-        "set_figure": "accel_jax.diagnose.report",
+        "set_figure": "accel_jax.report.figures.diagnosis",
+    },
+    "accel_jax.diagnose.report": {
+        "figure": "accel_jax.report.figures.diagnosis",
+        "save_plot": "accel_jax.report.figures.diagnosis",
     },
     "accel_jax.diagnose.step_verdict": {
         "nested_failed": "accel_jax.diagnose.step_assess",

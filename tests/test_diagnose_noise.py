@@ -279,7 +279,8 @@ def test_composite_and_long_records(tmp_path):
     import sys
 
     from accel_jax.diagnose import noise_sensor
-    from accel_jax.diagnose.report import save_plot, write_json
+    from accel_jax.diagnose.report import write_json
+    from accel_jax.report.figures.diagnosis import save_plot
 
     sys.path.insert(0, str(ROOT / "studies"))
     import noise_truth
@@ -324,7 +325,7 @@ def test_cli_on_a_real_record_prints_no_xla_logs(tmp_path):
 def test_fitted_model_spectrum_integrates_to_its_variance():
     """The diagnose figure draws the fitted model's spectrum on the Welch scale (2Δσ² for
     white noise): over 0 … 1/(2Δ) it integrates to the model's variance, σ_w² + σ²."""
-    from accel_jax.diagnose.report import _model_psd
+    from accel_jax.report.figures.diagnosis import _model_psd
 
     dt = 0.01
     f = np.linspace(0, 0.5 / dt, 200001)

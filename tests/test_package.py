@@ -233,9 +233,7 @@ def test_report_text_is_presentation_only():
 
 
 # The modules below the entry points that may still import matplotlib, each with why.
-_MATPLOTLIB_BELOW_ENTRY = {
-    "accel_jax/diagnose/report.py": "the diagnosis's figures: still to move to report/figures",
-}
+_MATPLOTLIB_BELOW_ENTRY: dict[str, str] = {}
 
 
 def test_figures_are_drawn_only_in_the_presentation_layer():

@@ -577,6 +577,6 @@ __getattr__ = moved_names(
         "experiment_menu": "accel_jax.diagnose.step_design",
         "expected_evidence": "accel_jax.diagnose.step_design",
         "next_experiments": "accel_jax.diagnose.step_design",
-        "set_figure": "accel_jax.diagnose.report",
+        "set_figure": "accel_jax.report.figures.diagnosis",
     },
 )
