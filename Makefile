@@ -35,7 +35,7 @@ docs: $(DEV_STAMP)
 	$(VENV)/bin/mkdocs build --strict --quiet
 
 typecheck: $(DEV_STAMP)
-	$(PY) -m pyright
+	$(PY) -m pyright --project . --stats
 
 clean:
 	rm -rf $(VENV) out
