@@ -125,6 +125,8 @@ from ._noise import allan_coefficients as allan_coefficients
 from ._noise import allan_deviation as allan_deviation
 from ._noise import allan_deviation_intervals as allan_deviation_intervals
 from ._noise import allan_variance_of_model as allan_variance_of_model
+from ._noise import analyse_static_record as analyse_static_record
+from ._noise import analysis_to_json as analysis_to_json
 from ._noise import autocorrelation as autocorrelation
 from ._noise import density_to_discrete as density_to_discrete
 from ._noise import density_to_one_sided_asd as density_to_one_sided_asd

@@ -370,13 +370,13 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         export_out = out_dir / f"noise_{_EXPORTS[export_format]}"
     paths = _start("noise", out_dir, force, device, json_out, plot_out, (export_out, "--out"))
     from . import read_csv
-    from ._noise import analysis
+    from . import analyse_static_record, analysis_to_json
     from .report.figures.noise import plot_analysis
     from .report.text.noise import ExportRefused, export_text, noise_lines
 
     with _refused(ValueError):
         data = read_csv(file, kind="noise")
-        result = analysis.analyse_static_record(
+        result = analyse_static_record(
             data.a_out, data.sample_period, unit="g", confidence=confidence
         )
     printed = noise_lines(data.a_out.size, data.sample_period, result)
@@ -389,7 +389,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
             printed.append(line)
         write(export_out, exported, f"{export_format} export")
     write(paths["text"], "\n".join(printed), "summary")
-    doc = lambda: {"source": str(file), **analysis.analysis_to_json(result)}  # noqa: E731
+    doc = lambda: {"source": str(file), **analysis_to_json(result)}  # noqa: E731
     write(paths["json_out"], json_writer(doc), "json")
     plot = lambda path: plot_analysis(result, path, title=str(file))  # noqa: E731
     write(paths["plot_out"], plot, "plot")

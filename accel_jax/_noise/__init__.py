@@ -44,6 +44,8 @@ from .allan_intervals import AllanDeviation as AllanDeviation
 from .allan_intervals import allan_deviation_intervals as allan_deviation_intervals
 from .allan_terms import AllanTerms as AllanTerms
 from .allan_terms import fit_allan_terms as fit_allan_terms
+from .analysis import analyse_static_record as analyse_static_record
+from .analysis import analysis_to_json as analysis_to_json
 from .export import AccelNoiseTerms as AccelNoiseTerms
 from .export import density_to_discrete as density_to_discrete
 from .export import density_to_one_sided_asd as density_to_one_sided_asd

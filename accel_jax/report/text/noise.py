@@ -25,7 +25,7 @@ class ExportRefused(ValueError):
 
 def noise_lines(n_samples: int, sample_period: float, analysis: dict) -> list[str]:
     """From "N samples at … Hz" to the output grid: `analysis` is
-    `accel_jax._noise.analysis.analyse_static_record`'s result."""
+    `accel_jax.analyse_static_record`'s result."""
     terms, selection = analysis["terms"], analysis["selection"]
     lines = [
         f"{n_samples} samples at {1 / sample_period:.6g} Hz ({n_samples * sample_period:.6g} s)",
