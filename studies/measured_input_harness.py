@@ -192,7 +192,7 @@ def write_prbs_twins(truths: list[dict], picked: list[int], folder: Path, seed: 
 def score_prbs(truths: list[dict], rows: dict, picked: list[int]) -> dict:
     """Each PRBS twin's verdict (clean and measured input) against the step record's."""
     out = {"records": len(picked), "agree_clean": 0, "agree_measured": 0, "refused": 0,
-           "verdicts": []}
+           "false_assurance": 0, "verdicts": []}
     for i in picked:
         step = rows[f"clean/{i:04d}"]
         key = (step.get("verdict"), sorted(step.get("tied", [])))
@@ -204,6 +204,10 @@ def score_prbs(truths: list[dict], rows: dict, picked: list[int]) -> dict:
                 pair.append("refused")
                 continue
             same = (row["verdict"], sorted(row["tied"])) == key
+            out["false_assurance"] += int(
+                row["verdict"] == "none"
+                and truths[i]["effect"] not in ("none", step_truth.ON_STOP_EFFECT)
+            )
             out["agree_clean" if name == "prbs_clean" else "agree_measured"] += int(same)
             pair.append(row["verdict"])
         out["verdicts"].append([truths[i]["effect"], step.get("verdict")] + pair)
@@ -391,7 +395,7 @@ def main(argv=None) -> int:
         print(
             f"PRBS twins ({PRBS_CHANGES} changes): verdict as the step record's: clean "
             f"{p['agree_clean']}/{p['records']}, measured {p['agree_measured']}/{p['records']}; "
-            f"refused {p['refused']}"
+            f"refused {p['refused']}; none on an effect's record {p['false_assurance']}"
         )
     print(f"written: {target} ({result['seconds']:.0f} s)")
     return 0

@@ -143,7 +143,13 @@ def test_a_prbs_record_is_diagnosed_like_its_step_sequence_twin():
     for r in results[1:]:
         assert any(n.startswith("u_test: 220 changes on one bit clock") for n in r.notes)
         assert any(n.startswith("no next experiment designed") for n in r.notes)
-        assert not r.refit["nuisance_test"]["strained"], r.refit["nuisance_test"]
+    assert not results[1].refit["nuisance_test"]["strained"], results[1].refit["nuisance_test"]
+    # The measured twin's nominal fit (the wrong model: the truth has a torquer lag) may
+    # strain one nuisance only: the input channel's drift, which the PRBS's 221 plateaus of
+    # two levels pin to ±71 µV over the record (the truth's channel drifts by −13 µV), so it
+    # can no longer absorb the lag's misfit; the verdict is the step twin's (above).
+    test = results[2].refit["nuisance_test"]
+    assert not test["strained"] or test["largest"] == "input_channel_drift", test
     assert any("2 distinct levels" in n for n in results[2].notes)
 
 

@@ -204,6 +204,10 @@ def read_input(
     # from a drifting input (errors in variables).
     drift = 0.0
     drift_shape = [0.0] * len(plateaus)
+    # A level the sequence returns to tells the drift across the record as well: its
+    # plateaus' means about their own mean, against their places (a PRBS's two levels, over
+    # hundreds of plateaus, pin the drift far tighter than the short plateaus' own slopes).
+    slope_sums += _repeated_level_slope(levels, sigmas, middles, merge, noise_level)
     if slope_sums[1] > 0:
         slope = slope_sums[0] / slope_sums[1]
         slope_sigma = noise_level / math.sqrt(slope_sums[1])
@@ -268,6 +272,41 @@ def read_input(
         level_drift=np.asarray(drift_shape),
         note=_describe(name, unit, levels_arr, change_arr, noise_level, step, spikes, n, drift),
     )
+
+
+def _repeated_level_slope(levels, sigmas, middles, same: float, noise: float) -> np.ndarray:
+    """(Σ s_k w_k, Σ w_k) in the units of `read_input`'s pooled within-plateau slope (its
+    weights are Σ (k − k̄)² per unit noise variance): the slope of the plateau means of each
+    level the sequence returns to (plateaus within `same` of each other), about that level's
+    mean, against the plateaus' middles [samples]; weighted by each mean's variance. Zeros
+    when no level repeats."""
+    levels = np.asarray(levels, dtype=np.float64)
+    out = np.zeros(2)
+    if levels.size < 2:
+        return out
+    order = np.argsort(levels)
+    groups, current = [], [int(order[0])]
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        if levels[b] - levels[a] <= same:
+            current.append(int(b))
+        else:
+            groups.append(current)
+            current = [int(b)]
+    groups.append(current)
+    for members in groups:
+        if len(members) < 2:
+            continue
+        t = np.asarray([middles[k] for k in members], dtype=np.float64)
+        x = levels[members]
+        # Each mean's variance is σ_k² = noise²/n_k: weight n_k = (noise/σ_k)², as the
+        # within-plateau sums weigh each sample by 1 in units of the noise variance.
+        w = np.asarray([(noise / sigmas[k]) ** 2 if sigmas[k] > 0 else 0.0 for k in members])
+        if not np.sum(w) > 0:
+            continue
+        tc = t - np.sum(w * t) / np.sum(w)
+        xc = x - np.sum(w * x) / np.sum(w)
+        out += (float(np.sum(w * tc * xc)), float(np.sum(w * tc**2)))
+    return out
 
 
 def _share(runs, n) -> float:
