@@ -1,8 +1,14 @@
 """accel_jax: a JAX differentiable model of servo (pendulum compensating) accelerometers.
 
-The public API (models, algorithms, results) is re-exported here; modules starting with
-an underscore are private; file writing, provenance and the study plumbing are under
-`accel_jax.report`. The library never changes JAX's configuration: enable float64 yourself
+The device models, the simulation, the scale-factor identification and the sensing-element
+estimation are re-exported here; three namespaces group the rest — `accel_jax.noise`
+(noise models, their identification, Allan deviation, exports), `accel_jax.vibration`
+(vibration error, compensation, coefficient fitting, tolerance limits) and
+`accel_jax.kalman` (the Kalman filter and the INS test bed) — beside `accel_jax.diagnose`
+(the sim-to-real diagnosis) and `accel_jax.report` (text, figures, file writing,
+provenance, the study plumbing). Modules starting with an underscore are private.
+
+The library never changes JAX's configuration: enable float64 yourself
 (`jax.config.update("jax_enable_x64", True)`) where a computation needs it — the studies
 do. The one process-level setting made on import is the XLA:CPU deadlock workaround below
 (`ACCEL_JAX_XLA_WORKAROUND=off` opts out). The code's map: docs/architecture.md.
@@ -24,6 +30,9 @@ from ._runtime import apply_at_import as _apply_at_import
 _XLA_WORKAROUND = _apply_at_import()
 del _apply_at_import
 
+from . import kalman as kalman
+from . import noise as noise
+from . import vibration as vibration
 from ._data import DataError as DataError
 from ._data import Dataset as Dataset
 from ._data import NoiseData as NoiseData
@@ -75,20 +84,6 @@ from ._identify import (
 from ._identify import (
     scale_factor_from_fit as scale_factor_from_fit,
 )
-from ._kalman import EARTH_RADIUS as EARTH_RADIUS
-from ._kalman import ConsistencyTrial as ConsistencyTrial
-from ._kalman import FilterOutput as FilterOutput
-from ._kalman import INSChannel as INSChannel
-from ._kalman import LinearGaussianModel as LinearGaussianModel
-from ._kalman import SmootherOutput as SmootherOutput
-from ._kalman import ins_consistency_trial as ins_consistency_trial
-from ._kalman import ins_initial_covariance as ins_initial_covariance
-from ._kalman import kalman_filter as kalman_filter
-from ._kalman import normalised_estimation_error_squared as normalised_estimation_error_squared
-from ._kalman import normalised_innovation_squared as normalised_innovation_squared
-from ._kalman import rts_smoother as rts_smoother
-from ._kalman import scale_noise_coefficients as scale_noise_coefficients
-from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
 from ._ml_estimate import AbstractDisturbance as AbstractDisturbance
 from ._ml_estimate import CompensatedEstimate as CompensatedEstimate
 from ._ml_estimate import ExponentialDisturbance as ExponentialDisturbance
@@ -105,63 +100,6 @@ from ._ml_estimate import linearisation_error as linearisation_error
 from ._ml_estimate import linearisation_residual as linearisation_residual
 from ._ml_estimate import ml_estimate as ml_estimate
 from ._ml_estimate import state_basis as state_basis
-from ._noise import AbstractNoiseModel as AbstractNoiseModel
-from ._noise import AccelNoiseTerms as AccelNoiseTerms
-from ._noise import AllanCoefficients as AllanCoefficients
-from ._noise import AllanDeviation as AllanDeviation
-from ._noise import AllanTerms as AllanTerms
-from ._noise import ExponentialCosine as ExponentialCosine
-from ._noise import GaussMarkov as GaussMarkov
-from ._noise import NoiseFit as NoiseFit
-from ._noise import NoiseFitResult as NoiseFitResult
-from ._noise import NoiseSum as NoiseSum
-from ._noise import PaperExpCosineFit as PaperExpCosineFit
-from ._noise import PaperGaussMarkovFit as PaperGaussMarkovFit
-from ._noise import RandomWalk as RandomWalk
-from ._noise import SensorNoiseSelection as SensorNoiseSelection
-from ._noise import StructureSelection as StructureSelection
-from ._noise import WhiteNoise as WhiteNoise
-from ._noise import allan_coefficients as allan_coefficients
-from ._noise import allan_deviation as allan_deviation
-from ._noise import allan_deviation_intervals as allan_deviation_intervals
-from ._noise import allan_variance_of_model as allan_variance_of_model
-from ._noise import analyse_static_record as analyse_static_record
-from ._noise import analysis_to_json as analysis_to_json
-from ._noise import autocorrelation as autocorrelation
-from ._noise import density_to_discrete as density_to_discrete
-from ._noise import density_to_one_sided_asd as density_to_one_sided_asd
-from ._noise import density_to_vrw as density_to_vrw
-from ._noise import detect_non_gaussian as detect_non_gaussian
-from ._noise import detect_quantization as detect_quantization
-from ._noise import detect_saturation as detect_saturation
-from ._noise import detect_spectral_change as detect_spectral_change
-from ._noise import discrete_to_density as discrete_to_density
-from ._noise import discrete_to_gauss_markov as discrete_to_gauss_markov
-from ._noise import discrete_to_random_walk as discrete_to_random_walk
-from ._noise import fit_allan_terms as fit_allan_terms
-from ._noise import fit_autocorrelation_least_squares as fit_autocorrelation_least_squares
-from ._noise import fit_exp_cosine_paper as fit_exp_cosine_paper
-from ._noise import fit_gauss_markov_paper as fit_gauss_markov_paper
-from ._noise import fit_maximum_likelihood as fit_maximum_likelihood
-from ._noise import gauss_markov_to_discrete as gauss_markov_to_discrete
-from ._noise import initial_model as initial_model
-from ._noise import kalibr_yaml as kalibr_yaml
-from ._noise import ljung_box as ljung_box
-from ._noise import micro_g_to_si as micro_g_to_si
-from ._noise import model_parameters as model_parameters
-from ._noise import noise_innovations as noise_innovations
-from ._noise import noise_log_likelihood as noise_log_likelihood
-from ._noise import one_sided_asd_to_density as one_sided_asd_to_density
-from ._noise import random_walk_to_discrete as random_walk_to_discrete
-from ._noise import select_noise_model as select_noise_model
-from ._noise import select_sensor_noise as select_sensor_noise
-from ._noise import si_to_micro_g as si_to_micro_g
-from ._noise import simulate_noise as simulate_noise
-from ._noise import to_gnss_ins_sim as to_gnss_ins_sim
-from ._noise import to_ieee as to_ieee
-from ._noise import to_kalibr as to_kalibr
-from ._noise import unit_to_si as unit_to_si
-from ._noise import vrw_to_density as vrw_to_density
 from ._params import (
     APERIODIC_DAMPING as APERIODIC_DAMPING,
 )
@@ -268,60 +206,14 @@ from ._static import si_to_g as si_to_g
 from ._static import to_ppm as to_ppm
 from ._sweep import device_count as device_count
 from ._sweep import sweep as sweep
-from ._tolerance import AKS05_RANGES_PPM as AKS05_RANGES_PPM
-from ._tolerance import PAPER_SHARES as PAPER_SHARES
-from ._tolerance import TOLERANCED as TOLERANCED
-from ._tolerance import ToleranceScenario as ToleranceScenario
-from ._tolerance import cyclone4 as cyclone4
-from ._tolerance import error_contributions as error_contributions
-from ._tolerance import gradient_limits as gradient_limits
-from ._tolerance import paper_limits as paper_limits
-from ._tolerance import sample_batch as sample_batch
-from ._tolerance import sensitivities as sensitivities
-from ._tolerance import sensitivity_profile as sensitivity_profile
-from ._tolerance import tactical_missile as tactical_missile
-from ._tolerance import tolerance_table as tolerance_table
-from ._tolerance import unit_vibration_error as unit_vibration_error
-from ._tolerance import within_rms_region as within_rms_region
-from ._vibration import ASYMMETRY_RANDOM_FACTOR as ASYMMETRY_RANDOM_FACTOR
-from ._vibration import ASYMMETRY_SINE_FACTOR as ASYMMETRY_SINE_FACTOR
-from ._vibration import FIT_PARAMETERS as FIT_PARAMETERS
-from ._vibration import TABLE_COLUMNS as TABLE_COLUMNS
-from ._vibration import BandSpectrum as BandSpectrum
-from ._vibration import CoefficientFit as CoefficientFit
-from ._vibration import CompensationSteps as CompensationSteps
-from ._vibration import Identifiability as Identifiability
-from ._vibration import ShakerEstimate as ShakerEstimate
-from ._vibration import VibrationEnvironment as VibrationEnvironment
-from ._vibration import compensate_in_flight as compensate_in_flight
-from ._vibration import design_matrix as design_matrix
-from ._vibration import fit_coefficients as fit_coefficients
-from ._vibration import greedy_test_plan as greedy_test_plan
-from ._vibration import identifiability as identifiability
-from ._vibration import mean_abs_gauss as mean_abs_gauss
-from ._vibration import mean_abs_input as mean_abs_input
-from ._vibration import mean_abs_sine as mean_abs_sine
-from ._vibration import mean_indicated_acceleration as mean_indicated_acceleration
-from ._vibration import paper_deterministic_error as paper_deterministic_error
-from ._vibration import paper_random_error as paper_random_error
-from ._vibration import paper_vibration_error as paper_vibration_error
-from ._vibration import predict_table as predict_table
-from ._vibration import random_rms as random_rms
-from ._vibration import read_band_spectrum as read_band_spectrum
-from ._vibration import read_vibration_table as read_vibration_table
-from ._vibration import shaker_vibration_error as shaker_vibration_error
-from ._vibration import synthesize_vibration as synthesize_vibration
-from ._vibration import time_domain_vibration_error as time_domain_vibration_error
-from ._vibration import validate_vibration_table as validate_vibration_table
-from ._vibration import vibration_error as vibration_error
-from ._vibration import write_vibration_table as write_vibration_table
 
 __version__ = "0.1.0"
 
 
 # Moved in 0.2 (CHANGELOG.md): the identify command's text and figure are presentation,
 # now under `accel_jax.report` (read lazily here, so that importing the package does not
-# import its presentation layer).
+# import its presentation layer); the noise, vibration/tolerance and Kalman names are
+# grouped under `accel_jax.noise`, `accel_jax.vibration` and `accel_jax.kalman`.
 from ._deprecated import moved_names as _moved_names
 
 __getattr__ = _moved_names(
@@ -329,6 +221,124 @@ __getattr__ = _moved_names(
     {
         "identification_summary": "accel_jax.report",
         "identification_figure": "accel_jax.report",
+        "AbstractNoiseModel": "accel_jax.noise",
+        "AccelNoiseTerms": "accel_jax.noise",
+        "AllanCoefficients": "accel_jax.noise",
+        "AllanDeviation": "accel_jax.noise",
+        "AllanTerms": "accel_jax.noise",
+        "ExponentialCosine": "accel_jax.noise",
+        "GaussMarkov": "accel_jax.noise",
+        "NoiseFit": "accel_jax.noise",
+        "NoiseFitResult": "accel_jax.noise",
+        "NoiseSum": "accel_jax.noise",
+        "PaperExpCosineFit": "accel_jax.noise",
+        "PaperGaussMarkovFit": "accel_jax.noise",
+        "RandomWalk": "accel_jax.noise",
+        "SensorNoiseSelection": "accel_jax.noise",
+        "StructureSelection": "accel_jax.noise",
+        "WhiteNoise": "accel_jax.noise",
+        "allan_coefficients": "accel_jax.noise",
+        "allan_deviation": "accel_jax.noise",
+        "allan_deviation_intervals": "accel_jax.noise",
+        "allan_variance_of_model": "accel_jax.noise",
+        "analyse_static_record": "accel_jax.noise",
+        "analysis_to_json": "accel_jax.noise",
+        "autocorrelation": "accel_jax.noise",
+        "density_to_discrete": "accel_jax.noise",
+        "density_to_one_sided_asd": "accel_jax.noise",
+        "density_to_vrw": "accel_jax.noise",
+        "detect_non_gaussian": "accel_jax.noise",
+        "detect_quantization": "accel_jax.noise",
+        "detect_saturation": "accel_jax.noise",
+        "detect_spectral_change": "accel_jax.noise",
+        "discrete_to_density": "accel_jax.noise",
+        "discrete_to_gauss_markov": "accel_jax.noise",
+        "discrete_to_random_walk": "accel_jax.noise",
+        "fit_allan_terms": "accel_jax.noise",
+        "fit_autocorrelation_least_squares": "accel_jax.noise",
+        "fit_exp_cosine_paper": "accel_jax.noise",
+        "fit_gauss_markov_paper": "accel_jax.noise",
+        "fit_maximum_likelihood": "accel_jax.noise",
+        "gauss_markov_to_discrete": "accel_jax.noise",
+        "initial_model": "accel_jax.noise",
+        "kalibr_yaml": "accel_jax.noise",
+        "ljung_box": "accel_jax.noise",
+        "micro_g_to_si": "accel_jax.noise",
+        "model_parameters": "accel_jax.noise",
+        "noise_innovations": "accel_jax.noise",
+        "noise_log_likelihood": "accel_jax.noise",
+        "one_sided_asd_to_density": "accel_jax.noise",
+        "random_walk_to_discrete": "accel_jax.noise",
+        "select_noise_model": "accel_jax.noise",
+        "select_sensor_noise": "accel_jax.noise",
+        "si_to_micro_g": "accel_jax.noise",
+        "simulate_noise": "accel_jax.noise",
+        "to_gnss_ins_sim": "accel_jax.noise",
+        "to_ieee": "accel_jax.noise",
+        "to_kalibr": "accel_jax.noise",
+        "unit_to_si": "accel_jax.noise",
+        "vrw_to_density": "accel_jax.noise",
+        "EARTH_RADIUS": "accel_jax.kalman",
+        "ConsistencyTrial": "accel_jax.kalman",
+        "FilterOutput": "accel_jax.kalman",
+        "INSChannel": "accel_jax.kalman",
+        "LinearGaussianModel": "accel_jax.kalman",
+        "SmootherOutput": "accel_jax.kalman",
+        "ins_consistency_trial": "accel_jax.kalman",
+        "ins_initial_covariance": "accel_jax.kalman",
+        "kalman_filter": "accel_jax.kalman",
+        "normalised_estimation_error_squared": "accel_jax.kalman",
+        "normalised_innovation_squared": "accel_jax.kalman",
+        "rts_smoother": "accel_jax.kalman",
+        "scale_noise_coefficients": "accel_jax.kalman",
+        "simulate_linear_gaussian": "accel_jax.kalman",
+        "ASYMMETRY_RANDOM_FACTOR": "accel_jax.vibration",
+        "ASYMMETRY_SINE_FACTOR": "accel_jax.vibration",
+        "FIT_PARAMETERS": "accel_jax.vibration",
+        "TABLE_COLUMNS": "accel_jax.vibration",
+        "BandSpectrum": "accel_jax.vibration",
+        "CoefficientFit": "accel_jax.vibration",
+        "CompensationSteps": "accel_jax.vibration",
+        "Identifiability": "accel_jax.vibration",
+        "ShakerEstimate": "accel_jax.vibration",
+        "VibrationEnvironment": "accel_jax.vibration",
+        "compensate_in_flight": "accel_jax.vibration",
+        "design_matrix": "accel_jax.vibration",
+        "fit_coefficients": "accel_jax.vibration",
+        "greedy_test_plan": "accel_jax.vibration",
+        "identifiability": "accel_jax.vibration",
+        "mean_abs_gauss": "accel_jax.vibration",
+        "mean_abs_input": "accel_jax.vibration",
+        "mean_abs_sine": "accel_jax.vibration",
+        "mean_indicated_acceleration": "accel_jax.vibration",
+        "paper_deterministic_error": "accel_jax.vibration",
+        "paper_random_error": "accel_jax.vibration",
+        "paper_vibration_error": "accel_jax.vibration",
+        "predict_table": "accel_jax.vibration",
+        "random_rms": "accel_jax.vibration",
+        "read_band_spectrum": "accel_jax.vibration",
+        "read_vibration_table": "accel_jax.vibration",
+        "shaker_vibration_error": "accel_jax.vibration",
+        "synthesize_vibration": "accel_jax.vibration",
+        "time_domain_vibration_error": "accel_jax.vibration",
+        "validate_vibration_table": "accel_jax.vibration",
+        "vibration_error": "accel_jax.vibration",
+        "write_vibration_table": "accel_jax.vibration",
+        "AKS05_RANGES_PPM": "accel_jax.vibration",
+        "PAPER_SHARES": "accel_jax.vibration",
+        "TOLERANCED": "accel_jax.vibration",
+        "ToleranceScenario": "accel_jax.vibration",
+        "cyclone4": "accel_jax.vibration",
+        "error_contributions": "accel_jax.vibration",
+        "gradient_limits": "accel_jax.vibration",
+        "paper_limits": "accel_jax.vibration",
+        "sample_batch": "accel_jax.vibration",
+        "sensitivities": "accel_jax.vibration",
+        "sensitivity_profile": "accel_jax.vibration",
+        "tactical_missile": "accel_jax.vibration",
+        "tolerance_table": "accel_jax.vibration",
+        "unit_vibration_error": "accel_jax.vibration",
+        "within_rms_region": "accel_jax.vibration",
     },
 )
 del _moved_names

@@ -208,14 +208,14 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
 
     # Limits are ratios of O(1e-4 g) budgets to exact sensitivities: float64 for ppm.
     jax.config.update("jax_enable_x64", True)
-    from . import (
-        StaticTransferFunction,
+    from . import StaticTransferFunction
+    from .report.text.tolerance import implausible_option, tolerance_json, tolerance_lines
+    from .vibration import (
         ToleranceScenario,
         VibrationEnvironment,
         read_band_spectrum,
         tolerance_table,
     )
-    from .report.text.tolerance import implausible_option, tolerance_json, tolerance_lines
 
     writable(json_out, force, "--json")
     if rms is not None and psd_file is not None:
@@ -370,7 +370,7 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
         export_out = out_dir / f"noise_{_EXPORTS[export_format]}"
     paths = _start("noise", out_dir, force, device, json_out, plot_out, (export_out, "--out"))
     from . import read_csv
-    from . import analyse_static_record, analysis_to_json
+    from .noise import analyse_static_record, analysis_to_json
     from .report.figures.noise import plot_analysis
     from .report.text.noise import ExportRefused, export_text, noise_lines
 

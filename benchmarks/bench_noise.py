@@ -110,14 +110,14 @@ def main(argv=None) -> int:
         print("cold noise…", flush=True)
         result["cold_noise"] = _cold_median([str(cli), "noise", str(csv)], env, args.cold_repeats)
     print("warm selection…", flush=True)
-    full_s, found = _median_time(lambda: aj.select_sensor_noise(x, DT), repeats=2)
+    full_s, found = _median_time(lambda: aj.noise.select_sensor_noise(x, DT), repeats=2)
     result["warm_select_full_s"] = full_s
     result["full_verdict"] = found.verdict
     head = x[:100_000]
-    whittle_s, _ = _median_time(lambda: aj.select_sensor_noise(head, DT))
-    start = aj.NoiseSum((aj.WhiteNoise(5e-3), aj.GaussMarkov(1e-3, 0.1)))
+    whittle_s, _ = _median_time(lambda: aj.noise.select_sensor_noise(head, DT))
+    start = aj.noise.NoiseSum((aj.noise.WhiteNoise(5e-3), aj.noise.GaussMarkov(1e-3, 0.1)))
     exact_s, _ = _median_time(
-        lambda: aj.fit_maximum_likelihood(start, head - head.mean(), DT, throw=False)
+        lambda: aj.noise.fit_maximum_likelihood(start, head - head.mean(), DT, throw=False)
     )
     result["head_1e5"] = {
         "whittle_forward_selection_s": whittle_s,

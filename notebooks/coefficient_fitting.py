@@ -57,15 +57,15 @@ def plan(a_in, vib_amp=0.0, vib_rms=0.0):
 def measure(table):
     """Simulate the test: the exact mean output of the true unit plus measurement noise."""
     out = dict(table)
-    out["a_out"] = np.asarray(aj.predict_table(truth, table)) + NOISE_G * rng.standard_normal(
-        len(table["a_in"])
-    )
+    out["a_out"] = np.asarray(
+        aj.vibration.predict_table(truth, table)
+    ) + NOISE_G * rng.standard_normal(len(table["a_in"]))
     return out
 
 
 # %% [markdown]
 # ## 1. Identifiability of three test plans
-# `aj.identifiability` projects each coefficient's design column on the others: an
+# `aj.vibration.identifiability` projects each coefficient's design column on the others: an
 # unexplained fraction of 0 means the plan cannot tell that coefficient from the rest.
 
 # %%
@@ -78,7 +78,7 @@ plans = {
     ),
 }
 for name, table in plans.items():
-    ident = aj.identifiability(table, noise=NOISE_G)
+    ident = aj.vibration.identifiability(table, noise=NOISE_G)
     cells = ", ".join(
         f"{n}: {'ok' if ok else 'NOT'} ({f:.2g})"
         for n, ok, f in zip(
@@ -97,7 +97,7 @@ for name, table in plans.items():
 
 # %%
 table = measure(plans["tumble + shaker 2/4 g at ±1 g"])
-fit = aj.fit_coefficients(table, noise=NOISE_G)
+fit = aj.vibration.fit_coefficients(table, noise=NOISE_G)
 print(f"{'coefficient':>20} {'true':>10} {'fitted':>10} {'std err':>9} {'z':>6}   [ppm units]")
 z_scores = []
 for name, est, se in zip(

@@ -62,7 +62,7 @@ SINE_FREQUENCY_HZ = 12.0
 RANDOM_RMS_G = None  # e.g. (1.4, 1.4, 1.4) to type the levels directly
 # ... or band PSDs with the mount/sensor response factors η (here the paper's Table 1), one
 # spectrum for every axis; bands must be ascending and must not overlap.
-SPECTRUM = aj.BandSpectrum(
+SPECTRUM = aj.vibration.BandSpectrum(
     f_low=(20.0, 40.0, 80.0, 160.0, 320.0),
     f_high=(40.0, 80.0, 160.0, 320.0, 640.0),
     psd=(0.0165, 0.0185, 0.045, 0.095, 0.12),  # g²/Hz
@@ -88,7 +88,7 @@ if RANDOM_RMS_G is None:
     )
 else:
     random_rms = RANDOM_RMS_G
-environment = aj.VibrationEnvironment(
+environment = aj.vibration.VibrationEnvironment(
     sine_amplitude=SINE_AMPLITUDE_G,
     sine_phase=SINE_PHASE_RAD,
     sine_frequency=SINE_FREQUENCY_HZ,
@@ -96,7 +96,7 @@ environment = aj.VibrationEnvironment(
     random_correlation=RANDOM_CORRELATION,
     random_band=SPECTRUM.band,
 )
-scenario = aj.ToleranceScenario(
+scenario = aj.vibration.ToleranceScenario(
     ADMISSIBLE_ERROR_G,
     float(np.mean(PROFILE_A3_G)),
     environment,
@@ -115,7 +115,7 @@ print(f"δ* = {ADMISSIBLE_ERROR_G:g} g, mean a3 = {float(scenario.mean_accelerat
 
 # %%
 try:
-    aj.BandSpectrum(f_low=(20.0, 30.0), f_high=(40.0, 80.0), psd=(0.01, 0.02))
+    aj.vibration.BandSpectrum(f_low=(20.0, 30.0), f_high=(40.0, 80.0), psd=(0.01, 0.02))
 except ValueError as error:
     print("ValueError:", error)
 
@@ -136,9 +136,9 @@ LIMITS = {
     "k5": ("k5", "ppm/g⁴"),
     "m": ("m31", "ppm/g"),
 }
-paper = aj.paper_limits(scenario)
-grad = aj.gradient_limits(scenario)
-worst = aj.gradient_limits(scenario, over_profile=True)
+paper = aj.vibration.paper_limits(scenario)
+grad = aj.vibration.gradient_limits(scenario)
+worst = aj.vibration.gradient_limits(scenario, over_profile=True)
 table = {
     name: {
         "paper": float(paper[field]) / aj.PPM,
@@ -161,8 +161,8 @@ for name, row in table.items():
 # coefficient, s_k·k (`error_contributions`); the parts add up to the exact vibration error.
 
 # %%
-parts = aj.error_contributions(UNIT, environment, scenario.mean_acceleration)
-total = float(aj.vibration_error(UNIT, environment, scenario.mean_acceleration))
+parts = aj.vibration.error_contributions(UNIT, environment, scenario.mean_acceleration)
+total = float(aj.vibration.vibration_error(UNIT, environment, scenario.mean_acceleration))
 assert abs(sum(float(v) for v in parts.values()) - total) <= 1e-12 * max(abs(total), 1e-12)
 ranked = sorted(parts, key=lambda k: -abs(float(parts[k])))
 unit_ppm = UNIT.as_ppm()
@@ -186,7 +186,7 @@ for name, (field, unit) in LIMITS.items():
     )
 
 # Along the profile: the unit's parts at every instant.
-along = aj.error_contributions(UNIT, environment, scenario.profile_acceleration)
+along = aj.vibration.error_contributions(UNIT, environment, scenario.profile_acceleration)
 along_total = sum(np.asarray(v) for v in along.values())
 i_worst = int(np.argmax(np.abs(along_total)))
 print(
@@ -238,6 +238,6 @@ fig
 # for every entry and why some do not reproduce.
 
 # %%
-reference = aj.paper_limits(aj.cyclone4())
+reference = aj.vibration.paper_limits(aj.vibration.cyclone4())
 print({n: round(float(reference[f]) / aj.PPM, 4) for n, (f, _) in LIMITS.items()})
 assert abs(float(reference["asymmetry"]) / aj.PPM - 430.1) < 0.1

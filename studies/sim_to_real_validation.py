@@ -434,7 +434,7 @@ def _vib_snr(truths: list[dict]) -> list[float]:
         "vib_freq": np.full(plan["a_in"].size, 50.0),
         "a_out": np.zeros(plan["a_in"].size),
     }
-    design = np.asarray(aj.design_matrix(table, _VIB_DESIGN_NAMES))  # g per ppm
+    design = np.asarray(aj.vibration.design_matrix(table, _VIB_DESIGN_NAMES))  # g per ppm
     nominal = design[:, :2]
     out = []
     for truth in truths:
@@ -476,23 +476,25 @@ def _noise_draw(rng: np.random.Generator, effect: str) -> dict:
 
 
 def _noise_model(truth: dict):
-    white = aj.WhiteNoise(truth["white_std_g"])
+    white = aj.noise.WhiteNoise(truth["white_std_g"])
     effect = truth["effect"]
     if effect == "gauss_markov":
-        return aj.NoiseSum((white, aj.GaussMarkov(truth["gm_std_g"], truth["gm_time_s"])))
+        return aj.noise.NoiseSum(
+            (white, aj.noise.GaussMarkov(truth["gm_std_g"], truth["gm_time_s"]))
+        )
     if effect == "exp_cosine":
-        ec = aj.ExponentialCosine(
+        ec = aj.noise.ExponentialCosine(
             truth["ec_std_g"], truth["ec_decay_rate_per_s"], truth["ec_angular_frequency_rad_s"]
         )
-        return aj.NoiseSum((white, ec))
+        return aj.noise.NoiseSum((white, ec))
     if effect == "random_walk":
-        return aj.NoiseSum((white, aj.RandomWalk(truth["rw_intensity_g2_per_s"])))
+        return aj.noise.NoiseSum((white, aj.noise.RandomWalk(truth["rw_intensity_g2_per_s"])))
     return white
 
 
 @eqx.filter_jit
 def _noise_record(model, key):
-    return aj.simulate_noise(model, NOISE_DT, NOISE_SAMPLES, key=key)
+    return aj.noise.simulate_noise(model, NOISE_DT, NOISE_SAMPLES, key=key)
 
 
 def generate_noise(truths: list[dict], seed: int) -> list[NoiseData]:

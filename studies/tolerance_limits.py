@@ -37,9 +37,16 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax import (  # noqa: E402
+from accel_jax import PPM  # noqa: E402
+from accel_jax.report import (  # noqa: E402
+    Figures,
+    provenance,
+    study_main,
+    study_run,
+    write_json_atomic,
+)
+from accel_jax.vibration import (  # noqa: E402
     AKS05_RANGES_PPM,
-    PPM,
     TOLERANCED,
     BandSpectrum,
     cyclone4,
@@ -52,13 +59,6 @@ from accel_jax import (  # noqa: E402
     tactical_missile,
     unit_vibration_error,
     within_rms_region,
-)
-from accel_jax.report import (  # noqa: E402
-    Figures,
-    provenance,
-    study_main,
-    study_run,
-    write_json_atomic,
 )
 
 STUDY = "tolerance_limits"

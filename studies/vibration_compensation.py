@@ -39,18 +39,27 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
 from accel_jax import (  # noqa: E402
-    AKS05_RANGES_PPM,
     PPM,
-    BandSpectrum,
     StaticTransferFunction,
-    VibrationEnvironment,
     basic_error,
+    indicated_acceleration,
+)
+from accel_jax.report import (  # noqa: E402
+    Figures,
+    provenance,
+    study_main,
+    study_run,
+    write_json_atomic,
+)
+from accel_jax.vibration import (  # noqa: E402
+    AKS05_RANGES_PPM,
+    BandSpectrum,
+    VibrationEnvironment,
     compensate_in_flight,
     cyclone4,
     design_matrix,
     fit_coefficients,
     identifiability,
-    indicated_acceleration,
     mean_abs_input,
     paper_deterministic_error,
     paper_limits,
@@ -61,13 +70,6 @@ from accel_jax import (  # noqa: E402
     tactical_missile,
     time_domain_vibration_error,
     vibration_error,
-)
-from accel_jax.report import (  # noqa: E402
-    Figures,
-    provenance,
-    study_main,
-    study_run,
-    write_json_atomic,
 )
 
 STUDY = "vibration_compensation"
@@ -422,8 +424,8 @@ def _plan(a, b, s=0.0) -> dict:
 
 
 def _greedy_plan(grid: dict, J: np.ndarray, target_se: np.ndarray, max_rows: int = 30):
-    """The grid's rows chosen by `aj.greedy_test_plan` (greedy D-optimal), as a table."""
-    chosen, history = aj.greedy_test_plan(J, target_se, max_rows=max_rows)
+    """The grid's rows chosen by `aj.vibration.greedy_test_plan` (greedy D-optimal), as a table."""
+    chosen, history = aj.vibration.greedy_test_plan(J, target_se, max_rows=max_rows)
     return {k: v[chosen] for k, v in grid.items()}, history
 
 

@@ -65,3 +65,38 @@ def test_every_alias_is_in_the_changelog():
             found += 1
             assert f"`{name}`" in changelog and target in changelog, (path.name, name)
     assert found >= 6
+
+
+_NAMESPACES = ("noise", "vibration", "kalman")
+
+
+def _public(module):
+    return {n for n in vars(module) if not n.startswith("_") and n != "annotations"}
+
+
+@pytest.mark.parametrize("namespace", _NAMESPACES)
+def test_a_regrouped_top_level_name_warns_and_is_the_namespace_s_object(namespace):
+    """Every name of `accel_jax.noise` / `.vibration` / `.kalman` was at the top level
+    before 0.2: it still is for one release, with a warning naming its namespace."""
+    import accel_jax
+
+    module = importlib.import_module(f"accel_jax.{namespace}")
+    names = _public(module)
+    assert len(names) >= 14
+    for name in sorted(names):
+        with pytest.warns(DeprecationWarning, match=re.escape(f"accel_jax.{namespace}.{name}")):
+            value = getattr(accel_jax, name)
+        assert value is getattr(module, name), name
+
+
+def test_the_namespaces_and_the_top_level_do_not_overlap():
+    """One home per name: nothing is both at the top level and in a namespace (the aliases
+    are read lazily, so they are not in the top level's own names)."""
+    import accel_jax
+
+    top = _public(accel_jax) - set(_NAMESPACES)
+    homes = {n: _public(importlib.import_module(f"accel_jax.{n}")) for n in _NAMESPACES}
+    for namespace, names in homes.items():
+        assert not names & top, (namespace, sorted(names & top))
+    assert not homes["noise"] & homes["vibration"] and not homes["noise"] & homes["kalman"]
+    assert len(top) < 120, len(top)  # was 209 flat

@@ -101,7 +101,7 @@ def test_vibration_design_is_the_exact_expectation():
         **{c: t * 1e-6 for c, t in zip(vibration_kind.COEFFICIENTS, theta, strict=True)}
     )
     table = {**data.table(), "a_out": np.zeros(data.a_in.size)}
-    exact = np.asarray(aj.predict_table(tf, table)) - data.a_in
+    exact = np.asarray(aj.vibration.predict_table(tf, table)) - data.a_in
     np.testing.assert_allclose(prep["design"] @ theta * 1e-6, exact, rtol=0, atol=1e-13)
     assert len(effect_library("vibration")) == 6
     assert prep["candidates"] == ["nominal", "k2", "k3", "k4", "k5", "asymmetry", "cross_coupling"]
@@ -115,7 +115,9 @@ def test_vibration_design_is_the_exact_expectation():
 def test_vibration_fit_agrees_with_fit_coefficients(vibration_results):
     data, result = vibration_results["k3"]
     table = {**data.table()}
-    reference = aj.fit_coefficients(table, parameters=("bias", "scale_factor_error", "k3"))
+    reference = aj.vibration.fit_coefficients(
+        table, parameters=("bias", "scale_factor_error", "k3")
+    )
     k3 = next(r for r in result.ranking if r["effect"] == "k3")
     assert k3["params"]["k3_ppm_per_g2"] == pytest.approx(
         float(reference.estimate_ppm[2]), rel=1e-7

@@ -178,7 +178,7 @@ def test_bad_input_raises_clear_errors():
 def test_rts_smoother_is_the_dense_gaussian_conditional():
     # Independent check: for a short record, stack x_0..x_{T−1} and z_0..z_{T−1} as one
     # Gaussian (NumPy) and condition on all z: E[x_k | z], Cov[x_k | z].
-    from accel_jax import rts_smoother
+    from accel_jax.kalman import rts_smoother
 
     rng = np.random.default_rng(3)
     n, T = 3, 6
@@ -231,7 +231,7 @@ def test_rts_smoother_on_an_ins_log_is_consistent_and_beats_the_filter():
     # errors x − x̂_{k|T} are N(0, P_{k|T}) (mean NEES ≈ 4, the state dimension) and the
     # smoothed accelerometer-error estimate is closer to the truth than the filtered one (in
     # mean square over logs).
-    from accel_jax import rts_smoother
+    from accel_jax.kalman import rts_smoother
 
     model = CHANNEL.discretise(1.0)
     p0 = ins_initial_covariance(CHANNEL)

@@ -134,7 +134,7 @@ def test_bootstrap_simulators_have_their_columns_allan_variance():
     np.testing.assert_allclose(ramp, taus**2 / 2, rtol=1e-8)
 
     x = at._simulate({"N": 1e-3, "B": 1e-3, "K": 1e-4}, n, DT, rng, 1)
-    _, dev = aj.allan_deviation(x[0], DT, sizes)
+    _, dev = aj.noise.allan_deviation(x[0], DT, sizes)
     np.testing.assert_allclose(at._batched_avar(x, DT, sizes)[0], np.asarray(dev) ** 2, rtol=1e-12)
 
 
@@ -206,7 +206,7 @@ def test_intervals_cover_the_truth_and_absent_terms_are_not_supported():
         for i in range(per_composite):
             seed = 1000 * k + i
             x = _truth_record(2**14, DT, np.random.default_rng(seed), **truth)
-            fit = aj.fit_allan_terms(x, DT, n_bootstrap=79, seed=seed + 500)
+            fit = aj.noise.fit_allan_terms(x, DT, n_bootstrap=79, seed=seed + 500)
             for t, term in fit.terms.items():
                 if t in truth:
                     present[t] += 1
@@ -238,7 +238,7 @@ def test_point_estimate_agrees_with_reading_the_curve_and_allan_coefficients():
     n, true_n, true_k = 2**16, 1e-4, 1e-3
     rng = np.random.default_rng(21)
     x = _truth_record(n, DT, rng, N=true_n, K=true_k)
-    fit = aj.fit_allan_terms(x, DT, seed=1)
+    fit = aj.noise.fit_allan_terms(x, DT, seed=1)
     terms = fit.terms
     assert terms["N"]["supported"] and terms["K"]["supported"]
     assert not terms["B"]["supported"] and terms["B"]["value"] is None
@@ -248,7 +248,7 @@ def test_point_estimate_agrees_with_reading_the_curve_and_allan_coefficients():
     assert terms["N"]["value"] == pytest.approx(true_n, rel=0.02)
     read_k = fit.deviation[-1] * math.sqrt(3 / fit.taus[-1])
     assert terms["K"]["value"] == pytest.approx(read_k, rel=0.35)
-    other = aj.allan_coefficients(fit.taus, fit.deviation)
+    other = aj.noise.allan_coefficients(fit.taus, fit.deviation)
     assert terms["N"]["value"] == pytest.approx(float(other.white), rel=0.03)
     assert terms["K"]["value"] == pytest.approx(float(other.random_walk), rel=0.2)
     for t in ("N", "K"):
@@ -261,8 +261,8 @@ def test_result_fields_units_model_curve_and_float64():
     a terms subset fits only those; the result is the same with JAX's x64 off (float64
     inside, the caller's setting untouched)."""
     x = _truth_record(2**13, DT, np.random.default_rng(8), N=1e-4, K=1e-3)
-    fit = aj.fit_allan_terms(x, DT, n_bootstrap=99, seed=2)
-    assert isinstance(fit, aj.AllanTerms)
+    fit = aj.noise.fit_allan_terms(x, DT, n_bootstrap=99, seed=2)
+    assert isinstance(fit, aj.noise.AllanTerms)
     assert set(fit.terms) == set(TERMS) and fit.n_bootstrap == 99 and fit.confidence == 0.95
     assert fit.n_samples == 2**13 and "bootstrap" in fit.method
     for t, term in fit.terms.items():
@@ -279,13 +279,13 @@ def test_result_fields_units_model_curve_and_float64():
     np.testing.assert_allclose(
         fit.deviation_at(far), np.sqrt(_ieee_avar(far, coefficients)), rtol=1e-3
     )
-    subset = aj.fit_allan_terms(x, DT, n_bootstrap=99, seed=2, terms=("K", "N"))
+    subset = aj.noise.fit_allan_terms(x, DT, n_bootstrap=99, seed=2, terms=("K", "N"))
     assert list(subset.terms) == ["N", "K"]
     assert subset.terms["N"]["supported"] and subset.terms["K"]["supported"]
 
     before = jax.config.jax_enable_x64
     with jax.enable_x64(False):
-        low = aj.fit_allan_terms(x, DT, n_bootstrap=99, seed=2)
+        low = aj.noise.fit_allan_terms(x, DT, n_bootstrap=99, seed=2)
         assert not jax.config.jax_enable_x64
     assert jax.config.jax_enable_x64 == before
     assert low.terms == fit.terms
@@ -319,4 +319,4 @@ def test_bad_input_raises_value_error():
         record = arguments.pop("record")
         dt = arguments.pop("sample_interval")
         with pytest.raises(ValueError, match=match):
-            aj.fit_allan_terms(record, dt, **arguments)
+            aj.noise.fit_allan_terms(record, dt, **arguments)

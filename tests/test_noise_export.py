@@ -241,7 +241,7 @@ def test_density_is_the_allan_deviation_of_a_white_record():
     x = np.random.default_rng(7).normal(0.0, sigma_d, n)
     density = discrete_to_density(sigma_d, fs)
     assert density == pytest.approx(0.001, rel=1e-14)
-    taus, adev = aj.allan_deviation(x, 1 / fs, [1, 10, 100])
+    taus, adev = aj.noise.allan_deviation(x, 1 / fs, [1, 10, 100])
     taus, adev = np.asarray(taus), np.asarray(adev)
     assert adev[0] == pytest.approx(sigma_d, rel=0.02)
     np.testing.assert_allclose(adev * np.sqrt(taus), density, rtol=0.05)
@@ -261,7 +261,7 @@ def test_random_walk_is_the_allan_slope_of_a_simulated_bias():
     # b_{k+1} = b_k + K√Δt ξ: ADEV(τ) = K √(τ/3) for τ ≫ Δt.
     fs, k, n = 10.0, 1e-3, 100_000
     steps = np.random.default_rng(3).normal(0.0, random_walk_to_discrete(k, fs), n)
-    taus, adev = aj.allan_deviation(np.cumsum(steps), 1 / fs, [100, 300, 1000])
+    taus, adev = aj.noise.allan_deviation(np.cumsum(steps), 1 / fs, [100, 300, 1000])
     np.testing.assert_allclose(np.asarray(adev), k * np.sqrt(np.asarray(taus) / 3), rtol=0.3)
 
 
@@ -345,4 +345,4 @@ def test_bad_export_input():
 
 def test_public_names():
     for name in ("AccelNoiseTerms", "to_kalibr", "kalibr_yaml", "to_gnss_ins_sim", "to_ieee"):
-        assert getattr(aj, name) is getattr(aj._noise, name)
+        assert getattr(aj.noise, name) is getattr(aj._noise, name)

@@ -106,7 +106,7 @@ _LAYERS = {
         "_sweep",
     ),
     "diagnosis": ("diagnose",),
-    "entry": ("cli", "report", ""),
+    "entry": ("cli", "report", "", "noise", "vibration", "kalman"),
 }
 _SAME_LAYER = {("_noise", "_kalman"), ("_tolerance", "_vibration"), ("_identify", "_noise")}
 # Upward imports inside functions, each for one name: the package version for provenance,

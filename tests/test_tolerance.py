@@ -184,8 +184,8 @@ def test_asymmetry_exact_counterparts_of_the_paper_factors():
     from accel_jax._vibration.paper import ASYMMETRY_RANDOM_FACTOR, ASYMMETRY_SINE_FACTOR
 
     b, sigma = 0.8, 1.3
-    sine = aj.VibrationEnvironment(sine_amplitude=b, sine_frequency=20.0)
-    noise = aj.VibrationEnvironment(random_std=sigma, random_band=(20.0, 200.0))
+    sine = aj.vibration.VibrationEnvironment(sine_amplitude=b, sine_frequency=20.0)
+    noise = aj.vibration.VibrationEnvironment(random_std=sigma, random_band=(20.0, 200.0))
     assert float(sensitivities(sine, 0.0).asymmetry) == pytest.approx(b / np.pi, rel=1e-6)
     assert float(sensitivities(noise, 0.0).asymmetry) == pytest.approx(
         0.5 * np.sqrt(2 / np.pi) * sigma, rel=1e-6

@@ -1,0 +1,24 @@
+"""The linear Kalman filter and smoother, their consistency statistics, and the
+single-channel INS test bed on which a wrong sensor-noise model makes the filter diverge
+(docs/models.md §4).
+
+    import accel_jax.kalman as ak
+    channel = ak.INSChannel(accel_sigma=1e-3, accel_correlation_time=300.0, gyro_sigma=1e-7,
+                            gyro_correlation_time=3600.0, velocity_noise=0.1)
+"""
+
+# The public names of this namespace (the modules that define them are private).
+from ._kalman import EARTH_RADIUS as EARTH_RADIUS
+from ._kalman import ConsistencyTrial as ConsistencyTrial
+from ._kalman import FilterOutput as FilterOutput
+from ._kalman import INSChannel as INSChannel
+from ._kalman import LinearGaussianModel as LinearGaussianModel
+from ._kalman import SmootherOutput as SmootherOutput
+from ._kalman import ins_consistency_trial as ins_consistency_trial
+from ._kalman import ins_initial_covariance as ins_initial_covariance
+from ._kalman import kalman_filter as kalman_filter
+from ._kalman import normalised_estimation_error_squared as normalised_estimation_error_squared
+from ._kalman import normalised_innovation_squared as normalised_innovation_squared
+from ._kalman import rts_smoother as rts_smoother
+from ._kalman import scale_noise_coefficients as scale_noise_coefficients
+from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
