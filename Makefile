@@ -23,8 +23,10 @@ test: $(STAMP)
 
 # The project's own checks (not needed to use the package), their tools pinned in
 # requirements-dev.lock; CI runs both after the tests. `docs`: the documentation site
-# (docs/ and the API reference from the docstrings) with warnings as errors. `typecheck`:
-# pyright in its standard mode on accel_jax/ ([tool.pyright] in pyproject.toml).
+# (docs/, the API reference from the docstrings, and notebooks/*.py executed by the build in
+# a Jupyter kernel from a temporary folder, figures included: mkdocs-jupyter and
+# mkdocs_hooks.py, about a minute) with warnings as errors. `typecheck`: pyright in its
+# standard mode on accel_jax/ ([tool.pyright] in pyproject.toml).
 DEV_STAMP := $(VENV)/.dev-installed
 
 $(DEV_STAMP): $(STAMP) requirements-dev.lock
