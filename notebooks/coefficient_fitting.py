@@ -27,9 +27,6 @@
 import jax
 
 jax.config.update("jax_enable_x64", True)
-import matplotlib
-
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 

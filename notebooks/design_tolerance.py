@@ -228,7 +228,6 @@ axes[1].legend(fontsize=8)
 axes[1].grid(alpha=0.3)
 fig.tight_layout()
 save_figure_atomic(fig, "design_tolerance.png")
-fig
 
 # %% [markdown]
 # ## Check against the paper (Cyclone-4, Table 2)

@@ -28,9 +28,6 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import equinox as eqx
 import jax.numpy as jnp
-import matplotlib
-
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 

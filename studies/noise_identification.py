@@ -41,10 +41,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax import (  # noqa: E402
+from accel_jax._runtime import fast_compile  # noqa: E402
+from accel_jax.kalman import (  # noqa: E402
+    INSChannel,
+    ins_consistency_trial,
+    ins_initial_covariance,
+    kalman_filter,
+    rts_smoother,
+    scale_noise_coefficients,
+    simulate_linear_gaussian,
+)
+from accel_jax.noise import (  # noqa: E402
     ExponentialCosine,
     GaussMarkov,
-    INSChannel,
     NoiseFitResult,
     NoiseSum,
     RandomWalk,
@@ -58,16 +67,9 @@ from accel_jax import (  # noqa: E402
     fit_exp_cosine_paper,
     fit_gauss_markov_paper,
     fit_maximum_likelihood,
-    ins_consistency_trial,
-    ins_initial_covariance,
-    kalman_filter,
-    rts_smoother,
-    scale_noise_coefficients,
     select_noise_model,
-    simulate_linear_gaussian,
     simulate_noise,
 )
-from accel_jax._runtime import fast_compile  # noqa: E402
 from accel_jax.report import (  # noqa: E402
     Figures,
     provenance,

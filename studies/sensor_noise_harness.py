@@ -1,4 +1,4 @@
-"""Blind harness of the real-sensor noise effects (`accel_jax.select_sensor_noise`).
+"""Blind harness of the real-sensor noise effects (`accel_jax.noise.select_sensor_noise`).
 
 Records are drawn by `studies/noise_truth.py` (NumPy/SciPy only, written apart from the
 diagnosing code) with the conventions a user's records come with: sample rates of 50 to
@@ -338,7 +338,7 @@ def run_one(job, n: int) -> dict:
     x = noise_truth.record(rng, n, truth["dt"], truth["spec"])
     started = time.perf_counter()
     try:
-        found = aj.select_sensor_noise(x, truth["dt"])
+        found = aj.noise.select_sensor_noise(x, truth["dt"])
     except Exception as error:  # a failure is a result: recorded, not hidden
         return {
             "truth": truth["facts"],

@@ -14,9 +14,9 @@ from click.testing import CliRunner
 
 import accel_jax as aj
 from accel_jax import report
-from accel_jax.report.text import identification
 from accel_jax._identify.step_record import identify_step_record
 from accel_jax.cli import main
+from accel_jax.report.text import identification
 
 N, PRE = 5000, 200  # samples per record (one length: one compilation), at rest before the step
 
@@ -125,7 +125,7 @@ def test_identify_reports_the_fit_as_system_identification_users_read_it(records
 
     # Whiteness: the reported Ljung-Box test is that of the independent residual.
     whiteness = quality["whiteness"]
-    independent = aj.ljung_box(y - model, lags=whiteness["lags"])
+    independent = aj.noise.ljung_box(y - model, lags=whiteness["lags"])
     assert whiteness["p_value"] == pytest.approx(independent["p_value"], rel=1e-3, abs=1e-6)
     assert whiteness["white"] and whiteness["p_value"] >= 0.05
     line = next(line for line in lines if "residual whiteness: Ljung-Box" in line)
@@ -204,6 +204,8 @@ def test_report_without_a_fit(records):
     del result["traces"]["model_V"]
     text = report.identification_summary(result)
     assert "least-squares fit failed" in text and "δK_a" in text
-    assert identification.parameter_table(result) == [] and identification.damping_note(result) is None
+    assert (
+        identification.parameter_table(result) == [] and identification.damping_note(result) is None
+    )
     figure = report.identification_figure(result, title="no fit")
     assert len(figure.axes) == 3

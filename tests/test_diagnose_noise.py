@@ -33,17 +33,23 @@ DT = 0.01
 N = 1500
 WHITE = 2e-5  # g
 NOISE_CASES = {
-    "none": aj.WhiteNoise(WHITE),
-    "gauss_markov": aj.NoiseSum((aj.WhiteNoise(WHITE), aj.GaussMarkov(WHITE, 0.1))),
-    "exp_cosine": aj.NoiseSum((aj.WhiteNoise(WHITE), aj.ExponentialCosine(WHITE, 4.0, 50.0))),
-    "random_walk": aj.NoiseSum((aj.WhiteNoise(WHITE), aj.RandomWalk((4 * WHITE) ** 2 / (N * DT)))),
+    "none": aj.noise.WhiteNoise(WHITE),
+    "gauss_markov": aj.noise.NoiseSum(
+        (aj.noise.WhiteNoise(WHITE), aj.noise.GaussMarkov(WHITE, 0.1))
+    ),
+    "exp_cosine": aj.noise.NoiseSum(
+        (aj.noise.WhiteNoise(WHITE), aj.noise.ExponentialCosine(WHITE, 4.0, 50.0))
+    ),
+    "random_walk": aj.noise.NoiseSum(
+        (aj.noise.WhiteNoise(WHITE), aj.noise.RandomWalk((4 * WHITE) ** 2 / (N * DT)))
+    ),
 }
 SCHEMA = {"kind", "verdict", "ranking", "gap", "where", "refit"}
 MPU6050 = Path(__file__).parent / "data" / "mpu6050_static_az_counts.txt.gz"
 
 
 def _record(model, seed) -> NoiseData:
-    x = np.asarray(aj.simulate_noise(model, DT, N, key=jax.random.key(seed))) + 1.0003
+    x = np.asarray(aj.noise.simulate_noise(model, DT, N, key=jax.random.key(seed))) + 1.0003
     return NoiseData(np.arange(N) * DT, x)
 
 
@@ -68,8 +74,12 @@ def test_noise_filter_matches_the_generic_exact_likelihood():
     )
     _, _, terms = noise_fit.filter_terms(jnp.asarray(white**2), parts, c, diffuse)
     reference = log_likelihood(
-        aj.NoiseSum(
-            (aj.WhiteNoise(white), aj.ExponentialCosine(sc, alpha, beta), aj.RandomWalk(q))
+        aj.noise.NoiseSum(
+            (
+                aj.noise.WhiteNoise(white),
+                aj.noise.ExponentialCosine(sc, alpha, beta),
+                aj.noise.RandomWalk(q),
+            )
         ),
         x,
         DT,
@@ -79,7 +89,15 @@ def test_noise_filter_matches_the_generic_exact_likelihood():
     parts = eqx.tree_at(lambda p: p.rotation, parts, jnp.asarray(0.0))
     _, _, terms = noise_fit.filter_terms(jnp.asarray(white**2), parts, c, diffuse)
     reference = log_likelihood(
-        aj.NoiseSum((aj.WhiteNoise(white), aj.GaussMarkov(sc, 1 / alpha), aj.RandomWalk(q))), x, DT
+        aj.noise.NoiseSum(
+            (
+                aj.noise.WhiteNoise(white),
+                aj.noise.GaussMarkov(sc, 1 / alpha),
+                aj.noise.RandomWalk(q),
+            )
+        ),
+        x,
+        DT,
     )
     assert float(jnp.sum(terms[1:])) == pytest.approx(float(reference), rel=1e-10)
 
@@ -132,8 +150,8 @@ def test_fitted_model_intervals_cover_the_truth():
     against gross errors (a variance instead of a standard deviation, a missing factor n):
     intervals 1.5× too narrow (coverage 81 %) still pass it with probability 0.7."""
     truth = {"white_sigma_g": WHITE, "sigma_g": 1.5 * WHITE, "correlation_time_s": 0.1}
-    model = aj.NoiseSum(
-        (aj.WhiteNoise(truth["white_sigma_g"]), aj.GaussMarkov(truth["sigma_g"], 0.1))
+    model = aj.noise.NoiseSum(
+        (aj.noise.WhiteNoise(truth["white_sigma_g"]), aj.noise.GaussMarkov(truth["sigma_g"], 0.1))
     )
     results = diagnose_many([_record(model, seed=500 + i) for i in range(24)])
     hits = {name: 0 for name in truth}

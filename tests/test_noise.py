@@ -254,7 +254,7 @@ def test_model_validation():
 
 
 def test_ljung_box_is_the_standard_statistic_with_fitted_parameters_removed():
-    """One Ljung–Box for the library (`aj.ljung_box`, the diagnosis's too): Q from the
+    """One Ljung–Box for the library (`aj.noise.ljung_box`, the diagnosis's too): Q from the
     standard autocorrelation r_k = Σ e_t e_{t−k}/Σ e_t² (checked against a direct sum),
     χ²(L − p) for p fitted parameters (scipy)."""
     from scipy import stats
@@ -262,16 +262,16 @@ def test_ljung_box_is_the_standard_statistic_with_fitted_parameters_removed():
     import accel_jax as aj
     from accel_jax.diagnose import ljung_box as diagnose_ljung_box
 
-    assert diagnose_ljung_box is aj.ljung_box
+    assert diagnose_ljung_box is aj.noise.ljung_box
     rng = np.random.default_rng(4)
     e = rng.normal(size=600) + 3.0
-    result = aj.ljung_box(e, 12, 3)
+    result = aj.noise.ljung_box(e, 12, 3)
     d = e - e.mean()
     r = [np.sum(d[k:] * d[:-k]) / np.sum(d * d) for k in range(1, 13)]
     q = 600 * 602 * sum(rk**2 / (600 - k) for k, rk in enumerate(r, start=1))
     assert result["statistic"] == pytest.approx(q, rel=1e-12)
     assert result["p_value"] == pytest.approx(stats.chi2.sf(q, 9), rel=1e-8)
-    assert aj.ljung_box(np.ones(100))["p_value"] == 1.0
+    assert aj.noise.ljung_box(np.ones(100))["p_value"] == 1.0
 
 
 def test_allan_deviation_intervals_are_allantools_and_cover_the_truth():
@@ -286,7 +286,7 @@ def test_allan_deviation_intervals_are_allantools_and_cover_the_truth():
     dt, sigma = 0.01, 2e-3
     rng = np.random.default_rng(11)
     x = rng.normal(size=20000) * sigma
-    adev = aj.allan_deviation_intervals(x, dt)
+    adev = aj.noise.allan_deviation_intervals(x, dt)
     identified = ~np.isnan(adev.alpha)  # where allantools can tell the noise (≥ ~30 clusters)
     assert identified.sum() >= 8
     for m, dev, lo, hi in zip(
@@ -303,7 +303,7 @@ def test_allan_deviation_intervals_are_allantools_and_cover_the_truth():
     covered = total = 0
     for seed in range(20):
         x = np.random.default_rng(100 + seed).normal(size=20000) * sigma
-        a = aj.allan_deviation_intervals(x, dt)
+        a = aj.noise.allan_deviation_intervals(x, dt)
         truth = sigma * np.sqrt(dt / a.taus)
         covered += int(np.sum((a.lower <= truth) & (truth <= a.upper)))
         total += truth.size
@@ -315,9 +315,9 @@ def test_allan_deviation_intervals_bad_input():
     import accel_jax as aj
 
     with pytest.raises(ValueError, match="too short"):
-        aj.allan_deviation_intervals(np.random.default_rng(0).normal(size=12), 0.01)
+        aj.noise.allan_deviation_intervals(np.random.default_rng(0).normal(size=12), 0.01)
     with pytest.raises(ValueError, match="confidence"):
-        aj.allan_deviation_intervals(
+        aj.noise.allan_deviation_intervals(
             np.random.default_rng(0).normal(size=1000), 0.01, confidence=1.5
         )
 
@@ -326,9 +326,9 @@ def test_ljung_box_refuses_non_finite_or_tiny_residuals():
     import accel_jax as aj
 
     with pytest.raises(ValueError, match="non-finite"):
-        aj.ljung_box(np.array([1.0, np.nan, 2.0] * 50))
+        aj.noise.ljung_box(np.array([1.0, np.nan, 2.0] * 50))
     with pytest.raises(ValueError, match="at least 4"):
-        aj.ljung_box(np.array([1.0, 2.0]))
+        aj.noise.ljung_box(np.array([1.0, 2.0]))
 
 
 def test_allan_deviation_intervals_on_a_drift_like_record():
@@ -337,7 +337,7 @@ def test_allan_deviation_intervals_on_a_drift_like_record():
     import accel_jax as aj
 
     x = np.cumsum(np.cumsum(np.random.default_rng(2).normal(size=4000)))
-    adev = aj.allan_deviation_intervals(x, 0.01)
+    adev = aj.noise.allan_deviation_intervals(x, 0.01)
     assert np.nanmax(adev.alpha) <= -3
     assert np.all(np.isfinite(adev.edf)) and np.all(adev.edf > 0)
     assert np.all((adev.lower <= adev.deviation) & (adev.deviation <= adev.upper))

@@ -93,7 +93,7 @@ def test_flicker_convention_matches_the_allan_floor():
     taus = []
     for _ in range(20):
         x = noise_truth.flicker(rng, 2**16, dt, b)
-        _, dev = aj.allan_deviation(x, dt, [64, 128, 256])
+        _, dev = aj.noise.allan_deviation(x, dt, [64, 128, 256])
         taus.append(np.asarray(dev))
     floor = np.sqrt(np.mean(np.square(taus), axis=0))
     assert floor == pytest.approx(math.sqrt(2 * math.log(2) / math.pi) * b, rel=0.08)
@@ -102,15 +102,15 @@ def test_flicker_convention_matches_the_allan_floor():
 def test_detect_quantization():
     rng = np.random.default_rng(3)
     x = rng.normal(size=5000) * 2e-3 + 0.98
-    assert aj.detect_quantization(x) is None
+    assert aj.noise.detect_quantization(x) is None
     q, offset = 3.33e-3, 1.1e-4
-    grid = aj.detect_quantization(np.round((x - offset) / q) * q + offset)
+    grid = aj.noise.detect_quantization(np.round((x - offset) / q) * q + offset)
     assert grid["step"] == pytest.approx(q, rel=1e-9)
     # a record printed with 5 decimals lies on a 1e-5 grid (σ is 200 steps): found, and
     # reported as the record's resolution, not named as an effect
     printed = np.round(x, 5)
-    assert aj.detect_quantization(printed)["step"] == pytest.approx(1e-5, rel=1e-6)
-    found = aj.select_sensor_noise(printed[:4000], 0.01)
+    assert aj.noise.detect_quantization(printed)["step"] == pytest.approx(1e-5, rel=1e-6)
+    found = aj.noise.select_sensor_noise(printed[:4000], 0.01)
     assert "quantization" not in found.effects
     assert found.quantization["noise_share_of_white"] < 1e-3
 
@@ -118,7 +118,7 @@ def test_detect_quantization():
 def test_select_white_record_is_none():
     rng = np.random.default_rng(4)
     x = noise_truth.record(rng, 6000, 0.005, {"white": 3e-4, "level": -0.97})
-    found = aj.select_sensor_noise(x, 0.005)
+    found = aj.noise.select_sensor_noise(x, 0.005)
     assert found.verdict == "none", found.steps
     assert found.steps[0]["model"] == "white"
 
@@ -135,7 +135,7 @@ def test_select_composite_record():
         "flicker": 1e-3,
         "level": 1.0,
     }
-    found = aj.select_sensor_noise(noise_truth.record(rng, 20000, 0.01, truth), 0.01)
+    found = aj.noise.select_sensor_noise(noise_truth.record(rng, 20000, 0.01, truth), 0.01)
     assert {"sinusoid", "quantization", "bandlimit", "flicker"} <= set(found.effects)
     line = found.parameters["sinusoid"][0]["frequency_Hz"]
     assert line == pytest.approx(0.56, rel=0.01)
@@ -156,7 +156,7 @@ def test_fits_on_threads_give_the_same_selection(monkeypatch):
     found = {}
     for cores in (1, 2):
         monkeypatch.setattr(sensor_model, "_cores", lambda cores=cores: cores)
-        found[cores] = aj.select_sensor_noise(x, 0.01)
+        found[cores] = aj.noise.select_sensor_noise(x, 0.01)
     assert found[1].verdict == found[2].verdict and "gauss_markov" in found[1].effects
     assert found[1].steps == found[2].steps
     assert repr(found[1].parameters) == repr(found[2].parameters)
@@ -184,7 +184,7 @@ def test_startup_transient_judged_in_the_time_domain_and_checked_backward():
     found = {}
     for i, (name, truth) in enumerate(cases.items()):
         rng = np.random.default_rng(40 + i)
-        found[name] = aj.select_sensor_noise(noise_truth.record(rng, n, dt, truth), dt)
+        found[name] = aj.noise.select_sensor_noise(noise_truth.record(rng, n, dt, truth), dt)
     assert found["alone"].verdict == "startup_transient", found["alone"].steps
     assert set(found["under_a_walk"].effects) == {"random_walk", "startup_transient"}
     assert found["walk_only"].verdict == "random_walk", found["walk_only"].steps
@@ -208,7 +208,9 @@ def test_backward_check_removes_an_effect_the_data_do_not_hold():
     floor = 1e-9 * rec.variance
     train, held = rec.grams((), None)
     log_j = math.log(train.n_bins + held.n_bins)
-    padded = sensor_model._evaluate(rec, floor, ("gauss_markov", "random_walk", "flicker"), (), None)
+    padded = sensor_model._evaluate(
+        rec, floor, ("gauss_markov", "random_walk", "flicker"), (), None
+    )
     model, removed = sensor_refine._backward(rec, floor, padded, log_j, sensor.EVIDENCE)
     assert model.names == ("gauss_markov",)
     assert {r["effect"] for r in removed} == {"random_walk", "flicker"}
@@ -241,7 +243,7 @@ def test_exchange_puts_the_better_low_frequency_effect_in_place_and_reports_ties
     rng = np.random.default_rng(1623387756)
     truth = harness.draw(rng, effects, 10000)
     x = noise_truth.record(rng, 10000, truth["dt"], truth["spec"])
-    found = aj.select_sensor_noise(x, truth["dt"])
+    found = aj.noise.select_sensor_noise(x, truth["dt"])
     ties = found.held_out["ties"]
     assert ties, found.steps
     for tie in ties:
@@ -266,7 +268,7 @@ def test_a_failed_fit_does_not_scramble_the_ranking():
     rng = np.random.default_rng(158690399)
     truth = harness.draw(rng, ("startup_transient",), 10000)
     x = noise_truth.record(rng, 10000, truth["dt"], truth["spec"])
-    found = aj.select_sensor_noise(x, truth["dt"])
+    found = aj.noise.select_sensor_noise(x, truth["dt"])
     assert found.verdict == "startup_transient", found.steps
     amplitude, tau = truth["spec"]["transient"]
     assert found.parameters["startup_transient"]["amplitude"] == pytest.approx(amplitude, rel=0.1)
@@ -279,7 +281,9 @@ def test_held_out_check_refuses_a_consistent_loss_not_a_scattered_one():
     from accel_jax._noise import sensor_model
 
     def model(terms):
-        return sensor_model._Model((), (), None, np.zeros(1), 0.0, float(np.sum(terms)), terms, True)
+        return sensor_model._Model(
+            (), (), None, np.zeros(1), 0.0, float(np.sum(terms)), terms, True
+        )
 
     rng = np.random.default_rng(3)
     parent = model(np.zeros(1000))
@@ -303,7 +307,7 @@ def test_flicker_named_though_its_held_out_gain_is_negative():
     rng = np.random.default_rng(1450924183)
     truth = harness.draw(rng, ("flicker",), 10000)
     x = noise_truth.record(rng, 10000, truth["dt"], truth["spec"])
-    found = aj.select_sensor_noise(x, truth["dt"])
+    found = aj.noise.select_sensor_noise(x, truth["dt"])
     assert found.verdict == "flicker", found.steps
     step = found.steps[1]
     assert step["held_out_gain"] < 0
@@ -318,7 +322,7 @@ def test_outside_the_library_is_unexplained():
     n, dt = 8000, 0.01
     t = np.arange(n) * dt
     x = 1e-3 * rng.normal(size=n) + 2e-3 * np.sign(np.sin(2 * np.pi * 3.7 * t))
-    found = aj.select_sensor_noise(x, dt, max_lines=1)
+    found = aj.noise.select_sensor_noise(x, dt, max_lines=1)
     assert found.verdict != "none"
     assert found.unexplained
 
@@ -330,11 +334,11 @@ def test_whittle_agrees_with_exact_likelihood():
     rng = np.random.default_rng(7)
     dt = 0.01
     x = noise_truth.record(rng, 6000, dt, {"white": 1e-3, "gauss_markov": (1.5e-3, 0.08)})
-    found = aj.select_sensor_noise(x, dt)
+    found = aj.noise.select_sensor_noise(x, dt)
     assert found.effects == ("gauss_markov",)
-    start = aj.NoiseSum((aj.WhiteNoise(1e-3), aj.GaussMarkov(1e-3, 0.05)))
+    start = aj.noise.NoiseSum((aj.noise.WhiteNoise(1e-3), aj.noise.GaussMarkov(1e-3, 0.05)))
     split = int(round(2 / 3 * x.size))  # the selection fits the training part
-    exact = aj.fit_maximum_likelihood(start, x[:split] - x[:split].mean(), dt)
+    exact = aj.noise.fit_maximum_likelihood(start, x[:split] - x[:split].mean(), dt)
     white, gm = exact.model.components
     whittle = found.parameters
     assert whittle["white_sigma"] == pytest.approx(float(white.sigma), rel=0.1)
@@ -353,11 +357,11 @@ def test_whittle_agrees_with_exact_likelihood():
 )
 def test_bad_input(bad, match):
     with pytest.raises(ValueError, match=match):
-        aj.select_sensor_noise(bad, 0.01)
+        aj.noise.select_sensor_noise(bad, 0.01)
     with pytest.raises(ValueError, match="no noise"):
-        aj.select_sensor_noise(np.arange(200.0) * 1e-3, 0.01)
+        aj.noise.select_sensor_noise(np.arange(200.0) * 1e-3, 0.01)
     with pytest.raises(ValueError, match="sample_interval"):
-        aj.select_sensor_noise(np.random.default_rng(0).normal(size=100), -1.0)
+        aj.noise.select_sensor_noise(np.random.default_rng(0).normal(size=100), -1.0)
 
 
 def test_a_linear_drift_is_not_none():
@@ -368,11 +372,11 @@ def test_a_linear_drift_is_not_none():
     n, dt = 8000, 0.01
     t = np.arange(n) * dt
     white = -1 + 2e-3 * rng.normal(size=n)
-    drifting = aj.select_sensor_noise(white + 0.02 * t / t[-1], dt)
+    drifting = aj.noise.select_sensor_noise(white + 0.02 * t / t[-1], dt)
     assert drifting.unexplained and drifting.verdict != "none"
     assert drifting.held_out["drift"]["slope_per_s"] == pytest.approx(0.02 / t[-1], rel=0.1)
     assert drifting.held_out["level_shifts"] == []  # a ramp is not a step
-    assert aj.select_sensor_noise(white, dt).verdict == "none"
+    assert aj.noise.select_sensor_noise(white, dt).verdict == "none"
 
 
 def test_haar_variance_of_the_model_matches_monte_carlo():
@@ -386,7 +390,9 @@ def test_haar_variance_of_the_model_matches_monte_carlo():
     white, q, sigma_gm, tau = 1.0, 0.01, 2.0, 20.0
     z[0], z[6] = math.log(white**2), math.log(q)
     z[1], z[2] = math.log(sigma_gm**2), math.log(tau)
-    model = sensor_model._Model(("random_walk", "gauss_markov"), (), None, z, 0.0, 0.0, np.zeros(1), True)
+    model = sensor_model._Model(
+        ("random_walk", "gauss_markov"), (), None, z, 0.0, 0.0, np.zeros(1), True
+    )
     v = sensor_model._variogram(model, 0.0, 512)
     # white noise of unit variance (V(h) = 1 for h ≥ 1): 2σ²/w
     assert sensor_screens._haar_variance(np.r_[0.0, np.ones(511)], 8) == pytest.approx(2 / 8)
@@ -416,27 +422,27 @@ def test_a_level_shift_is_unexplained_not_a_random_walk():
     n, dt = 8000, 0.01
     k = np.arange(n)
     white = 2e-3 * rng.normal(size=n)
-    stepped = aj.select_sensor_noise(-(0.3 + white + 4e-3 * (k >= n // 4)), dt)
+    stepped = aj.noise.select_sensor_noise(-(0.3 + white + 4e-3 * (k >= n // 4)), dt)
     assert stepped.unexplained and "random_walk" not in stepped.effects, stepped.verdict
     (shift,) = stepped.held_out["level_shifts"]
     assert shift["time_s"] == pytest.approx(n // 4 * dt, abs=0.1)
     assert shift["size"] == pytest.approx(-4e-3, rel=0.15)
-    walk = aj.select_sensor_noise(white + np.cumsum(1e-4 * rng.normal(size=n)), dt)
+    walk = aj.noise.select_sensor_noise(white + np.cumsum(1e-4 * rng.normal(size=n)), dt)
     assert "random_walk" in walk.effects and walk.held_out["level_shifts"] == []
     test = walk.held_out["level_shift_test"]
     assert abs(test["z"]) < test["critical_z"]
     grid = np.round((white + 2e-3 * (k >= n // 2)) / 1e-3) * 1e-3
-    quantised = aj.select_sensor_noise(grid, dt)
+    quantised = aj.noise.select_sensor_noise(grid, dt)
     assert quantised.held_out["level_shifts"] and "quantization" in quantised.effects
     assert quantised.held_out["level_shifts"][0]["size"] == pytest.approx(2e-3)
     # A spike (20 σ at one sample) is an impulsive event, not a step: its difference of
     # means falls as 1/w in the wider windows.
     spiked = white.copy()
     spiked[n // 3] += 0.04
-    spike = aj.select_sensor_noise(spiked, dt)
+    spike = aj.noise.select_sensor_noise(spiked, dt)
     assert spike.held_out["bursts"] and spike.held_out["level_shifts"] == []
     # A step and nothing else (no noise left once it is out): said, not an error.
-    bare = aj.select_sensor_noise(0.3 + 1e-3 * (k >= n // 2), dt)
+    bare = aj.noise.select_sensor_noise(0.3 + 1e-3 * (k >= n // 2), dt)
     assert bare.unexplained and bare.held_out["level_shifts"][0]["time_s"] == pytest.approx(
         n // 2 * dt
     )
@@ -453,7 +459,7 @@ def test_a_small_step_is_not_taken_for_a_random_walk():
     n, dt = 8000, 0.01
     k = np.arange(n)
     x = -0.5 + 2e-3 * rng.normal(size=n) + 1.2e-3 * (k >= 2400)
-    stepped = aj.select_sensor_noise(x, dt)
+    stepped = aj.noise.select_sensor_noise(x, dt)
     assert stepped.unexplained and "random_walk" not in stepped.effects, stepped.verdict
     (shift,) = stepped.held_out["level_shifts"]
     assert shift["in_place_of"] == "random_walk"
@@ -461,7 +467,7 @@ def test_a_small_step_is_not_taken_for_a_random_walk():
     assert shift["size"] == pytest.approx(1.2e-3, rel=0.25)
     test = stepped.held_out["step_or_walk"]
     assert test["evidence_over_the_walk"] >= test["bar"]
-    walk = aj.select_sensor_noise(
+    walk = aj.noise.select_sensor_noise(
         2e-3 * rng.normal(size=n) + np.cumsum(rng.normal(size=n)) * 4e-3 / math.sqrt(n), dt
     )
     assert walk.verdict == "random_walk", walk.verdict
@@ -538,7 +544,7 @@ def test_a_clipped_record_sits_on_a_rail_and_is_unexplained():
     assert rails(np.minimum(np.round(x / grid) * grid, 12 * grid) - 0.5) == ["high"]
     assert rails(-np.minimum(x, 2.0 * w)) == ["low"]  # polarity: the rail is the minimum
 
-    selection = aj.select_sensor_noise(clipped, dt)
+    selection = aj.noise.select_sensor_noise(clipped, dt)
     assert selection.unexplained and len(selection.held_out["saturation"]) == 2
     found = diagnose(aj.NoiseData(np.arange(n) * dt, clipped))
     assert found.verdict == "unexplained" and "rail at 1.003 g" in found.reason, found.summary()
@@ -547,7 +553,7 @@ def test_a_clipped_record_sits_on_a_rail_and_is_unexplained():
 @pytest.mark.parametrize("bad", [[], [1.0, float("nan"), 2.0], [[1.0, 2.0], [3.0, 4.0]]])
 def test_detect_saturation_refuses_bad_input(bad):
     with pytest.raises(ValueError, match="detect_saturation: the record must be"):
-        aj.detect_saturation(np.asarray(bad, dtype=float))
+        aj.noise.detect_saturation(np.asarray(bad, dtype=float))
 
 
 def _telegraph(rng, n, dwell, peak_to_peak):
@@ -585,23 +591,23 @@ def test_non_gaussian_residual_is_calibrated_and_sees_two_levels_and_heavy_tails
     assert not _non_gaussian(np.round(rng.normal(size=n) / 2) * 2, 1 / 3)["tested"]
 
 
-
 def test_detect_non_gaussian_on_a_raw_record_takes_the_grid_from_detect_quantization():
     """The public test on a record: the grid's share decides whether it runs, as inside
     the selection; a two-level record is found, a Gaussian one on a fine grid is not."""
     rng = np.random.default_rng(8)
     n = 10_000
     fine = np.round(rng.normal(size=n) / 0.3) * 0.3
-    found = aj.detect_non_gaussian(fine, aj.detect_quantization(fine))
+    found = aj.noise.detect_non_gaussian(fine, aj.noise.detect_quantization(fine))
     assert found["tested"] and not found["significant"], found
     coarse = np.round(rng.normal(size=n) / 2) * 2  # q²/12 a third of the variance
-    assert not aj.detect_non_gaussian(coarse, aj.detect_quantization(coarse))["tested"]
+    assert not aj.noise.detect_non_gaussian(coarse, aj.noise.detect_quantization(coarse))["tested"]
     # Without the grid the same coarse record is tested, and its discreteness shows.
-    assert aj.detect_non_gaussian(coarse)["tested"]
-    two_levels = aj.detect_non_gaussian(rng.normal(size=n) + _telegraph(rng, n, 20, 3.0))
+    assert aj.noise.detect_non_gaussian(coarse)["tested"]
+    two_levels = aj.noise.detect_non_gaussian(rng.normal(size=n) + _telegraph(rng, n, 20, 3.0))
     assert two_levels["significant"] and two_levels["excess_kurtosis"] < -0.7
     with pytest.raises(ValueError, match="detect_non_gaussian: the record must be"):
-        aj.detect_non_gaussian(np.array([1.0, np.inf, 2.0]))
+        aj.noise.detect_non_gaussian(np.array([1.0, np.inf, 2.0]))
+
 
 def test_a_fast_telegraph_noise_is_gauss_markov_and_unexplained():
     """Its Lorentzian spectrum is a Gauss–Markov process's, which the selection rightly
@@ -612,7 +618,7 @@ def test_a_fast_telegraph_noise_is_gauss_markov_and_unexplained():
     rng = np.random.default_rng(5)
     n, dt, w = 10_000, 0.01, 2e-3
     x = w * rng.normal(size=n) + _telegraph(rng, n, 20, 3 * w) + 0.3
-    selection = aj.select_sensor_noise(x, dt)
+    selection = aj.noise.select_sensor_noise(x, dt)
     assert selection.verdict == "gauss_markov+unexplained"
     gm = selection.parameters["gauss_markov"]
     # A telegraph of levels 0 and a, switching with probability p per sample: σ = a/2,
@@ -650,7 +656,7 @@ def test_harness_records_once_misnamed(seed, truth, before):
     rng = np.random.default_rng(seed)
     drawn = harness.draw(rng, effects, 10_000)
     x = noise_truth.record(rng, 10_000, drawn["dt"], drawn["spec"])
-    selection = aj.select_sensor_noise(x, drawn["dt"])
+    selection = aj.noise.select_sensor_noise(x, drawn["dt"])
     assert set(selection.effects) == truth, (selection.verdict, before)
 
 
@@ -689,7 +695,7 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     assert found["significant"] and found["p_family"] < 1e-6
     # The band holds the sweep's first half (power before, not after) or its second.
     assert abs(found["log_ratio_second_to_first"]) > math.log(4) and 1.0 <= low < high <= 3.0
-    selection = aj.select_sensor_noise(chirp + 0.98, dt)
+    selection = aj.noise.select_sensor_noise(chirp + 0.98, dt)
     assert selection.unexplained and selection.held_out["spectral_change"]["significant"]
     assert "The spectrum changes during the record" in _describe(selection)
     assert not _spectral_change(rng.normal(size=200), dt)["tested"]
@@ -699,14 +705,16 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
 
     line = 1.5e-3 * np.sin(2 * np.pi * 7.3 * t)
     starts = rng.normal(0, w, n) + line * (t > t[-1] / 2)
-    assert aj.detect_spectral_change(starts, dt)["significant"]
+    assert aj.noise.detect_spectral_change(starts, dt)["significant"]
     assert needs_selection(starts, "exp_cosine")
     steady = rng.normal(0, w, n) + line
-    assert not aj.detect_spectral_change(steady, dt)["significant"]
+    assert not aj.noise.detect_spectral_change(steady, dt)["significant"]
     assert not needs_selection(steady, "exp_cosine")
     for bad, match in (([np.nan] * 300, "finite values"), (np.ones(300), "sample_interval")):
         with pytest.raises(ValueError, match=match):
-            aj.detect_spectral_change(np.asarray(bad), 0.0 if match == "sample_interval" else dt)
+            aj.noise.detect_spectral_change(
+                np.asarray(bad), 0.0 if match == "sample_interval" else dt
+            )
     # A half without noise has no spectrum to compare (a bare step: no division by zero).
     bare = np.where(np.arange(n) < n // 2, 0.0, rng.normal(size=n))
     assert not _spectral_change(bare, dt)["tested"]
