@@ -13,20 +13,44 @@ MOVES = {
         "identification_figure": "accel_jax.report",
     },
     "accel_jax.diagnose.step_joint": {
-        "SetDiagnosis": "accel_jax.diagnose.step_joint_verdict",
-        "diagnose_step_set": "accel_jax.diagnose.step_joint_verdict",
-        "next_experiments": "accel_jax.diagnose.step_design",
+        "SetDiagnosis": "accel_jax.diagnose.step.joint_verdict",
+        "diagnose_step_set": "accel_jax.diagnose.step.joint_verdict",
+        "next_experiments": "accel_jax.diagnose.step.design",
         "set_figure": "accel_jax.report.figures.diagnosis",
+        "fit_set": "accel_jax.diagnose.step.joint",
+        "PreparedSet": "accel_jax.diagnose.step.joint",
     },
     "accel_jax.diagnose.report": {
         "figure": "accel_jax.report.figures.diagnosis",
         "save_plot": "accel_jax.report.figures.diagnosis",
     },
     "accel_jax.diagnose.step_verdict": {
-        "nested_failed": "accel_jax.diagnose.step_assess",
-        "nuisance_test": "accel_jax.diagnose.step_nuisance",
+        "nested_failed": "accel_jax.diagnose.step.assess",
+        "nuisance_test": "accel_jax.diagnose.step.nuisance",
+        "evaluate": "accel_jax.diagnose.step.verdict",
+    },
+    # The step diagnosis's modules, now the subpackage `accel_jax.diagnose.step`.
+    "accel_jax.diagnose.step_fit": {"StepContext": "accel_jax.diagnose.step.fit"},
+    "accel_jax.diagnose.step_input": {"read_inputs": "accel_jax.diagnose.step.inputs"},
+    "accel_jax.diagnose.step_effects": {"TorquerLag": "accel_jax.diagnose.step.effects"},
+    "accel_jax.diagnose.step_assess": {"nested_losers": "accel_jax.diagnose.step.assess"},
+    "accel_jax.diagnose.step_refit": {"KNOWN_FIELDS": "accel_jax.diagnose.step.refit"},
+    "accel_jax.diagnose.step_nuisance": {"strained_sentence": "accel_jax.diagnose.step.nuisance"},
+    "accel_jax.diagnose.step_joint_verdict": {
+        "SetDiagnosis": "accel_jax.diagnose.step.joint_verdict"
+    },
+    "accel_jax.diagnose.step_design": {"experiment_menu": "accel_jax.diagnose.step.design"},
+    "accel_jax.diagnose.step_record": {
+        "prepare": "accel_jax.diagnose.step.record",
+        "segments": "accel_jax.diagnose.step.segments",
+        "RecordView": "accel_jax.diagnose.step.state",
     },
 }
+
+_STEP_MODULES = (
+    "step_fit", "step_input", "step_effects", "step_assess", "step_verdict", "step_refit",
+    "step_nuisance", "step_joint", "step_joint_verdict", "step_design", "step_record",
+)  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -41,8 +65,23 @@ def test_a_moved_name_warns_and_is_the_same_object(old, name, new):
 
 
 def test_from_import_of_a_moved_name_warns_too():
-    with pytest.warns(DeprecationWarning, match="step_joint_verdict"):
+    with pytest.warns(DeprecationWarning, match=re.escape("step.joint_verdict")):
         from accel_jax.diagnose.step_joint import diagnose_step_set  # noqa: F401
+
+
+@pytest.mark.parametrize("old", _STEP_MODULES)
+def test_every_name_of_an_old_step_module_is_at_its_new_place(old):
+    """Each old module of the step diagnosis (`accel_jax.diagnose.step_*`) is only its
+    aliases, and each alias names an object that its new module holds."""
+    path = Path(__file__).resolve().parent.parent / "accel_jax" / "diagnose" / f"{old}.py"
+    aliases = re.findall(r'"(\w+)": "(accel_jax[\w.]+)"', path.read_text())
+    assert aliases
+    module = importlib.import_module(f"accel_jax.diagnose.{old}")
+    assert {n for n in vars(module) if not n.startswith("_")} <= {"moved_names"}
+    for name, new in aliases:
+        with pytest.warns(DeprecationWarning, match=re.escape(f"{new}.{name}")):
+            value = getattr(module, name)
+        assert value is getattr(importlib.import_module(new), name), (old, name)
 
 
 def test_an_unknown_name_is_still_an_attribute_error():

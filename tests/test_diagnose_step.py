@@ -7,6 +7,7 @@ the domain check."""
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -493,10 +494,10 @@ def test_lag_forced_choice_ceiling():
 def test_evidence_slack_in_the_likelihoods_units():
     # A nominal fit that stopped short: the Newton decrement D (cost in noise-floor units)
     # is worth about 2D of 2 ln L at the floor and far less when the fit misses widely.
-    from accel_jax.diagnose.step_assess import evidence_slack
+    from accel_jax.diagnose.step.assess import evidence_slack
 
     n, sigma, decrement = 800, 1e-3, 5.0
-    prep = {"sigma": sigma}
+    prep = SimpleNamespace(sigma=sigma)  # the `StepRecord` field it reads
     at_floor = {"innovation_variance": sigma**2, "decrement": decrement}
     assert evidence_slack(at_floor, prep, n) == pytest.approx(2 * decrement, rel=0.02)
     far = {"innovation_variance": (500 * sigma) ** 2, "decrement": decrement}

@@ -12,7 +12,7 @@ import pytest
 
 from accel_jax._data import DataError, NominalDevice, StepData
 from accel_jax.diagnose import diagnose_many
-from accel_jax.diagnose.step_input import CLOCK_TOLERANCE, clock_grid, level_groups
+from accel_jax.diagnose.step.inputs import CLOCK_TOLERANCE, clock_grid, level_groups
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -86,7 +86,7 @@ def test_close_levels_do_not_chain_into_one_group():
 def test_a_measured_record_joins_a_set_beside_a_clean_one():
     """The joint fit's padding takes a measured record's context (one delay parameter more
     than its changes, the timing and level maps) beside a clean record's."""
-    from accel_jax.diagnose import step_joint
+    from accel_jax.diagnose.step import joint as step_joint
 
     rng = np.random.default_rng(8)
     truth = step_truth.draw_truth(rng, "none")
@@ -162,7 +162,7 @@ def test_mapped_timing_parameters_keep_a_gradient_beyond_their_limit():
     import jax
     import jax.numpy as jnp
 
-    from accel_jax.diagnose.step_fit import timing_terms
+    from accel_jax.diagnose.step.fit import timing_terms
 
     ctx = SimpleNamespace(
         timing_map=jnp.array([[1.0, 1.0], [0.0, 1.0]]),

@@ -15,9 +15,9 @@ from click.testing import CliRunner
 from accel_jax._data import StepData, write_csv
 from accel_jax.cli import main
 from accel_jax.diagnose import diagnose_many
-from accel_jax.diagnose.step_fit import _I_TIMING, GAIN_SIGMA
-from accel_jax.diagnose.step_assess import nested_failed, nested_losers, nested_shortfall
-from accel_jax.diagnose.step_nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
+from accel_jax.diagnose.step.fit import _I_TIMING, GAIN_SIGMA
+from accel_jax.diagnose.step.assess import nested_failed, nested_losers, nested_shortfall
+from accel_jax.diagnose.step.nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
@@ -82,7 +82,10 @@ def _prep(n_changes=5, j_padded=8, levels=False):
         level_sigma=np.full(j_padded, 1e-5) if levels else None,
         timing_map=None,
     )
-    return {"change_index": np.arange(n_changes), "ctx": ctx}
+    # The fields of a `StepRecord` that the test reads (an exact or few-change input).
+    return SimpleNamespace(
+        change_index=np.arange(n_changes), ctx=ctx, clock=None, level_groups=None
+    )
 
 
 def _fit(gain_sigma=0.0, timing=(), levels=(), j_padded=8):

@@ -1,8 +1,9 @@
-"""Several step records of one device diagnosed together (accel_jax.diagnose.step_joint
-and step_joint_verdict, issue 20): the joint fit on records of the independent SciPy truth simulator
+"""Several step records of one device diagnosed together (accel_jax.diagnose.step.joint
+and step.joint_verdict, issue 20): the joint fit on records of the independent SciPy truth simulator
 (studies/step_truth.py), the expected evidence of a next experiment against a Monte Carlo of
 2 ln B, acceleration records, and the CLI with several files."""
 
+import dataclasses
 import json
 import math
 import sys
@@ -14,9 +15,9 @@ from click.testing import CliRunner
 
 from accel_jax._data import DataError, NominalDevice, StepData, parse_csv, write_csv
 from accel_jax.cli import main
-from accel_jax.diagnose import step_design as sd
-from accel_jax.diagnose import step_joint as sj
-from accel_jax.diagnose import step_joint_verdict as sjv
+from accel_jax.diagnose.step import design as sd
+from accel_jax.diagnose.step import joint as sj
+from accel_jax.diagnose.step import joint_verdict as sjv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -169,13 +170,13 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
     assert 20 < expected < 500
     truth = sd._simulate_design(fits["torquer_lag"], prepared, NOMINAL, "torquer_lag", design)
     base = prepared.preps[0]
-    clean = fits["torquer_lag"]["prediction"][0, : base["n"]]
+    clean = fits["torquer_lag"]["prediction"][0, : base.n]
     draws = []
     for k in range(10):
         rng = np.random.default_rng(100 + k)
-        old = dict(base)
-        old["u_out"] = np.zeros_like(base["u_out"])
-        old["u_out"][: base["n"]] = clean + rng.normal(size=clean.size) * base["sigma"]
+        u_out = np.zeros_like(base.u_out)
+        u_out[: base.n] = clean + rng.normal(size=clean.size) * base.sigma
+        old = dataclasses.replace(base, u_out=u_out)
         noisy = StepData(
             truth.t,
             truth.u_test,
@@ -183,7 +184,7 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
             a_in=truth.a_in,
         )
         new = sj.prepare_set([noisy], NOMINAL).preps[0]
-        new["sigma"] = 0.2 / math.sqrt(new["block"])
+        new = dataclasses.replace(new, sigma=0.2 / math.sqrt(new.block))
         combined = sj.stack([old, new], prepared.stop_voltage)
         chi2 = []
         for name in ("torquer_lag", "output_filter"):
@@ -192,9 +193,9 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
             chi2.append(
                 sum(
                     float(
-                        np.sum((combined.data[r, : p["n"]] - fit["prediction"][r, : p["n"]]) ** 2)
+                        np.sum((combined.data[r, : p.n] - fit["prediction"][r, : p.n]) ** 2)
                     )
-                    / p["sigma"] ** 2
+                    / p.sigma**2
                     for r, p in enumerate(combined.preps)
                 )
             )

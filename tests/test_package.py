@@ -175,6 +175,42 @@ def test_import_layers_catch_an_upward_import(monkeypatch):
         test_import_layers()
 
 
+# Inside the diagnosis (docs/architecture.md): the modules every kind shares, below the
+# kinds; the step kind is a subpackage that imports, of the diagnosis, only those and itself;
+# and nothing imports an old place of its modules (kept for one release, CHANGELOG.md).
+_DIAGNOSE_SHARED = {"base", "openworld"}
+_DIAGNOSE_OLD = {
+    "step_fit", "step_input", "step_effects", "step_assess", "step_verdict", "step_refit",
+    "step_nuisance", "step_joint", "step_joint_verdict", "step_design", "step_record",
+}  # fmt: skip
+
+
+def test_the_diagnosis_kinds_sit_on_its_shared_modules():
+    from pathlib import Path
+
+    package = Path(aj.__file__).resolve().parent
+    root = package.parent
+    assert len(list((package / "diagnose" / "step").glob("*.py"))) >= 12
+    wrong = []
+    for path in sorted(package.rglob("*.py")):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        used = {
+            m.split(".")[2]
+            for m in _imported_modules(path, parts[:-1])
+            if m.startswith("accel_jax.diagnose.")
+        }
+        where = path.relative_to(root).as_posix()
+        if used & _DIAGNOSE_OLD:
+            wrong.append(f"{where} imports the old place of {sorted(used & _DIAGNOSE_OLD)}")
+        if parts[:2] != ["accel_jax", "diagnose"]:
+            continue
+        if parts[2] in _DIAGNOSE_SHARED and used - _DIAGNOSE_SHARED:
+            wrong.append(f"{where} (shared) imports {sorted(used - _DIAGNOSE_SHARED)}")
+        if parts[2] == "step" and used - _DIAGNOSE_SHARED - {"step"}:
+            wrong.append(f"{where} imports {sorted(used - _DIAGNOSE_SHARED - {'step'})}")
+    assert wrong == []
+
+
 def _imported_modules(path, package: list[str]) -> set[str]:
     """The dotted names a Python file imports ("accel_jax.report.text", and for `from X
     import name` also "X.name"), relative imports resolved from `package` (its package's

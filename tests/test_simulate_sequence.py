@@ -18,8 +18,8 @@ from accel_jax._simulate.sequence import (
     linear_record,
     stop_record,
 )
-from accel_jax.diagnose.step_effects import step_effects
-from accel_jax.diagnose.step_fit import StepContext, innovation_terms, predict, unpack
+from accel_jax.diagnose.step.effects import step_effects
+from accel_jax.diagnose.step.fit import StepContext, innovation_terms, predict, unpack
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -325,7 +325,7 @@ def test_innovations_of_white_plus_ar1_noise():
         loop[k] = e[k] - phi * e[k - 1] + theta * loop[k - 1]
     np.testing.assert_allclose(a, loop, atol=1e-12)
     # White + AR(1) noise is whitened: its innovations have the predicted white share.
-    from accel_jax.diagnose.step_effects import _white_share
+    from accel_jax.diagnose.step.effects import _white_share
 
     sigma_w, ratio, phi = 1.0, 4.0, 0.95
     share = float(_white_share(ratio, phi))
@@ -344,7 +344,7 @@ def test_innovations_of_white_plus_ar1_noise():
 @pytest.mark.parametrize("theta", [0.0, -0.9, 0.999])
 def test_the_blocked_first_order_filter_is_the_plain_recursion(n, theta):
     # Lengths that are not a multiple of the block, a negative and a near-unit pole.
-    from accel_jax.diagnose.step_fit import _first_order_filter
+    from accel_jax.diagnose.step.fit import _first_order_filter
 
     b = np.random.default_rng(n).normal(size=n)
     loop = np.empty(n)

@@ -1,4 +1,4 @@
-"""What the step diagnosis's fits take from the solver (accel_jax/diagnose/step_fit.py):
+"""What the step diagnosis's fits take from the solver (accel_jax/diagnose/step/fit.py):
 `dense_jacobian` differentiates as the function does, and an optimistix
 Levenberg–Marquardt solution's state holds the residuals and Jacobian at the returned
 value (the fits read the cost, the Newton decrement and the polishing step from it instead
@@ -12,7 +12,7 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from accel_jax.diagnose.step_fit import _gauss_newton_step, _newton_step, dense_jacobian
+from accel_jax.diagnose.step.fit import _gauss_newton_step, _newton_step, dense_jacobian
 
 T = jnp.linspace(0.0, 3.0, 40)
 

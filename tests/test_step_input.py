@@ -1,4 +1,4 @@
-"""A step record's measured inputs (accel_jax/diagnose/step_input.py): plateaus and change
+"""A step record's measured inputs (accel_jax/diagnose/step/inputs.py): plateaus and change
 times read from a digitised test-voltage column — noise, ADC steps, relay spikes, a delay,
 an anti-alias edge, a drift — and the refusal of an input without plateaus. The measured
 columns come from the independent truth's input-channel model (`step_truth.measure_input`,
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from accel_jax._data import DataError, StepData
-from accel_jax.diagnose.step_input import read_input, read_inputs
+from accel_jax.diagnose.step.inputs import read_input, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -131,7 +131,7 @@ def test_a_repeated_level_pins_the_input_channel_drift():
     telegraph of 120 short plateaus the drift nuisance's allowance (the largest drift the
     record cannot rule out) is far below what the short plateaus' own slopes allow, and a
     real drift of 3 mV is found to within a tenth."""
-    from accel_jax.diagnose.step_input import DRIFT_SIGMAS, read_input
+    from accel_jax.diagnose.step.inputs import DRIFT_SIGMAS, read_input
 
     rng = np.random.default_rng(3)
     still = read_input(_telegraph(rng, 0.0))

@@ -8,11 +8,13 @@ effect is added.
     result = diagnose(data)                      # the reference device, ±5 % prior
     print(result.summary()); result.to_dict()
 
-Several step records of one device together: `diagnose_step_set` (`step_joint_verdict.py`;
-the joint fit in `step_joint.py`).
+Several step records of one device together: `diagnose_step_set` (`step/joint_verdict.py`;
+the joint fit in `step/joint.py`).
 
-Kinds: `step` (`step.py`), `vibration` (`vibration.py`) and `noise` (`noise.py`). A kind
-module provides its nominal model, an effect base class with hooks, the effects registered
+Kinds: `step` (the subpackage `step/`), `vibration` (`vibration.py`) and `noise`
+(`noise.py`), beside what they share: `base` (the effect interface, evidence,
+`DiagnosisResult`), `openworld` (the open-world verdict) and `dispatch`. A kind
+provides its nominal model, an effect base class with hooks, the effects registered
 with `register_effect`, and a `diagnose_<kind>(datasets, nominal)` listed in
 `dispatch._KINDS`, which `diagnose` and `diagnose_many` dispatch on.
 """
@@ -54,8 +56,8 @@ from .dispatch import diagnose_many as diagnose_many
 from .noise import diagnose_noise as diagnose_noise
 from .noise_effects import AbstractNoiseEffect as AbstractNoiseEffect
 from .step import AbstractStepEffect as AbstractStepEffect
+from .step import SetDiagnosis as SetDiagnosis
 from .step import diagnose_step as diagnose_step
-from .step_joint_verdict import SetDiagnosis as SetDiagnosis
-from .step_joint_verdict import diagnose_step_set as diagnose_step_set
+from .step import diagnose_step_set as diagnose_step_set
 from .vibration import diagnose_vibration as diagnose_vibration
 from .vibration_effects import AbstractVibrationEffect as AbstractVibrationEffect

@@ -345,7 +345,7 @@ class DiagnosisResult:
     - `reason`: one or two sentences: why this verdict.
     - `next_experiment`: with a `cannot_tell` that another experiment can break (the step
         kind's two lags), the experiments a user can run, best first, each with its
-        expected 2 ln B (`step_design.next_experiments`); else empty.
+        expected 2 ln B (`step.design.next_experiments`); else empty.
     """
 
     kind: str
@@ -472,7 +472,7 @@ class DiagnosisResult:
 
 def _nuisance_lines(refit: dict) -> list[str]:
     """The step refit's nuisances, each with its shift in σ of its prior where it has one,
-    and their joint test (`step_nuisance.nuisance_test`)."""
+    and their joint test (`step.nuisance.nuisance_test`)."""
     test, values = refit.get("nuisance_test"), refit.get("nuisances") or {}
     if not test:
         return []

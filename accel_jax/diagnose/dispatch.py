@@ -19,7 +19,7 @@ def diagnose_many(
     """Diagnose several records (same kind) against one nominal device, each on its own;
     records of one length are fitted as one batch (one compilation). See `diagnose`.
     `recommend` (step records): compute the next experiment for a lag tie. Several step
-    records of one device diagnosed *together*: `step_joint_verdict.diagnose_step_set`."""
+    records of one device diagnosed *together*: `step.joint_verdict.diagnose_step_set`."""
     if not datasets:
         return []
     kinds = {d.kind for d in datasets}

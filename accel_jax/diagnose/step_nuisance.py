@@ -1,118 +1,16 @@
-"""The step diagnosis's nuisances judged together: each fitted nuisance (the test
-winding's gain, the change times about their mean, a clock's rate, a measured input's
-levels and drift) in σ of its prior, a family-wise test over them, and what a strained
-set of nuisances says about the record."""
+"""Moved to `accel_jax.diagnose.step.nuisance`, the step diagnosis's joint test of the
+nuisances. This old place keeps its names for one release, each read with a
+`DeprecationWarning` naming the new place."""
 
-from __future__ import annotations
+from .._deprecated import moved_names
 
-import math
-
-import jax.numpy as jnp
-import numpy as np
-
-from .step_fit import _I_TIMING, GAIN_SIGMA, n_timing, timing_terms
-
-
-NUISANCE_ALPHA = 0.01
-"""Family-wise level of the joint test of a fit's nuisances (`nuisance_test`): on records
-whose nuisances are what their priors say, it trips in at most this share (Bonferroni over
-the standardised shifts, each at most N(0, 1) under its prior: fitted shifts are shrunk)."""
-
-
-def nuisance_test(fit, prep) -> dict:
-    """Every fitted nuisance of `fit` with its shift in σ of its prior, judged together.
-
-    Standardised: the test winding's gain (log-normal, `GAIN_SIGMA`); each change time
-    about the record's mean change time (the mean is the delay between the input and
-    output channels and the sampling phase, reported apart; N(0, 1) in samples); for a
-    measured input, each level's error in its standard errors. Shown without a prior:
-    the output offset (external moment) and the initial state, free in every model.
-    The test: the largest |z| against Bonferroni over the K standardised shifts, p =
-    min(1, K · 2Φ(−max|z|)); `strained` when p < `NUISANCE_ALPHA`."""
-    from scipy import stats
-
-    w = np.asarray(fit["w"])
-    ctx = prep["ctx"]
-    n_changes = int(prep["change_index"].size)
-    n_t = n_timing(ctx)
-    timing = change_shifts(w, ctx)[:n_changes]
-    delay = float(np.mean(timing)) if n_changes else 0.0
-    shifts = [("test_winding_gain", float(fit["z_gain"]))]
-    if prep.get("clock") is not None:  # the clock's rate (its shift is the delay)
-        shifts.append(("input_clock_rate", float(w[_I_TIMING + 1])))
-    elif n_changes > 1:
-        shifts += [(f"change_time_{j + 1}", float(x - delay)) for j, x in enumerate(timing)]
-    if ctx.level_sigma is not None:
-        if prep.get("level_groups") is not None:
-            count = prep["level_groups"][1].size
-            levels = w[_I_TIMING + n_t : _I_TIMING + n_t + count]
-            shifts += [(f"input_level_group_{g + 1}", float(e)) for g, e in enumerate(levels)]
-        else:
-            levels = w[_I_TIMING + n_t : _I_TIMING + n_t + n_changes]
-            shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
-        shifts.append(("input_channel_drift", float(w[-1])))
-    z = np.abs(np.asarray([v for _, v in shifts]))
-    worst = int(np.argmax(z))
-    p_value = min(1.0, len(shifts) * 2 * float(stats.norm.sf(z[worst])))
-    return {
-        "standardised": {name: value for name, value in shifts},
-        "largest": shifts[worst][0],
-        "largest_sigma": shifts[worst][1],
-        "count": len(shifts),
-        "family_p_value": p_value,
-        "alpha": NUISANCE_ALPHA,
-        "strained": bool(p_value < NUISANCE_ALPHA),
-        "input_delay_samples": -delay,
-        "method": "Bonferroni over the standardised nuisance shifts (gain, change times about "
-        "their mean, measured input levels)",
-    }
-
-
-def change_shifts(w, ctx) -> np.ndarray:
-    """Each change's fitted shift [samples] from where `u_test` shows it, as the fit uses
-    it (`step_fit.timing_terms`), from a fit's parameters w."""
-    timing = jnp.asarray(np.asarray(w)[_I_TIMING : _I_TIMING + n_timing(ctx)])
-    return np.asarray(timing_terms(timing, ctx)[0])
-
-
-def strained_sentence(test: dict, fit) -> str:
-    """What a failed joint nuisance test says, with the effects that make such a record."""
-    name, value = test["largest"], test["largest_sigma"]
-    where = f"(family-wise p = {test['family_p_value']:.2g} over {test['count']} nuisances)"
-    if name == "test_winding_gain":
-        gain = math.exp(GAIN_SIGMA * value)
-        return (
-            f"the test winding's gain came out {gain:.3g} of nominal ({value:+.1f}σ) {where}: "
-            "a winding fault, or a device resting on a stop when the record starts (the "
-            "first change then moves the output less than the gain says: stop contact), or "
-            "a different device"
-        )
-    if name.startswith("change_time"):
-        return (
-            f"change {name.rsplit('_', 1)[1]} of the test input came {value:+.1f} samples off "
-            f"the others' timing {where}: the input switched at another time than its column "
-            "shows (a relay's delay or bounce), or a lag the model lacks"
-        )
-    if name == "input_clock_rate":
-        return (
-            f"the test sequence's clock rate came out {value:+.1f}σ off the grid read from its "
-            f"changes {where}: the generator's clock and the recorder's differ in rate, or a "
-            "lag the model lacks"
-        )
-    if name == "input_channel_drift":
-        return (
-            f"the input channel's drift came out {value:+.1f}σ of what its plateaus allow "
-            f"{where}: the test input's level moved during the record, or a slow drift "
-            "of the output the model lacks (disturbance drift)"
-        )
-    if name.startswith("input_level_group"):
-        return (
-            f"level {name.rsplit('_', 1)[1]} of the clocked test sequence differs from what "
-            f"its channel recorded by {value:+.1f} standard errors {where}: a gain or offset "
-            "error of the input channel, or an output that is not linear in the input"
-        )
-    return (
-        f"level {name.rsplit('_', 1)[1]} of the test input differs from what its channel "
-        f"recorded by {value:+.1f} standard errors {where}: a gain or offset error of the "
-        "input channel, or an output that is not linear in the input at that level"
-    )
+# Moved in 0.2 (CHANGELOG.md): the step diagnosis's modules are the subpackage `step/`.
+__getattr__ = moved_names(
+    __name__,
+    {
+        "NUISANCE_ALPHA": "accel_jax.diagnose.step.nuisance",
+        "nuisance_test": "accel_jax.diagnose.step.nuisance",
+        "change_shifts": "accel_jax.diagnose.step.nuisance",
+        "strained_sentence": "accel_jax.diagnose.step.nuisance",
+    },
+)

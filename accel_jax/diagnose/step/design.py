@@ -1,0 +1,185 @@
+"""The next experiment for a lag tie of the joint step diagnosis.
+
+**Next experiment.** With `cannot_tell`, each experiment of a menu (`experiment_menu`) is
+simulated noise-free from the fitted first candidate and refitted by the second (all
+records together, the new one added): the expected 2 ln B is the misfit that remains,
+Σ r²/σ², and the same the other way round; the smaller of the two is reported.
+
+Float64 throughout (x64 must be enabled).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..._data import NominalDevice, StepData
+from ..._servo import closed_loop_test_gain
+from ..._simulate.sequence import accel_moment
+from .joint import (
+    CANDIDATES,
+    N_SHARED,
+    PreparedSet,
+    _record_prediction_compiled,
+    _transfer_start,
+    fit_set,
+    nominal_stop_voltage,
+    prepare_set,
+    stack,
+)
+from .record import prior_sigma_of
+
+
+def experiment_menu(nominal: NominalDevice, sample_rate: float, noise_V: float) -> list[dict]:
+    """Experiments a user can run on the device, each as a record design (t, u_test, a_in)
+    at `sample_rate`, 8 ms long, in equal segments (`levels_V`, `accel_levels_g`):
+    stop-level test steps (±1.3 × the nominal stop voltage
+    over the test gain), a larger small step, an acceleration step of ±1 g, and the small
+    step sampled 4× faster."""
+    params = nominal.params
+    k_test = float(closed_loop_test_gain(params))
+    v_stop = nominal_stop_voltage(params)
+    u_stop = round(1.3 * v_stop / k_test, 1)
+    menu = []
+
+    def design(rate, levels, *, accel=None, description, duration=8e-3):
+        n = int(round(duration * rate))
+        t = np.arange(n) / rate
+        edges = np.linspace(0, n, len(levels) + 1).astype(int)[1:-1]
+        index = np.searchsorted(edges, np.arange(n), side="right")
+        u = np.asarray(levels, float)[index]
+        a = None if accel is None else np.asarray(accel, float)[index]
+        return {
+            "description": description,
+            "record": StepData(t=t, u_test=u, u_out=np.zeros(n), a_in=a),
+            "noise_V": noise_V,
+            "levels_V": [float(x) for x in levels],
+            "accel_levels_g": None if accel is None else [float(x) for x in accel],
+        }
+
+    menu.append(
+        design(
+            sample_rate,
+            [0.0, u_stop, -u_stop, u_stop, 0.0],
+            description=f"record +{u_stop:g} V and −{u_stop:g} V test steps onto the stops",
+        )
+    )
+    menu.append(
+        design(
+            sample_rate,
+            [0.0, 0.0, 0.0, 0.0, 0.0],
+            accel=[0.0, 1.0, -1.0, 1.0, 0.0],
+            description="record ±1 g acceleration steps along the input axis (tilt or "
+            "centrifuge), test voltage off",
+        )
+    )
+    menu.append(
+        design(
+            sample_rate,
+            [0.0, 2.0, -2.0, 2.0, 0.0],
+            description="record another ±2 V small-step sequence",
+        )
+    )
+    menu.append(
+        design(
+            4 * sample_rate,
+            [0.0, 2.0, -2.0, 2.0, 0.0],
+            description=f"record the ±2 V steps at {4 * sample_rate / 1e6:g} MHz",
+        )
+    )
+    return menu
+
+
+def _simulate_design(fit, prepared: PreparedSet, nominal, candidate, design) -> StepData:
+    """The design's record as the fitted `candidate` predicts it (noise-free): the set's
+    shared values, polarity +1, no offset, at rest at the start."""
+    record = design["record"]
+    probe = prepare_set([_with_output(record, nominal)], nominal)
+    ctx = jax.tree_util.tree_map(lambda leaf: leaf[0], probe.ctx)
+    shared = jnp.asarray(fit["x"][:N_SHARED])
+    own = np.zeros(probe.layout.width)  # the design's changes at its samples' boundaries
+    ctx = dataclasses.replace(ctx, polarity=jnp.asarray(1.0), accel_sign=jnp.asarray(1.0))
+    n = probe.layout.n_padded
+    out = _record_prediction_compiled(
+        shared,
+        jnp.asarray(own),
+        jnp.asarray(CANDIDATES.index(candidate)),
+        nominal.params,
+        jnp.asarray(prior_sigma_of(nominal)),
+        ctx,
+        n,
+        jnp.asarray(prepared.stop_voltage),
+        probe.layout.stops[0],
+    )
+    m = probe.preps[0].block
+    blocks = np.asarray(out)[: probe.preps[0].n]
+    y = np.repeat(blocks, m)
+    y = np.concatenate([y, np.full(record.t.size - y.size, y[-1])])
+    return StepData(t=record.t, u_test=record.u_test, u_out=y, a_in=record.a_in)
+
+
+def _with_output(record: StepData, nominal) -> StepData:
+    """A design record with a placeholder response (its linear settled levels plus a
+    ramp, so that `prepare` finds a non-constant output)."""
+    k = float(closed_loop_test_gain(nominal.params))
+    y = k * np.asarray(record.u_test) + 1e-6 * np.arange(record.t.size)
+    if record.a_in is not None:
+        y = y + k * float(accel_moment(nominal.params)) * np.asarray(record.a_in)
+    return StepData(t=record.t, u_test=record.u_test, u_out=y, a_in=record.a_in)
+
+
+def expected_evidence(
+    prepared: PreparedSet, nominal, fits, truth: str, rival: str, design
+) -> float:
+    """Expected 2 ln B of `truth` over `rival` once `design` is added to the set: the fitted
+    `truth` simulated noise-free on every record (the set's and the design's), `rival`
+    refitted to all of them; its misfit Σ r²/σ² (σ each record's floor; the design's its
+    `noise_V` per sample over √(samples per block)). Both models have the same number of
+    parameters, so no penalty enters."""
+    truth_fit = fits[truth]
+    new = prepare_set([_simulate_design(truth_fit, prepared, nominal, truth, design)], nominal)
+    preps = []
+    for r, p in enumerate(prepared.preps):
+        u_out = np.zeros_like(p.u_out)
+        u_out[: p.n] = truth_fit["prediction"][r, : p.n]
+        preps.append(dataclasses.replace(p, u_out=u_out))
+    added = new.preps[0]
+    added = dataclasses.replace(added, sigma=design["noise_V"] / math.sqrt(added.block))
+    combined = stack(preps + [added], prepared.stop_voltage, prepared.layout.lag_states)
+    start = _transfer_start(fits[rival]["x"], prepared, combined)
+    fit = fit_set(combined, nominal, candidates=[rival], starts={rival: start})[rival]
+    chi2 = 0.0
+    for r, p in enumerate(combined.preps):
+        n = p.n
+        error = combined.data[r, :n] - fit["prediction"][r, :n]
+        chi2 += float(np.sum(error**2)) / p.sigma**2
+    return chi2
+
+
+def next_experiments(prepared: PreparedSet, nominal, fits, tied) -> list[dict]:
+    """The menu's experiments ranked by the expected 2 ln B that separates the tied pair
+    (the smaller of the two directions)."""
+    rate = 1.0 / prepared.preps[0].dt_sample
+    noise = max(p.floor.sigma_per_sample for p in prepared.preps)
+    out = []
+    for design in experiment_menu(nominal, rate, noise):
+        one = expected_evidence(prepared, nominal, fits, tied[0], tied[1], design)
+        two = expected_evidence(prepared, nominal, fits, tied[1], tied[0], design)
+        out.append(
+            {
+                "description": design["description"],
+                "expected_2lnB": float(min(one, two)),
+                f"expected_2lnB_if_{tied[0]}": float(one),
+                f"expected_2lnB_if_{tied[1]}": float(two),
+                "levels_V": design["levels_V"],
+                "accel_levels_g": design["accel_levels_g"],
+                "sample_rate_Hz": float(1 / design["record"].sample_period),
+                "duration_s": float(design["record"].t[-1] + design["record"].sample_period),
+            }
+        )
+    out.sort(key=lambda e: -e["expected_2lnB"])
+    return out

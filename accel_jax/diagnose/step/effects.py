@@ -1,0 +1,257 @@
+"""The effects of the `step` kind: each an extension of the nominal loop that is exactly the
+nominal loop at zero (the package `step` describes the kind; `fit` applies the hooks).
+
+- `torquer_lag`: T_dm other than the nominal device's (inside the loop: changes the
+  overshoot as well as the delay);
+- `output_filter`: T_f other than the nominal device's (outside the loop: delays the output
+  only);
+- `stop_saturation`: mechanical stops, upper and lower (`_simulate.sequence.stop_record`);
+- `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
+- `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
+  fitted through its one-step prediction errors (an ARMA(1,1) recursion).
+
+Adding an effect: subclass `AbstractStepEffect`, set `name`, `parameter_names`, `description`,
+`starts`, override one hook and `physical`, decorate with `register_effect`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..._params import ServoParams
+from ..base import AbstractEffect, effect_library, register_effect
+
+if TYPE_CHECKING:
+    from .state import CandidateHost, RecordHost
+
+
+class AbstractStepEffect(AbstractEffect):
+    """An effect on a step record. Hooks (each the identity at z = 0; override one):
+
+    - `device(params, z, ctx)`: change the loop's `ServoParams` (lags);
+    - `drift(z, ctx)`: the external moment's change over the record, r [V];
+    - `inverse_stop(z, ctx)`: 1/h in units of the training output's half range (0 for
+        none), with symmetric stops at deflection ±h; an effect with stops is `nonlinear`;
+    - `output_offset(z, ctx)`: an offset c [V] added to the output (U_out = v + c);
+    - `noise(z, ctx)`: (φ, s) of white + AR(1) output noise: φ the AR(1) coefficient, s
+        the white share of the one-step prediction variance (φ = 0: white).
+
+    Class attributes: `nonlinear` (simulated with stops, sample by sample), `stochastic`
+    (changes the noise model, not the prediction), `starts` (the starting points of its
+    parameters, one tuple per start), `bounds` (|z| beyond which a steep penalty acts),
+    `held_out_nuisance`
+    (indices of its parameters that are nuisances: refitted on the held-out part with the
+    change times).
+    """
+
+    kind = "step"
+    nonlinear: ClassVar[bool] = False
+    stochastic: ClassVar[bool] = False
+    starts: ClassVar[tuple] = ((0.0,), (0.0,))
+    bounds: ClassVar[tuple] = (10.0, 10.0)
+    held_out_nuisance: ClassVar[tuple] = ()
+
+    def device(self, params: ServoParams, z, ctx) -> ServoParams:
+        return params
+
+    def drift(self, z, ctx):
+        return jnp.zeros_like(z[0])
+
+    def inverse_stop(self, z, ctx):
+        return jnp.zeros_like(z[0])
+
+    def output_offset(self, z, ctx):
+        return jnp.zeros_like(z[0])
+
+    def prior(self, z, ctx):
+        """Prior residuals of its parameters (shape (2,), the slot's; default none)."""
+        return jnp.zeros(2, z.dtype)
+
+    def record_starts(self, host: RecordHost) -> tuple:
+        """The starting points for one record (default `starts`), from its scales
+        (`state.RecordHost`, made by `record.prepare`)."""
+        return self.starts
+
+    def noise(self, z, ctx):
+        zero = jnp.zeros_like(z[0])
+        return zero, zero
+
+    def initial_guess(self, context):
+        return np.asarray(self.starts[0])
+
+
+def _lag(nominal, z, unit):
+    """T = max(T₀ + unit·z, 0): the nominal device's lag T₀ moved by unit·z, never below 0.
+    With T₀ = 0 this is unit·max(z, 0): a fit that wants no lag ends on the flat side
+    instead of creeping towards a double zero (T ∝ z² converged slowly there), and the
+    lag's first-order effect keeps the fit well conditioned for small T. With T₀ > 0 the
+    departure may take either sign (a device faster than its data sheet)."""
+    if isinstance(z, jax.Array) or isinstance(nominal, jax.Array):
+        return jnp.maximum(nominal + unit * z, 0.0)
+    return max(nominal + unit * z, 0.0)
+
+
+class _AbstractLag(AbstractStepEffect):
+    """A first-order lag in the `ServoParams` field `lag_field`: the nominal device's value
+    T₀ (taken as known; 0 for an ideal loop) plus a departure, T = max(T₀ + lag_unit·z, 0).
+    At z = 0 it is the nominal device exactly."""
+
+    lag_field: ClassVar[str]
+    starts = ((1.0,), (5.0,))
+    bounds = (100.0,)
+
+    def device(self, params, z, ctx):
+        lag = _lag(getattr(params, self.lag_field), z[0], ctx.lag_unit)
+        return eqx.tree_at(lambda p: getattr(p, self.lag_field), params, lag)
+
+    def physical(self, z, context: CandidateHost):
+        nominal = float(context.nominal_lag(self.lag_field))
+        value = float(_lag(nominal, float(z[0]), context.lag_unit))
+        return {
+            self.parameter_names[0]: value,
+            "nominal_" + self.parameter_names[0]: nominal,
+            "change_s": value - nominal,
+        }
+
+
+@register_effect
+class TorquerLag(_AbstractLag):
+    """Torquer electrical lag T_dm inside the loop, departing from the nominal device's."""
+
+    name = "torquer_lag"
+    lag_field = "torquer_time_constant"
+    parameter_names = ("torquer_time_constant_s",)
+    description = "magnetoelectric torquer time constant T_dm inside the loop"
+
+
+@register_effect
+class OutputFilter(_AbstractLag):
+    """Output filter T_f outside the loop, departing from the nominal device's."""
+
+    name = "output_filter"
+    lag_field = "filter_time_constant"
+    parameter_names = ("filter_time_constant_s",)
+    description = "output (amplifier) filter time constant T_f outside the loop"
+
+
+OFFSET_PRIOR = 0.02
+"""σ [V] of the prior of an output (ADC) offset in the stop model."""
+
+
+@register_effect
+class StopSaturation(AbstractStepEffect):
+    """Inelastic mechanical stops at deflection ±h (h = half/|z₀|, symmetric: ±h_max), seen
+    through an output offset c = 0.1·scale·z₁ (U_out = v + c): an ADC offset moves both
+    stops in the record, and the external moment moves the deflection between them."""
+
+    name = "stop_saturation"
+    parameter_names = ("stop_V", "output_offset_V")
+    description = "mechanical stops reached (the pendulum held at ±h_max)"
+    nonlinear = True
+    starts = ((1.02, 0.0), (1.02, 0.0))
+    # The output offset is a nuisance that only a contact reveals; a training part that
+    # reaches one stop cannot tell it from the external moment.
+    held_out_nuisance = (1,)
+
+    def inverse_stop(self, z, ctx):
+        return jnp.abs(z[0])
+
+    def prior(self, z, ctx):
+        # A stop the training part never reaches is not measured: a weak pull moves it out
+        # of reach (1/z → ∞) instead of leaving it where the fit started, at the training
+        # peak. The output offset has a N(0, OFFSET_PRIOR) prior: with only one stop
+        # reached it is not told from the external moment, and no offset is the default.
+        return jnp.stack([0.1 * z[0], self.output_offset(z, ctx) / OFFSET_PRIOR])
+
+    def output_offset(self, z, ctx):
+        return 0.1 * ctx.scale * z[1]
+
+    def record_starts(self, host: RecordHost):
+        # The offset at the middle of the training output's range: the stops are symmetric
+        # about it when both are reached.
+        offset = host.mid / (0.1 * host.scale)
+        return tuple((s[0], offset) for s in self.starts)
+
+    def physical(self, z, context: CandidateHost):
+        stop = context.half / abs(float(z[0])) if abs(float(z[0])) > 1e-9 else float("inf")
+        offset = 0.1 * context.scale * float(z[1])
+        return {
+            "stop_V": stop,
+            "stop_displacement_m": stop / context.gain,
+            "output_offset_V": offset,
+            "stop_high_V": offset + stop,
+            "stop_low_V": offset - stop,
+        }
+
+
+@register_effect
+class DisturbanceDrift(AbstractStepEffect):
+    """External moment drifting linearly; z = 1 moves the settled output ≈ 10 mV over the
+    record."""
+
+    name = "disturbance_drift"
+    parameter_names = ("moment_rate_Nm_per_s",)
+    description = "slow drift of the external moment, M(t) = M + Ṁ t"
+    starts = ((0.0,),)
+
+    def drift(self, z, ctx):
+        return 1e-2 * z[0]
+
+    def physical(self, z, context: CandidateHost):
+        change = 1e-2 * float(z[0])  # V of M/k_dm over the record
+        return {
+            "moment_rate_Nm_per_s": change * context.torquer_gain / context.duration,
+            "output_drift_V_per_s": change * context.test_gain / context.duration,
+        }
+
+
+@register_effect
+class ColoredNoise(AbstractStepEffect):
+    """White + AR(1) (sampled Gauss–Markov) output noise: the AR(1) part's standard
+    deviation is λ = max(z₀, 0) times the white part's, its coefficient φ = tanh z₁."""
+
+    name = "colored_noise"
+    parameter_names = ("correlated_over_white", "ar1_coefficient")
+    description = "correlated (Gauss–Markov) output noise on top of the white noise"
+    stochastic = True
+    starts = ((1.0, 1.5), (1.0, 3.0))
+    bounds = (30.0, 5.0)
+
+    def noise(self, z, ctx):
+        ratio = jnp.maximum(z[0], 0.0) ** 2
+        phi = jnp.tanh(z[1])
+        return phi, _white_share(ratio, phi)
+
+    def physical(self, z, context: CandidateHost):
+        ratio = max(float(z[0]), 0.0) ** 2
+        phi = float(np.tanh(z[1]))
+        tau = -context.dt / math.log(abs(phi)) if 0 < abs(phi) < 1 else float("nan")
+        white = float(_white_share(ratio, phi)) * context.innovation_variance
+        return {
+            "ar1_coefficient": phi,
+            "correlation_time_s": float(tau),
+            "sigma_white_V": math.sqrt(white),
+            "sigma_correlated_V": math.sqrt(ratio * white),
+        }
+
+
+def _white_share(ratio, phi):
+    """θ/φ of white + AR(1) noise written as ARMA(1,1) (n_k − φ n_{k−1} = a_k − θ a_{k−1}),
+    with σ_s²/σ_w² = `ratio`: θ/(1 + θ²) = c = φ/(ratio (1 − φ²) + 1 + φ²), the invertible
+    root θ = 2c/(1 + √(1 − 4c²)). It is also σ_w²/σ_a², the white share of the one-step
+    prediction variance (1 when ratio = 0 or φ = 0: white)."""
+    xp = jnp if isinstance(phi, jax.Array) or isinstance(ratio, jax.Array) else np
+    denominator = ratio * (1 - phi**2) + 1 + phi**2
+    c = phi / denominator
+    return 2 / (denominator * (1 + xp.sqrt(1 - 4 * c**2)))
+
+
+def step_effects() -> list[AbstractStepEffect]:
+    """The registered step effects, in registration order."""
+    return [cls() for cls in effect_library("step").values()]

@@ -1,0 +1,215 @@
+"""The `step` kind's entry: `diagnose_step` prepares each record (`record.prepare`), fits
+every linear candidate of records of one shape as one batch, restarts a nested fit that
+ended below the nominal's from the nominal optimum, fits the stop candidate where no linear
+model explains a record, and judges each record (`verdict.evaluate`); a lag tie gets the
+experiment that would break it (`design`). The kind itself is described in the package
+`accel_jax.diagnose.step`.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..._data import NominalDevice, StepData
+from ..._sweep import even_chunk_size, sweep
+from ..base import DiagnosisResult, require_float64
+from .assess import explains_deterministically, fit_entries, nested_losers
+from .effects import step_effects
+from .fit import _I_SLOT, _I_TIMING, BATCH_CHUNK, fit_linear, fit_nonlinear
+from .record import prepare, prior_sigma_of, stack_on_host
+from .state import RecordShape, StepRecord
+from .verdict import evaluate
+
+
+def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candidates, desc):
+    """Fit `candidates` of `records` (one shape) from `starts` (one array of starts per
+    record), batched."""
+    ctx = stack_on_host([rec.ctx for rec in records])
+    u_out = stack_on_host([rec.u_out for rec in records])
+    guesses = jnp.asarray(np.stack(starts))
+    outputs = sweep(
+        fn,
+        nominal.params,
+        jnp.asarray(prior_sigma_of(nominal)),
+        ctx,
+        u_out,
+        guesses,
+        jnp.asarray(candidates),
+        in_axes=(None, None, 0, 0, 0, None),
+        chunk_size=even_chunk_size(len(records), BATCH_CHUNK),
+        desc=desc,
+    )
+    return [np.asarray(o) for o in outputs]
+
+
+def _fit_grouped(
+    fn, nominal, records: list[StepRecord], starts: dict[int, np.ndarray], candidates, effects, desc
+) -> dict:
+    """Fit `candidates` of the records `starts` names ({record index: its starts}), one
+    batch per record shape (one compiled program each); returns {i: fit entries}."""
+    groups: dict[RecordShape, list[int]] = {}
+    for i in starts:
+        groups.setdefault(records[i].shape, []).append(i)
+    entries = {}
+    for members in groups.values():
+        outputs = _run(
+            fn, nominal, [records[i] for i in members], [starts[i] for i in members],
+            candidates, desc,
+        )
+        for j, i in enumerate(members):
+            entries[i] = fit_entries(
+                records[i], effects, candidates, [o[j] for o in outputs], records[i].u_out
+            )
+    return entries
+
+
+LAG_PAIR = frozenset({"torquer_lag", "output_filter"})
+"""The tie that another experiment can break (`design.next_experiments`)."""
+
+
+def diagnose_step(
+    datasets: list[StepData], nominal: NominalDevice, *, recommend: bool = True
+) -> list[DiagnosisResult]:
+    """Diagnose step records against a nominal device (docs/models.md §5, `step` kind).
+
+    Records of one length and test sequence size are fitted together: one compilation, the
+    batch vmapped and sharded across devices (`accel_jax.sweep`), every candidate model and
+    start of a record vmapped. The stop candidate (simulated sample by sample) is fitted
+    only for records that no linear model explains.
+
+    **Arguments:**
+
+    - `datasets`: validated `StepData` records (e.g. from `read_csv`).
+    - `nominal`: the nominal device and its prior (`NominalDevice`).
+    - `recommend`: with a `cannot_tell` between `torquer_lag` and `output_filter`, compute
+        the experiment that would separate them (`result.next_experiment`, from the joint
+        fit of `joint`: ~10–60 s per such record on a CPU).
+
+    **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;
+    a `ValueError` otherwise).
+    """
+    require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
+    effects = step_effects()
+    linear = [0] + [i for i, e in enumerate(effects, start=1) if not e.nonlinear]
+    nonlinear = [i for i, e in enumerate(effects, start=1) if e.nonlinear]
+    records = [prepare(data, nominal, effects) for data in datasets]
+    entries = _fit_grouped(
+        fit_linear, nominal, records, {i: rec.guesses_linear for i, rec in enumerate(records)},
+        linear, effects, "diagnose step",
+    )
+    fits: list[list] = [entries[i] for i in range(len(records))]  # every record's linear fits
+    # Nested fits never lose: an effect at z = 0 is the nominal model, so a linear
+    # candidate whose best fit ends below the nominal's log-likelihood started in the wrong
+    # basin. Its record is fitted again with every candidate's second start at the nominal
+    # optimum (same program; only where a candidate lost).
+    for _ in range(NESTED_RESTARTS):
+        losing = [i for i in range(len(records)) if nested_losers(fits[i])]
+        if not losing:
+            break
+        _restart_from_nominal(fits, records, losing, effects, linear, nominal)
+    # The stop candidate, for the records that no linear model explains.
+    stop_starts = {}
+    for i, rec in enumerate(records):
+        if rec.domain_problems or not nonlinear:
+            continue
+        if not any(explains_deterministically(f, rec) for f in fits[i]):
+            # One start from the nominal fit (a stop model with its stops out of reach is
+            # the nominal model), one from the record's own starting point: the nominal fit
+            # may have bent its nuisances (change times, offset) to absorb the clipping.
+            guesses = np.array(rec.guesses_nonlinear)
+            guesses[:, 0, :_I_SLOT] = fits[i][0]["w"][:_I_SLOT]
+            guesses[:, 0, _I_TIMING:] = fits[i][0]["w"][_I_TIMING:]
+            # And a third: the nominal optimum itself, the effect at its no-effect value
+            # (z = 0 is the nominal model), so that a nested fit never ends below the
+            # nominal's likelihood (from the peak starts alone, a stop fit lost by
+            # thousands on records that a compliant contact clipped).
+            at_nominal = np.broadcast_to(
+                _at_nominal(fits[i][0]["w_trained"]), guesses[:, :1].shape
+            )
+            stop_starts[i] = np.concatenate([guesses, at_nominal], axis=1)
+    entries = _fit_grouped(
+        fit_nonlinear, nominal, records, stop_starts, nonlinear, effects,
+        "diagnose step (stops)",
+    )
+    for i, record_fits in entries.items():
+        fits[i] = fits[i] + record_fits
+    results = []
+    for rec, record_fits in zip(records, fits, strict=True):
+        if len(record_fits) < 1 + len(effects):
+            skipped = [e.name for e in effects if e.nonlinear]
+            rec = rec.with_note(
+                f"{', '.join(skipped)} not fitted: a linear model already explains the record"
+                if not rec.domain_problems
+                else f"{', '.join(skipped)} not fitted: the record failed the domain check"
+            )
+        results.append(evaluate(rec.data, nominal, rec, record_fits))
+    if recommend:
+        for data, rec, result in zip(datasets, records, results, strict=True):
+            if result.verdict == "cannot_tell" and set(result.tied) == LAG_PAIR:
+                if rec.clock is not None:  # the joint fit takes ≤ MAX_CHANGES
+                    result.notes.append(
+                        "no next experiment designed: the joint fit that designs it takes "
+                        "step sequences, not a clocked sequence of hundreds of changes"
+                    )
+                    continue
+                _recommend(result, data, nominal)
+    return results
+
+
+NESTED_RESTARTS = 2
+"""Rounds of restarts from the nominal optimum for candidates that lost to it (a second
+round when the restart also moved the nominal fit on, e.g. one that had stopped at its
+step limit)."""
+
+
+def _restart_from_nominal(
+    fits, records: list[StepRecord], losing, effects, linear, nominal
+) -> None:
+    """Fit the records `losing` again, every candidate's second start at the nominal
+    optimum with the effect at 0 (the same compiled program); keep each candidate's better
+    fit (lower objective), and note it on the record (`records[i]` replaced)."""
+    again_starts = {}
+    for i in losing:
+        guesses = np.array(records[i].guesses_linear)
+        guesses[:, 1, :] = _at_nominal(fits[i][0]["w_trained"])
+        again_starts[i] = guesses
+    entries = _fit_grouped(
+        fit_linear, nominal, records, again_starts, linear, effects,
+        "diagnose step (nested restarts)",
+    )
+    for i, again in entries.items():
+        fits[i] = [
+            new if new["objective"] < old["objective"] else old
+            for old, new in zip(fits[i], again, strict=True)
+        ]
+        note = (
+            "a candidate's fit ended below the nominal model's likelihood; refitted from "
+            "the nominal optimum"
+        )
+        if note not in records[i].notes:
+            records[i] = records[i].with_note(note)
+
+
+def _at_nominal(w_nominal) -> np.ndarray:
+    """A start at the nominal fit's optimum with the effect's slot at 0: the nominal model
+    exactly, for every effect (each is the identity at z = 0)."""
+    w = np.array(w_nominal, dtype=np.float64)
+    w[_I_SLOT:_I_TIMING] = 0.0
+    return w
+
+
+def _recommend(result: DiagnosisResult, data: StepData, nominal: NominalDevice) -> None:
+    """Attach the next experiment to a lag tie (the record alone, fitted as a set of one)."""
+    from .design import next_experiments
+    from .joint import fit_set, prepare_set
+
+    prepared = prepare_set([data], nominal)
+    fits = fit_set(prepared, nominal)
+    result.next_experiment = next_experiments(prepared, nominal, fits, list(result.tied))
+    if result.next_experiment:
+        best = result.next_experiment[0]
+        result.reason += (
+            f" To separate {result.tied[0]} from {result.tied[1]}: {best['description']} "
+            f"(expected 2 ln B ≈ {best['expected_2lnB']:.3g})."
+        )

@@ -1,0 +1,531 @@
+"""The step diagnosis's fit (JAX): the parameters of a candidate model, its prediction and
+one-step errors, and the vmapped least-squares fit of every candidate of a record.
+
+Parameters w = [refit z (4), external moment, test winding gain z, initial displacement
+(2), effect slot (2), change times (J)], all O(1): the refit as log-normal deviations in
+units of their prior σ, held within ±`REFIT_BOUND`σ by a steep penalty; the change times in
+samples from where `u_test` shows each change, under a N(−0.5, 1) prior.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+
+from ..._params import ServoParams
+from ..._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
+from .effects import step_effects
+
+REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
+"""ServoParams fields the refit moves, each under its log-normal prior (a field given no
+uncertainty in the device file stays at its nominal value)."""
+
+REFIT_BOUND = 6.0
+"""|z| of a refitted value (and of the test winding's gain) stays within about this many σ:
+beyond it a steep penalty (`BARRIER`) acts, so a refit stays inside its prior by
+construction. A refit beyond `openworld.PRIOR_LIMIT` (5σ) is reported as not credible."""
+
+BARRIER = 30.0
+"""Slope of the penalty residual BARRIER·max(|w| − bound, 0) that keeps a parameter within
+its bound (a fit that wants more stays at the bound instead of running away)."""
+
+GAIN_SIGMA = 0.1
+"""Relative (1σ) uncertainty of the test winding's gain."""
+
+TIMING_PRIOR = (-0.5, 1.0)
+"""Prior (mean, σ) of each change's time in samples from the sample where `u_test` shows
+it: a sampled u_test column puts it up to one sample earlier, the library's own records
+exactly there. Clipped to ±`TIMING_LIMIT` samples."""
+
+TIMING_LIMIT = 4.0
+
+DELAY_PRIOR_SIGMA = 4.0
+"""Prior σ [samples] of a measured input channel's delay behind the output's, N(0, σ): a
+common shift of every change (an ADC's group delay, an anti-alias filter); clipped to
+±`DELAY_LIMIT`."""
+
+DELAY_LIMIT = 8.0
+
+SLOT = 2
+_I_MOMENT, _I_GAIN, _I_DV, _I_DW = 4, 5, 6, 7
+_I_SLOT = 8
+_I_TIMING = _I_SLOT + SLOT
+_N_FIXED = _I_TIMING
+
+
+class StepContext(eqx.Module):
+    """Per-record scales, masks and the test sequence (array leaves: vmappable).
+
+    **Fields:** `dt` [s] the sample period; `duration` [s] of the fitted record (the drift
+    is per this); `first_level` U_test at the first sample [V];
+    `polarity` ±1 of
+    the test winding; `sigma_ref` [V] the residual scale (the noise floor); `scale` [V] of
+    the offset and initial-state parameters; `lag_unit` [s] the lag departure per unit z (3 % of the
+    nominal T); `mid`, `half` [V] the middle and half range of the training output (where
+    the stops start); `change_index` (J,), `change_step` ΔU (J,) [V] (0 pads),
+    `held_out_change` (J,) 1 for changes in the held-out part; `train`, `test` masks of the
+    fitted outputs (block means; 0 on padding); `block` m, samples per block; `max_block`
+    (static) the largest m of the batch; `change_accel` (J,) Δa [g] of the input
+    acceleration at each change and `accel_sign` ±1 the input axis's direction in the
+    record (None: a record without `a_in`). For a measured test input
+    (`inputs.read_inputs`): `level_sigma` (J,) [V] the standard error of the test
+    level after each change (0 pads), `held_out_level` (J + 1,) 1 where that level's segment
+    is held out (the last entry, the drift nuisance's, 0) and `drift_step` (J,) [V] each
+    step's change per unit of the input channel's drift nuisance; None for an exact input
+    (then the fit has no level parameters).
+
+    A sequence of many changes on one clock (a PRBS or random telegraph: `record`'s
+    clocked layout) is fitted with few nuisances instead of one per change:
+    `timing_map` (J, P) and `timing_offset` (J,) [samples] give each change's shift as
+    offset + map·p from P clock parameters p (the common shift, the clock's rate), whose
+    prior means are `timing_mean` (P,) (σ 1); `level_map` (J + 1, L) [V] gives each level's
+    error from L level-group errors (one per distinct level of the input: a DAC puts out the
+    same value each time), standard normal; `timing_sigma`, `timing_limit` (P,) the timing
+    parameters' prior σ and clip [samples]. A measured input of few changes has one shift
+    per change and the input channel's delay, common to all (the map [I | 1]). None (the
+    default): one timing and one level parameter per change, as above.
+    """
+
+    dt: jax.Array
+    duration: jax.Array
+    first_level: jax.Array
+    polarity: jax.Array
+    sigma_ref: jax.Array
+    scale: jax.Array
+    lag_unit: jax.Array
+    mid: jax.Array
+    half: jax.Array
+    change_index: jax.Array
+    change_step: jax.Array
+    held_out_change: jax.Array
+    train: jax.Array
+    test: jax.Array
+    block: jax.Array
+    max_block: int = eqx.field(static=True, default=1)
+    change_accel: jax.Array | None = None
+    accel_sign: jax.Array | None = None
+    level_sigma: jax.Array | None = None
+    held_out_level: jax.Array | None = None
+    drift_step: jax.Array | None = None
+    timing_map: jax.Array | None = None
+    timing_offset: jax.Array | None = None
+    timing_mean: jax.Array | None = None
+    timing_sigma: jax.Array | None = None
+    timing_limit: jax.Array | None = None
+    level_map: jax.Array | None = None
+
+
+def n_timing(ctx) -> int:
+    """Number of timing parameters in w: one per change, or the clock's (`timing_map`)."""
+    if ctx.timing_map is not None:
+        return ctx.timing_map.shape[-1]
+    return ctx.change_index.shape[-1]
+
+
+def timing_terms(timing, ctx):
+    """(each change's shift [samples], the timing parameters' prior residuals) from the
+    timing parameters `timing`. Each change's own shift is clipped to ±`TIMING_LIMIT`
+    samples; the parameters of a `timing_map` are limited smoothly to ±`timing_limit`
+    (L tanh(p/L)), the map's offsets then added as they are."""
+    if ctx.timing_map is None:
+        clipped = jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT)
+        return clipped, (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
+    # A smooth limit (L tanh(p/L)): a hard clip has no gradient beyond it, where a fit
+    # that overshoots in its first steps would stay (seen on a measured record: the delay
+    # at +4 and every level strained).
+    limited = ctx.timing_limit * jnp.tanh(timing / ctx.timing_limit)
+    shift = ctx.timing_offset + ctx.timing_map @ limited
+    return shift, (timing - ctx.timing_mean) / ctx.timing_sigma
+
+
+def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:
+    """The nominal device with J, μ, c, k_dm moved by z (in units of their prior σ). Every
+    other value is the nominal device's as given, its lags T_dm and T_f included: the lag
+    effects are departures from those (`effects._AbstractLag`)."""
+    values = [getattr(base, f) * jnp.exp(prior_sigma[i] * z[i]) for i, f in enumerate(REFIT_FIELDS)]
+    return eqx.tree_at(lambda p: [getattr(p, f) for f in REFIT_FIELDS], base, values)
+
+
+def _barrier(w, bound):
+    return BARRIER * jnp.maximum(jnp.abs(w) - bound, 0.0)
+
+
+def unpack(w, candidate, effects, base, prior_sigma, ctx):
+    """The model of candidate `candidate` (0: nominal; i: effect i − 1 of `effects`) at the
+    parameters w = [refit z (4), moment, gain z, dv, dw, effect slot (2), change times (J)]
+    and, for a measured test input (`ctx.level_sigma`), the errors of the levels after each
+    change (J, in units of their standard error: errors in variables, a standard normal
+    prior; the first level's error is an output offset, the moment's) and the input
+    channel's drift (1, standard normal)."""
+    z = w[:4]
+    params = refitted_device(base, z, prior_sigma)
+    gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[_I_GAIN])
+    slot = w[_I_SLOT:_I_TIMING]
+    rate = jnp.zeros_like(w[0])
+    inverse = offset = phi = share = jnp.zeros_like(w[0])
+    used = jnp.zeros(SLOT, w.dtype)
+    bounds = jnp.full(SLOT, jnp.inf, w.dtype)
+    prior = jnp.zeros(SLOT, w.dtype)
+    for i, effect in enumerate(effects, start=1):
+        # Every effect sees zeros unless it is the candidate: exactly the nominal model.
+        on = candidate == i
+        ze = jnp.where(on, slot, 0.0)
+        params = effect.device(params, ze, ctx)
+        rate = rate + effect.drift(ze, ctx)
+        inverse = inverse + effect.inverse_stop(ze, ctx)
+        offset = offset + effect.output_offset(ze, ctx)
+        p, s = effect.noise(ze, ctx)
+        phi, share = phi + p, share + s
+        mask = jnp.arange(SLOT) < effect.n_params
+        used = jnp.where(on, mask.astype(w.dtype), used)
+        bound = jnp.asarray(effect.bounds + (jnp.inf,) * (SLOT - len(effect.bounds)), w.dtype)
+        bounds = jnp.where(on, bound, bounds)
+        prior = jnp.where(on, effect.prior(ze, ctx), prior)
+    n_t = n_timing(ctx)
+    timing = w[_I_TIMING : _I_TIMING + n_t]
+    levels = w[_I_TIMING + n_t :]
+    shift, timing_prior = timing_terms(timing, ctx)
+    step = ctx.change_step
+    if ctx.level_sigma is not None:
+        # ΔU_j moves by e_j − e_{j−1} (e the level errors [V]; pads carry none) and by the
+        # input channel's drift nuisance (the last level parameter) along `drift_step`.
+        if ctx.level_map is None:
+            error = ctx.level_sigma * levels[:-1]
+            previous = jnp.concatenate([jnp.zeros(1, w.dtype), error[:-1]])
+        else:  # each level's error from its level group's
+            both = ctx.level_map @ levels[:-1]
+            error, previous = both[1:], both[:-1]
+        step = step + jnp.where(ctx.level_sigma > 0, error - previous, 0.0)
+        step = step + ctx.drift_step * levels[-1]
+    penalties = jnp.concatenate(
+        [
+            z,  # the standard normal prior of the refit
+            w[_I_GAIN][None],  # and of the test winding's gain
+            _barrier(z, REFIT_BOUND),
+            _barrier(w[_I_GAIN][None], REFIT_BOUND),
+            slot * (1 - used),  # an effect's unused parameters are pinned at 0
+            _barrier(slot, bounds) * used,
+            prior * used,  # an effect's own prior, where it has one
+            timing_prior,
+            levels,  # the level errors' standard normal prior (empty for an exact input)
+        ]
+    )
+    return {
+        "params": params,
+        "gain": gain,
+        "moment": ctx.scale * w[_I_MOMENT],
+        "rate": rate,
+        "dv": ctx.scale * w[_I_DV],
+        "dw": ctx.scale * w[_I_DW],
+        "shift": shift,
+        "step": step,
+        "inverse_stop": inverse,
+        "output_offset": offset,
+        "phi": phi,
+        "share": share,
+        "penalties": penalties,
+    }
+
+
+def moment_jumps(params, ctx, gain: float | jax.Array = 1.0):
+    """ΔM̃ [V] of the record's acceleration steps (None without `a_in`): Δa·g₀·m·l/k_dm
+    along the record's input axis (`accel_sign`), times the pendulosity's `gain`."""
+    if ctx.change_accel is None:
+        return None
+    return ctx.accel_sign * gain * accel_moment(params) * ctx.change_accel
+
+
+def predict(m, ctx, n, nonlinear: bool):
+    sequence = SequenceInputs(
+        ctx.first_level,
+        m["gain"],
+        m["moment"],
+        m["rate"],
+        m["dv"],
+        m["dw"],
+        ctx.change_index,
+        m["step"],
+        m["shift"],
+        moment_jumps(m["params"], ctx, m.get("accel_gain", 1.0)),
+    )
+    args = (m["params"], ctx.dt, n, sequence)
+    if not nonlinear:
+        record = linear_record(
+            *args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration
+        )
+        return record + m["output_offset"]
+    inverse = m["inverse_stop"]
+    safe = jnp.where(inverse > 0, inverse, 1.0)
+    stop = jnp.where(inverse > 0, ctx.half / safe, 1e6 * ctx.half)
+    record = stop_record(*args, stop, -stop, block=ctx.block, duration=ctx.duration)
+    return record + m["output_offset"]
+
+
+def innovation_terms(error, phi, share):
+    """One-step prediction errors of white + AR(1) noise (an ARMA(1,1) recursion
+    a_k = e_k − φ e_{k−1} + θ a_{k−1}, θ = sφ, s the white share (`_white_share`)), and
+    ln V, V the variance of the first sample over σ_a², its exact stationary term
+    (σ_w² + σ_s²)/σ_a² = s + (1 − θφ)(1 − s)/(1 − φ²).
+
+    The recursion is a first-order linear filter, evaluated in two levels of matrix
+    products (`_first_order_filter`): a small program, which matters because every fit
+    differentiates it many times over (a parallel scan compiled 4× slower)."""
+    theta = share * phi
+    variance = share + (1 - theta * phi) * (1 - share) / (1 - phi**2)
+    first = error[:1] / jnp.sqrt(variance)
+    b = jnp.concatenate([first, error[1:] - phi * error[:-1]])
+    return _first_order_filter(b, theta), jnp.log(variance)
+
+
+def _first_order_filter(b, theta):
+    """a_k = b_k + θ a_{k−1} (a_0 = b_0), |θ| < 1, for a 1-D b of length n.
+
+    In blocks of B samples (B the power of two ≥ √n, at least 16): within each block a
+    lower-triangular Toeplitz matrix of θ^0 … θ^{B−1}; across blocks, the values at the
+    blocks' ends by a second such matrix in θ^B, carried into each block by θ^{i+1}. Only
+    non-negative powers of θ appear (no cancellation); memory O(n), work O(n√n)."""
+    n = b.shape[0]
+    size = max(16, 1 << math.ceil(math.log2(math.sqrt(n))))
+    blocks = -(-n // size)
+    rows = jnp.pad(b, (0, blocks * size - n)).reshape(blocks, size)
+
+    def powers(base, count):  # base^0 … base^(count−1), by products (any sign of base)
+        rest = jnp.cumprod(jnp.full(count - 1, base, b.dtype))
+        return jnp.concatenate([jnp.ones(1, b.dtype), rest])
+
+    def lower_toeplitz(values):
+        k = jnp.arange(values.shape[0])
+        lag = k[:, None] - k[None, :]
+        return jnp.where(lag >= 0, values[jnp.maximum(lag, 0)], 0.0)
+
+    within = powers(theta, size + 1)  # θ^0 … θ^B
+    local = rows @ lower_toeplitz(within[:size]).T
+    ends = lower_toeplitz(powers(within[size], blocks)) @ local[:, -1]
+    carried = jnp.concatenate([jnp.zeros(1, b.dtype), ends[:-1]])
+    return (local + within[1:][None, :] * carried[:, None]).reshape(-1)[:n]
+
+
+FIT_TOLERANCE = 1e-6
+"""rtol = atol of the Levenberg–Marquardt fits (on the O(1) parameters)."""
+
+BATCH_CHUNK = 8
+"""Records fitted per compiled call (a vmapped batch runs until its slowest fit stops)."""
+
+
+STOP_FIT_MAX_STEPS = 20
+"""The same for the stop candidate: started from the nominal fit, it needs fewer, and each
+costs a sample-by-sample simulation."""
+
+FIT_MAX_STEPS = 30
+"""Levenberg–Marquardt steps per start. A batch runs until its slowest fit stops, and the
+fits of effects that do not describe the record creep on for many steps after the loss has
+settled, so a fit that is not done by then is judged by its Newton decrement instead."""
+
+CONVERGED_DECREMENT = 0.5
+"""A fit counts as converged when the solver says so or when a full Gauss–Newton step from
+its result would lower the cost ½Σr² (r in noise-floor units) by less than this plus 1e-8
+of the cost: its log-likelihood is then within that of the minimum, and the evidence (2 ln
+B) within 1 — the precision a significance threshold of 10 needs."""
+
+HELD_OUT_ITERATIONS = 4
+"""Gauss–Newton iterations of the held-out change times (nearly linear: a few suffice)."""
+
+
+def dense_jacobian(fn):
+    """`fn(w, args)` whose derivative is its Jacobian in w, computed once by forward mode
+    (`jax.jacfwd`) and applied as a matrix. Optimistix's Levenberg–Marquardt linearises the
+    residuals and then materialises, transposes and applies the linearised function; for a
+    residual that is a simulation, each of those is another copy of the simulation in the
+    compiled program. With the matrix it is one copy and matrix products: the single-record
+    fit compiled in 7.1 s instead of 9.8 s and ran faster (2-core CPU). The same values
+    (the linearisation is the same Jacobian). `args` is not differentiated."""
+
+    @jax.custom_jvp
+    def dense(w, args):
+        return fn(w, args)
+
+    @dense.defjvp
+    def _jvp(primals, tangents):
+        w, args = primals
+        jac, value = jax.jacfwd(lambda v: (fn(v, args),) * 2, has_aux=True)(w)
+        return value, jac @ tangents[0]
+
+    return dense
+
+
+def _gauss_newton_step(fn, x):
+    """(x − (JᵀJ + μI)⁻¹Jᵀr, ½‖r‖², Newton decrement rᵀJ(JᵀJ + μI)⁻¹Jᵀr) at x."""
+    jac, r = jax.jacfwd(lambda v: (fn(v), fn(v)), has_aux=True)(x)
+    return _newton_step(jac, r, x)
+
+
+def _newton_step(jac, r, x):
+    """`_gauss_newton_step` from the Jacobian and residuals at x."""
+    normal = jac.T @ jac
+    mu = 1e-12 * jnp.trace(normal) / x.shape[0] + 1e-300
+    gradient = jac.T @ r
+    step = jnp.linalg.solve(normal + mu * jnp.eye(x.shape[0], dtype=x.dtype), gradient)
+    return x - step, 0.5 * jnp.sum(r**2), gradient @ step
+
+
+def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: bool):
+    """Fit every candidate (vmapped) to one record: from each start on the training part
+    (Levenberg–Marquardt, optimistix), then, from the best start, the held-out change times
+    on the held-out part (a few Gauss–Newton steps)."""
+    n = u_out.shape[0]
+    effects = step_effects()
+
+    def error_of(w, candidate):
+        m = unpack(w, candidate, effects, base, prior_sigma, ctx)
+        prediction = predict(m, ctx, n, nonlinear)
+        a, log_v = innovation_terms(u_out - prediction, m["phi"], m["share"])
+        return m, prediction, a, log_v
+
+    def residuals(w, candidate):
+        m, _, a, _ = error_of(w, candidate)
+        return jnp.concatenate([a * ctx.train / ctx.sigma_ref, m["penalties"]])
+
+    solver = optx.LevenbergMarquardt(
+        rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE, linear_solver=lx.Normal(lx.Cholesky())
+    )
+
+    dense_residuals = dense_jacobian(residuals)
+
+    def train_fit(guess, candidate):
+        solution = optx.least_squares(
+            dense_residuals,
+            solver,
+            guess,
+            args=candidate,
+            max_steps=STOP_FIT_MAX_STEPS if nonlinear else FIT_MAX_STEPS,
+            throw=False,
+        )
+        # The residuals and the Jacobian at the solution as the solver left them: its state
+        # holds the linearisation at the accepted point (with `dense_jacobian`, a matrix;
+        # checked against a fresh evaluation in tests/test_diagnose_step.py), so neither
+        # needs another copy of the simulation in the program.
+        r = solution.state.f_info.residual
+        jac = solution.state.f_info.jac.as_matrix()
+        cost = jnp.sum(r**2)
+        cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+        solved = solution.result == optx.RESULTS.successful
+        return solution.value, cost, solved, solution.stats["num_steps"], r, jac
+
+    def fit_one(ws, costs, solved, steps, rs, jacs, candidate):
+        best = jnp.argmin(costs)
+        w = ws[best]
+        # One Gauss–Newton step from the result: its predicted decrease (the Newton
+        # decrement) tells whether the fit is at a minimum; taken when it lowers the cost.
+        polished, cost, decrement = _newton_step(jacs[best], rs[best], w)
+        converged = solved[best] | (decrement <= CONVERGED_DECREMENT + 1e-8 * cost)
+
+        # The held-out nuisances: the times of the held-out changes, and parameters that an
+        # effect declares nuisances (`held_out_nuisance`: e.g. the output offset that only
+        # a stop contact reveals, which the training part may not have).
+        nuisance = jnp.zeros(SLOT, w.dtype)
+        for i, effect in enumerate(effects, start=1):
+            mask = jnp.isin(jnp.arange(SLOT), jnp.asarray(effect.held_out_nuisance, int))
+            nuisance = jnp.where(candidate == i, mask.astype(w.dtype), nuisance)
+        held_levels = () if ctx.level_sigma is None else (ctx.held_out_level,)
+        free = jnp.concatenate([nuisance, ctx.held_out_change, *held_levels])
+
+        def moved(base, delta):
+            return base.at[_I_SLOT:].add(free * delta)
+
+        def held_out(delta, base):
+            """The held-out residuals at `base` moved by `delta`, and (aux) the training
+            cost Σr² of `residuals` there."""
+            m, _, a, _ = error_of(moved(base, delta), candidate)
+            tail = moved(base, delta)[_I_TIMING:]
+            n_t = n_timing(ctx)
+            timing, levels = tail[:n_t], tail[n_t:]
+            prior = ctx.held_out_change * timing_terms(timing, ctx)[1]
+            if ctx.level_sigma is not None:  # a held-out level's error, under its prior
+                prior = jnp.concatenate([prior, ctx.held_out_level * levels])
+            out = jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])
+            train = jnp.sum((a * ctx.train / ctx.sigma_ref) ** 2) + jnp.sum(m["penalties"] ** 2)
+            return out, (out, train)
+
+        def refine(base):
+            """A few Gauss–Newton steps of the held-out nuisances from `base`: the best
+            step (one pass more than there are steps: the last only costs the last step's
+            result), and the training cost at `base` (from the first pass)."""
+
+            def iterate(i, carry):
+                delta, best_delta, best_cost, train_at_base = carry
+                jac, (r, train) = jax.jacfwd(held_out, has_aux=True)(delta, base)
+                new, cost, _ = _newton_step(jac, r, delta)
+                better = cost < best_cost
+                return (
+                    new,
+                    jnp.where(better, delta, best_delta),
+                    jnp.where(better, cost, best_cost),
+                    jnp.where(i == 0, train, train_at_base),
+                )
+
+            zero = jnp.zeros_like(base[_I_SLOT:])
+            carry = (zero, zero, jnp.inf, jnp.inf)
+            _, best_delta, _, train_at_base = jax.lax.fori_loop(
+                0, HELD_OUT_ITERATIONS + 1, iterate, carry
+            )
+            return best_delta, train_at_base
+
+        # From the fit and from its polished point at once (one batch of two, so the model
+        # appears once in the program): the polished one is kept when it lowers the
+        # training cost.
+        deltas, train_costs = jax.vmap(refine)(jnp.stack([w, polished]))
+        better = train_costs[1] < 2 * cost
+        w = jnp.where(better, polished, w)
+        trained = w  # the training optimum, before the held-out nuisances move
+        best_delta = jnp.where(better, deltas[1], deltas[0])
+        w = moved(w, best_delta)
+        # The fitted model and the same model with the device at its prior values (what
+        # the refit changed), as one batch of two.
+        _, predictions, a, log_v = jax.vmap(error_of, in_axes=(0, None))(
+            jnp.stack([w, w.at[:4].set(0.0)]), candidate
+        )
+        # The objective the solver minimised (Σ of the squared training residuals and of
+        # every prior and penalty: ½ of it is −ln of the penalised likelihood) at the
+        # training optimum kept, and that optimum: what a nested model can never end above
+        # the nominal's on (`nested_failed`), and where its restart begins.
+        objective = jnp.where(better, train_costs[1], train_costs[0])
+        return (
+            w,
+            predictions[0],
+            a[0],
+            log_v[0],
+            converged,
+            steps[best],
+            predictions[1],
+            decrement,
+            objective,
+            trained,
+        )
+
+    # Every (candidate, start) pair fitted in turn (`lax.map`), not vmapped: a vmapped
+    # solver turns each of its branches into both branches and each loop into a masked
+    # loop, and the program took twice as long to compile and five times as long to trace
+    # (measured on the 2-core CPU: a single record's fit 35 → 21 s cold), while a batch of
+    # 8 records ran as fast either way (each fit stops at its own step count instead of
+    # waiting for the slowest). A batch of records is still vmapped outside (`sweep`).
+    count, starts = guesses.shape[:2]
+    pairs = (
+        guesses.reshape((count * starts,) + guesses.shape[2:]),
+        jnp.repeat(candidates, starts),
+    )
+    flat = jax.lax.map(lambda pair: train_fit(*pair), pairs)
+    per_start = jax.tree_util.tree_map(lambda x: x.reshape((count, starts) + x.shape[1:]), flat)
+    return jax.lax.map(lambda args: fit_one(*args), (*per_start, candidates))
+
+
+def fit_linear(base, prior_sigma, ctx, u_out, guesses, candidates):
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, False)
+
+
+def fit_nonlinear(base, prior_sigma, ctx, u_out, guesses, candidates):
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, True)

@@ -1,0 +1,581 @@
+"""Several step records of one device, diagnosed together (issue 20): one shared set of
+device and effect parameters, per-record nuisances, and the experiment that would break a
+tie.
+
+A torquer lag inside the loop and a filter on the output give the same all-pole cubic from
+a small test step, so one small-step record cannot tell them apart. Two experiments do:
+
+- **stop-level test steps** (the in-flight test of docs/models.md §1, eq. (11)): the pendulum is
+  driven onto its mechanical stops, where the loop is open. The output filter then rounds
+  the corner of the clipped deflection; the torquer lag does not (it delays the release);
+- **an acceleration step** (`a_in`, a tilt or centrifuge step): through W(p) the torquer lag
+  adds a zero (1 + T_dm p) that the output filter does not.
+
+**Joint model.** Candidates: the nominal device, `torquer_lag`, `output_filter` (the lag
+effects of `effects`, departures from the nominal device's T_dm, T_f). Shared by every
+record: the refit of J, μ, c, k_dm (log-normal prior, as `entry`), the lag departure, the
+stop voltage v_stop = k_dp k_y h_max (log-normal, `STOP_SIGMA`), the test winding's gain
+(`fit.GAIN_SIGMA`) and the pendulosity's (`ACCEL_SIGMA`). Per record: the polarity of
+the test winding and of the input axis (from the settled levels), the external moment, the
+initial state, the output offset (seen only on the stops; N(0, `OFFSET_PRIOR`)) and the
+time of every input change. A record whose test levels can reach the nominal stops is
+simulated with them (`_simulate.sequence.stop_record`), the others exactly
+(`linear_record`). White output noise, each record's floor measured without the model
+(`record.prepare`).
+
+**Second stage.** Each record's initial lag states follow its initial deflection and
+velocity by a first-order rule (`_simulate.sequence.initial_state`), exact to
+O((T_lag/T)²). A record that starts in a transient soon after an earlier level or a stop
+contact, with a long lag, departs from it. When no candidate brings every record to its
+floor, every candidate is refitted from its own solution with those states free as well
+(`release_lag_states`; N(0, 1) in the record's scale) and judged again; the note says so.
+The second stage nests the first and starts at its solution, so its penalised cost cannot
+rise. (Free
+from the start, the states let the stop-level torquer-lag fit stall far from the floor.)
+
+The verdict of the set is `joint_verdict`'s, the next experiment `design`'s.
+
+Float64 throughout (x64 must be enabled).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+from ..._data import DataError, NominalDevice, StepData
+from ..._simulate.sequence import SequenceInputs, linear_record, stop_record
+from .. import openworld
+from .effects import OutputFilter, TorquerLag
+from .fit import (
+    _I_DV,
+    _I_DW,
+    _I_GAIN,
+    _I_MOMENT,
+    _I_TIMING,
+    BARRIER,
+    GAIN_SIGMA,
+    REFIT_BOUND,
+    REFIT_FIELDS,
+    TIMING_LIMIT,
+    TIMING_PRIOR,
+    StepContext,
+    dense_jacobian,
+    moment_jumps,
+    refitted_device,
+)
+from .record import MAX_CHANGES, prepare, prior_sigma_of, stack_on_host
+from .state import StepRecord
+
+CANDIDATES = ("nominal", "torquer_lag", "output_filter")
+"""The joint fit's models: the nominal device and the two lags that a small step cannot
+tell apart."""
+
+
+STOP_SIGMA = 0.1
+"""Relative (1σ) prior uncertainty of the stop voltage k_dp k_y h_max."""
+
+
+ACCEL_SIGMA = 0.05
+"""Relative (1σ) prior uncertainty of the pendulosity m l (the acceleration's gain)."""
+
+
+OFFSET_PRIOR = 0.02
+"""σ [V] of the prior of a record's output offset (told from the moment only on the stops)."""
+
+
+STOP_REACH = 0.5
+"""A record is simulated with the stops when its largest test level times the nominal test
+gain reaches this fraction of the nominal stop voltage (an overshoot can reach the stops
+from there)."""
+
+
+LAG_BOUND = 100.0
+
+
+LAG_STARTS = (2.0,)
+"""Start of each lag's departure z (units of 3 % of the loop's T, ~9 µs for the reference
+device), from the nominal fit's solution: one start (the two starts z = 1 and z = 5 of the
+first version ended at the same cost on the records tried)."""
+
+
+MAX_STEPS = 60
+
+
+NOMINAL_MAX_STEPS = 30
+"""The nominal fit's step limit: when it is the right model it converges in a few steps;
+when a lag is missing it grinds on a misfit thousands of floors wide, where a few more
+steps change nothing in the verdict."""
+
+
+TOLERANCE = 1e-7
+
+
+# Shared parameters: refit z (4), lag z, stop z, test-gain z, pendulosity z.
+_S_LAG, _S_STOP, _S_GAIN, _S_ACCEL = 4, 5, 6, 7
+
+
+N_SHARED = 8
+
+
+# Per record: moment, dv, dw, offset, change times (J), and in the second stage the initial
+# lag states' departures from their first-order rule (2; `SetLayout.lag_states`).
+_R_MOMENT, _R_DV, _R_DW, _R_OFFSET = 0, 1, 2, 3
+
+
+_R_TIMING = 4
+
+
+N_LAG_STATES = 2
+
+
+def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
+    """A record's `StepContext` padded to the set's common shapes (zero weight)."""
+
+    def pad(x, size):  # on the host: an eager jnp op compiles a program per new shape
+        x = np.asarray(x)
+        return np.concatenate([x, np.zeros(size - x.shape[0], x.dtype)])
+
+    return dataclasses.replace(
+        ctx,
+        change_index=pad(ctx.change_index, j_padded),
+        change_step=pad(ctx.change_step, j_padded),
+        # (one entry per change: a measured input's common delay is not fitted jointly)
+        held_out_change=pad(ctx.held_out_change[: ctx.change_index.shape[0]], j_padded),
+        change_accel=pad(ctx.change_accel, j_padded),
+        train=pad(ctx.train, n_padded),
+        test=pad(ctx.test, n_padded),
+        max_block=max_block,
+        # The joint fit takes a measured input's levels as read (no errors in variables).
+        level_sigma=None,
+        held_out_level=None,
+        drift_step=None,
+        timing_map=None,
+        timing_offset=None,
+        timing_mean=None,
+        timing_sigma=None,
+        timing_limit=None,
+        level_map=None,
+    )
+
+
+class SetLayout(eqx.Module):
+    """Static facts of a set: the records' common shapes and which are stop records."""
+
+    n_padded: int = eqx.field(static=True)
+    j_padded: int = eqx.field(static=True)
+    stops: tuple = eqx.field(static=True)
+    lag_states: bool = eqx.field(static=True, default=False)
+
+    @property
+    def width(self) -> int:
+        """Each record's number of own parameters."""
+        return _R_TIMING + self.j_padded + (N_LAG_STATES if self.lag_states else 0)
+
+
+def _lag_params(params, lag_z, candidate, ctx):
+    torquer, output = TorquerLag(), OutputFilter()
+    zero = jnp.zeros_like(lag_z)
+    params = torquer.device(params, jnp.stack([jnp.where(candidate == 1, lag_z, 0.0), zero]), ctx)
+    return output.device(params, jnp.stack([jnp.where(candidate == 2, lag_z, 0.0), zero]), ctx)
+
+
+def _record_prediction(shared, own, candidate, base, prior_sigma, ctx, n, stop_voltage, on_stops):
+    params = refitted_device(base, shared[:4], prior_sigma)
+    params = _lag_params(params, shared[_S_LAG], candidate, ctx)
+    gain = ctx.polarity * jnp.exp(GAIN_SIGMA * shared[_S_GAIN])
+    jumps = moment_jumps(params, ctx, jnp.exp(ACCEL_SIGMA * shared[_S_ACCEL]))
+    j = ctx.change_step.shape[-1]
+    lag_states = own[_R_TIMING + j :]
+    lag_states = (
+        (ctx.scale * lag_states[0], ctx.scale * lag_states[1]) if lag_states.size else (0.0, 0.0)
+    )
+    sequence = SequenceInputs(
+        ctx.first_level,
+        gain,
+        ctx.scale * own[_R_MOMENT],
+        jnp.zeros_like(own[0]),
+        ctx.scale * own[_R_DV],
+        ctx.scale * own[_R_DW],
+        ctx.change_index,
+        ctx.change_step,
+        jnp.clip(own[_R_TIMING : _R_TIMING + j], -TIMING_LIMIT, TIMING_LIMIT),
+        jumps,
+        lag_states,
+    )
+    offset = OFFSET_PRIOR * own[_R_OFFSET]
+    if on_stops:
+        stop = stop_voltage * jnp.exp(STOP_SIGMA * shared[_S_STOP])
+        out = stop_record(
+            params, ctx.dt, n, sequence, stop, -stop, block=ctx.block, duration=ctx.duration
+        )
+    else:
+        out = linear_record(
+            params,
+            ctx.dt,
+            n,
+            sequence,
+            block=ctx.block,
+            max_block=ctx.max_block,
+            duration=ctx.duration,
+        )
+    return out + offset
+
+
+def _split(x, n_records, layout):
+    shared = x[:N_SHARED]
+    own = x[N_SHARED:].reshape(n_records, layout.width)
+    return shared, own
+
+
+def _penalties(shared, own, candidate, ctx_stack):
+    lag = shared[_S_LAG]
+    used = (candidate != 0).astype(shared.dtype)
+    j = ctx_stack.change_step.shape[-1]
+    timing = own[:, _R_TIMING : _R_TIMING + j]
+    active = ((ctx_stack.change_step != 0) | (ctx_stack.change_accel != 0)).astype(shared.dtype)
+    return jnp.concatenate(
+        [
+            shared[:4],
+            shared[_S_STOP : _S_ACCEL + 1],
+            BARRIER * jnp.maximum(jnp.abs(shared[:4]) - REFIT_BOUND, 0.0),
+            BARRIER * jnp.maximum(jnp.abs(shared[_S_GAIN : _S_ACCEL + 1]) - REFIT_BOUND, 0.0),
+            (lag * (1 - used))[None],
+            (BARRIER * jnp.maximum(jnp.abs(lag) - LAG_BOUND, 0.0) * used)[None],
+            own[:, _R_OFFSET],
+            own[:, _R_TIMING + j :].ravel(),  # lag states: N(0, 1) in the record's scale
+            ((timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1] * active).ravel(),
+            (timing * (1 - active)).ravel(),
+        ]
+    )
+
+
+def _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage):
+    n_records = ctx_stack.dt.shape[0]
+    shared, own = _split(x, n_records, layout)
+    outs = []
+    for r in range(n_records):
+        ctx = jax.tree_util.tree_map(lambda leaf, r=r: leaf[r], ctx_stack)
+        outs.append(
+            _record_prediction(
+                shared,
+                own[r],
+                candidate,
+                base,
+                prior_sigma,
+                ctx,
+                layout.n_padded,
+                stop_voltage,
+                layout.stops[r],
+            )
+        )
+    return jnp.stack(outs)
+
+
+def _residuals(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight):
+    prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
+    return _misfit(prediction, x, candidate, ctx_stack, layout, data, weight)
+
+
+def _misfit(prediction, x, candidate, ctx_stack, layout, data, weight):
+    """The residuals of a prediction: each record's misfit over its floor, then the
+    penalties (priors and barriers) of x."""
+    shared, own = _split(x, ctx_stack.dt.shape[0], layout)
+    scaled = (data - prediction) * weight / ctx_stack.sigma_ref[:, None]
+    return jnp.concatenate([scaled.ravel(), _penalties(shared, own, candidate, ctx_stack)])
+
+
+@eqx.filter_jit
+def _fit(
+    starts, candidates, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight, max_steps
+):
+    """Levenberg–Marquardt fits (optimistix), one per (start, candidate) pair."""
+    solver = optx.LevenbergMarquardt(
+        rtol=TOLERANCE, atol=TOLERANCE, linear_solver=lx.Normal(lx.Cholesky())
+    )
+
+    def one(x0, candidate):
+        def fn(x, _):
+            return _residuals(
+                x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight
+            )
+
+        # The Jacobian as a matrix (`dense_jacobian`): one copy of the simulation in the
+        # solver's program instead of its linearisation, materialisation and transpose.
+        solution = optx.least_squares(
+            dense_jacobian(fn), solver, x0, max_steps=max_steps, throw=False
+        )
+        x = solution.value
+        prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
+        penalties = _penalties(*_split(x, ctx_stack.dt.shape[0], layout), candidate, ctx_stack)
+        # The cost from the same prediction (no second simulation).
+        cost = jnp.sum(_misfit(prediction, x, candidate, ctx_stack, layout, data, weight) ** 2)
+        return (
+            x,
+            jnp.where(jnp.isfinite(cost), cost, jnp.inf),
+            prediction,
+            penalties,
+            (solution.result == optx.RESULTS.successful),
+            solution.stats["num_steps"],
+        )
+
+    # One fit after another (`lax.map`, not `vmap`): a record with stops then takes the
+    # contact branch of `stop_record` only at the steps that reach a stop.
+    return jax.lax.map(lambda pair: one(*pair), (starts, candidates))
+
+
+def nominal_stop_voltage(params) -> float:
+    """k_dp k_y h_max [V]: the deflection voltage at the stops (docs/models.md §1, eq. (11))."""
+    return float(params.pickoff_gain * params.amplifier_gain * params.stop_displacement)
+
+
+@dataclasses.dataclass
+class PreparedSet:
+    """A set of records ready for the joint fit (`prepare_set`, `stack`).
+
+    **Fields:** `preps` each record (`StepRecord`, `on_stops` set); `layout` the set's
+    shapes (`SetLayout`); `ctx` the records' `StepContext`s padded and stacked (leading
+    axis: the record); `data` (records, `layout.n_padded`) [V] the block means, `weight`
+    1 on a record's blocks and 0 on its padding; `stop_voltage` [V] the nominal
+    k_dp k_y h_max.
+    """
+
+    preps: list[StepRecord]
+    layout: SetLayout
+    ctx: StepContext
+    data: np.ndarray
+    weight: np.ndarray
+    stop_voltage: float
+
+
+def prepare_set(datasets: list[StepData], nominal: NominalDevice) -> PreparedSet:
+    """Each record's context (`record.prepare`), padded to common shapes and stacked."""
+    if not datasets:
+        raise DataError("no records to diagnose.")
+    preps = [prepare(d, nominal, []) for d in datasets]
+    for i, p in enumerate(preps):
+        if p.clock is not None:
+            raise DataError(
+                f"record {i + 1}: a clocked sequence of {p.change_index.size} changes; the "
+                f"joint diagnosis of a set takes at most {MAX_CHANGES} changes per record "
+                "(diagnose it alone, or split it into shorter records)."
+            )
+    v_stop = nominal_stop_voltage(nominal.params)
+    # The inputs as read (a measured column's spikes are not levels).
+    reach = [float(np.max(np.abs(np.asarray(p.data.u_test)))) * p.k_test for p in preps]
+    preps = [
+        dataclasses.replace(p, on_stops=bool(r >= STOP_REACH * v_stop))
+        for p, r in zip(preps, reach, strict=True)
+    ]
+    return stack(preps, v_stop)
+
+
+def stack(preps: list[StepRecord], stop_voltage: float, lag_states: bool = False) -> PreparedSet:
+    """Prepared records (`prepare`'s, with `on_stops` set) as one padded, stacked set;
+    `lag_states` whether each record's initial lag states are free (`SetLayout`)."""
+    n_padded = max(p.shape.n_padded for p in preps)
+    j_padded = max(p.shape.j_padded for p in preps)
+    max_block = max(p.shape.max_block for p in preps)
+    ctxs = [_pad_context(p.ctx, n_padded, j_padded, max_block) for p in preps]
+    ctxs = [
+        dataclasses.replace(c, sigma_ref=np.asarray(p.sigma, np.float64))
+        for c, p in zip(ctxs, preps, strict=True)
+    ]
+    ctx = stack_on_host(ctxs)
+    data = np.zeros((len(preps), n_padded))
+    weight = np.zeros((len(preps), n_padded))
+    for r, p in enumerate(preps):
+        data[r, : p.n] = p.u_out[: p.n]
+        weight[r, : p.n] = 1.0
+    layout = SetLayout(
+        n_padded=n_padded,
+        j_padded=j_padded,
+        stops=tuple(p.on_stops for p in preps),
+        lag_states=lag_states,
+    )
+    return PreparedSet(preps, layout, ctx, data, weight, stop_voltage)
+
+
+def _start(prepared: PreparedSet) -> np.ndarray:
+    """The nominal start: each record's own levels regression (`prepare`'s guesses)."""
+    preps = prepared.preps
+    shared = np.zeros(N_SHARED)
+    linear = [p for p in preps if not p.on_stops and np.any(p.change_step != 0)]
+    if linear:
+        shared[_S_GAIN] = float(np.mean([p.guesses_linear[0, 0, _I_GAIN] for p in linear]))
+    accel = [p for p in preps if p.has_accel and np.any(p.change_accel != 0)]
+    if accel:
+        k = [abs(p.accel_slope) / (p.k_test * p.host.accel_per_g) for p in accel]
+        shared[_S_ACCEL] = float(np.clip(np.log(np.mean(k)) / ACCEL_SIGMA, -5, 5))
+    own = np.zeros((len(preps), prepared.layout.width))
+    for r, p in enumerate(preps):
+        w = p.guesses_linear[0, 0]
+        own[r, _R_MOMENT] = w[_I_MOMENT]
+        own[r, _R_DV] = w[_I_DV]
+        own[r, _R_DW] = w[_I_DW]
+        timing = w[_I_TIMING : _I_TIMING + p.shape.j_padded]  # (not a measured input's levels)
+        own[r, _R_TIMING : _R_TIMING + timing.size] = timing
+        if p.on_stops:
+            own[r, _R_DV] = own[r, _R_DW] = 0.0
+    return np.concatenate([shared, own.ravel()])
+
+
+def fit_set(
+    prepared: PreparedSet, nominal: NominalDevice, candidates=CANDIDATES, start=None, starts=None
+):
+    """Fit the candidates to the set. Returns one dict per candidate: x, cost, prediction
+    (records, blocks), penalties, converged. The nominal is fitted first (from `start`, by
+    default `_start`'s regression); each lag starts from its solution with the lag at
+    `LAG_STARTS`. `starts` {candidate: x} instead starts each candidate from its own x, its
+    lag included (all in one batch, at most `MAX_STEPS`)."""
+    names = list(candidates)
+    base = nominal.params
+    prior_sigma = jnp.asarray(prior_sigma_of(nominal))
+    args = (
+        base,
+        prior_sigma,
+        prepared.ctx,
+        prepared.layout,
+        jnp.asarray(prepared.stop_voltage),
+        jnp.asarray(prepared.data),
+        jnp.asarray(prepared.weight),
+    )
+    if starts is not None:
+        ids = jnp.asarray([CANDIDATES.index(c) for c in names], jnp.int32)
+        x = jnp.asarray(np.stack([np.asarray(starts[c]) for c in names]))
+        out = _fit(x, ids, *args, MAX_STEPS)
+        return {c: _best(out, [i]) for i, c in enumerate(names)}
+    x0 = _start(prepared) if start is None else np.asarray(start)
+    fits = {}
+    if "nominal" in names:
+        starts = np.stack([x0])
+        out = _fit(jnp.asarray(starts), jnp.zeros(1, jnp.int32), *args, NOMINAL_MAX_STEPS)
+        fits["nominal"] = _best(out, [0])
+        x0 = np.asarray(fits["nominal"]["x"])
+    lags = [c for c in names if c != "nominal"]
+    if lags:
+        starts, ids, owners = [], [], []
+        for name in lags:
+            for s in LAG_STARTS:
+                x = x0.copy()
+                x[_S_LAG] = s
+                starts.append(x)
+                ids.append(CANDIDATES.index(name))
+                owners.append(name)
+        out = _fit(jnp.asarray(np.stack(starts)), jnp.asarray(ids, jnp.int32), *args, MAX_STEPS)
+        for name in lags:
+            fits[name] = _best(out, [i for i, o in enumerate(owners) if o == name])
+    return fits
+
+
+def _best(out, rows):
+    x, cost, prediction, penalties, solved, steps = (np.asarray(o) for o in out)
+    i = rows[int(np.argmin(cost[rows]))]
+    return {
+        "x": x[i],
+        "cost": float(cost[i]),
+        "prediction": prediction[i],
+        "penalties": penalties[i],
+        "converged": bool(solved[i]),
+        "steps": [int(steps[k]) for k in rows],
+    }
+
+
+def _score(fit, prepared: PreparedSet, nominal: NominalDevice) -> dict:
+    """Profiled log-likelihood, per-record excess over the floor, and the physical values."""
+    preps = prepared.preps
+    log_like = 0.0
+    records = []
+    for r, p in enumerate(preps):
+        n = p.n
+        error = prepared.data[r, :n] - fit["prediction"][r, :n]
+        rss = max(float(np.sum(error**2)), 1e-300)
+        log_like += -0.5 * n * math.log(rss / n)
+        sigma = p.sigma
+        over = openworld.excess(rss / n, sigma**2) / sigma
+        records.append(
+            {
+                "rms_V": math.sqrt(rss / n),
+                "noise_floor_V": sigma,
+                "excess_over_floor": over,
+                "at_floor": bool(over <= openworld.FLOOR_FACTOR),
+            }
+        )
+    shared = fit["x"][:N_SHARED]
+    priors = np.concatenate([shared[:4], shared[_S_STOP : _S_ACCEL + 1]])
+    log_like -= 0.5 * float(np.sum(priors**2))
+    return {"log_likelihood": log_like, "records": records, "n": sum(p.n for p in preps)}
+
+
+def shared_values(fit, prepared: PreparedSet, nominal: NominalDevice, candidate: str) -> dict:
+    """The shared physical values of a fitted candidate."""
+    base = nominal.params
+    x = fit["x"]
+    sigma = prior_sigma_of(nominal)
+    values = {}
+    for i, field in enumerate(REFIT_FIELDS):
+        if sigma[i] > 0:
+            values[field] = {
+                "value": float(getattr(base, field)) * math.exp(sigma[i] * x[i]),
+                "nominal": float(getattr(base, field)),
+                "shift_sigma": float(x[i]),
+            }
+    host = prepared.preps[0].host
+    for name, field in (
+        ("torquer_lag", "torquer_time_constant"),
+        ("output_filter", "filter_time_constant"),
+    ):
+        z = x[_S_LAG] if candidate == name else 0.0
+        values[field] = max(host.nominal_lag(field) + host.lag_unit * z, 0.0)
+    if any(prepared.layout.stops):
+        stop = prepared.stop_voltage * math.exp(STOP_SIGMA * x[_S_STOP])
+        values["stop_voltage_V"] = stop
+        values["stop_voltage_nominal_V"] = prepared.stop_voltage
+        # eq. (11): on the stop the output is k_dp k_y h_max; with h_max known, k_dp k_y.
+        values["pickoff_amplifier_gain_from_stops"] = stop / float(base.stop_displacement)
+    values["test_gain_relative"] = math.exp(GAIN_SIGMA * x[_S_GAIN])
+    if any(p.has_accel for p in prepared.preps):
+        values["pendulosity_relative"] = math.exp(ACCEL_SIGMA * x[_S_ACCEL])
+    return values
+
+
+# One program per design shape; run eagerly, the simulation's hundreds of small operations
+# were each compiled on their own (about 5 s of a cold lag-tie diagnosis).
+_record_prediction_compiled = eqx.filter_jit(_record_prediction)
+
+
+def _transfer_start(x, old: PreparedSet, new: PreparedSet) -> np.ndarray:
+    """Fitted parameters of `old` as a start for `new` (the same records first, perhaps more
+    of them, more change slots or free lag states): each record's own values carried over
+    section by section, the rest at zero (a new record's changes at the sample boundaries,
+    as simulated; lag states on their first-order rule)."""
+    shared = x[:N_SHARED]
+    own_old = x[N_SHARED:].reshape(len(old.preps), old.layout.width)
+    own = np.zeros((len(new.preps), new.layout.width))
+    k = len(old.preps)
+    j = min(old.layout.j_padded, new.layout.j_padded)
+    own[:k, : _R_TIMING + j] = own_old[:, : _R_TIMING + j]
+    if old.layout.lag_states and new.layout.lag_states:
+        own[:k, -N_LAG_STATES:] = own_old[:, -N_LAG_STATES:]
+    return np.concatenate([shared, own.ravel()])
+
+
+def release_lag_states(prepared: PreparedSet, nominal: NominalDevice, fits: dict):
+    """The second stage: every candidate refitted with each record's initial lag states free
+    (N(0, 1) in the record's scale), from its first-stage solution. A record that starts in
+    a transient soon after a stop contact or an earlier level, with a long lag, departs from
+    the first-order start rule of `initial_state`; the first stage then leaves it above its
+    floor. The second stage nests the first and starts at its solution, so no candidate's
+    penalised cost can rise (a single record's misfit can). Returns the widened set and its
+    fits."""
+    wide = stack(prepared.preps, prepared.stop_voltage, lag_states=True)
+    starts = {c: _transfer_start(fits[c]["x"], prepared, wide) for c in fits}
+    return wide, fit_set(wide, nominal, candidates=list(fits), starts=starts)
+

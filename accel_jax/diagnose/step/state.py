@@ -1,0 +1,236 @@
+"""The step diagnosis's typed state of one record (host side, NumPy): what `record.prepare`
+reads from a record (`StepRecord`), the scales its effects start from and report in
+(`RecordHost`; with a candidate's fit, `CandidateHost`), the noise floor measured without a
+model (`NoiseFloor`), a measured clocked sequence's distinct levels (`LevelGroups`) and the
+shape that batches records into one compiled program (`RecordShape`).
+
+Each is a frozen dataclass: a later stage that changes a record (a note added, the joint
+fit's `on_stops`, a design's floor) makes a new one with `dataclasses.replace`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any
+
+import equinox as eqx
+import numpy as np
+
+from ..._data import StepData
+
+if TYPE_CHECKING:
+    from .fit import StepContext
+    from .inputs import Clock
+
+
+class RecordView(eqx.Module):
+    """The record as the fit sees it: block start times, U_test at each block's first
+    sample, block means of U_out (`StepData`'s field names)."""
+
+    t: np.ndarray
+    u_test: np.ndarray
+    u_out: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordHost:
+    """The scales of one record that its effects' starts and physical values use (host
+    side, floats).
+
+    **Fields:** `lag_unit` [s] a lag's departure per unit z (3 % of the nominal loop's T);
+    `gain` [V/m] the pick-off and amplifier gain k_dp k_y (deflection to output);
+    `mid`, `half` [V] the middle and half range of the training output; `scale` [V] of the
+    moment and initial-state parameters; `dt` [s] one block; `duration` [s] of the fitted
+    record; `torquer_gain` [N·m/V] k_dm; `accel_per_g` [V/g] the moment of a 1 g input
+    acceleration over k_dm; `timing_late` each timing parameter's value at the nominal's
+    second start (changes half a sample earlier: `TIMING_PRIOR`'s mean);
+    `nominal_torquer_time_constant`, `nominal_filter_time_constant` [s] the nominal
+    device's lags T_dm, T_f (a lag effect departs from these).
+    """
+
+    lag_unit: float
+    gain: float
+    mid: float
+    half: float
+    scale: float
+    dt: float
+    duration: float
+    torquer_gain: float
+    accel_per_g: float
+    timing_late: np.ndarray
+    nominal_torquer_time_constant: float
+    nominal_filter_time_constant: float
+
+    def nominal_lag(self, field: str) -> float:
+        """The nominal device's value [s] of the lag `ServoParams` field `field`
+        (`torquer_time_constant` or `filter_time_constant`)."""
+        return getattr(self, "nominal_" + field)
+
+    def candidate(self, *, innovation_variance: float, test_gain: float) -> CandidateHost:
+        """These scales with one candidate's fit (`CandidateHost`)."""
+        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(RecordHost)}
+        return CandidateHost(
+            **own, innovation_variance=innovation_variance, test_gain=test_gain
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class CandidateHost(RecordHost):
+    """A record's scales (`RecordHost`) with what one candidate's fit adds, for its
+    effect's physical values (`AbstractStepEffect.physical`).
+
+    **Fields:** those of `RecordHost`; `innovation_variance` [V²] the fit's one-step
+    prediction variance on the training part; `test_gain` [V/V] the fitted closed-loop
+    test gain, polarity included.
+    """
+
+    innovation_variance: float
+    test_gain: float
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseFloor:
+    """A record's noise floor, measured without any model (`openworld.noise_floor`).
+
+    **Fields:** `sigma` [V] the floor of a block mean the fit scales by (the largest of the
+    block means' 4th-difference floor with the input levels' part added in quadrature, the
+    ADC step's q/√12 and a relative 1e-12); `sigma_per_sample` [V] one sample's;
+    `sigma_block_means` [V] the block means' own; `adc_step` [V] the ADC step q (0: none
+    found); `quantisation_floor_block` [V] q/√12 in a block mean; `block_samples` samples
+    per block; `input_levels` [V] a measured input's level errors times the test gain.
+    """
+
+    sigma: float
+    sigma_per_sample: float
+    sigma_block_means: float
+    adc_step: float
+    quantisation_floor_block: float
+    block_samples: int
+    input_levels: float
+
+    METHOD = (
+        "median absolute 4th difference of the block means (and the ADC step's q/√12), "
+        "without any model"
+    )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The floor as the diagnosis reports it (`where["noise_floor"]`)."""
+        return {
+            "sigma_V": self.sigma,
+            "sigma_per_sample_V": self.sigma_per_sample,
+            "sigma_block_means_V": self.sigma_block_means,
+            "adc_step_V": self.adc_step,
+            "quantisation_floor_block_V": self.quantisation_floor_block,
+            "block_samples": self.block_samples,
+            "method": self.METHOD,
+            "input_levels_V": self.input_levels,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class LevelGroups:
+    """The distinct levels of a measured clocked sequence (`inputs.level_groups`): `group`
+    (J + 1,) each plateau's level group, `means` [V] each group's level, `sigmas` [V] each
+    group's standard error."""
+
+    group: np.ndarray
+    means: np.ndarray
+    sigmas: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordShape:
+    """What decides a record's compiled program: records of one shape are fitted as one
+    batch (`entry`), and a set is padded to its records' largest (`joint.stack`).
+
+    **Fields:** `n_padded` blocks after padding (a multiple of `record.BLOCK_BUCKET`);
+    `j_padded` change slots (a multiple of 4); `max_block` the largest block the program
+    allows (a power of two, at least `record.MIN_MAX_BLOCK`); `measured` whether the test
+    input's levels are fitted as errors in variables; `clocked` whether the changes run on
+    one bit clock; `n_levels` the level parameters (0 for an exact input).
+    """
+
+    n_padded: int
+    j_padded: int
+    max_block: int
+    measured: bool
+    clocked: bool
+    n_levels: int
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class StepRecord:
+    """One step record as the step diagnosis sees it (`record.prepare`).
+
+    **Fields:**
+
+    - `data`: the record as fitted (a measured input read as its plateaus; a measured
+        clocked sequence's plateaus at their level groups' means).
+    - `notes`: what was read from the inputs and what the diagnosis did, in words.
+    - `ctx`: the fit's per-record context (`fit.StepContext`, JAX arrays).
+    - `view`: the record as the fit sees it, in blocks (`RecordView`).
+    - `u_out`: (`shape.n_padded`,) [V] the block means of U_out, zero on the padding.
+    - `n`, `block`: the blocks fitted and the samples in each; `dt` [s] a block's period,
+        `dt_sample` [s] a sample's.
+    - `held`: (n,) whether each block is held out; `held_rule` how they were chosen.
+    - `floor`: the noise floor (`NoiseFloor`); `sigma` [V] its value, the fit's scale.
+    - `domain_problems`: why the record lies outside the model family (empty: none);
+        `domain`: what the domain check measured (reported as it is).
+    - `polarity`: ±1, the test winding's sign from the settled levels; `k_test` [V/V]
+        the nominal closed-loop test gain; `levels_slope` [V/V], `levels_intercept` [V]
+        the settled levels' regression on the test voltage.
+    - `change_index`, `change_block`: the sample and the block of each input change;
+        `change_step` [V] ΔU_test and `change_accel` [g] Δa_in there.
+    - `accel_sign`: ±1, the input axis's direction; `accel_slope` [V/g] the settled
+        levels' slope in the acceleration; `has_accel` whether the record has `a_in`.
+    - `period` [s]: the nominal loop's time constant T.
+    - `shape`: its compiled program's shape (`RecordShape`).
+    - `clock`: the bit clock of a many-change sequence (`inputs.Clock`), else None;
+        `level_groups`: a measured clocked sequence's levels (`LevelGroups`), else None.
+    - `guesses_linear`, `guesses_nonlinear`: (candidates, starts, parameters) the starts
+        of the linear and of the stop candidates' fits.
+    - `host`: the scales its effects use (`RecordHost`).
+    - `prior_sigma`: (4,) the relative prior σ of J, μ, c, k_dm (`fit.REFIT_FIELDS`).
+    - `on_stops`: whether the joint fit simulates it with the stops (`joint.prepare_set`;
+        False elsewhere).
+    """
+
+    data: StepData
+    notes: tuple[str, ...]
+    ctx: StepContext
+    view: RecordView
+    u_out: np.ndarray
+    n: int
+    block: int
+    dt: float
+    dt_sample: float
+    held: np.ndarray
+    held_rule: str
+    floor: NoiseFloor
+    sigma: float
+    domain_problems: tuple[str, ...]
+    domain: dict[str, Any]
+    polarity: float
+    k_test: float
+    levels_slope: float
+    levels_intercept: float
+    change_index: np.ndarray
+    change_block: np.ndarray
+    change_step: np.ndarray
+    change_accel: np.ndarray
+    accel_sign: float
+    accel_slope: float
+    has_accel: bool
+    period: float
+    shape: RecordShape
+    clock: Clock | None
+    level_groups: LevelGroups | None
+    guesses_linear: np.ndarray
+    guesses_nonlinear: np.ndarray
+    host: RecordHost
+    prior_sigma: np.ndarray
+    on_stops: bool = False
+
+    def with_note(self, note: str) -> StepRecord:
+        """This record with `note` added to its notes."""
+        return dataclasses.replace(self, notes=self.notes + (note,))
