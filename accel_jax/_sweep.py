@@ -4,6 +4,10 @@ A study writes a function for one trajectory / one device and sweeps it with `sw
 the batch axis is split across `jax.devices()` (several GPUs, several hosts after
 `jax.distributed.initialize()`, or simulated CPU devices via
 `XLA_FLAGS=--xla_force_host_platform_device_count=N`) with no change to the caller.
+
+Under several processes (`jax.distributed`, one per host or per GPU) every process runs the
+same script: each computes its devices' share of the batch, and the result is gathered so
+that every process holds the whole batch, as one process would (`gather_processes`).
 """
 
 from __future__ import annotations
@@ -163,9 +167,27 @@ def sweep(
         out = eqx.combine(
             jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *dynamic), static
         )
-    if padded == size:
-        return out
-    return jax.tree_util.tree_map(lambda x: x[:size] if eqx.is_array(x) else x, out)
+    if padded != size:
+        out = jax.tree_util.tree_map(lambda x: x[:size] if eqx.is_array(x) else x, out)
+    return gather_processes(out)
+
+
+def gather_processes(tree):
+    """`tree` with every array leaf whole on this process.
+
+    Under `jax.distributed` with several processes, a sweep's output is one global array
+    whose shards sit on every process's devices, and a process can read only its own
+    (`np.asarray` of it raises). This gathers the shards (an all-gather over the processes)
+    so that each process holds the whole batch as a local array: the caller's code is that
+    of one process. With one process it returns `tree` unchanged (no copy).
+    """
+    if jax.process_count() == 1:
+        return tree
+    from jax.experimental import multihost_utils
+
+    dynamic, static = eqx.partition(tree, eqx.is_array)
+    local = multihost_utils.process_allgather(dynamic, tiled=True)
+    return eqx.combine(jax.tree_util.tree_map(jnp.asarray, local), static)
 
 
 def even_chunk_size(size: int, largest: int) -> int:

@@ -108,7 +108,12 @@ _LAYERS = {
     "diagnosis": ("diagnose",),
     "entry": ("cli", "report", "", "noise", "vibration", "kalman"),
 }
-_SAME_LAYER = {("_noise", "_kalman"), ("_tolerance", "_vibration"), ("_identify", "_noise")}
+_SAME_LAYER = {
+    ("_noise", "_kalman"),
+    ("_tolerance", "_vibration"),
+    ("_identify", "_noise"),
+    ("_identify", "_sweep"),
+}
 # Upward imports inside functions, each for one name: the package version for provenance,
 # and whether the user set XLA's log level before `import accel_jax`.
 _UPWARD = {("_io", ""): "__version__", ("_runtime", ""): "_USER_SET_XLA_LOG_LEVEL"}

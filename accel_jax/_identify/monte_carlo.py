@@ -17,6 +17,7 @@ from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from .._params import ServoParams, _concrete
 from .._simulate.blocked import _check_noise_dtype, fast_step_response
+from .._sweep import gather_processes
 from .oscillatory import OscillatoryEstimate, _check_options, _oscillatory_estimate
 from .record import _validate_record
 
@@ -206,7 +207,9 @@ def monte_carlo_oscillatory(
         all of `jax.devices()`: several GPUs, or several CPU devices
         (`XLA_FLAGS=--xla_force_host_platform_device_count=K`, one per core) with no
         change to the call. Each trajectory's estimate is the same whatever the devices (to
-        rounding: the per-device program fuses differently).
+        rounding: the per-device program fuses differently). Under several processes
+        (`jax.distributed.initialize()` in each), `jax.devices()` spans every process:
+        each simulates its devices' share, and every process gets the whole result.
 
     **Returns:**
 
@@ -241,7 +244,7 @@ def monte_carlo_oscillatory(
     if not devices:
         raise ValueError("devices must name at least one device.")
     n_dev = len(devices)
-    return _monte_carlo(
+    estimates = _monte_carlo(
         params,
         keys,
         gain,
@@ -255,3 +258,5 @@ def monte_carlo_oscillatory(
         options=tuple(sorted(options.items())),
         noise_dtype=None if noise_dtype is None else noise_dtype.name,
     )
+    # Under several processes (jax.distributed) each holds its devices' share: gather.
+    return gather_processes(estimates)
