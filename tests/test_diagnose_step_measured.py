@@ -15,7 +15,8 @@ from click.testing import CliRunner
 from accel_jax._data import StepData, write_csv
 from accel_jax.cli import main
 from accel_jax.diagnose import diagnose_many
-from accel_jax.diagnose.step.fit import _I_TIMING, GAIN_SIGMA
+from accel_jax.diagnose.step.fit import GAIN_SIGMA
+from accel_jax.diagnose.step.layout import W
 from accel_jax.diagnose.step.assess import nested_failed, nested_losers, nested_shortfall
 from accel_jax.diagnose.step.nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
 
@@ -89,9 +90,9 @@ def _prep(n_changes=5, j_padded=8, levels=False):
 
 
 def _fit(gain_sigma=0.0, timing=(), levels=(), j_padded=8):
-    w = np.zeros(_I_TIMING + 2 * j_padded + 1)  # timing, levels, the input channel's drift
-    w[_I_TIMING : _I_TIMING + len(timing)] = timing
-    w[_I_TIMING + j_padded : _I_TIMING + j_padded + len(levels)] = levels
+    w = np.zeros(W.FIXED + 2 * j_padded + 1)  # timing, levels, the input channel's drift
+    w[W.timing(len(timing))] = timing
+    w[W.levels(j_padded)][: len(levels)] = levels
     return {"w": w, "z_gain": gain_sigma}
 
 

@@ -41,10 +41,11 @@ a domain check (`domain`) that refuses records the model family cannot describe.
 
 **Modules.** `entry` (`diagnose_step`), `record` (a record read into a `StepRecord`, the
 typed state of `state`; `segments`, `domain`), `inputs` (a measured input read as
-plateaus), `effects`, `fit` (the JAX fit of every candidate), `assess` (each candidate's
-entry), `verdict` (the open-world decision), `refit` and `nuisance` (what the refit says);
-several records of one device: `joint` (the joint fit), `joint_verdict` (its ranking and
-verdict, `diagnose_step_set`), `design` (the next experiment for a lag tie).
+plateaus), `effects`, `fit` (the JAX fit of every candidate; `layout` names each parameter
+of its vector and of the joint fit's), `assess` (each candidate's entry), `verdict` (the
+open-world decision), `refit` and `nuisance` (what the refit says); several records of one
+device: `joint` (the joint fit), `joint_verdict` (its ranking and verdict,
+`diagnose_step_set`), `design` (the next experiment for a lag tie).
 
 Everything is float64 (enable x64: the fitted change times are ~1e-7 s, and the evidence
 compares log-likelihoods of ~1e4 to within ~1).

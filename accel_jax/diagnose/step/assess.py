@@ -13,7 +13,8 @@ import math
 import numpy as np
 
 from .. import openworld
-from .fit import _I_GAIN, _I_SLOT, GAIN_SIGMA, REFIT_FIELDS
+from .fit import GAIN_SIGMA, REFIT_FIELDS
+from .layout import W
 from .state import StepRecord
 
 
@@ -36,8 +37,8 @@ def _fit_entry(
 ):
     train = ~rec.held
     n_train = int(np.sum(train))
-    z = np.asarray(w[:4])
-    z_gain = float(w[_I_GAIN])
+    z = np.asarray(w[W.REFIT])
+    z_gain = float(w[W.GAIN])
     rss = float(np.sum(innovations[train] ** 2))
     rss = max(rss, 1e-300)
     log_like = (
@@ -51,7 +52,7 @@ def _fit_entry(
     context = rec.host.candidate(innovation_variance=rss / n_train, test_gain=gain * rec.k_test)
     params = {}
     if effect is not None:
-        params = effect.physical(w[_I_SLOT : _I_SLOT + effect.n_params], context)
+        params = effect.physical(w[W.effect(effect.n_params)], context)
     error = u_out - prediction
     return {
         "effect": "nominal" if effect is None else effect.name,

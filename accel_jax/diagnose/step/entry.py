@@ -16,7 +16,8 @@ from ..._sweep import even_chunk_size, sweep
 from ..base import DiagnosisResult, require_float64
 from .assess import explains_deterministically, fit_entries, nested_losers
 from .effects import step_effects
-from .fit import _I_SLOT, _I_TIMING, BATCH_CHUNK, fit_linear, fit_nonlinear
+from .fit import BATCH_CHUNK, fit_linear, fit_nonlinear
+from .layout import W
 from .record import prepare, prior_sigma_of, stack_on_host
 from .state import RecordShape, StepRecord
 from .verdict import evaluate
@@ -118,8 +119,8 @@ def diagnose_step(
             # the nominal model), one from the record's own starting point: the nominal fit
             # may have bent its nuisances (change times, offset) to absorb the clipping.
             guesses = np.array(rec.guesses_nonlinear)
-            guesses[:, 0, :_I_SLOT] = fits[i][0]["w"][:_I_SLOT]
-            guesses[:, 0, _I_TIMING:] = fits[i][0]["w"][_I_TIMING:]
+            guesses[:, 0, W.BEFORE_EFFECT] = fits[i][0]["w"][W.BEFORE_EFFECT]
+            guesses[:, 0, W.INPUT] = fits[i][0]["w"][W.INPUT]
             # And a third: the nominal optimum itself, the effect at its no-effect value
             # (z = 0 is the nominal model), so that a nested fit never ends below the
             # nominal's likelihood (from the peak starts alone, a stop fit lost by
@@ -195,7 +196,7 @@ def _at_nominal(w_nominal) -> np.ndarray:
     """A start at the nominal fit's optimum with the effect's slot at 0: the nominal model
     exactly, for every effect (each is the identity at z = 0)."""
     w = np.array(w_nominal, dtype=np.float64)
-    w[_I_SLOT:_I_TIMING] = 0.0
+    w[W.EFFECT] = 0.0
     return w
 
 

@@ -2,9 +2,10 @@
 one-step errors, and the vmapped least-squares fit of every candidate of a record.
 
 Parameters w = [refit z (4), external moment, test winding gain z, initial displacement
-(2), effect slot (2), change times (J)], all O(1): the refit as log-normal deviations in
-units of their prior σ, held within ±`REFIT_BOUND`σ by a steep penalty; the change times in
-samples from where `u_test` shows each change, under a N(−0.5, 1) prior.
+(2), effect slot (2), change times (J)], all O(1), each named in `layout.W`: the refit as
+log-normal deviations in units of their prior σ, held within ±`REFIT_BOUND`σ by a steep
+penalty; the change times in samples from where `u_test` shows each change, under a
+N(−0.5, 1) prior.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import optimistix as optx
 from ..._params import ServoParams
 from ..._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
 from .effects import step_effects
+from .layout import SLOT, W
 
 REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
 """ServoParams fields the refit moves, each under its log-normal prior (a field given no
@@ -51,11 +53,6 @@ common shift of every change (an ADC's group delay, an anti-alias filter); clipp
 
 DELAY_LIMIT = 8.0
 
-SLOT = 2
-_I_MOMENT, _I_GAIN, _I_DV, _I_DW = 4, 5, 6, 7
-_I_SLOT = 8
-_I_TIMING = _I_SLOT + SLOT
-_N_FIXED = _I_TIMING
 
 
 class StepContext(eqx.Module):
@@ -162,10 +159,10 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     change (J, in units of their standard error: errors in variables, a standard normal
     prior; the first level's error is an output offset, the moment's) and the input
     channel's drift (1, standard normal)."""
-    z = w[:4]
+    z = w[W.REFIT]
     params = refitted_device(base, z, prior_sigma)
-    gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[_I_GAIN])
-    slot = w[_I_SLOT:_I_TIMING]
+    gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[W.GAIN])
+    slot = w[W.EFFECT]
     rate = jnp.zeros_like(w[0])
     inverse = offset = phi = share = jnp.zeros_like(w[0])
     used = jnp.zeros(SLOT, w.dtype)
@@ -187,8 +184,8 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
         bounds = jnp.where(on, bound, bounds)
         prior = jnp.where(on, effect.prior(ze, ctx), prior)
     n_t = n_timing(ctx)
-    timing = w[_I_TIMING : _I_TIMING + n_t]
-    levels = w[_I_TIMING + n_t :]
+    timing = w[W.timing(n_t)]
+    levels = w[W.levels(n_t)]
     shift, timing_prior = timing_terms(timing, ctx)
     step = ctx.change_step
     if ctx.level_sigma is not None:
@@ -205,9 +202,9 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     penalties = jnp.concatenate(
         [
             z,  # the standard normal prior of the refit
-            w[_I_GAIN][None],  # and of the test winding's gain
+            w[W.GAIN][None],  # and of the test winding's gain
             _barrier(z, REFIT_BOUND),
-            _barrier(w[_I_GAIN][None], REFIT_BOUND),
+            _barrier(w[W.GAIN][None], REFIT_BOUND),
             slot * (1 - used),  # an effect's unused parameters are pinned at 0
             _barrier(slot, bounds) * used,
             prior * used,  # an effect's own prior, where it has one
@@ -218,10 +215,10 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
     return {
         "params": params,
         "gain": gain,
-        "moment": ctx.scale * w[_I_MOMENT],
+        "moment": ctx.scale * w[W.MOMENT],
         "rate": rate,
-        "dv": ctx.scale * w[_I_DV],
-        "dw": ctx.scale * w[_I_DW],
+        "dv": ctx.scale * w[W.DV],
+        "dw": ctx.scale * w[W.DW],
         "shift": shift,
         "step": step,
         "inverse_stop": inverse,
@@ -435,13 +432,13 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         free = jnp.concatenate([nuisance, ctx.held_out_change, *held_levels])
 
         def moved(base, delta):
-            return base.at[_I_SLOT:].add(free * delta)
+            return base.at[W.FROM_EFFECT].add(free * delta)
 
         def held_out(delta, base):
             """The held-out residuals at `base` moved by `delta`, and (aux) the training
             cost Σr² of `residuals` there."""
             m, _, a, _ = error_of(moved(base, delta), candidate)
-            tail = moved(base, delta)[_I_TIMING:]
+            tail = moved(base, delta)[W.INPUT]
             n_t = n_timing(ctx)
             timing, levels = tail[:n_t], tail[n_t:]
             prior = ctx.held_out_change * timing_terms(timing, ctx)[1]
@@ -468,7 +465,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
                     jnp.where(i == 0, train, train_at_base),
                 )
 
-            zero = jnp.zeros_like(base[_I_SLOT:])
+            zero = jnp.zeros_like(base[W.FROM_EFFECT])
             carry = (zero, zero, jnp.inf, jnp.inf)
             _, best_delta, _, train_at_base = jax.lax.fori_loop(
                 0, HELD_OUT_ITERATIONS + 1, iterate, carry
@@ -487,7 +484,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         # The fitted model and the same model with the device at its prior values (what
         # the refit changed), as one batch of two.
         _, predictions, a, log_v = jax.vmap(error_of, in_axes=(0, None))(
-            jnp.stack([w, w.at[:4].set(0.0)]), candidate
+            jnp.stack([w, w.at[W.REFIT].set(0.0)]), candidate
         )
         # The objective the solver minimised (Σ of the squared training residuals and of
         # every prior and penalty: ½ of it is −ln of the penalised likelihood) at the

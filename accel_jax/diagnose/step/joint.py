@@ -55,11 +55,6 @@ from ..._simulate.sequence import SequenceInputs, linear_record, stop_record
 from .. import openworld
 from .effects import OutputFilter, TorquerLag
 from .fit import (
-    _I_DV,
-    _I_DW,
-    _I_GAIN,
-    _I_MOMENT,
-    _I_TIMING,
     BARRIER,
     GAIN_SIGMA,
     REFIT_BOUND,
@@ -71,6 +66,7 @@ from .fit import (
     moment_jumps,
     refitted_device,
 )
+from .layout import N_LAG_STATES, Own, Shared, W
 from .record import MAX_CHANGES, prepare, prior_sigma_of, stack_on_host
 from .state import StepRecord
 
@@ -118,22 +114,10 @@ steps change nothing in the verdict."""
 TOLERANCE = 1e-7
 
 
-# Shared parameters: refit z (4), lag z, stop z, test-gain z, pendulosity z.
-_S_LAG, _S_STOP, _S_GAIN, _S_ACCEL = 4, 5, 6, 7
-
-
-N_SHARED = 8
-
-
-# Per record: moment, dv, dw, offset, change times (J), and in the second stage the initial
-# lag states' departures from their first-order rule (2; `SetLayout.lag_states`).
-_R_MOMENT, _R_DV, _R_DW, _R_OFFSET = 0, 1, 2, 3
-
-
-_R_TIMING = 4
-
-
-N_LAG_STATES = 2
+N_SHARED = Shared.SIZE
+"""Shared parameters of a set's x, first in it (`layout.Shared`); then each record's own
+(`layout.Own`: moment, dv, dw, offset, change times, and in the second stage the initial
+lag states' departures from their first-order rule, `SetLayout.lag_states`)."""
 
 
 def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
@@ -177,7 +161,7 @@ class SetLayout(eqx.Module):
     @property
     def width(self) -> int:
         """Each record's number of own parameters."""
-        return _R_TIMING + self.j_padded + (N_LAG_STATES if self.lag_states else 0)
+        return Own.TIMING + self.j_padded + (N_LAG_STATES if self.lag_states else 0)
 
 
 def _lag_params(params, lag_z, candidate, ctx):
@@ -188,31 +172,31 @@ def _lag_params(params, lag_z, candidate, ctx):
 
 
 def _record_prediction(shared, own, candidate, base, prior_sigma, ctx, n, stop_voltage, on_stops):
-    params = refitted_device(base, shared[:4], prior_sigma)
-    params = _lag_params(params, shared[_S_LAG], candidate, ctx)
-    gain = ctx.polarity * jnp.exp(GAIN_SIGMA * shared[_S_GAIN])
-    jumps = moment_jumps(params, ctx, jnp.exp(ACCEL_SIGMA * shared[_S_ACCEL]))
+    params = refitted_device(base, shared[Shared.REFIT], prior_sigma)
+    params = _lag_params(params, shared[Shared.LAG], candidate, ctx)
+    gain = ctx.polarity * jnp.exp(GAIN_SIGMA * shared[Shared.GAIN])
+    jumps = moment_jumps(params, ctx, jnp.exp(ACCEL_SIGMA * shared[Shared.ACCEL]))
     j = ctx.change_step.shape[-1]
-    lag_states = own[_R_TIMING + j :]
+    lag_states = own[Own.lag_states(j)]
     lag_states = (
         (ctx.scale * lag_states[0], ctx.scale * lag_states[1]) if lag_states.size else (0.0, 0.0)
     )
     sequence = SequenceInputs(
         ctx.first_level,
         gain,
-        ctx.scale * own[_R_MOMENT],
+        ctx.scale * own[Own.MOMENT],
         jnp.zeros_like(own[0]),
-        ctx.scale * own[_R_DV],
-        ctx.scale * own[_R_DW],
+        ctx.scale * own[Own.DV],
+        ctx.scale * own[Own.DW],
         ctx.change_index,
         ctx.change_step,
-        jnp.clip(own[_R_TIMING : _R_TIMING + j], -TIMING_LIMIT, TIMING_LIMIT),
+        jnp.clip(own[Own.timing(j)], -TIMING_LIMIT, TIMING_LIMIT),
         jumps,
         lag_states,
     )
-    offset = OFFSET_PRIOR * own[_R_OFFSET]
+    offset = OFFSET_PRIOR * own[Own.OFFSET]
     if on_stops:
-        stop = stop_voltage * jnp.exp(STOP_SIGMA * shared[_S_STOP])
+        stop = stop_voltage * jnp.exp(STOP_SIGMA * shared[Shared.STOP])
         out = stop_record(
             params, ctx.dt, n, sequence, stop, -stop, block=ctx.block, duration=ctx.duration
         )
@@ -236,21 +220,21 @@ def _split(x, n_records, layout):
 
 
 def _penalties(shared, own, candidate, ctx_stack):
-    lag = shared[_S_LAG]
+    lag = shared[Shared.LAG]
     used = (candidate != 0).astype(shared.dtype)
     j = ctx_stack.change_step.shape[-1]
-    timing = own[:, _R_TIMING : _R_TIMING + j]
+    timing = own[:, Own.timing(j)]
     active = ((ctx_stack.change_step != 0) | (ctx_stack.change_accel != 0)).astype(shared.dtype)
     return jnp.concatenate(
         [
-            shared[:4],
-            shared[_S_STOP : _S_ACCEL + 1],
-            BARRIER * jnp.maximum(jnp.abs(shared[:4]) - REFIT_BOUND, 0.0),
-            BARRIER * jnp.maximum(jnp.abs(shared[_S_GAIN : _S_ACCEL + 1]) - REFIT_BOUND, 0.0),
+            shared[Shared.REFIT],
+            shared[Shared.SCALES],
+            BARRIER * jnp.maximum(jnp.abs(shared[Shared.REFIT]) - REFIT_BOUND, 0.0),
+            BARRIER * jnp.maximum(jnp.abs(shared[Shared.GAINS]) - REFIT_BOUND, 0.0),
             (lag * (1 - used))[None],
             (BARRIER * jnp.maximum(jnp.abs(lag) - LAG_BOUND, 0.0) * used)[None],
-            own[:, _R_OFFSET],
-            own[:, _R_TIMING + j :].ravel(),  # lag states: N(0, 1) in the record's scale
+            own[:, Own.OFFSET],
+            own[:, Own.lag_states(j)].ravel(),  # lag states: N(0, 1) in the record's scale
             ((timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1] * active).ravel(),
             (timing * (1 - active)).ravel(),
         ]
@@ -409,21 +393,21 @@ def _start(prepared: PreparedSet) -> np.ndarray:
     shared = np.zeros(N_SHARED)
     linear = [p for p in preps if not p.on_stops and np.any(p.change_step != 0)]
     if linear:
-        shared[_S_GAIN] = float(np.mean([p.guesses_linear[0, 0, _I_GAIN] for p in linear]))
+        shared[Shared.GAIN] = float(np.mean([p.guesses_linear[0, 0, W.GAIN] for p in linear]))
     accel = [p for p in preps if p.has_accel and np.any(p.change_accel != 0)]
     if accel:
         k = [abs(p.accel_slope) / (p.k_test * p.host.accel_per_g) for p in accel]
-        shared[_S_ACCEL] = float(np.clip(np.log(np.mean(k)) / ACCEL_SIGMA, -5, 5))
+        shared[Shared.ACCEL] = float(np.clip(np.log(np.mean(k)) / ACCEL_SIGMA, -5, 5))
     own = np.zeros((len(preps), prepared.layout.width))
     for r, p in enumerate(preps):
         w = p.guesses_linear[0, 0]
-        own[r, _R_MOMENT] = w[_I_MOMENT]
-        own[r, _R_DV] = w[_I_DV]
-        own[r, _R_DW] = w[_I_DW]
-        timing = w[_I_TIMING : _I_TIMING + p.shape.j_padded]  # (not a measured input's levels)
-        own[r, _R_TIMING : _R_TIMING + timing.size] = timing
+        own[r, Own.MOMENT] = w[W.MOMENT]
+        own[r, Own.DV] = w[W.DV]
+        own[r, Own.DW] = w[W.DW]
+        timing = w[W.timing(p.shape.j_padded)]  # (not a measured input's levels)
+        own[r, Own.timing(timing.size)] = timing
         if p.on_stops:
-            own[r, _R_DV] = own[r, _R_DW] = 0.0
+            own[r, Own.DV] = own[r, Own.DW] = 0.0
     return np.concatenate([shared, own.ravel()])
 
 
@@ -465,7 +449,7 @@ def fit_set(
         for name in lags:
             for s in LAG_STARTS:
                 x = x0.copy()
-                x[_S_LAG] = s
+                x[Shared.LAG] = s
                 starts.append(x)
                 ids.append(CANDIDATES.index(name))
                 owners.append(name)
@@ -509,7 +493,7 @@ def _score(fit, prepared: PreparedSet, nominal: NominalDevice) -> dict:
             }
         )
     shared = fit["x"][:N_SHARED]
-    priors = np.concatenate([shared[:4], shared[_S_STOP : _S_ACCEL + 1]])
+    priors = np.concatenate([shared[Shared.REFIT], shared[Shared.SCALES]])
     log_like -= 0.5 * float(np.sum(priors**2))
     return {"log_likelihood": log_like, "records": records, "n": sum(p.n for p in preps)}
 
@@ -519,30 +503,31 @@ def shared_values(fit, prepared: PreparedSet, nominal: NominalDevice, candidate:
     base = nominal.params
     x = fit["x"]
     sigma = prior_sigma_of(nominal)
+    refit = x[Shared.REFIT]
     values = {}
     for i, field in enumerate(REFIT_FIELDS):
         if sigma[i] > 0:
             values[field] = {
-                "value": float(getattr(base, field)) * math.exp(sigma[i] * x[i]),
+                "value": float(getattr(base, field)) * math.exp(sigma[i] * refit[i]),
                 "nominal": float(getattr(base, field)),
-                "shift_sigma": float(x[i]),
+                "shift_sigma": float(refit[i]),
             }
     host = prepared.preps[0].host
     for name, field in (
         ("torquer_lag", "torquer_time_constant"),
         ("output_filter", "filter_time_constant"),
     ):
-        z = x[_S_LAG] if candidate == name else 0.0
+        z = x[Shared.LAG] if candidate == name else 0.0
         values[field] = max(host.nominal_lag(field) + host.lag_unit * z, 0.0)
     if any(prepared.layout.stops):
-        stop = prepared.stop_voltage * math.exp(STOP_SIGMA * x[_S_STOP])
+        stop = prepared.stop_voltage * math.exp(STOP_SIGMA * x[Shared.STOP])
         values["stop_voltage_V"] = stop
         values["stop_voltage_nominal_V"] = prepared.stop_voltage
         # eq. (11): on the stop the output is k_dp k_y h_max; with h_max known, k_dp k_y.
         values["pickoff_amplifier_gain_from_stops"] = stop / float(base.stop_displacement)
-    values["test_gain_relative"] = math.exp(GAIN_SIGMA * x[_S_GAIN])
+    values["test_gain_relative"] = math.exp(GAIN_SIGMA * x[Shared.GAIN])
     if any(p.has_accel for p in prepared.preps):
-        values["pendulosity_relative"] = math.exp(ACCEL_SIGMA * x[_S_ACCEL])
+        values["pendulosity_relative"] = math.exp(ACCEL_SIGMA * x[Shared.ACCEL])
     return values
 
 
@@ -561,9 +546,11 @@ def _transfer_start(x, old: PreparedSet, new: PreparedSet) -> np.ndarray:
     own = np.zeros((len(new.preps), new.layout.width))
     k = len(old.preps)
     j = min(old.layout.j_padded, new.layout.j_padded)
-    own[:k, : _R_TIMING + j] = own_old[:, : _R_TIMING + j]
+    own[:k, Own.through_timing(j)] = own_old[:, Own.through_timing(j)]
     if old.layout.lag_states and new.layout.lag_states:
-        own[:k, -N_LAG_STATES:] = own_old[:, -N_LAG_STATES:]
+        own[:k, Own.lag_states(new.layout.j_padded)] = own_old[
+            :, Own.lag_states(old.layout.j_padded)
+        ]
     return np.concatenate([shared, own.ravel()])
 
 

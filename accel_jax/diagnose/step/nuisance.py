@@ -10,7 +10,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import _I_TIMING, GAIN_SIGMA, n_timing, timing_terms
+from .fit import GAIN_SIGMA, n_timing, timing_terms
+from .layout import W
 from .state import StepRecord
 
 
@@ -40,18 +41,18 @@ def nuisance_test(fit, rec: StepRecord) -> dict:
     delay = float(np.mean(timing)) if n_changes else 0.0
     shifts = [("test_winding_gain", float(fit["z_gain"]))]
     if rec.clock is not None:  # the clock's rate (its shift is the delay)
-        shifts.append(("input_clock_rate", float(w[_I_TIMING + 1])))
+        shifts.append(("input_clock_rate", float(w[W.timing(n_t)][1])))
     elif n_changes > 1:
         shifts += [(f"change_time_{j + 1}", float(x - delay)) for j, x in enumerate(timing)]
     if ctx.level_sigma is not None:
         if rec.level_groups is not None:
             count = rec.level_groups.means.size
-            levels = w[_I_TIMING + n_t : _I_TIMING + n_t + count]
+            levels = w[W.levels(n_t)][:count]
             shifts += [(f"input_level_group_{g + 1}", float(e)) for g, e in enumerate(levels)]
         else:
-            levels = w[_I_TIMING + n_t : _I_TIMING + n_t + n_changes]
+            levels = w[W.levels(n_t)][:n_changes]
             shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
-        shifts.append(("input_channel_drift", float(w[-1])))
+        shifts.append(("input_channel_drift", float(w[W.DRIFT])))
     z = np.abs(np.asarray([v for _, v in shifts]))
     worst = int(np.argmax(z))
     p_value = min(1.0, len(shifts) * 2 * float(stats.norm.sf(z[worst])))
@@ -72,7 +73,7 @@ def nuisance_test(fit, rec: StepRecord) -> dict:
 def change_shifts(w, ctx) -> np.ndarray:
     """Each change's fitted shift [samples] from where `u_test` shows it, as the fit uses
     it (`fit.timing_terms`), from a fit's parameters w."""
-    timing = jnp.asarray(np.asarray(w)[_I_TIMING : _I_TIMING + n_timing(ctx)])
+    timing = jnp.asarray(np.asarray(w)[W.timing(n_timing(ctx))])
     return np.asarray(timing_terms(timing, ctx)[0])
 
 

@@ -19,12 +19,6 @@ from .. import openworld
 from .domain import check_domain
 from .inputs import UNCLOCKED_CHANGES, clock_grid, level_groups, read_inputs
 from .fit import (
-    _I_DV,
-    _I_GAIN,
-    _I_MOMENT,
-    _I_SLOT,
-    _I_TIMING,
-    _N_FIXED,
     DELAY_LIMIT,
     DELAY_PRIOR_SIGMA,
     GAIN_SIGMA,
@@ -34,6 +28,7 @@ from .fit import (
     TIMING_PRIOR,
     StepContext,
 )
+from .layout import W
 from .segments import held_out_samples, segments, sequence_key, time_text
 from .state import (
     LevelGroups,
@@ -386,10 +381,10 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         timing_limit=None if timing_limit is None else jnp.asarray(timing_limit),
         level_map=None if level_map is None else jnp.asarray(level_map),
     )
-    common = np.zeros(_N_FIXED + timing_late.size + n_levels)
-    common[_I_MOMENT] = moment / scale
-    common[_I_GAIN] = w_gain
-    common[_I_DV] = dv / scale
+    common = np.zeros(W.FIXED + timing_late.size + n_levels)
+    common[W.MOMENT] = moment / scale
+    common[W.GAIN] = w_gain
+    common[W.DV] = dv / scale
     host = RecordHost(
         lag_unit=0.03 * period,
         gain=float(base.pickoff_gain * base.amplifier_gain),
@@ -461,7 +456,7 @@ def _guesses(common, effects, host: RecordHost, *, nominal_first: bool) -> np.nd
     nominal's second start (changes half a sample earlier) with its last start."""
     late = common.copy()
     timing = host.timing_late
-    late[_I_TIMING : _I_TIMING + timing.size] = timing
+    late[W.timing(timing.size)] = timing
     rows = [[common, late]] if nominal_first else []
     for effect in effects:
         per = []
@@ -469,7 +464,7 @@ def _guesses(common, effects, host: RecordHost, *, nominal_first: bool) -> np.nd
         for k in range(STARTS):
             w = (common if k < len(starts) else late).copy()
             start = starts[min(k, len(starts) - 1)]
-            w[_I_SLOT : _I_SLOT + len(start)] = start
+            w[W.effect(len(start))] = start
             per.append(w)
         rows.append(per)
     return np.asarray(rows)

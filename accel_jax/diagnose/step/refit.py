@@ -12,7 +12,8 @@ import numpy as np
 
 from ..._servo import scale_factor
 from ..base import ljung_box
-from .fit import _I_DV, _I_DW, _I_MOMENT, REFIT_FIELDS, refitted_device
+from .fit import REFIT_FIELDS, refitted_device
+from .layout import W
 from .nuisance import change_shifts
 from .segments import segments, time_text
 from .state import RecordView, StepRecord
@@ -130,10 +131,10 @@ def _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict):
             "test_winding_polarity": "reversed" if rec.polarity < 0 else "as the nominal",
             "test_winding_gain": abs(nominal_fit["gain"]),
             "test_winding_gain_sigma": nominal_fit["z_gain"],
-            "external_moment_V": ctx_scale * float(w[_I_MOMENT]),
-            "external_moment_Nm": ctx_scale * float(w[_I_MOMENT]) * rec.host.torquer_gain,
-            "initial_displacement_V": ctx_scale * float(w[_I_DV]),
-            "initial_velocity_V": ctx_scale * float(w[_I_DW]),
+            "external_moment_V": ctx_scale * float(w[W.MOMENT]),
+            "external_moment_Nm": ctx_scale * float(w[W.MOMENT]) * rec.host.torquer_gain,
+            "initial_displacement_V": ctx_scale * float(w[W.DV]),
+            "initial_velocity_V": ctx_scale * float(w[W.DW]),
             "change_time_shift_samples": [float(x) for x in shifts],
             "adc_step_V": rec.floor.adc_step,
         },
