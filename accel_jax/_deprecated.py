@@ -6,6 +6,9 @@ A module whose names moved ends with
 
 Reading `old_module.old_name` then warns (`DeprecationWarning`, naming the new place) and
 returns the object from its new module; `CHANGELOG.md` lists every move.
+
+A typed result that replaced a plain dict inherits `LegacyItems`: the dict's access still
+works for one release, with a warning naming the attribute that holds the value now.
 """
 
 from __future__ import annotations
@@ -32,3 +35,70 @@ def moved_names(module: str, moves: Mapping[str, str]) -> Callable[[str], object
         return getattr(importlib.import_module(target), name)
 
     return __getattr__
+
+
+class LegacyItems:
+    """Mixin: the string-keyed access of the plain dict that a typed result replaced, kept
+    for one release with a warning.
+
+    `result["fit"]`, `result.get("fit")`, `"fit" in result`, `result.keys()`,
+    `result.items()` and iteration behave as on the old dict and return what it held (a
+    plain dict where a typed part now stands: `to_dict`'s value), each with a
+    `DeprecationWarning` that names the attribute to use instead. A subclass defines
+    `_legacy()`, the old dict (a fresh one); each old key is the attribute that now holds
+    its value unless `_legacy_advice` says otherwise.
+    """
+
+    def _legacy(self) -> dict:
+        raise NotImplementedError
+
+    def _legacy_advice(self, key: str) -> str:
+        """What to use instead of the old dict's `key`."""
+        advice = f"use result.{key}"
+        to_dict = getattr(self, "to_dict", None)
+        if to_dict is not None and key in to_dict():
+            advice += f" (or result.to_dict()[{key!r}])"
+        return advice
+
+    def _legacy_warning(self, used: str, key: str | None = None) -> None:
+        name = type(self).__name__
+        if key is None:
+            advice = f"use the attributes of {name} (or result.to_dict())"
+        else:
+            advice = self._legacy_advice(key)
+        warnings.warn(
+            f"{used} is deprecated: {name} is a typed result, no longer a dict; {advice} — "
+            "the dict access will be removed in the next release (see CHANGELOG.md)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+
+    def __getitem__(self, key: str):
+        old = self._legacy()
+        if key not in old:
+            raise KeyError(key)
+        self._legacy_warning(f"result[{key!r}]", key)
+        return old[key]
+
+    def get(self, key: str, default=None):
+        old = self._legacy()
+        if key not in old:
+            return default
+        self._legacy_warning(f"result.get({key!r})", key)
+        return old[key]
+
+    def __contains__(self, key: object) -> bool:
+        self._legacy_warning(f"{key!r} in result")
+        return key in self._legacy()
+
+    def keys(self):
+        self._legacy_warning("result.keys()")
+        return self._legacy().keys()
+
+    def items(self):
+        self._legacy_warning("result.items()")
+        return self._legacy().items()
+
+    def __iter__(self):
+        self._legacy_warning("iterating over result")
+        return iter(self._legacy())

@@ -289,7 +289,7 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
             result = identify_step_record(data, params, method=method, gamma=gamma_value)
         text = identification_summary(result)
         # The traces (the record and the model, sample by sample) stay out of the JSON.
-        doc = {"source": str(files[0]), **{k: v for k, v in result.items() if k != "traces"}}
+        doc = {"source": str(files[0]), **result.to_dict()}
         figure = lambda: identification_figure(result, title=str(files[0]))  # noqa: E731
     click.echo(text)
     write(paths["text"], text, "summary")

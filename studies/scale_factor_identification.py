@@ -34,6 +34,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
+from accel_jax._identify.step_result import LeastSquaresFit  # noqa: E402
 from accel_jax._runtime import fast_compile  # noqa: E402
 from accel_jax.report import (  # noqa: E402
     Figures,
@@ -1026,7 +1027,10 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     record = aj.StepData(np.asarray(ts_id), u_test, np.asarray(u_out))
     identified = aj.identify_step_record(record, ref)
     fig = identification_figure(identified, title="one record of the reference device")
-    quality = identified["fit"]["quality"]
+    fit = identified.fit
+    if not isinstance(fit, LeastSquaresFit):
+        raise RuntimeError(f"the order-3 fit of the reference record failed: {fit.reason}")
+    quality = fit.quality
     figures.save(
         fig,
         "identify_record.png",
@@ -1034,11 +1038,11 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
             "One test step of the reference device as `accel-jax identify` shows it "
             f"({SAMPLE_RATE / 1e6:g} MHz, ε = {float(ref.noise_std):.0e} V white, a +1 V step "
             "at 1 ms, float64): measured vs the order-3 fit with the graph method's t1, t2, "
-            f"A1, A2 marked (fit {quality['fit_percent']:.2f} %, MATLAB compare); the residual "
+            f"A1, A2 marked (fit {quality.fit_percent:.2f} %, MATLAB compare); the residual "
             "with its ±2σ noise band; its autocorrelation with the 95 % band and the Ljung–Box "
             "test. Graph-method δK_a "
-            f"{identified['graph']['dKa_percent']:+.3f} %, fit δK_a "
-            f"{identified['fit']['dKa_percent']:+.4f} ± {identified['fit']['dKa_std_percent']:.4f} %."
+            f"{identified.graph.dKa_percent:+.3f} %, fit δK_a "
+            f"{fit.dKa_percent:+.4f} ± {fit.dKa_std_percent:.4f} %."
         ),
     )
     return figures.entries

@@ -2,6 +2,7 @@
 --plot figure, the fit percentage and NRMSE, the parameter table against the nominal
 device and the residual whiteness test, each checked against an independent computation."""
 
+import dataclasses
 import json
 import re
 
@@ -15,6 +16,7 @@ from click.testing import CliRunner
 import accel_jax as aj
 from accel_jax import report
 from accel_jax._identify.step_record import identify_step_record
+from accel_jax._identify.step_result import FitFailure
 from accel_jax.cli import main
 from accel_jax.report.text import identification
 
@@ -200,8 +202,11 @@ def test_report_without_a_fit(records):
     """A failed fit still prints the graph method and draws the record (no residual)."""
     data = aj.read_csv(records["low_noise"], kind="step")
     result = identify_step_record(data, aj.ServoParams.reference())
-    result["fit"] = {"failed": "The least-squares fit did not converge within max_steps."}
-    del result["traces"]["model_V"]
+    result = dataclasses.replace(
+        result,
+        fit=FitFailure("The least-squares fit did not converge within max_steps."),
+        traces=dataclasses.replace(result.traces, model_V=None),
+    )
     text = report.identification_summary(result)
     assert "least-squares fit failed" in text and "δK_a" in text
     assert (

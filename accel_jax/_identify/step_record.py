@@ -9,8 +9,9 @@ read it (fit percentage, NRMSE, residual whiteness) and each fitted parameter ag
 nominal value. Host-side glue around the jit-compiled estimators of `accel_jax._identify`;
 it computes in the dtype JAX is configured for (the CLI enables float64).
 `identify_step_records` takes several records of one device, a stop-level one by eq. (11).
-`accel_jax.report` turns the result into text (`identification_summary`) and a figure
-(`identification_figure`).
+The results are typed (`accel_jax._identify.step_result`: `StepIdentification`,
+`StopRecordGain`); `accel_jax.report` turns one into text (`identification_summary`) and
+a figure (`identification_figure`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,21 @@ from . import (
     identify_aperiodic,
     identify_oscillatory,
     scale_factor_from_fit,
+)
+from .step_result import (
+    AperiodicEstimate,
+    FitFailure,
+    FitParameter,
+    FitQuality,
+    GraphEstimate,
+    LeastSquaresFit,
+    NominalValues,
+    OscillatoryEstimate,
+    StepIdentification,
+    StepSegment,
+    StepTraces,
+    StopRecordGain,
+    WhitenessTest,
 )
 from .stops import stop_record_gain
 
@@ -97,7 +113,7 @@ def _extremum_times(ts, u_out, steady_state, direction, t1, t2) -> tuple[float, 
     return float(ts[np.argmax(deviation)]), float(ts[np.argmin(deviation)])
 
 
-def _quality(u_out, model, n_tail) -> dict:
+def _quality(u_out, model, n_tail) -> FitQuality:
     """The fit's quality as the System Identification Toolbox reports it: `compare`'s fit
     percentage and `goodnessOfFit`'s NRMSE (both over the whole segment), the residual's
     rms against the noise σ, and the Ljung-Box test of the residual's whiteness.
@@ -112,25 +128,25 @@ def _quality(u_out, model, n_tail) -> dict:
     residual = u_out - model
     nrmse = float(np.linalg.norm(residual) / np.linalg.norm(u_out - u_out.mean()))
     test = ljung_box(residual, lags=WHITENESS_LAGS)
-    return {
-        "fit_percent": 100.0 * (1.0 - nrmse),
-        "nrmse": nrmse,
-        "residual_rms_V": float(np.sqrt(np.mean(residual**2))),
-        "noise_std_V": float(np.std(np.diff(u_out[-n_tail:])) / np.sqrt(2.0)),
-        "whiteness": {
-            "test": "Ljung-Box",
-            "statistic": test["statistic"],
-            "lags": test["lags"],
-            "p_value": test["p_value"],
-            "level": WHITENESS_LEVEL,
-            "white": bool(test["p_value"] >= WHITENESS_LEVEL),
-            "autocorrelation": test["autocorrelation"],
-            "band_95": 1.959963984540054 / np.sqrt(residual.size),
-        },
-    }
+    return FitQuality(
+        fit_percent=100.0 * (1.0 - nrmse),
+        nrmse=nrmse,
+        residual_rms_V=float(np.sqrt(np.mean(residual**2))),
+        noise_std_V=float(np.std(np.diff(u_out[-n_tail:])) / np.sqrt(2.0)),
+        whiteness=WhitenessTest(
+            test="Ljung-Box",
+            statistic=test["statistic"],
+            lags=test["lags"],
+            p_value=test["p_value"],
+            level=WHITENESS_LEVEL,
+            white=bool(test["p_value"] >= WHITENESS_LEVEL),
+            autocorrelation=test["autocorrelation"],
+            band_95=1.959963984540054 / np.sqrt(residual.size),
+        ),
+    )
 
 
-def _parameter_rows(fit, k_fit, k_std, params: ServoParams, test_step: float) -> list[dict]:
+def _parameter_rows(fit, k_fit, k_std, params: ServoParams, test_step: float) -> list[FitParameter]:
     """One row per parameter the order-3 fit estimates (T, ξ, T_dm, G, U0) or reports (K_a):
     its nominal value (None where the device does not fix one), estimate, σ from the fit's
     covariance, and the shift (estimate − nominal)/σ. SI units, named in `unit`."""
@@ -163,17 +179,17 @@ def _parameter_rows(fit, k_fit, k_std, params: ServoParams, test_step: float) ->
         estimate, sigma = float(estimate), float(sigma)
         usable = nominal is not None and np.isfinite(sigma) and sigma > 0
         out.append(
-            {
-                "name": name,
-                "description": description,
-                "unit": unit,
-                "nominal": nominal,
-                "estimate": estimate,
-                "std": sigma,
-                "shift_in_std": (
+            FitParameter(
+                name=name,
+                description=description,
+                unit=unit,
+                nominal=nominal,
+                estimate=estimate,
+                std=sigma,
+                shift_in_std=(
                     (estimate - nominal) / sigma if nominal is not None and usable else None
                 ),
-            }
+            )
         )
     return out
 
@@ -184,7 +200,7 @@ def identify_step_record(
     *,
     method: str = "auto",
     gamma: str | float = "exact",
-) -> dict:
+) -> StepIdentification:
     """Identify the scale factor K_a from the first test-signal step of a record.
 
     **Arguments:**
@@ -196,17 +212,18 @@ def identify_step_record(
         `"oscillatory"` or `"aperiodic"`.
     - `gamma`: `"exact"` (m l²/J of `params`), `"paper"` (3/4) or a number.
 
-    **Returns:** a dict with the segment used; the graph-analytic estimate (`graph`:
-    method, T or T1..T4, ξ, K̂_a and δK_a against the nominal K_a, and what it read off the
-    record: U_ss and the crossings t1, t2 and extrema A1, A2 (oscillatory) or the inflection
-    (aperiodic)); the order-3 least-squares fit (`fit`: T, ξ, T_dm, G, U0, K̂_a ± σ, δK_a,
-    `parameters` (each against its nominal value, shift in σ) and `quality` (fit percentage
-    and NRMSE as MATLAB's `compare` and `goodnessOfFit` define them, the residual's rms,
-    the noise σ of the settled tail, and the Ljung-Box whiteness test of the residual));
-    the nominal values; the assumptions; and `traces` (NumPy arrays of the segment: `t_s`,
-    `u_out_V` and, when the fit succeeded, `model_V`, for `identification_figure`). All but
-    `traces` is JSON-ready; the CLI's JSON leaves `traces` out. Raises `DataError` when
-    the record cannot be used, with the reason.
+    **Returns:** a `StepIdentification`: the segment used (`segment`); the graph-analytic
+    estimate (`graph`, an `OscillatoryEstimate` or `AperiodicEstimate`: T or T1..T4, ξ,
+    K̂_a and δK_a against the nominal K_a, and what it read off the record: U_ss and the
+    crossings t1, t2 and extrema A1, A2, or the inflection); the order-3 least-squares fit
+    (`fit`, a `LeastSquaresFit`: T, ξ, T_dm, G, U0, K̂_a ± σ, δK_a, `parameters` (each
+    against its nominal value, shift in σ) and `quality` (fit percentage and NRMSE as
+    MATLAB's `compare` and `goodnessOfFit` define them, the residual's rms, the noise σ of
+    the settled tail, and the Ljung-Box whiteness test of the residual); a `FitFailure`
+    when the fit did not succeed); the nominal values (`nominal`); the assumptions; and
+    `traces` (the segment's `t_s`, `u_out_V` and, when the fit succeeded, `model_V`, for
+    `identification_figure`). Its `to_dict()` is the CLI's JSON (without the traces).
+    Raises `DataError` when the record cannot be used, with the reason.
     """
     if method not in METHODS:
         raise DataError(f"method must be one of {METHODS}, got {method!r}.")
@@ -228,7 +245,7 @@ def identify_step_record(
     def percent(estimate):
         return float(relative_error_percent(estimate, nominal))
 
-    graph: dict = {}
+    graph: GraphEstimate | None = None
     tried = []
     if method in ("auto", "oscillatory"):
         osc = identify_oscillatory(
@@ -246,25 +263,26 @@ def identify_step_record(
             initial = before.mean() if before.size else u_out[0]
             direction = 1.0 if steady >= initial else -1.0
             time_a1, time_a2 = _extremum_times(ts, u_out, steady, direction, t1, t2)
-            graph = {
-                "method": "oscillatory (Mironov, Fominov & Maletin, steps (7)-(10))",
-                "time_constant_s": float(osc.time_constant),
-                "damping_ratio": float(osc.damping_ratio),
-                "period_s": t2 - t1,
-                "scale_factor": float(osc.scale_factor),
-                "steady_state_V": steady,
-                "crossing_t1_s": t1,
-                "crossing_t2_s": t2,
-                "overshoot_A1_V": float(osc.overshoot),
-                "overshoot_A1_time_s": time_a1,
-                "undershoot_A2_V": float(osc.undershoot),
-                "undershoot_A2_time_s": time_a2,
-            }
+            graph = OscillatoryEstimate(
+                method="oscillatory (Mironov, Fominov & Maletin, steps (7)-(10))",
+                time_constant_s=float(osc.time_constant),
+                damping_ratio=float(osc.damping_ratio),
+                period_s=t2 - t1,
+                scale_factor=float(osc.scale_factor),
+                steady_state_V=steady,
+                crossing_t1_s=t1,
+                crossing_t2_s=t2,
+                overshoot_A1_V=float(osc.overshoot),
+                overshoot_A1_time_s=time_a1,
+                undershoot_A2_V=float(osc.undershoot),
+                undershoot_A2_time_s=time_a2,
+                dKa_percent=percent(float(osc.scale_factor)),
+            )
         else:
             tried.append(("oscillatory", code))
             if method == "oscillatory" or not any(code == c for c in _USE_APERIODIC):
                 raise DataError(f"oscillatory method: {_reason(code)}")
-    if not graph:
+    if graph is None:
         ape = identify_aperiodic(
             ts,
             u_out,
@@ -279,22 +297,22 @@ def identify_step_record(
         if ape.result != IdentificationResult.successful:
             before = "".join(f"{m} method: {_reason(c)}; " for m, c in tried)
             raise DataError(f"{before}aperiodic method: {_reason(ape.result)}")
-        graph = {
-            "method": "aperiodic (Mironov, Fominov & Maletin, steps 1-10 with the lag "
+        graph = AperiodicEstimate(
+            method="aperiodic (Mironov, Fominov & Maletin, steps 1-10 with the lag "
             "correction (16))",
-            "T1_s": float(ape.t1),
-            "T2_s": float(ape.t2),
-            "T3_s": float(ape.t3),
-            "T4_s": float(ape.t4),
-            "time_constant_s": float(ape.time_constant),
-            "damping_ratio": float(ape.damping_ratio),
-            "lag_correction_s": lag,
-            "scale_factor": float(ape.scale_factor),
-            "steady_state_V": float(ape.steady_state),
-            "inflection_time_s": step_time + float(ape.inflection_time_measured),
-            "max_slope_V_per_s": float(ape.max_slope),
-        }
-    graph["dKa_percent"] = percent(graph["scale_factor"])
+            T1_s=float(ape.t1),
+            T2_s=float(ape.t2),
+            T3_s=float(ape.t3),
+            T4_s=float(ape.t4),
+            time_constant_s=float(ape.time_constant),
+            damping_ratio=float(ape.damping_ratio),
+            lag_correction_s=lag,
+            scale_factor=float(ape.scale_factor),
+            steady_state_V=float(ape.steady_state),
+            inflection_time_s=step_time + float(ape.inflection_time_measured),
+            max_slope_V_per_s=float(ape.max_slope),
+            dKa_percent=percent(float(ape.scale_factor)),
+        )
 
     feedback_fraction = float(closed_loop_test_gain(params))
     filter_tc = float(params.filter_time_constant)
@@ -307,7 +325,8 @@ def identify_step_record(
         filter_time_constant=filter_tc,
         throw=False,
     )
-    traces = {"t_s": ts, "u_out_V": u_out}
+    model_v = None
+    fit_out: LeastSquaresFit | FitFailure
     if fit.result == IdentificationResult.successful:
         k_fit, k_std = scale_factor_from_fit(fit, gain, gamma_value)
         model = _fitted_response(
@@ -326,50 +345,50 @@ def identify_step_record(
                 )
             ),
         )
-        traces["model_V"] = np.asarray(model, dtype=np.float64)
+        model_v = np.asarray(model, dtype=np.float64)
         n_tail = max(4, int(round(_TAIL_FRACTION * ts.size)))
-        fit_out = {
-            "method": "least squares, order 3 (T, ξ, T_dm; known T_f), Levenberg-Marquardt",
-            "time_constant_s": float(fit.time_constant),
-            "time_constant_std_s": float(fit.time_constant_std),
-            "damping_ratio": float(fit.damping_ratio),
-            "damping_ratio_std": float(fit.damping_ratio_std),
-            "torquer_time_constant_s": float(fit.torquer_time_constant),
-            "residual_rms_V": float(fit.residual_rms),
-            "scale_factor": float(k_fit),
-            "scale_factor_std": float(k_std),
-            "dKa_percent": percent(k_fit),
-            "dKa_std_percent": float(100 * k_std / k_fit),
-            "torquer_time_constant_std_s": float(np.sqrt(fit.covariance[2, 2])),
-            "gain_V": float(fit.gain),
-            "offset_V": float(fit.offset),
-            "known_feedback_fraction": feedback_fraction,
-            "known_filter_time_constant_s": filter_tc,
-            "parameters": _parameter_rows(fit, k_fit, k_std, params, test_step),
-            "quality": _quality(u_out, traces["model_V"], n_tail),
-        }
+        fit_out = LeastSquaresFit(
+            method="least squares, order 3 (T, ξ, T_dm; known T_f), Levenberg-Marquardt",
+            time_constant_s=float(fit.time_constant),
+            time_constant_std_s=float(fit.time_constant_std),
+            damping_ratio=float(fit.damping_ratio),
+            damping_ratio_std=float(fit.damping_ratio_std),
+            torquer_time_constant_s=float(fit.torquer_time_constant),
+            residual_rms_V=float(fit.residual_rms),
+            scale_factor=float(k_fit),
+            scale_factor_std=float(k_std),
+            dKa_percent=percent(k_fit),
+            dKa_std_percent=float(100 * k_std / k_fit),
+            torquer_time_constant_std_s=float(np.sqrt(fit.covariance[2, 2])),
+            gain_V=float(fit.gain),
+            offset_V=float(fit.offset),
+            known_feedback_fraction=feedback_fraction,
+            known_filter_time_constant_s=filter_tc,
+            parameters=_parameter_rows(fit, k_fit, k_std, params, test_step),
+            quality=_quality(u_out, model_v, n_tail),
+        )
     else:
-        fit_out = {"failed": _reason(fit.result)}
-    return {
-        "segment": {
-            "samples": int(stop - start),
-            "t_start_s": float(ts[0]),
-            "t_end_s": float(ts[-1]),
-            "step_time_s": step_time,
-            "test_step_V": test_step,
-            "sample_rate_Hz": 1.0 / data.sample_period,
-        },
-        "graph": graph,
-        "fit": fit_out,
-        "nominal": {
-            "scale_factor": nominal,
-            "time_constant_s": float(time_constant(params)),
-            "damping_ratio": float(damping_ratio(params)),
-            "torquer_time_constant_s": float(params.torquer_time_constant),
-            "pickoff_amplifier_gain_V_per_m": gain,
-            "shape_factor": gamma_value,
-        },
-        "assumptions": {
+        fit_out = FitFailure(_reason(fit.result))
+    return StepIdentification(
+        segment=StepSegment(
+            samples=int(stop - start),
+            t_start_s=float(ts[0]),
+            t_end_s=float(ts[-1]),
+            step_time_s=step_time,
+            test_step_V=test_step,
+            sample_rate_Hz=1.0 / data.sample_period,
+        ),
+        graph=graph,
+        fit=fit_out,
+        nominal=NominalValues(
+            scale_factor=nominal,
+            time_constant_s=float(time_constant(params)),
+            damping_ratio=float(damping_ratio(params)),
+            torquer_time_constant_s=float(params.torquer_time_constant),
+            pickoff_amplifier_gain_V_per_m=gain,
+            shape_factor=gamma_value,
+        ),
+        assumptions={
             "units": "K_a in V/(m/s²); δK_a = 100 (K̂_a − K_a)/K̂_a % against the nominal K_a",
             "segment": "the first change of u_test up to the next one (or the record's end)",
             "steady_state": "mean of the last 20 % of the segment, which must be settled",
@@ -385,8 +404,8 @@ def identify_step_record(
             "whiteness": f"Ljung-Box over {WHITENESS_LAGS} lags of the residual y − ŷ, no "
             f"degrees of freedom removed for the fit; white when p ≥ {WHITENESS_LEVEL:g}",
         },
-        "traces": traces,
-    }
+        traces=StepTraces(t_s=ts, u_out_V=u_out, model_V=model_v),
+    )
 
 
 def identify_step_records(
@@ -395,20 +414,21 @@ def identify_step_records(
     *,
     method: str = "auto",
     gamma: str | float = "exact",
-) -> list[dict]:
+) -> list[StepIdentification | StopRecordGain]:
     """Several records of one device (the `accel-jax identify A.csv B.csv …` job), in order.
 
     A record whose test levels drive the pendulum onto its stops (max |u_test| · K_test at
     least half the output at a stop, k_dp k_y h_max / 2) gives k_dp k_y by eq. (11):
-    `{"stops": stop_record_gain(data, params)}`; every other record is identified as by
-    `identify_step_record`. A record that cannot be used raises `DataError`.
+    a `StopRecordGain` (the values of `stop_record_gain`); every other record is identified
+    as by `identify_step_record` (a `StepIdentification`). A record that cannot be used
+    raises `DataError`.
     """
     reach = 0.5 * float(params.pickoff_gain * params.amplifier_gain * params.stop_displacement)
     k_test = float(closed_loop_test_gain(params))
-    results = []
+    results: list[StepIdentification | StopRecordGain] = []
     for data in datasets:
         if float(abs(data.u_test).max()) * k_test >= reach:
-            results.append({"stops": stop_record_gain(data, params)})
+            results.append(StopRecordGain(**stop_record_gain(data, params)))
         else:
             results.append(identify_step_record(data, params, method=method, gamma=gamma))
     return results

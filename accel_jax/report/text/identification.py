@@ -1,7 +1,7 @@
 """The `identify` result as System Identification Toolbox users read it: the text.
 
-Takes the dict of `identify_step_record` and returns the printed summary: the graph
-method's estimate, the fit's parameter table against the nominal device, the fit
+Takes the `StepIdentification` of `identify_step_record` and returns the printed summary:
+the graph method's estimate, the fit's parameter table against the nominal device, the fit
 percentage and NRMSE as MATLAB's `compare` and `goodnessOfFit` define them, the residual
 whiteness test, and why the two methods' ξ may differ. Its figure is
 `accel_jax.report.figures.identification`.
@@ -10,6 +10,8 @@ whiteness test, and why the two methods' ξ may differ. Its figure is
 from __future__ import annotations
 
 import math
+
+from ..._identify.step_result import AperiodicEstimate, LeastSquaresFit, StepIdentification
 
 SIGNIFICANT = 4
 """Significant figures of a printed value; a standard deviation gets `SIGMA_SIGNIFICANT`."""
@@ -99,51 +101,54 @@ def _table(header: list[str], rows: list[list[str]], align: str) -> list[str]:
     return [line(header)] + [line(row) for row in rows]
 
 
-def parameter_table(result: dict) -> list[str]:
+def parameter_table(result: StepIdentification) -> list[str]:
     """The fit's parameter table, one line each: parameter · nominal · estimate · ±σ ·
     shift (estimate − nominal)/σ · what it is. Times and voltages in their natural unit.
     Empty when the fit failed."""
-    fit = result["fit"]
-    if "parameters" not in fit:
+    fit = result.fit
+    if not isinstance(fit, LeastSquaresFit):
         return []
     rows = [
         [
-            row["name"],
-            quantity(row["nominal"], row["unit"]),
-            quantity(row["estimate"], row["unit"]),
-            quantity(row["std"], row["unit"], SIGMA_SIGNIFICANT),
-            _shift(row["shift_in_std"]),
-            row["description"],
+            row.name,
+            quantity(row.nominal, row.unit),
+            quantity(row.estimate, row.unit),
+            quantity(row.std, row.unit, SIGMA_SIGNIFICANT),
+            _shift(row.shift_in_std),
+            row.description,
         ]
-        for row in fit["parameters"]
+        for row in fit.parameters
     ]
     header = ["parameter", "nominal", "estimate", "±σ", "shift", ""]
     return _table(header, rows, "lrrrrl")
 
 
-def quality_lines(result: dict) -> list[str]:
+def quality_lines(result: StepIdentification) -> list[str]:
     """The fit percentage and NRMSE (MATLAB's definitions), the residual's rms against the
     noise σ, and the whiteness line. Empty when the fit failed."""
-    quality = result["fit"].get("quality")
-    if quality is None:
+    if not isinstance(result.fit, LeastSquaresFit):
         return []
+    quality = result.fit.quality
     return [
-        f"fit {quality['fit_percent']:.2f} % (MATLAB compare: 100 (1 − ‖y − ŷ‖/‖y − ȳ‖)), "
-        f"NRMSE {number(quality['nrmse'], 3)}",
-        f"residual rms {quantity(quality['residual_rms_V'], 'V', 3)}, noise σ "
-        f"{quantity(quality['noise_std_V'], 'V', 3)} (successive differences of the settled "
+        f"fit {quality.fit_percent:.2f} % (MATLAB compare: 100 (1 − ‖y − ŷ‖/‖y − ȳ‖)), "
+        f"NRMSE {number(quality.nrmse, 3)}",
+        f"residual rms {quantity(quality.residual_rms_V, 'V', 3)}, noise σ "
+        f"{quantity(quality.noise_std_V, 'V', 3)} (successive differences of the settled "
         "tail)",
         whiteness_line(result),
     ]
 
 
-def whiteness_line(result: dict) -> str:
-    """``residual whiteness: Ljung-Box Q = 21.1 over 20 lags, p = 0.39: white``."""
-    test = result["fit"]["quality"]["whiteness"]
-    verdict = "white" if test["white"] else f"not white at {100 * test['level']:g} %"
+def whiteness_line(result: StepIdentification) -> str:
+    """``residual whiteness: Ljung-Box Q = 21.1 over 20 lags, p = 0.39: white``; empty when
+    the fit failed."""
+    if not isinstance(result.fit, LeastSquaresFit):
+        return ""
+    test = result.fit.quality.whiteness
+    verdict = "white" if test.white else f"not white at {100 * test.level:g} %"
     return (
-        f"residual whiteness: Ljung-Box Q = {number(test['statistic'], 3)} over "
-        f"{test['lags']} lags, {_p_value(test['p_value'])}: {verdict}"
+        f"residual whiteness: Ljung-Box Q = {number(test.statistic, 3)} over "
+        f"{test.lags} lags, {_p_value(test.p_value)}: {verdict}"
     )
 
 
@@ -152,17 +157,17 @@ def _p_value(p: float) -> str:
     return "p < 1e-16" if p < 1e-16 else f"p = {number(p, 2)}"
 
 
-def damping_note(result: dict) -> str | None:
+def damping_note(result: StepIdentification) -> str | None:
     """One line when the graph method's ξ lies more than 2σ (the fit's σ of ξ) from the
     fit's ξ: why the two can differ, and by how many σ; None otherwise."""
-    graph, fit = result["graph"], result["fit"]
-    if "damping_ratio_std" not in fit:
+    graph, fit = result.graph, result.fit
+    if not isinstance(fit, LeastSquaresFit):
         return None
-    sigma = fit["damping_ratio_std"]
-    difference = graph["damping_ratio"] - fit["damping_ratio"]
+    sigma = fit.damping_ratio_std
+    difference = graph.damping_ratio - fit.damping_ratio
     if not (math.isfinite(sigma) and sigma > 0) or abs(difference) <= 2 * sigma:
         return None
-    if graph["method"].startswith("oscillatory"):
+    if graph.method.startswith("oscillatory"):
         how = (
             "the graph method reads ξ from the first two extrema A1, A2 of an idealised "
             "second-order response (Mironov, Fominov & Maletin, eq. (9)), so the torquer "
@@ -178,48 +183,49 @@ def damping_note(result: dict) -> str | None:
             "the slope bias it"
         )
     return (
-        f"note: graph ξ = {number(graph['damping_ratio'])} and fit ξ = "
-        f"{number(fit['damping_ratio'])} ± {number(sigma, SIGMA_SIGNIFICANT)} differ by "
+        f"note: graph ξ = {number(graph.damping_ratio)} and fit ξ = "
+        f"{number(fit.damping_ratio)} ± {number(sigma, SIGMA_SIGNIFICANT)} differ by "
         f"{_shift(difference / sigma)} (the fit's σ): {how}; the fit uses the whole record "
         "with the lags in its model."
     )
 
 
-def identification_summary(result: dict) -> str:
+def identification_summary(result: StepIdentification) -> str:
     """The printed result of `accel-jax identify`: segment, nominal K_a, the graph method's
     estimate and what it read off the record, the fit's parameter table, δK_a, the fit's
     quality and whiteness, and the ξ note when the methods disagree."""
-    seg, graph, fit = result["segment"], result["graph"], result["fit"]
-    sign = "+" if seg["test_step_V"] > 0 else ""
+    seg, graph, fit = result.segment, result.graph, result.fit
+    sign = "+" if seg.test_step_V > 0 else ""
     lines = [
-        f"step of {sign}{number(seg['test_step_V'])} V at t = {quantity(seg['step_time_s'], 's')}, "
-        f"{seg['samples']} samples at {number(seg['sample_rate_Hz'])} Hz",
-        f"nominal K_a = {quantity(result['nominal']['scale_factor'], 'V/(m/s²)')}",
-        f"{graph['method']}:",
-        f"  T = {quantity(graph['time_constant_s'], 's')}, ξ = {number(graph['damping_ratio'])}, "
-        f"K̂_a = {quantity(graph['scale_factor'], 'V/(m/s²)')}, "
-        f"δK_a = {graph['dKa_percent']:+.4f} %",
+        f"step of {sign}{number(seg.test_step_V)} V at t = {quantity(seg.step_time_s, 's')}, "
+        f"{seg.samples} samples at {number(seg.sample_rate_Hz)} Hz",
+        f"nominal K_a = {quantity(result.nominal.scale_factor, 'V/(m/s²)')}",
+        f"{graph.method}:",
+        f"  T = {quantity(graph.time_constant_s, 's')}, ξ = {number(graph.damping_ratio)}, "
+        f"K̂_a = {quantity(graph.scale_factor, 'V/(m/s²)')}, "
+        f"δK_a = {graph.dKa_percent:+.4f} %",
     ]
-    if "crossing_t1_s" in graph:
+    if isinstance(graph, AperiodicEstimate):
+        times = (graph.T1_s, graph.T2_s, graph.T3_s, graph.T4_s)
         lines.append(
-            f"  read off: U_ss = {quantity(graph['steady_state_V'], 'V')}, crossings "
-            f"t1 = {quantity(graph['crossing_t1_s'], 's')}, "
-            f"t2 = {quantity(graph['crossing_t2_s'], 's')}, "
-            f"A1 = {quantity(graph['overshoot_A1_V'], 'V')}, "
-            f"A2 = {quantity(graph['undershoot_A2_V'], 'V')}"
+            f"  read off: U_ss = {quantity(graph.steady_state_V, 'V')}, inflection at "
+            f"{quantity(graph.inflection_time_s, 's')}, T1..T4 = "
+            + ", ".join(quantity(value, "s") for value in times)
         )
-    elif "inflection_time_s" in graph:
+    else:
         lines.append(
-            f"  read off: U_ss = {quantity(graph['steady_state_V'], 'V')}, inflection at "
-            f"{quantity(graph['inflection_time_s'], 's')}, T1..T4 = "
-            + ", ".join(quantity(graph[f"T{k}_s"], "s") for k in range(1, 5))
+            f"  read off: U_ss = {quantity(graph.steady_state_V, 'V')}, crossings "
+            f"t1 = {quantity(graph.crossing_t1_s, 's')}, "
+            f"t2 = {quantity(graph.crossing_t2_s, 's')}, "
+            f"A1 = {quantity(graph.overshoot_A1_V, 'V')}, "
+            f"A2 = {quantity(graph.undershoot_A2_V, 'V')}"
         )
-    if "failed" in fit:
-        lines.append(f"least-squares fit failed: {fit['failed']}")
+    if not isinstance(fit, LeastSquaresFit):
+        lines.append(f"least-squares fit failed: {fit.reason}")
         return "\n".join(lines)
-    lines.append(f"{fit['method']}:")
+    lines.append(f"{fit.method}:")
     lines += ["  " + line for line in parameter_table(result)]
-    lines.append(f"  δK_a = {fit['dKa_percent']:+.4f} ± {fit['dKa_std_percent']:.4f} %")
+    lines.append(f"  δK_a = {fit.dKa_percent:+.4f} ± {fit.dKa_std_percent:.4f} %")
     lines += ["  " + line for line in quality_lines(result)]
     note = damping_note(result)
     if note is not None:
