@@ -34,7 +34,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
-from accel_jax._identify.step_result import LeastSquaresFit  # noqa: E402
 from accel_jax._runtime import fast_compile  # noqa: E402
 from accel_jax.report import (  # noqa: E402
     Figures,
@@ -1028,9 +1027,7 @@ def make_figures(out_dir, result, ref, gain, gamma, ts) -> list[dict]:
     identified = aj.identify_step_record(record, ref)
     fig = identification_figure(identified, title="one record of the reference device")
     fit = identified.fit
-    if not isinstance(fit, LeastSquaresFit):
-        raise RuntimeError(f"the order-3 fit of the reference record failed: {fit.reason}")
-    quality = fit.quality
+    quality = fit.quality  # (a failed fit, which has none, stops the study here)
     figures.save(
         fig,
         "identify_record.png",
