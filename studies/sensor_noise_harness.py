@@ -352,11 +352,11 @@ def run_one(job, n: int) -> dict:
         "verdict": found.verdict,
         "effects": list(found.effects),
         "unexplained": found.unexplained,
-        "ties": [[t["effect"], t["alternative"]] for t in found.held_out.get("ties", [])],
+        "ties": [[t["effect"], t["alternative"]] for t in found.held_out.ties],
         # no record here has a step in its level: every one found is a false alarm
-        "level_shifts": len(found.held_out.get("level_shifts", [])),
+        "level_shifts": len(found.held_out.level_shifts),
         # every truth here is stationary: a spectral change found is a false alarm
-        "spectral_change": bool(found.held_out.get("spectral_change", {}).get("significant")),
+        "spectral_change": bool(found.held_out.spectral_change.get("significant")),
         "seconds": time.perf_counter() - started,
     }
     if realized_evidence_unavailable(truth["spec"], out["realized"]):

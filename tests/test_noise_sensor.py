@@ -244,7 +244,7 @@ def test_exchange_puts_the_better_low_frequency_effect_in_place_and_reports_ties
     truth = harness.draw(rng, effects, 10000)
     x = noise_truth.record(rng, 10000, truth["dt"], truth["spec"])
     found = aj.noise.select_sensor_noise(x, truth["dt"])
-    ties = found.held_out["ties"]
+    ties = found.held_out.ties
     assert ties, found.steps
     for tie in ties:
         assert tie["effect"] in found.effects and tie["alternative"] not in found.effects
@@ -374,8 +374,8 @@ def test_a_linear_drift_is_not_none():
     white = -1 + 2e-3 * rng.normal(size=n)
     drifting = aj.noise.select_sensor_noise(white + 0.02 * t / t[-1], dt)
     assert drifting.unexplained and drifting.verdict != "none"
-    assert drifting.held_out["drift"]["slope_per_s"] == pytest.approx(0.02 / t[-1], rel=0.1)
-    assert drifting.held_out["level_shifts"] == []  # a ramp is not a step
+    assert drifting.held_out.drift["slope_per_s"] == pytest.approx(0.02 / t[-1], rel=0.1)
+    assert drifting.held_out.level_shifts == []  # a ramp is not a step
     assert aj.noise.select_sensor_noise(white, dt).verdict == "none"
 
 
@@ -424,26 +424,27 @@ def test_a_level_shift_is_unexplained_not_a_random_walk():
     white = 2e-3 * rng.normal(size=n)
     stepped = aj.noise.select_sensor_noise(-(0.3 + white + 4e-3 * (k >= n // 4)), dt)
     assert stepped.unexplained and "random_walk" not in stepped.effects, stepped.verdict
-    (shift,) = stepped.held_out["level_shifts"]
+    (shift,) = stepped.held_out.level_shifts
     assert shift["time_s"] == pytest.approx(n // 4 * dt, abs=0.1)
     assert shift["size"] == pytest.approx(-4e-3, rel=0.15)
     walk = aj.noise.select_sensor_noise(white + np.cumsum(1e-4 * rng.normal(size=n)), dt)
-    assert "random_walk" in walk.effects and walk.held_out["level_shifts"] == []
-    test = walk.held_out["level_shift_test"]
+    assert "random_walk" in walk.effects and walk.held_out.level_shifts == []
+    test = walk.held_out.level_shift_test
+    assert test is not None
     assert abs(test["z"]) < test["critical_z"]
     grid = np.round((white + 2e-3 * (k >= n // 2)) / 1e-3) * 1e-3
     quantised = aj.noise.select_sensor_noise(grid, dt)
-    assert quantised.held_out["level_shifts"] and "quantization" in quantised.effects
-    assert quantised.held_out["level_shifts"][0]["size"] == pytest.approx(2e-3)
+    assert quantised.held_out.level_shifts and "quantization" in quantised.effects
+    assert quantised.held_out.level_shifts[0]["size"] == pytest.approx(2e-3)
     # A spike (20 σ at one sample) is an impulsive event, not a step: its difference of
     # means falls as 1/w in the wider windows.
     spiked = white.copy()
     spiked[n // 3] += 0.04
     spike = aj.noise.select_sensor_noise(spiked, dt)
-    assert spike.held_out["bursts"] and spike.held_out["level_shifts"] == []
+    assert spike.held_out.bursts and spike.held_out.level_shifts == []
     # A step and nothing else (no noise left once it is out): said, not an error.
     bare = aj.noise.select_sensor_noise(0.3 + 1e-3 * (k >= n // 2), dt)
-    assert bare.unexplained and bare.held_out["level_shifts"][0]["time_s"] == pytest.approx(
+    assert bare.unexplained and bare.held_out.level_shifts[0]["time_s"] == pytest.approx(
         n // 2 * dt
     )
 
@@ -461,17 +462,21 @@ def test_a_small_step_is_not_taken_for_a_random_walk():
     x = -0.5 + 2e-3 * rng.normal(size=n) + 1.2e-3 * (k >= 2400)
     stepped = aj.noise.select_sensor_noise(x, dt)
     assert stepped.unexplained and "random_walk" not in stepped.effects, stepped.verdict
-    (shift,) = stepped.held_out["level_shifts"]
+    (shift,) = stepped.held_out.level_shifts
     assert shift["in_place_of"] == "random_walk"
     assert shift["time_s"] == pytest.approx(24.0, abs=0.3)
     assert shift["size"] == pytest.approx(1.2e-3, rel=0.25)
-    test = stepped.held_out["step_or_walk"]
+    assert stepped.held_out.step_or_walk_tested
+    test = stepped.held_out.step_or_walk
+    assert test is not None
+    # the JSON's held_out has the test's key where it ran, in its old place
+    assert list(stepped.held_out.to_dict())[-3:] == ["step_or_walk", "level_shifts", "saturation"]
     assert test["evidence_over_the_walk"] >= test["bar"]
     walk = aj.noise.select_sensor_noise(
         2e-3 * rng.normal(size=n) + np.cumsum(rng.normal(size=n)) * 4e-3 / math.sqrt(n), dt
     )
     assert walk.verdict == "random_walk", walk.verdict
-    test = walk.held_out.get("step_or_walk")
+    test = walk.held_out.step_or_walk
     assert test is None or test["evidence_over_the_walk"] < test["bar"]
 
 
@@ -545,7 +550,7 @@ def test_a_clipped_record_sits_on_a_rail_and_is_unexplained():
     assert rails(-np.minimum(x, 2.0 * w)) == ["low"]  # polarity: the rail is the minimum
 
     selection = aj.noise.select_sensor_noise(clipped, dt)
-    assert selection.unexplained and len(selection.held_out["saturation"]) == 2
+    assert selection.unexplained and len(selection.held_out.saturation) == 2
     found = diagnose(aj.NoiseData(np.arange(n) * dt, clipped))
     assert found.verdict == "unexplained" and "rail at 1.003 g" in found.reason, found.summary()
 
@@ -696,7 +701,7 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     # The band holds the sweep's first half (power before, not after) or its second.
     assert abs(found["log_ratio_second_to_first"]) > math.log(4) and 1.0 <= low < high <= 3.0
     selection = aj.noise.select_sensor_noise(chirp + 0.98, dt)
-    assert selection.unexplained and selection.held_out["spectral_change"]["significant"]
+    assert selection.unexplained and selection.held_out.spectral_change["significant"]
     assert "The spectrum changes during the record" in _describe(selection)
     assert not _spectral_change(rng.normal(size=200), dt)["tested"]
     # The diagnosis screens the raw record the same way (public: detect_spectral_change),

@@ -1,8 +1,8 @@
-"""The typed results that replaced plain dicts (`StepIdentification`, `StopRecordGain`):
-their `to_dict()` is the old dict key for key and in the same order (so the CLI's JSON is
-unchanged), and the old dict access still works with a `DeprecationWarning` naming the
-attribute. (Nothing in the package uses it: pytest turns a `DeprecationWarning` raised from
-`accel_jax` into an error, and the CLI tests run it all.)"""
+"""The typed results that replaced plain dicts (`StepIdentification`, `StopRecordGain`,
+`StaticRecordAnalysis`, `HeldOutCheck`): their `to_dict()` is the old dict key for key and
+in the same order (so the CLI's JSON is unchanged), and the old dict access still works with
+a `DeprecationWarning` naming the attribute. (Nothing in the package uses it: pytest turns a
+`DeprecationWarning` raised from `accel_jax` into an error, and the CLI tests run it all.)"""
 
 import dataclasses
 import json
@@ -28,6 +28,8 @@ from accel_jax._identify.step_result import (
     StopRecordGain,
     WhitenessTest,
 )
+from accel_jax._noise.analysis import StaticRecordAnalysis, analyse_static_record, analysis_to_json
+from accel_jax._noise.sensor import HeldOutCheck
 from accel_jax.cli import main
 from accel_jax.report import identification_figure, identification_summary
 
@@ -61,6 +63,10 @@ NOMINAL = [
 STOPS = [
     "u_plus_V", "u_minus_V", "offset_V", "pickoff_amplifier_gain_V_per_m", "nominal_V_per_m",
     "shift_relative", "plateau_samples", "h_max_m", "noise_floor_V", "method",
+]  # fmt: skip
+HELD_OUT = [
+    "excess_deviance", "z", "bins", "removed", "exchanged", "ties", "bursts", "non_gaussian",
+    "spectral_change", "drift", "drifting", "level_shift_test",
 ]  # fmt: skip
 
 N, PRE = 5000, 200
@@ -228,3 +234,77 @@ def test_the_report_takes_the_typed_result_without_warnings(identified):
         for result in identified.values():
             assert "δK_a" in identification_summary(result)
             assert len(identification_figure(result).axes) == 3
+
+
+# ---- the static-record analysis and the selection's held-out check ----
+
+
+@pytest.fixture(scope="module")
+def stepped():
+    """2 mg white noise with a 4 mg step in its level at a quarter (NumPy)."""
+    rng = np.random.default_rng(21)
+    n = 4000
+    return 0.3 + 2e-3 * rng.normal(size=n) + 4e-3 * (np.arange(n) >= n // 4)
+
+
+@pytest.mark.slow
+def test_static_record_analysis_is_typed_and_its_dict_is_the_old_one(stepped):
+    analysis = analyse_static_record(stepped, 0.01, n_bootstrap=50)
+    assert isinstance(analysis, StaticRecordAnalysis)
+    assert isinstance(analysis.selection.held_out, HeldOutCheck)
+    assert isinstance(analysis.allan, aj.noise.AllanDeviation)
+    plain = analysis.to_dict()
+    assert list(plain) == ["allan_deviation", "ieee_terms", "effects"]
+    held = plain["effects"]["held_out"]
+    assert list(held) == [*HELD_OUT, "level_shifts", "saturation"]
+    assert held == {k: getattr(analysis.selection.held_out, k) for k in held}
+    assert held["level_shifts"] and held["level_shifts"][0]["time_s"] == pytest.approx(
+        10.0, abs=0.3
+    )
+    # analysis_to_json: the same, from the result or from a dict of its four parts
+    old_form = {
+        "allan": analysis.allan,
+        "terms": analysis.terms,
+        "selection": analysis.selection,
+        "export_terms": analysis.export_terms,
+    }
+    _same_order(analysis_to_json(analysis), plain)
+    _same_order(analysis_to_json(old_form), plain)
+    json.dumps(plain)  # JSON-ready
+    with pytest.warns(DeprecationWarning, match=r"result\['selection'\].*result\.selection"):
+        assert analysis["selection"] is analysis.selection
+    with pytest.warns(DeprecationWarning, match=r"result\['z'\] is deprecated.*result\.z"):
+        assert analysis.selection.held_out["z"] == analysis.selection.held_out.z
+    with pytest.warns(DeprecationWarning, match=r"result\.get\('level_shifts'\)"):
+        assert analysis.selection.held_out.get("level_shifts") == held["level_shifts"]
+    assert analysis.selection.held_out.get("step_or_walk") is None  # absent, no warning
+
+
+def _held_out(**more):
+    base = {k: [] for k in ("removed", "exchanged", "ties", "bursts")}
+    return HeldOutCheck(
+        excess_deviance=1.0,
+        z=0.5,
+        bins=100,
+        non_gaussian={"tested": False, "significant": False},
+        spectral_change={"tested": False, "significant": False},
+        drift={"slope_per_s": 0.0, "t": 0.1},
+        drifting=False,
+        **{**base, **more},
+    )
+
+
+def test_held_out_check_keeps_the_old_keys_present_only_where_they_were():
+    """`more_level_shifts` was set only when True; `step_or_walk` only where its test ran,
+    then possibly None."""
+    assert list(_held_out().to_dict()) == [*HELD_OUT, "level_shifts", "saturation"]
+    more = _held_out(more_level_shifts=True).to_dict()
+    assert list(more) == [*HELD_OUT, "more_level_shifts", "level_shifts", "saturation"]
+    assert more["more_level_shifts"] is True
+    ran = _held_out(step_or_walk=None, step_or_walk_tested=True).to_dict()
+    assert list(ran) == [*HELD_OUT, "step_or_walk", "level_shifts", "saturation"]
+    assert ran["step_or_walk"] is None and ran["level_shift_test"] is None
+    with pytest.warns(DeprecationWarning, match="'more_level_shifts' in result"):
+        assert "more_level_shifts" not in _held_out()
+    with pytest.raises(KeyError):
+        _held_out()["more_level_shifts"]

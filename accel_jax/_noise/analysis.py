@@ -6,14 +6,81 @@ the forms filters load (`export`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
-from .allan_intervals import allan_deviation_intervals
-from .allan_terms import fit_allan_terms
+from .._deprecated import LegacyItems
+from .allan_intervals import AllanDeviation, allan_deviation_intervals
+from .allan_terms import AllanTerms, fit_allan_terms
 from .export import AccelNoiseTerms
-from .sensor import select_sensor_noise
+from .sensor import SensorNoiseSelection, select_sensor_noise
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class StaticRecordAnalysis(LegacyItems):
+    """What `analyse_static_record` found in one static record.
+
+    **Fields:**
+
+    - `allan`: the overlapping Allan deviation with its ±1σ χ² intervals
+        (`AllanDeviation`).
+    - `terms`: the IEEE noise terms Q, N, B, K, R with their bootstrap intervals
+        (`AllanTerms`).
+    - `selection`: the effects the record shows, by forward selection
+        (`SensorNoiseSelection`).
+    - `export_terms`: the identified model in the form the exports take
+        (`AccelNoiseTerms`).
+
+    `to_dict()` is the JSON of `accel-jax noise` (without its `source` and `provenance`);
+    `result["allan"]` and the other keys of the dict this replaced still work for one
+    release, with a `DeprecationWarning`.
+    """
+
+    allan: AllanDeviation
+    terms: AllanTerms
+    selection: SensorNoiseSelection
+    export_terms: AccelNoiseTerms
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready values: `allan_deviation` (τ in [s], ADEV, its ±1σ bounds, the
+        equivalent degrees of freedom and the noise type α), `ieee_terms` and `effects`
+        (the selection, its held-out check by `HeldOutCheck.to_dict`)."""
+        adev, terms, selection = self.allan, self.terms, self.selection
+        return {
+            "allan_deviation": {
+                "tau_s": adev.taus.tolist(),
+                "adev": adev.deviation.tolist(),
+                "lower_1sigma": adev.lower.tolist(),
+                "upper_1sigma": adev.upper.tolist(),
+                "edf": adev.edf.tolist(),
+                "noise_alpha": [None if math.isnan(a) else a for a in adev.alpha.tolist()],
+            },
+            "ieee_terms": {
+                "confidence": terms.confidence,
+                "method": terms.method,
+                "terms": terms.terms,
+                "model_adev": terms.model_deviation.tolist(),
+            },
+            "effects": {
+                "verdict": selection.verdict,
+                "effects": list(selection.effects),
+                "unexplained": selection.unexplained,
+                "steps": selection.steps,
+                "parameters": selection.parameters,
+                "held_out": selection.held_out.to_dict(),
+                "quantization": selection.quantization,
+            },
+        }
+
+    def _legacy(self) -> dict:
+        return {
+            "allan": self.allan,
+            "terms": self.terms,
+            "selection": self.selection,
+            "export_terms": self.export_terms,
+        }
 
 
 def analyse_static_record(
@@ -24,15 +91,15 @@ def analyse_static_record(
     confidence: float = 0.95,
     n_bootstrap: int = 199,
     seed: int = 0,
-) -> dict:
+) -> StaticRecordAnalysis:
     """ADEV with ±1σ intervals, the IEEE terms (Q, N, B, K, R) at `confidence`, the
     forward-selected effects, and `AccelNoiseTerms` for the exports (the supported terms
     only; N, the white noise density, is always given: the white term is the nominal
     model).
 
-    **Returns:** a dict: `allan` (`AllanDeviation`), `terms` (`AllanTerms`), `selection`
-    (`SensorNoiseSelection`), `export_terms` (`AccelNoiseTerms`). Bad input raises
-    `ValueError`.
+    **Returns:** a `StaticRecordAnalysis`: `allan` (`AllanDeviation`), `terms`
+    (`AllanTerms`), `selection` (`SensorNoiseSelection`), `export_terms`
+    (`AccelNoiseTerms`). Bad input raises `ValueError`.
     """
     x = np.asarray(record, np.float64)
     adev = allan_deviation_intervals(x, sample_interval)
@@ -55,34 +122,15 @@ def analyse_static_record(
     export_terms = AccelNoiseTerms.from_mapping(
         mapping, unit, sample_rate=1 / sample_interval, bias_correlation_time=correlation
     )
-    return {"allan": adev, "terms": terms, "selection": selection, "export_terms": export_terms}
+    return StaticRecordAnalysis(
+        allan=adev, terms=terms, selection=selection, export_terms=export_terms
+    )
 
 
-def analysis_to_json(analysis: dict) -> dict:
-    """Plain JSON-ready values of `analyse_static_record`'s result."""
-    adev, terms, selection = analysis["allan"], analysis["terms"], analysis["selection"]
-    return {
-        "allan_deviation": {
-            "tau_s": adev.taus.tolist(),
-            "adev": adev.deviation.tolist(),
-            "lower_1sigma": adev.lower.tolist(),
-            "upper_1sigma": adev.upper.tolist(),
-            "edf": adev.edf.tolist(),
-            "noise_alpha": [None if math.isnan(a) else a for a in adev.alpha.tolist()],
-        },
-        "ieee_terms": {
-            "confidence": terms.confidence,
-            "method": terms.method,
-            "terms": terms.terms,
-            "model_adev": terms.model_deviation.tolist(),
-        },
-        "effects": {
-            "verdict": selection.verdict,
-            "effects": list(selection.effects),
-            "unexplained": selection.unexplained,
-            "steps": selection.steps,
-            "parameters": selection.parameters,
-            "held_out": selection.held_out,
-            "quantization": selection.quantization,
-        },
-    }
+def analysis_to_json(analysis: StaticRecordAnalysis | dict) -> dict:
+    """Plain JSON-ready values of `analyse_static_record`'s result: its `to_dict()`. A dict
+    with the four keys of the result (`allan`, `terms`, `selection`, `export_terms`) is
+    taken too."""
+    if isinstance(analysis, dict):
+        analysis = StaticRecordAnalysis(**analysis)
+    return analysis.to_dict()

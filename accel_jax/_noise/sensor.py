@@ -44,6 +44,7 @@ import math
 import jax
 import numpy as np
 
+from .._deprecated import LegacyItems
 from . import spectral
 from .record import _sample_interval, _validate_record
 from .sensor_model import (
@@ -95,6 +96,96 @@ UNEXPLAINED_Z = 4.0
 
 
 @dataclasses.dataclass(frozen=True)
+class HeldOutCheck(LegacyItems):
+    """The final model's held-out deviance test and what the screens found in its residual
+    (`SensorNoiseSelection.held_out`).
+
+    **Fields:**
+
+    - `excess_deviance`: the held-out Whittle deviance (the last third of the record) in
+        excess of its expectation under the final model.
+    - `z`: that excess in standard errors; above `UNEXPLAINED_Z` the record is unexplained.
+    - `bins`: the held-out periodogram bins it sums.
+    - `removed`: the effects the backward check took out, `{"effect", "evidence"}` (their
+        2 ln B then).
+    - `exchanged`: the low-frequency effects the exchange replaced, `{"effect", "by",
+        "evidence"}`; their steps then name the substitute, with `replaced` the effect
+        whose evidence they show.
+    - `ties`: each named low-frequency effect another fits as well, within the bar,
+        `{"effect", "alternative", "evidence", "bar"}`.
+    - `bursts`: impulsive events, `{"start_s", "end_s", "peak"}`.
+    - `non_gaussian`: the residual's skewness and excess kurtosis and their z
+        (`_non_gaussian`; `significant` makes the record unexplained).
+    - `spectral_change`: the residual's spectrum compared between the record's halves, the
+        band that changes most and its p (`_spectral_change`; `significant` makes the
+        record unexplained).
+    - `drift`: the level's linear drift, `{"slope_per_s", "t"}`.
+    - `drifting`: whether that drift is one no named effect makes.
+    - `level_shift_test`: the last level-shift test (`_level_shift`; None for a record too
+        short to test).
+    - `more_level_shifts`: True when one more shift stood than `MAX_LEVEL_SHIFTS` (absent
+        from `to_dict` when False).
+    - `step_or_walk`: the test of a step of the level in a named random walk's place
+        (`_shift_in_place_of_walk`; None where no step stood against the model without
+        the walk).
+    - `step_or_walk_tested`: whether that test ran (it runs when a random walk is named
+        and no shift was taken out); `to_dict` has `step_or_walk` only then.
+    - `level_shifts`: the steps of the level found and taken out (time, size, their z,
+        the held-out z and effects with the step still in).
+    - `saturation`: the rails the record's values pile up on (`detect_saturation`).
+
+    `to_dict()` is the dict of the JSON's `held_out`; `held_out["z"]` and the other keys
+    of the dict this replaced still work for one release, with a `DeprecationWarning`.
+    """
+
+    excess_deviance: float
+    z: float
+    bins: int
+    removed: list[dict]
+    exchanged: list[dict]
+    ties: list[dict]
+    bursts: list[dict]
+    non_gaussian: dict
+    spectral_change: dict
+    drift: dict
+    drifting: bool
+    level_shift_test: dict | None = None
+    more_level_shifts: bool = False
+    step_or_walk: dict | None = None
+    step_or_walk_tested: bool = False
+    level_shifts: list[dict] = dataclasses.field(default_factory=list)
+    saturation: list[dict] = dataclasses.field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """The JSON-ready dict: every field in its order, but `more_level_shifts` only when
+        True and `step_or_walk` only when its test ran (`step_or_walk_tested` never)."""
+        out = {
+            "excess_deviance": self.excess_deviance,
+            "z": self.z,
+            "bins": self.bins,
+            "removed": self.removed,
+            "exchanged": self.exchanged,
+            "ties": self.ties,
+            "bursts": self.bursts,
+            "non_gaussian": self.non_gaussian,
+            "spectral_change": self.spectral_change,
+            "drift": self.drift,
+            "drifting": self.drifting,
+            "level_shift_test": self.level_shift_test,
+        }
+        if self.more_level_shifts:
+            out["more_level_shifts"] = True
+        if self.step_or_walk_tested:
+            out["step_or_walk"] = self.step_or_walk
+        out["level_shifts"] = self.level_shifts
+        out["saturation"] = self.saturation
+        return out
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
+
+
+@dataclasses.dataclass(frozen=True)
 class SensorNoiseSelection:
     """What `select_sensor_noise` found.
 
@@ -104,21 +195,9 @@ class SensorNoiseSelection:
     explained fraction; the steps of effects the backward check removed are left out, and
     the last step's fraction and z are the final model's); `parameters` the final model's
     physical parameters by effect; `held_out` the final model's held-out deviance test
-    (with `removed`: the effects the backward check took out and their 2 ln B then;
-    `exchanged`: the low-frequency effects the exchange replaced, and by what — their
-    steps then name the substitute, with `replaced` the effect whose evidence they show;
-    `ties`: each named low-frequency effect another fits as well, within the bar;
-    `bursts`: impulsive events; `non_gaussian`: the residual's skewness and excess
-    kurtosis and their z (`_non_gaussian`; `significant` makes the record unexplained);
-    `spectral_change`: the residual's spectrum compared between the record's halves, the
-    band that changes most and its p (`_spectral_change`; `significant` makes the record
-    unexplained);
-    `drift`, `drifting`: the level's linear drift and whether it is one no named effect
-    makes; `level_shifts`: the steps in the level found and taken
-    out (time, size, their z, the held-out z and effects with the step still in),
-    `level_shift_test`: the last test (None for records under 32 samples), and
-    `more_level_shifts` when one more stood than `MAX_LEVEL_SHIFTS`; `saturation`: the
-    rails the record's values pile up on, `detect_saturation`);
+    and what the screens found in its residual (a `HeldOutCheck`: the effects the backward
+    check removed, the exchanges and ties, impulsive events, the residual's non-Gaussian
+    and spectral-change tests, the level's drift, level shifts and rails);
     `quantization` the grid found (or None); `verdict` the effects joined by '+' ('none'
     when nothing is named and nothing is left, 'unexplained' alone when nothing is named
     but the misfit stays).
@@ -128,7 +207,7 @@ class SensorNoiseSelection:
     unexplained: bool
     steps: list
     parameters: dict
-    held_out: dict
+    held_out: HeldOutCheck
     quantization: dict | None
     sample_interval: float
     n_samples: int
@@ -162,13 +241,13 @@ def select_sensor_noise(
         selection, model, floor, residual = _select(x, dt, evidence, max_lines, grid)
         for attempt in range(MAX_LEVEL_SHIFTS + 1):
             found = _level_shift(residual, dt, model, floor)
-            selection.held_out["level_shift_test"] = found
+            selection = _with_held_out(selection, level_shift_test=found)
             if found is None or not found["significant"]:
                 break
             if _at_burst(found, selection):  # an impulsive event, reported as such
                 break
             if attempt == MAX_LEVEL_SHIFTS:  # one more than taken out: said, not hidden
-                selection.held_out["more_level_shifts"] = True
+                selection = _with_held_out(selection, more_level_shifts=True)
                 break
             # Outside the library: taken out of the record, and the selection run again on
             # what is left, so that no effect takes the credit for the step.
@@ -197,7 +276,7 @@ def select_sensor_noise(
                         "size": size if taken_out else found["size"],
                         "taken_out": bool(taken_out),
                         # the held-out misfit with the step still in, beside the final one
-                        "held_out_z_with_it": selection.held_out["z"],
+                        "held_out_z_with_it": selection.held_out.z,
                         "effects_with_it": list(selection.effects),
                     }
                 )
@@ -214,21 +293,28 @@ def select_sensor_noise(
             test, swapped = _shift_in_place_of_walk(
                 x, dt, evidence, max_lines, grid, model, floor, selection
             )
-            selection.held_out["step_or_walk"] = test
             if swapped is not None:
                 shift, rerun = swapped
-                shift["held_out_z_with_it"] = selection.held_out["z"]
+                shift["held_out_z_with_it"] = selection.held_out.z
                 shift["effects_with_it"] = list(selection.effects)
                 selection, model, floor, residual = rerun
-                selection.held_out["level_shift_test"] = _level_shift(residual, dt, model, floor)
-                selection.held_out["step_or_walk"] = test
+                selection = _with_held_out(
+                    selection, level_shift_test=_level_shift(residual, dt, model, floor)
+                )
                 shifts.append(shift)
-        selection.held_out["level_shifts"] = shifts
+            selection = _with_held_out(selection, step_or_walk=test, step_or_walk_tested=True)
         rails = detect_saturation(record_values, grid)
-        selection.held_out["saturation"] = rails
-        if shifts or selection.held_out.get("more_level_shifts") or rails:
+        selection = _with_held_out(selection, level_shifts=shifts, saturation=rails)
+        if shifts or selection.held_out.more_level_shifts or rails:
             selection = dataclasses.replace(selection, unexplained=True)
         return selection
+
+
+def _with_held_out(selection: SensorNoiseSelection, **changes) -> SensorNoiseSelection:
+    """`selection` with the fields `changes` of its `held_out` replaced."""
+    return dataclasses.replace(
+        selection, held_out=dataclasses.replace(selection.held_out, **changes)
+    )
 
 
 def _select(
@@ -382,9 +468,6 @@ def _select(
             "held_out_z": dev["z"],
         }
     final = _held_out_deviance(rec, floor, model)
-    final["removed"] = removed
-    final["exchanged"] = exchanged
-    final["ties"] = ties
     effects = _named(model)
     params = _physical(model, dt, floor)
     quantization = None
@@ -396,17 +479,25 @@ def _select(
             params["quantization"] = {"step": grid["step"]}
     residual = rec.residual(model.lines, model.transient)
     bursts = _bursts(residual, dt)
-    final["bursts"] = bursts
     gaussian = _non_gaussian(residual, share)
-    final["non_gaussian"] = gaussian
     change = _spectral_change(residual, dt)
-    final["spectral_change"] = change
     # The first difference makes a linear drift a constant, which the periodogram never
     # sees: test it in the time domain unless a wandering level was named.
     drift = _drift(residual, dt)
-    final["drift"] = drift
     drifting = drift["t"] > DRIFT_T and not {"random_walk", "flicker"} & set(effects)
-    final["drifting"] = bool(drifting)
+    held_out = HeldOutCheck(
+        excess_deviance=final["excess_deviance"],
+        z=final["z"],
+        bins=final["bins"],
+        removed=removed,
+        exchanged=exchanged,
+        ties=ties,
+        bursts=bursts,
+        non_gaussian=gaussian,
+        spectral_change=change,
+        drift=drift,
+        drifting=bool(drifting),
+    )
     selection = SensorNoiseSelection(
         effects=tuple(effects),
         unexplained=bool(
@@ -418,7 +509,7 @@ def _select(
         ),
         steps=steps,
         parameters=params,
-        held_out=final,
+        held_out=held_out,
         quantization=quantization,
         sample_interval=dt,
         n_samples=int(x.size),
@@ -480,7 +571,7 @@ def _at_burst(found: dict, selection) -> bool:
     margin = found["size_window_s"]
     return any(
         b["start_s"] - margin <= found["time_s"] <= b["end_s"] + margin
-        for b in selection.held_out.get("bursts", [])
+        for b in selection.held_out.bursts
     )
 
 

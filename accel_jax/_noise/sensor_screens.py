@@ -196,7 +196,7 @@ def detect_non_gaussian(x: np.ndarray, grid: dict | None = None) -> dict:
     of the first difference) decides whether the test is run at all. Returns {"tested",
     "significant"} and, when tested, "skewness", "skewness_z", "excess_kurtosis",
     "excess_kurtosis_z". The selection tests its residual in the same way
-    (`held_out["non_gaussian"]`); this tests the raw record, so a line, a transient or a step
+    (`held_out.non_gaussian`); this tests the raw record, so a line, a transient or a step
     in it counts against Gaussianity."""
     x = np.asarray(x, np.float64)
     if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
@@ -300,7 +300,7 @@ def _spectral_change(r: np.ndarray, dt: float) -> dict:
 def detect_spectral_change(x: np.ndarray, sample_interval: float = 1.0) -> dict:
     """Whether a record's spectrum changes between its first and second half
     (`_spectral_change` on x itself; the selection tests its residual in the same way,
-    `held_out["spectral_change"]`). Returns {"tested", "significant"} and, when tested,
+    `held_out.spectral_change`). Returns {"tested", "significant"} and, when tested,
     "p_family", "band_Hz" (at `sample_interval` seconds per sample),
     "log_ratio_second_to_first" and "bands_tested". On the raw record a start-up transient counts as a change too."""
     x = np.asarray(x, np.float64)

@@ -7,7 +7,7 @@ import math
 
 
 def saturation_sentence(rail: dict, unit: str = "g") -> str:
-    """One rail of `held_out["saturation"]` in words (the CLI and the diagnosis alike)."""
+    """One rail of `held_out.saturation` in words (the CLI and the diagnosis alike)."""
     pile = (
         "at exactly that value"
         if rail["inner_count"] is None
@@ -21,7 +21,7 @@ def saturation_sentence(rail: dict, unit: str = "g") -> str:
 
 
 def non_gaussian_sentence(found: dict) -> str:
-    """`held_out["non_gaussian"]` in words, when significant (the CLI and the diagnosis)."""
+    """`held_out.non_gaussian` in words, when significant (the CLI and the diagnosis)."""
     g2, z2 = found["excess_kurtosis"], found["excess_kurtosis_z"]
     g1, z1 = found["skewness"], found["skewness_z"]
     if abs(z2) >= abs(z1):
@@ -41,7 +41,7 @@ def non_gaussian_sentence(found: dict) -> str:
 
 
 def spectral_change_sentence(found: dict, duration_s: float) -> str:
-    """`held_out["spectral_change"]` in words, when significant (the CLI and the diagnosis)."""
+    """`held_out.spectral_change` in words, when significant (the CLI and the diagnosis)."""
     low, high = found["band_Hz"]
     factor = math.exp(found["log_ratio_second_to_first"])
     half = duration_s / 2
@@ -54,7 +54,7 @@ def spectral_change_sentence(found: dict, duration_s: float) -> str:
 
 
 def level_shift_sentence(shift: dict, unit: str = "g") -> str:
-    """One level shift of `held_out["level_shifts"]` in words (the CLI and the diagnosis
+    """One level shift of `held_out.level_shifts` in words (the CLI and the diagnosis
     say it alike)."""
     what = (
         "taken out before the effects were selected"

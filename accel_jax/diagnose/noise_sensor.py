@@ -102,7 +102,7 @@ def selection_summary(sel: SensorNoiseSelection) -> dict:
         "unexplained": sel.unexplained,
         "steps": sel.steps,
         "parameters": sel.parameters,
-        "held_out": sel.held_out,
+        "held_out": sel.held_out.to_dict(),
         "quantization": sel.quantization,
         "method": "forward selection on the debiased Whittle likelihood of the differenced "
         "record (training: first 2/3; held out: last 1/3)",
@@ -141,45 +141,45 @@ def _describe(sel: SensorNoiseSelection) -> str:
         parts.append(f"output grid {sel.quantization['step']:.3g} g")
     text = "forward selection: " + "; ".join(parts) if parts else "forward selection: nothing"
     held = sel.held_out
-    bursts = held.get("bursts", [])
+    bursts = held.bursts
     if bursts:
         at = ", ".join(f"{b['start_s']:.4g} s" for b in bursts[:5])
         text += (
             f". {len(bursts)} impulsive event(s) (first differences beyond 8 robust σ; at "
             f"{at}; peak {max(b['peak'] for b in bursts):.3g} g) that no Gaussian effect makes"
         )
-    for shift in held.get("level_shifts", []):
+    for shift in held.level_shifts:
         text += _capitalised(level_shift_sentence(shift))
-    if held.get("more_level_shifts"):
-        text += f". More steps than the {len(held['level_shifts'])} taken out"
-    for rail in held.get("saturation", []):
+    if held.more_level_shifts:
+        text += f". More steps than the {len(held.level_shifts)} taken out"
+    for rail in held.saturation:
         text += _capitalised(saturation_sentence(rail))
-    gaussian = held.get("non_gaussian", {})
+    gaussian = held.non_gaussian
     if gaussian.get("significant") and not bursts:
         text += _capitalised(non_gaussian_sentence(gaussian))
-    change = held.get("spectral_change", {})
+    change = held.spectral_change
     if change.get("significant"):
         duration = sel.n_samples * sel.sample_interval
         text += _capitalised(spectral_change_sentence(change, duration))
-    drift = held.get("drift")
-    if drift and held.get("drifting") and not bursts and held["z"] <= 4.0:
+    drift = held.drift
+    if drift and held.drifting and not bursts and held.z <= 4.0:
         text += (
             f". The level drifts {drift['slope_per_s']:.3g} g/s ({drift['t']:.0f} standard "
             "errors over block means), which no named effect makes"
         )
-    if held["z"] > 4.0:
+    if held.z > 4.0:
         text += (
-            f". What it leaves is unexplained: the held-out spectrum stays {held['z']:.1f} "
+            f". What it leaves is unexplained: the held-out spectrum stays {held.z:.1f} "
             "standard errors above the final model's"
         )
     else:
-        text += f". The held-out spectrum fits the final model ({held['z']:+.1f} standard errors)"
+        text += f". The held-out spectrum fits the final model ({held.z:+.1f} standard errors)"
     if (
         sel.unexplained
         and not bursts
-        and held["z"] <= 4.0
-        and not held.get("level_shifts")
-        and not held.get("saturation")
+        and held.z <= 4.0
+        and not held.level_shifts
+        and not held.saturation
         and not gaussian.get("significant")
         and not change.get("significant")
     ):
@@ -196,10 +196,10 @@ def combine(result: DiagnosisResult, sel: SensorNoiseSelection) -> DiagnosisResu
     if (
         beyond
         or len(sel.effects) > 1
-        or held.get("level_shifts")
-        or held.get("saturation")
-        or held.get("non_gaussian", {}).get("significant")
-        or held.get("spectral_change", {}).get("significant")
+        or held.level_shifts
+        or held.saturation
+        or held.non_gaussian.get("significant")
+        or held.spectral_change.get("significant")
     ):
         previous = result.verdict
         result.verdict = sel.verdict
@@ -216,9 +216,9 @@ def from_selection(x: np.ndarray, t: np.ndarray, dt: float, sel: SensorNoiseSele
     """A `DiagnosisResult` of a long record from the selection alone."""
     steps = sel.steps
     held = sel.held_out
-    before = steps[0]["held_out_z"] * math.sqrt(DEVIANCE_VARIANCE * held["bins"])
-    after = held["excess_deviance"]
-    sd = math.sqrt(DEVIANCE_VARIANCE * held["bins"])
+    before = steps[0]["held_out_z"] * math.sqrt(DEVIANCE_VARIANCE * held.bins)
+    after = held.excess_deviance
+    sd = math.sqrt(DEVIANCE_VARIANCE * held.bins)
     ranking = [
         {
             "effect": step["added"],
@@ -279,7 +279,7 @@ def from_selection(x: np.ndarray, t: np.ndarray, dt: float, sel: SensorNoiseSele
         remaining_gap={
             "deviance": max(after, 0.0),
             "noise_floor_deviance": sd,
-            "over_floor": held["z"],
+            "over_floor": held.z,
             "model": sel.verdict,
         },
         reason=_describe(sel),

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..._io import save_figure_atomic
+from ..._noise.analysis import StaticRecordAnalysis
 
 
-def plot_analysis(analysis: dict, path, *, title: str = "") -> None:
+def plot_analysis(analysis: StaticRecordAnalysis, path, *, title: str = "") -> None:
     """ADEV with its ±1σ bands and the fitted IEEE model over it, and the selection's
     steps; written whole (atomic) to `path` (PNG)."""
     import matplotlib
@@ -16,7 +17,7 @@ def plot_analysis(analysis: dict, path, *, title: str = "") -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    adev, terms, selection = analysis["allan"], analysis["terms"], analysis["selection"]
+    adev, terms, selection = analysis.allan, analysis.terms, analysis.selection
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
     ax.errorbar(
         adev.taus,

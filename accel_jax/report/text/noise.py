@@ -10,7 +10,8 @@ import json
 import numpy as np
 
 from ..._noise import export
-from ..._noise.sensor import UNEXPLAINED_Z
+from ..._noise.analysis import StaticRecordAnalysis
+from ..._noise.sensor import UNEXPLAINED_Z, SensorNoiseSelection
 from ..._noise.sensor_text import (
     level_shift_sentence,
     non_gaussian_sentence,
@@ -23,10 +24,10 @@ class ExportRefused(ValueError):
     """The record cannot give what the export format needs (its message says what to do)."""
 
 
-def noise_lines(n_samples: int, sample_period: float, analysis: dict) -> list[str]:
+def noise_lines(n_samples: int, sample_period: float, analysis: StaticRecordAnalysis) -> list[str]:
     """From "N samples at … Hz" to the output grid: `analysis` is
     `accel_jax.analyse_static_record`'s result."""
-    terms, selection = analysis["terms"], analysis["selection"]
+    terms, selection = analysis.terms, analysis.selection
     lines = [
         f"{n_samples} samples at {1 / sample_period:.6g} Hz ({n_samples * sample_period:.6g} s)",
         f"IEEE noise terms ({terms.confidence:.0%} intervals; method in --json):",
@@ -51,7 +52,7 @@ def noise_lines(n_samples: int, sample_period: float, analysis: dict) -> list[st
     return lines + _selection_lines(selection)
 
 
-def _selection_lines(selection) -> list[str]:
+def _selection_lines(selection: SensorNoiseSelection) -> list[str]:
     """The steps of the forward selection, the backward check, exchanges and ties, then
     what stays unexplained and the output grid."""
     lines = []
@@ -62,43 +63,43 @@ def _selection_lines(selection) -> list[str]:
             f"{step['explained_fraction']:.1%} of the held-out excess"
         )
     held = selection.held_out
-    for entry in held.get("removed", []):
+    for entry in held.removed:
         lines.append(
             f"  − {entry['effect']}: added on the way, dropped by the backward check "
             f"(2 ln B = {entry['evidence']:.1f} against the final model)"
         )
-    for entry in held.get("exchanged", []):
+    for entry in held.exchanged:
         lines.append(
             f"  ⇄ {entry['by']} in place of {entry['effect']}: "
             f"2 ln B = {entry['evidence']:.1f} in its favour"
         )
-    for entry in held.get("ties", []):
+    for entry in held.ties:
         lines.append(
             f"  ? {entry['effect']} or {entry['alternative']}: the record cannot tell them "
             f"apart (2 ln B = {entry['evidence']:.1f}, < {entry['bar']:g})"
         )
-    unexplained = [level_shift_sentence(shift) for shift in held.get("level_shifts", [])]
-    if held.get("more_level_shifts"):
+    unexplained = [level_shift_sentence(shift) for shift in held.level_shifts]
+    if held.more_level_shifts:
         unexplained.append("more steps in the level than were taken out")
-    unexplained += [saturation_sentence(rail) for rail in held.get("saturation", [])]
-    if held.get("non_gaussian", {}).get("significant") and not held.get("bursts"):
-        unexplained.append(non_gaussian_sentence(held["non_gaussian"]))
-    if held.get("spectral_change", {}).get("significant"):
+    unexplained += [saturation_sentence(rail) for rail in held.saturation]
+    if held.non_gaussian.get("significant") and not held.bursts:
+        unexplained.append(non_gaussian_sentence(held.non_gaussian))
+    if held.spectral_change.get("significant"):
         duration = selection.n_samples * selection.sample_interval
-        unexplained.append(spectral_change_sentence(held["spectral_change"], duration))
-    for burst in held.get("bursts", [])[:5]:
+        unexplained.append(spectral_change_sentence(held.spectral_change, duration))
+    for burst in held.bursts[:5]:
         unexplained.append(
             f"an impulsive event at {burst['start_s']:.4g} s (peak "
             f"{burst['peak']:.3g} g from the median level)"
         )
-    if selection.unexplained and held["z"] > UNEXPLAINED_Z:
+    if selection.unexplained and held.z > UNEXPLAINED_Z:
         unexplained.append(
-            f"the held-out spectrum stays {held['z']:.1f} standard errors above the final model's"
+            f"the held-out spectrum stays {held.z:.1f} standard errors above the final model's"
         )
-    elif held.get("drifting") and not held.get("bursts"):
+    elif held.drifting and not held.bursts:
         unexplained.append(
-            f"the level drifts {held['drift']['slope_per_s']:.3g} g/s "
-            f"({held['drift']['t']:.0f} standard errors), which no named effect makes"
+            f"the level drifts {held.drift['slope_per_s']:.3g} g/s "
+            f"({held.drift['t']:.0f} standard errors), which no named effect makes"
         )
     lines += [f"  unexplained: {sentence}" for sentence in unexplained]
     if selection.quantization is not None:
@@ -106,12 +107,12 @@ def _selection_lines(selection) -> list[str]:
     return lines
 
 
-def export_text(analysis: dict, export_format: str) -> tuple[list[str], str]:
+def export_text(analysis: StaticRecordAnalysis, export_format: str) -> tuple[list[str], str]:
     """The identified model as `export_format` ("kalibr", "gnss-ins-sim" or "ieee"): the
     notes to print before it, and the text. kalibr needs a random walk > 0: where the data
     do not support K, it gets K's upper bound (said in a note); without one the export is
     refused (`ExportRefused`)."""
-    terms, t = analysis["terms"], analysis["export_terms"]
+    terms, t = analysis.terms, analysis.export_terms
     notes = []
     if export_format == "kalibr":
         if t.random_walk is None:
