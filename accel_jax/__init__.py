@@ -84,6 +84,8 @@ from ._identify import (
 from ._identify import (
     scale_factor_from_fit as scale_factor_from_fit,
 )
+from ._identify.step_result import StepIdentification as StepIdentification
+from ._identify.step_result import StopRecordGain as StopRecordGain
 from ._ml_estimate import AbstractDisturbance as AbstractDisturbance
 from ._ml_estimate import CompensatedEstimate as CompensatedEstimate
 from ._ml_estimate import ExponentialDisturbance as ExponentialDisturbance

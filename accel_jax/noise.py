@@ -34,6 +34,8 @@ from ._noise import PaperExpCosineFit as PaperExpCosineFit
 from ._noise import PaperGaussMarkovFit as PaperGaussMarkovFit
 from ._noise import RandomWalk as RandomWalk
 from ._noise import SensorNoiseSelection as SensorNoiseSelection
+from ._noise.analysis import StaticRecordAnalysis as StaticRecordAnalysis
+from ._noise.sensor import HeldOutCheck as HeldOutCheck
 from ._noise import StructureSelection as StructureSelection
 from ._noise import WhiteNoise as WhiteNoise
 from ._noise import allan_coefficients as allan_coefficients

@@ -107,6 +107,8 @@ def test_every_alias_is_in_the_changelog():
 
 
 _NAMESPACES = ("noise", "vibration", "kalman")
+# Names new in 0.2, in their namespace only (never at the top level, so no alias there).
+_NEW_IN_NAMESPACES = {"StaticRecordAnalysis", "HeldOutCheck"}
 
 
 def _public(module):
@@ -120,7 +122,7 @@ def test_a_regrouped_top_level_name_warns_and_is_the_namespace_s_object(namespac
     import accel_jax
 
     module = importlib.import_module(f"accel_jax.{namespace}")
-    names = _public(module)
+    names = _public(module) - _NEW_IN_NAMESPACES
     assert len(names) >= 14
     for name in sorted(names):
         with pytest.warns(DeprecationWarning, match=re.escape(f"accel_jax.{namespace}.{name}")):

@@ -155,7 +155,7 @@ def test_fits_on_threads_give_the_same_selection(monkeypatch):
     x = noise_truth.record(np.random.default_rng(21), 6000, 0.01, truth)
     found = {}
     for cores in (1, 2):
-        monkeypatch.setattr(sensor_model, "_cores", lambda cores=cores: cores)
+        monkeypatch.setattr(sensor_model, "usable_cpus", lambda cores=cores: list(range(cores)))
         found[cores] = aj.noise.select_sensor_noise(x, 0.01)
     assert found[1].verdict == found[2].verdict and "gauss_markov" in found[1].effects
     assert found[1].steps == found[2].steps
