@@ -34,8 +34,6 @@ from ._noise import PaperExpCosineFit as PaperExpCosineFit
 from ._noise import PaperGaussMarkovFit as PaperGaussMarkovFit
 from ._noise import RandomWalk as RandomWalk
 from ._noise import SensorNoiseSelection as SensorNoiseSelection
-from ._noise.analysis import StaticRecordAnalysis as StaticRecordAnalysis
-from ._noise.sensor import HeldOutCheck as HeldOutCheck
 from ._noise import StructureSelection as StructureSelection
 from ._noise import WhiteNoise as WhiteNoise
 from ._noise import allan_coefficients as allan_coefficients
@@ -79,3 +77,5 @@ from ._noise import to_ieee as to_ieee
 from ._noise import to_kalibr as to_kalibr
 from ._noise import unit_to_si as unit_to_si
 from ._noise import vrw_to_density as vrw_to_density
+from ._noise.analysis import StaticRecordAnalysis as StaticRecordAnalysis
+from ._noise.held_out import HeldOutCheck as HeldOutCheck

@@ -29,7 +29,7 @@ from accel_jax._identify.step_result import (
     WhitenessTest,
 )
 from accel_jax._noise.analysis import StaticRecordAnalysis, analyse_static_record, analysis_to_json
-from accel_jax._noise.sensor import HeldOutCheck
+from accel_jax._noise.held_out import HeldOutCheck
 from accel_jax.cli import main
 from accel_jax.report import identification_figure, identification_summary
 
