@@ -16,16 +16,8 @@ a sample (within ±1 sample of the sample where `u_test` shows it). The noise fl
 record's ADC quantisation, is measured without the model (`openworld.noise_floor`).
 
 **Effects** (each `AbstractStepEffect` changes the model through one hook and is the nominal model
-at z = 0):
-
-- `torquer_lag`: T_dm other than the nominal device's (inside the loop: changes the
-  overshoot as well as the delay);
-- `output_filter`: T_f other than the nominal device's (outside the loop: delays the output
-  only);
-- `stop_saturation`: mechanical stops, upper and lower (`_simulate.sequence.stop_record`);
-- `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
-- `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
-  fitted through its one-step prediction errors (an ARMA(1,1) recursion).
+at z = 0): `torquer_lag`, `output_filter`, `stop_saturation`, `disturbance_drift` and
+`colored_noise`, each described where it is defined (`effects`).
 
 **Held out**: every third segment of constant test voltage, from the third on (the last
 third of the record when it has fewer than four segments; `record.held_out_samples`).
