@@ -19,7 +19,7 @@ report: $(STAMP)
 	$(VENV)/bin/accel-jax report --out out/report
 
 test: $(STAMP)
-	$(PY) -m pytest -n 2 -q
+	$(PY) -m pytest -n 2 --dist loadgroup -q
 
 # The project's own checks (not needed to use the package), their tools pinned in
 # requirements-dev.lock; CI runs both after the tests. `docs`: the documentation site

@@ -24,6 +24,9 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import fcntl  # noqa: E402
+import inspect  # noqa: E402
+import shutil  # noqa: E402
+import tempfile  # noqa: E402
 import json  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -32,14 +35,77 @@ import pytest  # noqa: E402
 from accel_jax._runtime import bound_compiled_programs  # noqa: E402
 
 
+_TESTS = Path(__file__).resolve().parent
+_GROUPS = "ACCEL_JAX_TEST_GROUPS"  # the file where the workers leave the groups (below)
+
+
+def pytest_configure(config):
+    if config.getoption("dist", "no") != "no" and "PYTEST_XDIST_WORKER" not in os.environ:
+        # The controller names the file before it starts the workers (they inherit it).
+        folder = Path(tempfile.mkdtemp(prefix="accel_jax_groups_"))
+        os.environ[_GROUPS] = str(folder / "groups.json")
+
+
+def pytest_unconfigure(config):
+    target = os.environ.get(_GROUPS)
+    if target and "PYTEST_XDIST_WORKER" not in os.environ:
+        shutil.rmtree(Path(target).parent, ignore_errors=True)
+
+
 def pytest_collection_modifyitems(config, items):
-    """The first test that needs the quick report runs first. The report (about seven
-    minutes, the longest fixture) is then made while the other pytest-xdist worker runs
-    the rest; collected where it stands, it was made late, and the other worker, reaching
-    a study's test, waited idle for it (84 s in one fresh-clone run)."""
-    first = next((i for i, item in enumerate(items) if "quick_report" in item.fixturenames), None)
-    if first:
-        items.insert(0, items.pop(first))
+    """Tests that share a module- or session-scoped fixture of this folder run on one
+    pytest-xdist worker (`make test`: `--dist loadgroup`, scheduled by
+    `pytest_xdist_make_scheduler` below): each worker computes the fixtures its own tests
+    need, so a module fixture whose tests were dealt to both workers was computed twice —
+    a diagnosis of a dozen step records (~2 min), a noise analysis — on both cores at once.
+    Every other test is dealt on its own. The quick report's tests come first (the longest
+    fixture, about seven minutes, made by two study processes while the other worker runs
+    the rest: made late, the other worker reaching a study's test waited idle for it, 84 s
+    in one fresh-clone run).
+
+    pytest-xdist's own `xdist_group` mark does not group under pytest 9 (it renames the
+    node id through an attribute pytest 9 no longer reads), so the workers write the groups
+    to a file that the controller's scheduler reads."""
+    groups: dict[str, str] = {}
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None:
+            continue
+        shared = [
+            name
+            for name in item.fixturenames
+            if (defs := info.name2fixturedefs.get(name))
+            and defs[-1].scope in ("module", "session")
+            and Path(inspect.getfile(defs[-1].func)).parent == _TESTS
+        ]
+        if shared:
+            module = getattr(item.module, "__name__", "?")
+            groups[item.nodeid] = "quick_report" if "quick_report" in shared else module
+    items.sort(key=lambda item: groups.get(item.nodeid) != "quick_report")  # stable
+    target = os.environ.get(_GROUPS)
+    if target and "PYTEST_XDIST_WORKER" in os.environ:
+        partial = Path(f"{target}.{os.environ['PYTEST_XDIST_WORKER']}")
+        partial.write_text(json.dumps(groups))
+        partial.replace(target)  # every worker collects the same tests: the same groups
+
+
+def pytest_xdist_make_scheduler(config, log):
+    if config.getoption("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class SharedFixtureScheduling(LoadScopeScheduling):
+        """A test's work unit: its group (the tests sharing a fixture), else itself."""
+
+        _groups: dict | None = None
+
+        def _split_scope(self, nodeid: str) -> str:
+            if self._groups is None:
+                path = Path(os.environ.get(_GROUPS, "-"))
+                self._groups = json.loads(path.read_text()) if path.is_file() else {}
+            return self._groups.get(nodeid, nodeid)
+
+    return SharedFixtureScheduling(config, log)
 
 
 @pytest.fixture(autouse=True)
