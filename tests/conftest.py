@@ -15,13 +15,28 @@ from accel_jax._runtime import apply_fast_compile  # noqa: E402
 # scripts the quick report runs get the user's environment, not this.
 apply_fast_compile()
 
-# Hermetic timings: the report's persistent compilation cache stays off in the tests unless
-# the caller chose a folder (tests/test_runtime.py checks the cache itself in a subprocess).
-os.environ.setdefault("ACCEL_JAX_CACHE_DIR", "off")
+# A persistent compilation cache of this test session alone: empty when the session starts
+# (every program compiled cold, as on a user's first run; nothing carried from an earlier
+# session), then shared by both pytest-xdist workers and every process they start (the CLI
+# tests, the quick report's studies and its blind diagnosis), so that a program is compiled
+# once per session instead of once per process. The controller makes it (its workers
+# inherit the variable) and removes it at the end (`pytest_unconfigure`). A folder the
+# caller chose (`ACCEL_JAX_CACHE_DIR`, `off` for none) is used as it is.
+# tests/test_runtime.py and tests/test_cli.py check the cache itself in fresh processes,
+# each with its own folder.
+if "ACCEL_JAX_CACHE_DIR" not in os.environ:
+    import tempfile  # noqa: E402
+
+    os.environ["ACCEL_JAX_CACHE_DIR"] = tempfile.mkdtemp(prefix="accel_jax_test_xla_")
+    os.environ["_ACCEL_JAX_TEST_CACHE_OWNER"] = str(os.getpid())
 
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+from accel_jax._runtime import enable_compilation_cache  # noqa: E402
+
+enable_compilation_cache()  # this process's own calls too, not only the CLI's
 
 import fcntl  # noqa: E402
 import inspect  # noqa: E402
@@ -50,6 +65,8 @@ def pytest_unconfigure(config):
     target = os.environ.get(_GROUPS)
     if target and "PYTEST_XDIST_WORKER" not in os.environ:
         shutil.rmtree(Path(target).parent, ignore_errors=True)
+    if os.environ.get("_ACCEL_JAX_TEST_CACHE_OWNER") == str(os.getpid()):
+        shutil.rmtree(os.environ["ACCEL_JAX_CACHE_DIR"], ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):
