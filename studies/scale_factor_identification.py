@@ -83,36 +83,35 @@ def _outcome(scale_factor, result, params):
     return aj.relative_error_percent(scale_factor, aj.scale_factor(params)), ok
 
 
-def _oscillatory_error(params, key, gamma, gain, *, ts, crossing, extremum, noisy, period="full"):
-    """δK_a [%] of the oscillatory method on one simulated record, and whether it succeeded."""
-    est = aj.identify_oscillatory(
+def _method_error(identify, params, key, gamma, gain, *, ts, noisy, **options):
+    """δK_a [%] of `identify` (the oscillatory or the aperiodic method, with its own
+    `options`) on one simulated record, and whether it succeeded."""
+    est = identify(
         ts,
         _record(params, key, ts, noisy),
         pickoff_amplifier_gain=gain,
         shape_factor=gamma,
         tail_fraction=TAIL_FRACTION,
-        crossing=crossing,
-        extremum=extremum,
-        period=period,
         throw=False,
+        **options,
     )
     return _outcome(est.scale_factor, est.result, params)
+
+
+def _oscillatory_error(params, key, gamma, gain, *, ts, crossing, extremum, noisy, period="full"):
+    """δK_a [%] of the oscillatory method on one simulated record, and whether it succeeded."""
+    return _method_error(
+        aj.identify_oscillatory, params, key, gamma, gain, ts=ts, noisy=noisy,
+        crossing=crossing, extremum=extremum, period=period,
+    )
 
 
 def _aperiodic_error(params, key, gamma, gain, lag, *, ts, noisy, smoothing):
     """The same for the aperiodic method, with the lag correction (16) `lag` [s]."""
-    est = aj.identify_aperiodic(
-        ts,
-        _record(params, key, ts, noisy),
-        pickoff_amplifier_gain=gain,
-        shape_factor=gamma,
-        lag_correction=lag,
-        tail_fraction=TAIL_FRACTION,
-        derivative=APER_DERIVATIVE,
-        smoothing_window=smoothing,
-        throw=False,
+    return _method_error(
+        aj.identify_aperiodic, params, key, gamma, gain, ts=ts, noisy=noisy,
+        lag_correction=lag, derivative=APER_DERIVATIVE, smoothing_window=smoothing,
     )
-    return _outcome(est.scale_factor, est.result, params)
 
 
 def _fit_error(params, key, gamma, gain, known_filter=None, *, ts, order):
