@@ -13,10 +13,24 @@ numerator gives e^{−α|τ|}(cos βτ + (α/β) sin β|τ|) instead. Either way
 identified is (16), realised here exactly. Random walk x_{k+1} = x_k + w, var w = q
 Δ, with a diffuse start. `simulate_noise` draws records from a model and `model_parameters`
 lists its parameters as plain floats.
+
+This module is the one definition of the noise spectra that the Whittle fits use (the
+sensor analysis `spectral` and the noise diagnosis `accel_jax.diagnose.noise_fit`): each
+model's `spectrum(ω, Δ)` is its two-sided spectral density per sample, f(ω) at ω in
+rad/sample, |ω| ≤ π, with R_k = (1/2π) ∫ f(ω) e^{iωk} dω (the continuous two-sided PSD
+below the Nyquist frequency is Δ f(2πfΔ), aliasing aside), computed by a static
+`discrete_spectrum` of the per-sample parameters, which the fits call with their own
+parameterisation. Two further pieces of the sensor's model live here, without a state-space
+form: `Flicker` (1/f noise, f_c = B²/|ω|) and `ButterworthLowPass` (the output low-pass, a
+gain on the spectrum); `difference_parts` assembles the spectrum of the first difference of
+a record (the Whittle fits' y_k = x_k − x_{k−1}). tests/test_noise_one_model.py checks the
+spectra against the autocovariances (and so the state-space forms) and each path's spectrum
+against these.
 """
 
 from __future__ import annotations
 
+import math
 from typing import cast
 
 import equinox as eqx
@@ -39,6 +53,23 @@ def _positive_fields(self, units: dict[str, str]):
             )
 
 
+def differencing_gain(omega) -> Array:
+    """λ(ω) = |1 − e^{−iω}|² = 2 − 2 cos ω: the power gain of the first difference."""
+    return 2 - 2 * jnp.cos(omega)
+
+
+def difference_parts(omega, coloured, increment, gain=None, floor=None) -> tuple[Array, Array]:
+    """The spectral density of y_k = x_k − x_{k−1} for x = ℓ + h * c + p (a level ℓ that
+    walks, a noise c of spectrum `coloured` seen through a low-pass of power `gain` H(ω), a
+    white floor p of variance `floor` after it), in two parts: (stationary λ(H f_c + p),
+    random-walk H qΔ) with `increment` the walk's difference spectrum qΔ; their sum is f_y.
+    `gain` None: no low-pass (H = 1); `floor` None: p = 0."""
+    filtered = coloured if gain is None else gain * coloured
+    if floor is not None:
+        filtered = filtered + floor
+    return differencing_gain(omega) * filtered, increment if gain is None else gain * increment
+
+
 class AbstractNoiseModel(eqx.Module):
     """A scalar noise process observed every Δ seconds.
 
@@ -52,6 +83,20 @@ class AbstractNoiseModel(eqx.Module):
 
     def autocovariance(self, lag_times) -> Array:
         raise NotImplementedError
+
+    def spectrum(self, omega, sample_interval) -> Array:
+        """Two-sided spectral density per sample f(ω), ω in rad/sample (module docstring)."""
+        raise NotImplementedError
+
+    def difference_spectrum(self, omega, sample_interval) -> Array:
+        """Spectral density of the first difference x_k − x_{k−1}: λ(ω) f(ω)."""
+        return differencing_gain(omega) * self.spectrum(omega, sample_interval)
+
+    def one_sided_psd(self, frequency, sample_interval) -> Array:
+        """One-sided PSD [unit²/Hz] of the sampled process at `frequency` [Hz] up to the
+        Nyquist frequency: 2Δ f(2πfΔ) (2Δσ² for white noise)."""
+        omega = 2 * math.pi * jnp.asarray(frequency) * sample_interval
+        return 2 * sample_interval * self.spectrum(omega, sample_interval)
 
     @property
     def name(self) -> str:
@@ -82,6 +127,14 @@ class WhiteNoise(AbstractNoiseModel):
         lag_times = jnp.asarray(lag_times)
         return jnp.where(lag_times == 0, self.sigma**2, 0.0)
 
+    @staticmethod
+    def discrete_spectrum(omega, variance) -> Array:
+        """f(ω) = σ² (variance σ² per sample)."""
+        return jnp.broadcast_to(variance, jnp.shape(omega))
+
+    def spectrum(self, omega, sample_interval):
+        return self.discrete_spectrum(omega, self.sigma**2)
+
 
 class GaussMarkov(AbstractNoiseModel):
     """First-order Gauss-Markov process (7)-(8): Δ' = −Δ/τ_c + σ √(2/τ_c) w.
@@ -110,6 +163,16 @@ class GaussMarkov(AbstractNoiseModel):
 
     def autocovariance(self, lag_times):
         return self.sigma**2 * jnp.exp(-jnp.abs(jnp.asarray(lag_times)) / self.correlation_time)
+
+    @staticmethod
+    def discrete_spectrum(omega, variance, decay) -> Array:
+        """f(ω) = σ² (1 − ρ²)/|1 − ρ e^{−iω}|², the spectrum of R_k = σ² ρ^|k|
+        (`variance` σ², `decay` ρ = e^{−Δ/τ_c})."""
+        return variance * (1 - decay**2) / (1 - 2 * decay * jnp.cos(omega) + decay**2)
+
+    def spectrum(self, omega, sample_interval):
+        decay = jnp.exp(-sample_interval / self.correlation_time)
+        return self.discrete_spectrum(omega, self.sigma**2, decay)
 
 
 class ExponentialCosine(AbstractNoiseModel):
@@ -152,6 +215,22 @@ class ExponentialCosine(AbstractNoiseModel):
             * jnp.cos(self.angular_frequency * lag_times)
         )
 
+    @staticmethod
+    def discrete_spectrum(omega, variance, decay, rotation) -> Array:
+        """f(ω) = σ²/2 [P(ω − θ) + P(ω + θ)], P(u) = (1 − ρ²)/(1 − 2ρ cos u + ρ²), the
+        spectrum of R_k = σ² ρ^|k| cos kθ (`variance` σ², `decay` ρ = e^{−αΔ}, `rotation`
+        θ = βΔ; at θ = 0 the Gauss–Markov spectrum)."""
+
+        def poisson(u):
+            return (1 - decay**2) / (1 - 2 * decay * jnp.cos(u) + decay**2)
+
+        return variance / 2 * (poisson(omega - rotation) + poisson(omega + rotation))
+
+    def spectrum(self, omega, sample_interval):
+        decay = jnp.exp(-self.decay_rate * sample_interval)
+        rotation = self.angular_frequency * sample_interval
+        return self.discrete_spectrum(omega, self.sigma**2, decay, rotation)
+
 
 class RandomWalk(AbstractNoiseModel):
     """Random walk x' = √q w (rate random walk for a gyro, velocity random walk for an
@@ -178,6 +257,78 @@ class RandomWalk(AbstractNoiseModel):
 
     def autocovariance(self, lag_times):
         raise ValueError("RandomWalk is not stationary: it has no autocovariance R(τ).")
+
+    @staticmethod
+    def discrete_difference_spectrum(omega, increment) -> Array:
+        """The spectrum of the walk's increments, white: qΔ (`increment` qΔ)."""
+        return jnp.broadcast_to(increment, jnp.shape(omega))
+
+    def spectrum(self, omega, sample_interval):
+        """The pseudo-spectrum qΔ/λ(ω) (infinite at ω = 0)."""
+        return self.intensity * sample_interval / differencing_gain(omega)
+
+    def difference_spectrum(self, omega, sample_interval):
+        return self.discrete_difference_spectrum(omega, self.intensity * sample_interval)
+
+
+class Flicker(AbstractNoiseModel):
+    """Flicker (1/f, bias-instability) noise of IEEE Std 952 coefficient B: two-sided PSD
+    S(f) = B²/(2π|f|), so f(ω) = S(ω/2πΔ)/Δ = B²/|ω| per sample (Δ drops out) and the
+    Allan deviation's floor is √(2 ln 2/π)·B = 0.664 B. No finite state-space form and no
+    autocovariance (`state_space` and `autocovariance` raise); its spectrum is defined as 0
+    at ω = 0. **Fields:** `coefficient`: B [record unit]."""
+
+    coefficient: Scalar = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _positive_fields(self, {"coefficient": "(record unit)"})
+
+    @property
+    def name(self) -> str:
+        return "flicker"
+
+    @property
+    def stationary(self) -> bool:
+        return False
+
+    def state_space(self, sample_interval):
+        raise ValueError("Flicker noise has no finite state-space form.")
+
+    def autocovariance(self, lag_times):
+        raise ValueError("Flicker noise has no autocovariance R(τ) (its variance diverges).")
+
+    @staticmethod
+    def discrete_spectrum(omega, coefficient_squared) -> Array:
+        """f(ω) = B²/|ω|, 0 at ω = 0 (`coefficient_squared` B²)."""
+        size = jnp.abs(omega)
+        safe = jnp.where(size > 0, size, 1.0)
+        return jnp.where(size > 0, coefficient_squared / safe, 0.0)
+
+    def spectrum(self, omega, sample_interval):
+        return self.discrete_spectrum(omega, self.coefficient**2)
+
+
+class ButterworthLowPass(eqx.Module):
+    """The sensor's output low-pass: a second-order Butterworth filter (bilinear transform)
+    of corner f_b, power gain H(ω) = 1/(1 + (tan(|ω|/2)/tan(π f_b Δ))⁴) — exactly 1 at f_b
+    = the Nyquist frequency. A gain on the spectrum of the noise it filters (its state-space
+    form, a second-order ARMA filter, is not written out: no path filters through it).
+    **Fields:** `corner_frequency`: f_b [Hz]."""
+
+    corner_frequency: Scalar = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _positive_fields(self, {"corner_frequency": "Hz"})
+
+    @staticmethod
+    def discrete_gain(omega, corner) -> Array:
+        """H(ω) at `corner` = π f_b Δ ∈ (0, π/2] (tan(ω/2) held finite at ω = π)."""
+        size = jnp.minimum(jnp.abs(omega), math.pi * (1 - 1e-12))
+        ratio = jnp.tan(size / 2) / jnp.tan(corner)
+        return 1 / (1 + ratio**4)
+
+    def gain(self, omega, sample_interval) -> Array:
+        return self.discrete_gain(omega, math.pi * self.corner_frequency * sample_interval)
 
 
 class NoiseSum(AbstractNoiseModel):
@@ -214,6 +365,13 @@ class NoiseSum(AbstractNoiseModel):
 
     def autocovariance(self, lag_times):
         return cast(Array, sum(c.autocovariance(lag_times) for c in self.components))
+
+    def spectrum(self, omega, sample_interval):
+        return cast(Array, sum(c.spectrum(omega, sample_interval) for c in self.components))
+
+    def difference_spectrum(self, omega, sample_interval):
+        parts = (c.difference_spectrum(omega, sample_interval) for c in self.components)
+        return cast(Array, sum(parts))
 
 
 def simulate_noise(
@@ -253,6 +411,7 @@ def model_parameters(model: AbstractNoiseModel) -> dict[str, float]:
         "decay_rate": "_per_s",
         "angular_frequency": "_rad_per_s",
         "intensity": "_unit2_per_s",
+        "coefficient": "",
     }
     components = model.components if isinstance(model, NoiseSum) else (model,)
     out = {}

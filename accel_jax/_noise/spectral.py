@@ -27,6 +27,11 @@ whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 
 - bandlimit: a second-order Butterworth low-pass (bilinear transform) of corner f_b,
   H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))⁴) — exactly 1 at f_b = the Nyquist frequency.
 
+Each of these spectra (and λ, H and the assembly of f_y) is defined once, in `models`
+(`WhiteNoise`, `GaussMarkov`, `ExponentialCosine`, `RandomWalk`, `Flicker`,
+`ButterworthLowPass`, `difference_parts`); `_parts` calls them with this module's
+parameterisation, and `component_models` gives the models of a parameter vector.
+
 The Whittle log-likelihood of the periodogram I_j of y at ω_j = 2πj/m is
 −Σ_j [ln f_y(ω_j) + I_j/f_y(ω_j)]; records longer than `FULL_RESOLUTION` bins use it on
 geometric bands of bins (ratio `BAND_RATIO`), which makes one evaluation cost the same for
@@ -43,6 +48,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+
+from .models import (
+    ButterworthLowPass,
+    ExponentialCosine,
+    Flicker,
+    GaussMarkov,
+    NoiseSum,
+    RandomWalk,
+    WhiteNoise,
+    difference_parts,
+)
 
 COMPONENTS = ("gauss_markov", "exp_cosine", "random_walk", "flicker", "bandlimit")
 """The stochastic extensions, in the order of their slots in the parameter vector."""
@@ -90,29 +106,47 @@ def _mask(names) -> np.ndarray:
 
 
 def _parts(z, mask, omega, floor):
-    """(stationary part λ(H·coloured + p), random-walk part H·qΔ) of f_y at |ω| ≤ π."""
+    """(stationary part λ(H·coloured + p), random-walk part H·qΔ) of f_y at |ω| ≤ π, each
+    component's spectrum and the low-pass's gain from `models` (the one definition)."""
     on = mask > 0
-    white = jnp.exp(z[0])
-    cos = jnp.cos(omega)
-    lam = 2 - 2 * cos
-    rho_g = jnp.exp(-jnp.exp(-z[2]))
-    gm = jnp.exp(z[1]) * (1 - rho_g**2) / (1 - 2 * rho_g * cos + rho_g**2)
+    gm = GaussMarkov.discrete_spectrum(omega, jnp.exp(z[1]), jnp.exp(-jnp.exp(-z[2])))
     theta = jnp.exp(z[5])
     rho_e = jnp.exp(-(jnp.exp(z[4]) + theta / MAX_QUALITY))
-
-    def poisson(u):
-        return (1 - rho_e**2) / (1 - 2 * rho_e * jnp.cos(u) + rho_e**2)
-
-    ec = jnp.exp(z[3]) / 2 * (poisson(omega - theta) + poisson(omega + theta))
-    safe = jnp.where(omega > 0, omega, 1.0)
-    flicker = jnp.where(omega > 0, jnp.exp(z[7]) / safe, 0.0)
+    ec = ExponentialCosine.discrete_spectrum(omega, jnp.exp(z[3]), rho_e, theta)
+    flicker = Flicker.discrete_spectrum(omega, jnp.exp(z[7]))
     corner = jax.nn.sigmoid(z[8]) * (math.pi / 2)  # π f_b Δ ∈ (0, π/2)
-    ratio = jnp.tan(jnp.minimum(omega, math.pi * (1 - 1e-12)) / 2) / jnp.tan(corner)
-    gain = jnp.where(on[8], 1 / (1 + ratio**4), 1.0)
-    coloured = white + jnp.where(on[1], gm, 0.0) + jnp.where(on[3], ec, 0.0)
+    gain = jnp.where(on[8], ButterworthLowPass.discrete_gain(omega, corner), 1.0)
+    coloured = WhiteNoise.discrete_spectrum(omega, jnp.exp(z[0]))
+    coloured = coloured + jnp.where(on[1], gm, 0.0) + jnp.where(on[3], ec, 0.0)
     coloured = coloured + jnp.where(on[7], flicker, 0.0)
-    walk = jnp.where(on[6], jnp.exp(z[6]), 0.0)
-    return lam * (gain * coloured + floor), gain * walk
+    walk = jnp.where(on[6], RandomWalk.discrete_difference_spectrum(omega, jnp.exp(z[6])), 0.0)
+    return difference_parts(omega, coloured, walk, gain, floor)
+
+
+def component_models(z, mask, sample_interval):
+    """The noise of parameters z (the slots `mask` switches on) as `models`' modules: a
+    `NoiseSum` of white noise and the stochastic components (Δ = `sample_interval`), and the
+    `ButterworthLowPass` (None when off). Its difference spectrum, low-passed, plus the
+    floor is `spectrum`."""
+    on = np.asarray(mask) > 0
+    z = np.asarray(z, np.float64)
+    parts: list = [WhiteNoise(math.exp(0.5 * z[0]))]
+    if on[1]:
+        parts.append(GaussMarkov(math.exp(0.5 * z[1]), math.exp(z[2]) * sample_interval))
+    if on[3]:
+        theta = math.exp(z[5])
+        rate = (math.exp(z[4]) + theta / MAX_QUALITY) / sample_interval
+        parts.append(ExponentialCosine(math.exp(0.5 * z[3]), rate, theta / sample_interval))
+    if on[6]:
+        parts.append(RandomWalk(math.exp(z[6]) / sample_interval))
+    if on[7]:
+        parts.append(Flicker(math.exp(0.5 * z[7])))
+    noise = parts[0] if len(parts) == 1 else NoiseSum(tuple(parts))
+    low_pass = None
+    if on[8]:
+        corner = 1 / (1 + math.exp(-z[8])) / 2  # f_b Δ
+        low_pass = ButterworthLowPass(corner / sample_interval)
+    return noise, low_pass
 
 
 def spectrum(z, mask, omega, floor):

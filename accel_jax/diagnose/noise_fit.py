@@ -1,6 +1,11 @@
 """The noise kind's model and fit: white + coloured block + level filtered exactly (a Kalman
 filter over the components' state space), the Whittle start on band-averaged
-periodograms and the exact-likelihood polish, vmapped over records."""
+periodograms and the exact-likelihood polish, vmapped over records.
+
+The spectra of the Whittle start come from `accel_jax._noise.models` (`spectrum`); the
+filter `filter_terms` is a hand-unrolled fast path of `accel_jax._kalman.kalman_filter` on
+the state space of `models`' white + exponential-cosine (or Gauss–Markov) + random walk,
+checked against it in tests/test_noise_one_model.py."""
 
 from __future__ import annotations
 
@@ -12,6 +17,12 @@ import numpy as np
 import optimistix as optx
 
 from .._noise import _DIFFUSE
+from .._noise.models import (
+    ExponentialCosine,
+    RandomWalk,
+    WhiteNoise,
+    difference_parts,
+)
 from .base import (
     effect_library,
 )
@@ -112,21 +123,25 @@ def _bands(n_frequencies: int) -> tuple[np.ndarray, int]:
     return band, int(band.max()) + 1
 
 
-def _whittle(z, args):
-    """Whittle −ln L per frequency of the differenced record, on band averages: its
-    spectrum is (2 − 2 cos ω)(σ_w² + S_c(ω)) + qΔ, S_c = v/2 [P(ω − θ) + P(ω + θ)], P the
-    Poisson kernel (1 − ρ²)/(1 − 2ρ cos x + ρ²) — the spectrum of R_k = v ρ^|k| cos kθ."""
-    periodogram, omega, counts, candidate = args
+def spectrum(z, candidate, omega):
+    """The spectral density per sample of the differenced record under candidate
+    `candidate` at z: (2 − 2 cos ω)(σ_w² + S_c(ω)) + qΔ, S_c the coloured block's
+    exponential-cosine spectrum (a Gauss–Markov one at θ = 0), every piece from
+    `accel_jax._noise.models` (the one definition of the noise spectra)."""
     white, parts = _components(z, candidate)
-    rho = parts.decay
+    block = ExponentialCosine.discrete_spectrum(omega, parts.variance, parts.decay, parts.rotation)
+    coloured = WhiteNoise.discrete_spectrum(omega, white) + block
+    walk = RandomWalk.discrete_difference_spectrum(omega, parts.walk)
+    stationary, walk = difference_parts(omega, coloured, walk)
+    return stationary + walk
 
-    def poisson(x):
-        return (1 - rho**2) / (1 - 2 * rho * jnp.cos(x) + rho**2)
 
-    theta = parts.rotation
-    colored = 0.5 * parts.variance * (poisson(omega - theta) + poisson(omega + theta))
-    spectrum = (2 - 2 * jnp.cos(omega)) * (white + colored) + parts.walk
-    return jnp.sum(counts * (jnp.log(spectrum) + periodogram / spectrum)) / jnp.sum(counts)
+def _whittle(z, args):
+    """Whittle −ln L per frequency of the differenced record, on band averages, with the
+    spectrum `spectrum`."""
+    periodogram, omega, counts, candidate = args
+    f = spectrum(z, candidate, omega)
+    return jnp.sum(counts * (jnp.log(f) + periodogram / f)) / jnp.sum(counts)
 
 
 def _negative_log_likelihood(z, args):

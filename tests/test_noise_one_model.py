@@ -1,0 +1,307 @@
+"""One noise model (issue 43): the noise spectra are defined once, in
+`accel_jax._noise.models`, and every path that evaluates one gets it from there.
+
+- The models' spectra are those of their autocovariances and state-space forms (and the
+  low-pass's gain that of scipy's bilinear Butterworth design).
+- The sensor analysis' Whittle spectrum (`_noise.spectral.spectrum`), for each component
+  alone and all together at random parameters, equals the models' spectrum of the
+  differenced record; `spectral.component_models` gives those models.
+- The noise diagnosis' Whittle spectrum (`diagnose.noise_fit.spectrum`), for each
+  candidate at random parameters, equals the models'.
+- The diagnosis' hand-unrolled Kalman filter (`noise_fit.filter_terms`) gives the
+  log-likelihood terms of `accel_jax._kalman.kalman_filter` on the models' state space.
+
+All in float64 (tests/conftest.py), to round-off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import signal
+
+from accel_jax._kalman import LinearGaussianModel, kalman_filter
+from accel_jax._noise import _DIFFUSE, spectral
+from accel_jax._noise.models import (
+    ButterworthLowPass,
+    ExponentialCosine,
+    Flicker,
+    GaussMarkov,
+    NoiseSum,
+    RandomWalk,
+    WhiteNoise,
+    differencing_gain,
+)
+from accel_jax.diagnose import noise_fit
+
+DT = 0.01
+DRAWS = 6
+# The folded grid of the debiasing correction includes ω = 0 and π.
+OMEGA = jnp.asarray(np.linspace(0.0, math.pi, 257))
+RTOL = 1e-12
+
+
+def _close(actual, expected, rtol=RTOL):
+    np.testing.assert_allclose(np.asarray(actual), np.asarray(expected), rtol=rtol, atol=0.0)
+
+
+# --------------------------------------------------------------------------------------
+# The models' spectra against their autocovariances and state-space forms
+# --------------------------------------------------------------------------------------
+
+
+def _stationary_models(rng):
+    sigma = math.exp(rng.uniform(-2, 1))
+    return [
+        WhiteNoise(sigma),
+        GaussMarkov(sigma, DT * math.exp(rng.uniform(0, 3))),
+        ExponentialCosine(sigma, math.exp(rng.uniform(-1, 2)), rng.uniform(5.0, 250.0)),
+    ]
+
+
+@pytest.mark.parametrize("seed", range(DRAWS))
+def test_spectra_are_those_of_the_autocovariance_and_the_state_space(seed):
+    rng = np.random.default_rng(seed)
+    size = 1 << 14  # aliasing ρ^size: nothing at float64
+    grid = jnp.asarray(2 * np.pi * np.arange(size) / size)
+    lags = np.arange(24)
+    for model in _stationary_models(rng):
+        f = np.asarray(model.spectrum(grid, DT))
+        from_spectrum = np.real(np.fft.ifft(f))[lags]
+        scale = float(model.autocovariance(0.0))
+        np.testing.assert_allclose(
+            from_spectrum, np.asarray(model.autocovariance(lags * DT)), atol=1e-12 * scale
+        )
+        # R_k = H F^k P0 Hᵀ (+ r at k = 0) of the state-space form.
+        F, _, H, P0, r = (np.asarray(a) for a in model.state_space(DT))
+        state = [
+            float((H @ np.linalg.matrix_power(F, k) @ P0 @ H.T)[0, 0]) + (float(r) if k == 0 else 0)
+            for k in lags
+        ]
+        np.testing.assert_allclose(from_spectrum, state, atol=1e-12 * scale)
+    # The random walk: its difference is white of variance qΔ, the state-space increment.
+    walk = RandomWalk(math.exp(rng.uniform(-8, -2)))
+    _, Q, _, _, _ = walk.state_space(DT)
+    _close(walk.difference_spectrum(OMEGA, DT), np.full(OMEGA.shape, float(Q[0, 0])))
+    inner = OMEGA[1:]
+    _close(walk.spectrum(inner, DT) * differencing_gain(inner), walk.difference_spectrum(inner, DT))
+    # Flicker: B²/|ω| per sample, the IEEE 952 PSD B²/(2π f) at f = ω/(2πΔ), times 1/Δ.
+    flicker = Flicker(math.exp(rng.uniform(-3, 0)))
+    b2 = float(flicker.coefficient) ** 2
+    frequency = np.asarray(inner) / (2 * np.pi * DT)
+    _close(flicker.spectrum(inner, DT), b2 / (2 * np.pi * frequency) / DT)
+    assert float(flicker.spectrum(jnp.zeros(1), DT)[0]) == 0.0
+
+
+@pytest.mark.parametrize("seed", range(DRAWS))
+def test_low_pass_gain_is_the_bilinear_butterworth(seed):
+    rng = np.random.default_rng(100 + seed)
+    corner = rng.uniform(0.02, 0.98) / (2 * DT)  # below the Nyquist frequency
+    sos = signal.butter(2, corner * 2 * DT, output="sos")
+    w, h = signal.sosfreqz(sos, worN=np.asarray(OMEGA[:-1]))
+    gain = ButterworthLowPass(corner).gain(jnp.asarray(w), DT)
+    np.testing.assert_allclose(np.asarray(gain), np.abs(h) ** 2, rtol=1e-9, atol=1e-15)
+
+
+# --------------------------------------------------------------------------------------
+# The sensor analysis' Whittle spectrum (`_noise.spectral`)
+# --------------------------------------------------------------------------------------
+
+
+def _spectral_draw(rng):
+    return np.array(
+        [
+            rng.uniform(-2, 2),  # ln σ_w²
+            rng.uniform(-2, 2),  # ln σ_g²
+            rng.uniform(0, 5),  # ln τ_c/Δ
+            rng.uniform(-2, 2),  # ln σ_e²
+            rng.uniform(-5, -1),  # ln αΔ (before the quality bound)
+            rng.uniform(-3, 1),  # ln θ
+            rng.uniform(-9, -2),  # ln qΔ
+            rng.uniform(-5, 0),  # ln B²
+            rng.uniform(-3, 3),  # logit(f_b/f_N)
+        ]
+    )
+
+
+def _expected_parameters(z):
+    """The models' parameters of z, as `spectral`'s N_PARAMS docstring defines them."""
+    theta = math.exp(z[5])
+    return {
+        "white": math.exp(z[0]),
+        "gauss_markov": (math.exp(z[1]), DT * math.exp(z[2])),
+        "exp_cosine": (
+            math.exp(z[3]),
+            (math.exp(z[4]) + theta / spectral.MAX_QUALITY) / DT,
+            theta / DT,
+        ),
+        "random_walk": math.exp(z[6]) / DT,
+        "flicker": math.exp(z[7]),
+        "bandlimit": 1 / (1 + math.exp(-z[8])) / (2 * DT),
+    }
+
+
+def _model_difference_spectrum(noise, low_pass, floor):
+    """λ(H Σ f_stationary + p) + H qΔ from the models alone."""
+    components = noise.components if isinstance(noise, NoiseSum) else (noise,)
+    gain = 1.0 if low_pass is None else low_pass.gain(OMEGA, DT)
+    coloured = sum(c.spectrum(OMEGA, DT) for c in components if not isinstance(c, RandomWalk))
+    walk = sum(c.difference_spectrum(OMEGA, DT) for c in components if isinstance(c, RandomWalk))
+    return differencing_gain(OMEGA) * (gain * coloured + floor) + gain * walk
+
+
+STRUCTURES = [(name,) for name in spectral.COMPONENTS] + [tuple(spectral.COMPONENTS)]
+
+
+@pytest.mark.parametrize("names", STRUCTURES, ids="+".join)
+def test_spectral_whittle_spectrum_is_the_models(names):
+    rng = np.random.default_rng(len(names) * 7 + spectral.COMPONENTS.index(names[0]))
+    mask = spectral._mask(names)
+    for _ in range(DRAWS):
+        z = _spectral_draw(rng)
+        floor = rng.uniform(0, 0.1)
+        noise, low_pass = spectral.component_models(z, mask, DT)
+        expected = _expected_parameters(z)
+        components = noise.components if isinstance(noise, NoiseSum) else (noise,)
+        for c in components:
+            if isinstance(c, WhiteNoise):
+                _close(c.sigma**2, expected["white"])
+            elif isinstance(c, GaussMarkov):
+                _close(c.sigma**2, expected["gauss_markov"][0])
+                _close(c.correlation_time, expected["gauss_markov"][1])
+            elif isinstance(c, ExponentialCosine):
+                e = expected["exp_cosine"]
+                _close(jnp.stack([c.sigma**2, c.decay_rate, c.angular_frequency]), e)
+            elif isinstance(c, RandomWalk):
+                _close(c.intensity, expected["random_walk"])
+            else:
+                assert isinstance(c, Flicker)
+                _close(c.coefficient**2, expected["flicker"])
+        names_on = {c.name for c in components} - {"white"}
+        assert names_on == set(names) - {"bandlimit"}
+        assert (low_pass is not None) == ("bandlimit" in names)
+        if low_pass is not None:
+            _close(low_pass.corner_frequency, expected["bandlimit"])
+        path = spectral.spectrum(jnp.asarray(z), jnp.asarray(mask), OMEGA, floor)
+        _close(path, _model_difference_spectrum(noise, low_pass, floor))
+
+
+# --------------------------------------------------------------------------------------
+# The noise diagnosis' Whittle spectrum and Kalman filter (`diagnose.noise_fit`)
+# --------------------------------------------------------------------------------------
+
+CANDIDATES = {0: "white", 1: "gauss_markov", 2: "exp_cosine", 3: "random_walk"}
+
+
+def test_diagnosis_candidates_are_in_this_order():
+    assert [e.name for e in noise_fit._effects()] == list(CANDIDATES.values())[1:]
+
+
+def _diagnosis_draw(rng):
+    # [ln σ_w, amplitude, decay/time scale, √θ] (noise_effects' slot layout)
+    return np.array(
+        [rng.uniform(-1, 1), rng.uniform(0.2, 2.0), rng.uniform(-4, -0.5), rng.uniform(0.2, 1.5)]
+    )
+
+
+def _diagnosis_models(z, candidate):
+    """White + the candidate's process as `models`' modules, from noise_effects' mapping:
+    σ_w = e^{z₀}; GM σ = |z₁|, τ_c = Δ e^{−z₂}; exp-cos σ = |z₁|, α = e^{z₂}/Δ, β = z₃²/Δ;
+    walk √(qΔ) = |z₁|."""
+    white = WhiteNoise(math.exp(z[0]))
+    name = CANDIDATES[candidate]
+    if name == "white":
+        return (white,)
+    if name == "gauss_markov":
+        return white, GaussMarkov(abs(z[1]), DT * math.exp(-z[2]))
+    if name == "exp_cosine":
+        return white, ExponentialCosine(abs(z[1]), math.exp(z[2]) / DT, z[3] ** 2 / DT)
+    return white, RandomWalk(z[1] ** 2 / DT)
+
+
+@pytest.mark.parametrize("candidate", list(CANDIDATES), ids=list(CANDIDATES.values()))
+def test_diagnosis_whittle_spectrum_is_the_models(candidate):
+    rng = np.random.default_rng(200 + candidate)
+    for _ in range(DRAWS):
+        z = _diagnosis_draw(rng)
+        models = _diagnosis_models(z, candidate)
+        expected = sum(m.difference_spectrum(OMEGA, DT) for m in models)
+        _close(noise_fit.spectrum(jnp.asarray(z), candidate, OMEGA), expected)
+
+
+def _generic_terms(models, walk, record, diffuse):
+    """`_kalman.kalman_filter`'s log-likelihood terms for white + block + a level of
+    increment variance `walk` qΔ per sample (0: a constant level), its start diffuse."""
+    level = RandomWalk(1.0)
+    level = eqx.tree_at(lambda m: m.intensity, level, jnp.asarray(walk / DT))
+    model = NoiseSum((*models, level))
+    f, q, h, p0, r = model.state_space(DT)
+    p0 = jnp.where(p0 < 0, diffuse, p0)
+    lgm = LinearGaussianModel(f, q, h, jnp.reshape(r, (1, 1)))
+    out = kalman_filter(lgm, record, jnp.zeros(f.shape[0]), p0)
+    return out.log_likelihoods
+
+
+@pytest.mark.parametrize("candidate", list(CANDIDATES), ids=list(CANDIDATES.values()))
+def test_diagnosis_filter_is_the_generic_kalman_filter(candidate):
+    rng = np.random.default_rng(300 + candidate)
+    n = 240
+    for _ in range(3):
+        z = _diagnosis_draw(rng)
+        x = rng.normal(size=n).cumsum() * 0.05 + rng.normal(size=n)
+        record = jnp.asarray(x - x.mean())
+        diffuse = _DIFFUSE * float(jnp.mean(record**2))
+        white, parts = noise_fit._components(jnp.asarray(z), candidate)
+        _, _, terms = noise_fit.filter_terms(white, parts, record, diffuse)
+        models = _diagnosis_models(z, candidate)
+        last = models[-1]
+        walk = float(last.intensity) * DT if isinstance(last, RandomWalk) else 0.0
+        block = tuple(m for m in models if not isinstance(m, RandomWalk))
+        reference = _generic_terms(block, walk, record, diffuse)
+        # The first term carries the diffuse prior (S ≈ 1e6 var): equal to its round-off.
+        np.testing.assert_allclose(np.asarray(terms[1:]), np.asarray(reference[1:]), rtol=1e-9)
+        np.testing.assert_allclose(float(terms[0]), float(reference[0]), rtol=1e-9)
+
+
+# --------------------------------------------------------------------------------------
+# The diagnosis figure's fitted-model PSD (a fourth copy of the formulas, in
+# report/figures/diagnosis.py): checked against the models' one-sided PSD
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("candidate", list(CANDIDATES), ids=list(CANDIDATES.values()))
+def test_diagnosis_figure_psd_is_the_models(candidate):
+    from accel_jax.report.figures.diagnosis import _model_psd
+
+    rng = np.random.default_rng(400 + candidate)
+    frequency = np.linspace(0.5, 0.5 / DT, 200)  # up to the Nyquist frequency, f > 0
+    for _ in range(DRAWS):
+        models = _diagnosis_models(_diagnosis_draw(rng), candidate)
+        white = models[0]
+        assert isinstance(white, WhiteNoise)
+        values = {"white_sigma_g": float(white.sigma)}
+        if len(models) > 1:
+            m = models[1]
+            if isinstance(m, GaussMarkov):
+                values |= {
+                    "sigma_g": float(m.sigma),
+                    "correlation_time_s": float(m.correlation_time),
+                }
+            elif isinstance(m, ExponentialCosine):
+                values |= {
+                    "sigma_g": float(m.sigma),
+                    "decay_rate_per_s": float(m.decay_rate),
+                    "angular_frequency_rad_per_s": float(m.angular_frequency),
+                }
+            else:
+                assert isinstance(m, RandomWalk)
+                values |= {"intensity_g2_per_s": float(m.intensity)}
+        document = {"parameters": {k: {"value": v} for k, v in values.items()}}
+        figure = _model_psd(document, frequency, DT)
+        assert figure is not None
+        expected = sum(np.asarray(m.one_sided_psd(frequency, DT)) for m in models)
+        np.testing.assert_allclose(figure, expected, rtol=1e-11)
