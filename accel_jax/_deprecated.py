@@ -4,8 +4,13 @@ A module whose names moved ends with
 
     __getattr__ = moved_names(__name__, {"old_name": "accel_jax.new.module", ...})
 
+or, compactly, with each new module followed by the names (space-separated) it now holds:
+
+    __getattr__ = moved_names(__name__, "accel_jax.new.module", "old_name other_name")
+
 Reading `old_module.old_name` then warns (`DeprecationWarning`, naming the new place) and
-returns the object from its new module; `CHANGELOG.md` lists every move.
+returns the object from its new module; `CHANGELOG.md` lists every move, and `MOVED` holds
+each old module's moves once it is imported.
 
 A typed result that replaced a plain dict inherits `LegacyItems`: the dict's access still
 works for one release, with a warning naming the attribute that holds the value now.
@@ -15,15 +20,28 @@ from __future__ import annotations
 
 import importlib
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 
 
-def moved_names(module: str, moves: Mapping[str, str]) -> Callable[[str], object]:
-    """A module-level `__getattr__` for `module` that forwards each name of `moves` (old name
-    → the module that now holds it, under the same name) with a `DeprecationWarning`."""
+MOVED: dict[str, dict[str, str]] = {}
+"""The moves of every old module imported so far: old module → {name: its new module}."""
+
+
+def moved_names(
+    module: str, *moves: Mapping[str, str] | str | Iterable[str]
+) -> Callable[[str], object]:
+    """A module-level `__getattr__` for `module` that forwards each moved name (to the
+    module that now holds it, under the same name) with a `DeprecationWarning`.
+
+    `moves` is one mapping {old name: new module}, or pairs: a new module, then the names
+    that moved there (one space-separated string, or an iterable of names), as often as
+    there are new modules.
+    """
+    table = _move_table(moves)
+    MOVED[module] = table
 
     def __getattr__(name: str) -> object:
-        target = moves.get(name)
+        target = table.get(name)
         if target is None:
             raise AttributeError(f"module {module!r} has no attribute {name!r}")
         warnings.warn(
@@ -35,6 +53,23 @@ def moved_names(module: str, moves: Mapping[str, str]) -> Callable[[str], object
         return getattr(importlib.import_module(target), name)
 
     return __getattr__
+
+
+def _move_table(moves: tuple[Mapping[str, str] | str | Iterable[str], ...]) -> dict[str, str]:
+    """`moved_names`'s moves as {old name: new module}."""
+    if len(moves) == 1 and isinstance(moves[0], Mapping):
+        return dict(moves[0])
+    if not moves or len(moves) % 2:
+        raise TypeError("moved_names takes one mapping or pairs of (new module, names)")
+    table: dict[str, str] = {}
+    for target, names in zip(moves[::2], moves[1::2], strict=True):
+        if not isinstance(target, str) or isinstance(names, Mapping):
+            raise TypeError(f"moved_names: expected a module name and its names, got {target!r}")
+        for name in names.split() if isinstance(names, str) else names:
+            if name in table:
+                raise ValueError(f"moved_names: {name!r} is listed twice")
+            table[name] = target
+    return table
 
 
 class LegacyItems:

@@ -1,5 +1,5 @@
-"""The sim-to-real diagnosis of static noise records (accel_jax.diagnose.noise,
-noise_effects, noise_fit), the ranking's nested-effect rule, its CLI use and a real MEMS
+"""The sim-to-real diagnosis of static noise records (accel_jax.diagnose.noise, its
+effects, noise_fit), the ranking's nested-effect rule, its CLI use and a real MEMS
 record: simulate-then-diagnose-then-recover against `simulate_noise`, and the fast noise
 filter against the generic exact likelihood of `accel_jax._noise`."""
 
@@ -22,10 +22,10 @@ from accel_jax.diagnose import (
     diagnose,
     diagnose_many,
     effect_library,
-    noise_effects,
     noise_fit,
     rank_candidates,
 )
+from accel_jax.diagnose.noise.effects import NoiseComponents
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -69,7 +69,7 @@ def test_noise_filter_matches_the_generic_exact_likelihood():
     c = jnp.asarray(x - x.mean())
     diffuse = 1e6 * float(jnp.mean(c**2))  # `_noise`'s diffuse prior of the level
     white, sc, alpha, beta, q = 0.8, 0.6, 3.0, 20.0, 0.02
-    parts = noise_effects.NoiseComponents(
+    parts = NoiseComponents(
         jnp.asarray(sc**2), jnp.exp(-alpha * DT), jnp.asarray(beta * DT), jnp.asarray(q * DT)
     )
     _, _, terms = noise_fit.filter_terms(jnp.asarray(white**2), parts, c, diffuse)
@@ -296,7 +296,7 @@ def test_composite_and_long_records(tmp_path):
     is diagnosed by the selection alone (named, plotted, JSON)."""
     import sys
 
-    from accel_jax.diagnose import noise_sensor
+    from accel_jax.diagnose.noise import EXACT_LIMIT
     from accel_jax.diagnose.report import write_json
     from accel_jax.report.figures.diagnosis import save_plot
 
@@ -311,7 +311,7 @@ def test_composite_and_long_records(tmp_path):
     composite = diagnose(NoiseData(np.arange(n) * DT, x))
     assert set(composite.verdict.split("+")) >= {"sinusoid", "quantization"}, composite.summary()
     assert composite.where["sensor_effects"]["quantization"]["step"] == pytest.approx(3e-3, 0.05)
-    n = noise_sensor.EXACT_LIMIT + 5000
+    n = EXACT_LIMIT + 5000
     x = noise_truth.record(rng, n, DT, {"white": 2e-3, "gauss_markov": (2e-3, 0.1), "level": -1})
     long = diagnose(NoiseData(np.arange(n) * DT, x))
     assert long.verdict == "gauss_markov", long.summary()

@@ -1,5 +1,5 @@
-"""The sim-to-real diagnosis of vibration tables (accel_jax.diagnose.vibration,
-vibration_effects) and its CLI use, checked by simulate-then-diagnose-then-recover against
+"""The sim-to-real diagnosis of vibration tables (accel_jax.diagnose.vibration and its
+effects) and its CLI use, checked by simulate-then-diagnose-then-recover against
 a truth generator that is not the diagnosis's own code (the time average of
 `indicated_acceleration`)."""
 
@@ -18,7 +18,8 @@ from accel_jax.diagnose import (
     diagnose_many,
     effect_library,
 )
-from accel_jax.diagnose import vibration as vibration_kind
+from accel_jax.diagnose.vibration import COEFFICIENTS, vibration_effects
+from accel_jax.diagnose.vibration.table import prepare
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -92,23 +93,23 @@ def test_vibration_design_is_the_exact_expectation():
     # The diagnosis's linear model a_out = a_in + J θ equals `predict_table` of the
     # coefficients (the model is linear in them), and each effect is nominal at zero.
     data = _table({}, seed=0)
-    prep = vibration_kind._prepare(data, vibration_kind._effects())
+    table = prepare(data, vibration_effects())
     rng = np.random.default_rng(3)
-    theta = rng.normal(size=len(vibration_kind.COEFFICIENTS)) * np.array(
+    theta = rng.normal(size=len(COEFFICIENTS)) * np.array(
         [500, 100, 20, 5, 5, 0.1, 0.03, 5, 5]
     )
     tf = aj.StaticTransferFunction(
-        **{c: t * 1e-6 for c, t in zip(vibration_kind.COEFFICIENTS, theta, strict=True)}
+        **{c: t * 1e-6 for c, t in zip(COEFFICIENTS, theta, strict=True)}
     )
-    table = {**data.table(), "a_out": np.zeros(data.a_in.size)}
-    exact = np.asarray(aj.vibration.predict_table(tf, table)) - data.a_in
-    np.testing.assert_allclose(prep["design"] @ theta * 1e-6, exact, rtol=0, atol=1e-13)
+    zero_out = {**data.table(), "a_out": np.zeros(data.a_in.size)}
+    exact = np.asarray(aj.vibration.predict_table(tf, zero_out)) - data.a_in
+    np.testing.assert_allclose(table.design @ theta * 1e-6, exact, rtol=0, atol=1e-13)
     assert len(effect_library("vibration")) == 6
-    assert prep["candidates"] == ["nominal", "k2", "k3", "k4", "k5", "asymmetry", "cross_coupling"]
-    for mask, name in zip(prep["masks"][1:], prep["candidates"][1:], strict=True):
+    assert table.candidates == ("nominal", "k2", "k3", "k4", "k5", "asymmetry", "cross_coupling")
+    for mask, name in zip(table.masks[1:], table.candidates[1:], strict=True):
         effect = effect_library("vibration")[name]()
         # Exactly the nominal columns plus the effect's own coefficients are free.
-        free = {vibration_kind.COEFFICIENTS[j] for j in np.flatnonzero(mask)}
+        free = {COEFFICIENTS[j] for j in np.flatnonzero(mask)}
         assert free == {"bias", "scale_factor_error", *effect.coefficients}
 
 

@@ -488,7 +488,7 @@ def test_level_shift_screen_rarely_fires_on_noise_and_sees_a_step():
     a 6 mg step in 2 mg white + a 1 mg Gauss–Markov process it sees at its place, and then
     the diagnosis runs the selection where it would not have."""
     from accel_jax._noise.sensor_screens import level_shift_screen
-    from accel_jax.diagnose.noise_sensor import needs_selection
+    from accel_jax.diagnose.noise.sensor import needs_selection
 
     rng = np.random.default_rng(8)
     n, dt = 10000, 0.01
@@ -618,7 +618,7 @@ def test_a_fast_telegraph_noise_is_gauss_markov_and_unexplained():
     """Its Lorentzian spectrum is a Gauss–Markov process's, which the selection rightly
     names; its two levels are outside the library: unexplained, not a clean verdict, and
     the diagnosis runs the selection to say so."""
-    from accel_jax.diagnose.noise_sensor import _describe, needs_selection
+    from accel_jax.diagnose.noise.sensor import _describe, needs_selection
 
     rng = np.random.default_rng(5)
     n, dt, w = 10_000, 0.01, 2e-3
@@ -673,7 +673,7 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     1 → 3 Hz over 100 s (half the white σ) is found in the band it sweeps and makes the
     selection (which names an exp-cosine process for it) unexplained, in words."""
     from accel_jax._noise.sensor_screens import _spectral_change
-    from accel_jax.diagnose.noise_sensor import _describe
+    from accel_jax.diagnose.noise.sensor import _describe
 
     rng = np.random.default_rng(31)
     n, dt = 10_000, 0.01
@@ -706,7 +706,7 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     assert not _spectral_change(rng.normal(size=200), dt)["tested"]
     # The diagnosis screens the raw record the same way (public: detect_spectral_change),
     # and runs the selection on a vibration that starts mid-record, not on a steady one.
-    from accel_jax.diagnose.noise_sensor import needs_selection
+    from accel_jax.diagnose.noise.sensor import needs_selection
 
     line = 1.5e-3 * np.sin(2 * np.pi * 7.3 * t)
     starts = rng.normal(0, w, n) + line * (t > t[-1] / 2)

@@ -183,13 +183,20 @@ def test_import_layers_catch_an_upward_import(monkeypatch):
 
 
 # Inside the diagnosis (docs/architecture.md): the modules every kind shares, below the
-# kinds; the step kind is a subpackage that imports, of the diagnosis, only those and itself;
-# and nothing imports an old place of its modules (kept for one release, CHANGELOG.md).
+# kinds; each kind is a subpackage that imports, of the diagnosis, only those and itself (the
+# noise kind also its fit, `noise_fit`); and nothing imports an old place of the kinds'
+# modules (kept for one release, CHANGELOG.md).
 _DIAGNOSE_SHARED = {"base", "openworld"}
+_DIAGNOSE_KINDS = {"step": set(), "noise": {"noise_fit"}, "vibration": set()}
 _DIAGNOSE_OLD = {
     "step_fit", "step_input", "step_effects", "step_assess", "step_verdict", "step_refit",
     "step_nuisance", "step_joint", "step_joint_verdict", "step_design", "step_record",
+    "noise_effects", "noise_sensor", "vibration_effects",
 }  # fmt: skip
+# Until its own change moves the import to `noise.effects`: noise_fit reads the noise
+# effects' base class and components from their old place (which keeps those two names
+# without a warning for it).
+_OLD_PLACE_PENDING = {"accel_jax/diagnose/noise_fit.py": {"noise_effects"}}
 
 
 def test_the_diagnosis_kinds_sit_on_its_shared_modules():
@@ -198,6 +205,8 @@ def test_the_diagnosis_kinds_sit_on_its_shared_modules():
     package = Path(aj.__file__).resolve().parent
     root = package.parent
     assert len(list((package / "diagnose" / "step").glob("*.py"))) >= 12
+    assert len(list((package / "diagnose" / "noise").glob("*.py"))) >= 7
+    assert len(list((package / "diagnose" / "vibration").glob("*.py"))) >= 7
     wrong = []
     for path in sorted(package.rglob("*.py")):
         parts = list(path.relative_to(root).with_suffix("").parts)
@@ -207,14 +216,17 @@ def test_the_diagnosis_kinds_sit_on_its_shared_modules():
             if m.startswith("accel_jax.diagnose.")
         }
         where = path.relative_to(root).as_posix()
-        if used & _DIAGNOSE_OLD:
-            wrong.append(f"{where} imports the old place of {sorted(used & _DIAGNOSE_OLD)}")
+        old = (used & _DIAGNOSE_OLD) - _OLD_PLACE_PENDING.get(where, set())
+        if old:
+            wrong.append(f"{where} imports the old place of {sorted(old)}")
         if parts[:2] != ["accel_jax", "diagnose"]:
             continue
         if parts[2] in _DIAGNOSE_SHARED and used - _DIAGNOSE_SHARED:
             wrong.append(f"{where} (shared) imports {sorted(used - _DIAGNOSE_SHARED)}")
-        if parts[2] == "step" and used - _DIAGNOSE_SHARED - {"step"}:
-            wrong.append(f"{where} imports {sorted(used - _DIAGNOSE_SHARED - {'step'})}")
+        if parts[2] in _DIAGNOSE_KINDS and len(parts) >= 4:
+            other = used - _DIAGNOSE_SHARED - {parts[2]} - _DIAGNOSE_KINDS[parts[2]]
+            if other:
+                wrong.append(f"{where} imports {sorted(other)}")
     assert wrong == []
 
 

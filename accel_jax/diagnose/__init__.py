@@ -11,12 +11,12 @@ effect is added.
 Several step records of one device together: `diagnose_step_set` (`step/joint_verdict.py`;
 the joint fit in `step/joint.py`).
 
-Kinds: `step` (the subpackage `step/`), `vibration` (`vibration.py`) and `noise`
-(`noise.py`), beside what they share: `base` (the effect interface, evidence,
-`DiagnosisResult`), `openworld` (the open-world verdict) and `dispatch`. A kind
-provides its nominal model, an effect base class with hooks, the effects registered
-with `register_effect`, and a `diagnose_<kind>(datasets, nominal)` listed in
-`dispatch._KINDS`, which `diagnose` and `diagnose_many` dispatch on.
+Kinds, one subpackage each: `step`, `vibration` and `noise` (whose fit is `noise_fit`),
+beside what they share: `base` (the effect interface, evidence, `DiagnosisResult`),
+`openworld` (the open-world verdict) and `dispatch`. A kind provides its nominal model, an
+effect base class with hooks, the effects registered with `register_effect`, and a
+`diagnose_<kind>(datasets, nominal)` listed in `dispatch._KINDS`, which `diagnose` and
+`diagnose_many` dispatch on.
 """
 
 from __future__ import annotations
@@ -53,11 +53,11 @@ from .base import (
 )
 from .dispatch import diagnose as diagnose
 from .dispatch import diagnose_many as diagnose_many
+from .noise import AbstractNoiseEffect as AbstractNoiseEffect
 from .noise import diagnose_noise as diagnose_noise
-from .noise_effects import AbstractNoiseEffect as AbstractNoiseEffect
 from .step import AbstractStepEffect as AbstractStepEffect
 from .step import SetDiagnosis as SetDiagnosis
 from .step import diagnose_step as diagnose_step
 from .step import diagnose_step_set as diagnose_step_set
+from .vibration import AbstractVibrationEffect as AbstractVibrationEffect
 from .vibration import diagnose_vibration as diagnose_vibration
-from .vibration_effects import AbstractVibrationEffect as AbstractVibrationEffect

@@ -328,7 +328,7 @@ class DiagnosisResult:
     - `verdict`: the named effect, `"none"`, `"cannot_tell"` or `"unexplained"`
         (`accel_jax.diagnose.openworld`); for the noise kind also a composite of several
         effects joined by "+" (e.g. `"bandlimit+sinusoid+quantization"`, ending in
-        `"+unexplained"` when what they leave is significant; `noise_sensor`).
+        `"+unexplained"` when what they leave is significant; `noise.sensor`).
     - `tied`: with `cannot_tell`, the two effects that fit equally well; else empty.
     - `ranking`: one dict per effect, best first (effect, evidence, gap_shrink, params…).
     - `gap`: the held-out gap before/after the chosen effect (`held_out_gap`).

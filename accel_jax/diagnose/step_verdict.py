@@ -1,26 +1,15 @@
-"""Moved to `accel_jax.diagnose.step.verdict`, the step diagnosis's verdict. This old place
-keeps its names for one release, each read with a `DeprecationWarning` naming the new
-place."""
+"""The old place of `accel_jax.diagnose.step.verdict` (the step verdict):
+each name warns and forwards, for one release."""
 
 from .._deprecated import moved_names
 
-# Moved in 0.2 (CHANGELOG.md): the step diagnosis's modules are the subpackage `step/`.
 __getattr__ = moved_names(
     __name__,
-    {
-        "LOCK_WINDOW": "accel_jax.diagnose.step.verdict",
-        "evaluate": "accel_jax.diagnose.step.verdict",
-        "fit_entries": "accel_jax.diagnose.step.assess",
-        "nested_shortfall": "accel_jax.diagnose.step.assess",
-        "nested_failed": "accel_jax.diagnose.step.assess",
-        "nested_losers": "accel_jax.diagnose.step.assess",
-        "evidence_slack": "accel_jax.diagnose.step.assess",
-        "explains_deterministically": "accel_jax.diagnose.step.assess",
-        "NESTED_TOLERANCE": "accel_jax.diagnose.step.assess",
-        "NESTED_ABSOLUTE": "accel_jax.diagnose.step.assess",
-        "NUISANCE_ALPHA": "accel_jax.diagnose.step.nuisance",
-        "nuisance_test": "accel_jax.diagnose.step.nuisance",
-        "strained_sentence": "accel_jax.diagnose.step.nuisance",
-        "change_shifts": "accel_jax.diagnose.step.nuisance",
-    },
+    "accel_jax.diagnose.step.verdict",
+    "LOCK_WINDOW evaluate",
+    "accel_jax.diagnose.step.assess",
+    "fit_entries nested_shortfall nested_failed nested_losers evidence_slack "
+    "explains_deterministically NESTED_TOLERANCE NESTED_ABSOLUTE",
+    "accel_jax.diagnose.step.nuisance",
+    "NUISANCE_ALPHA nuisance_test strained_sentence change_shifts",
 )
