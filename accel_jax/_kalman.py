@@ -9,7 +9,9 @@ accelerometer error [m/s²], gyro drift [rad/s]):
     ΔV' = −g δ + Δa,          δ' = ΔV/R + Δω,
     Δa' = −Δa/τ_a + σ_a √(2/τ_a) w_a,     Δω' = −Δω/τ_ω + σ_ω √(2/τ_ω) w_ω,
 
-observed at 1 Hz through z = ΔV + v (velocity against an external reference).
+observed at 1 Hz through z = ΔV + v (velocity against an external reference). `INSChannel`
+has these Gauss–Markov sensor errors; `_kalman_models.INSNoiseChannel` the same channel with
+white, Gauss–Markov or exponential-cosine errors taken from `accel_jax.noise` models.
 
 The filter is written here as a `jax.lax.scan` (about forty lines) rather than taken from
 dynamax: dynamax pulls in tfp-nightly and a web-server stack with our pinned JAX, and the
@@ -22,6 +24,8 @@ variances near 1e-15 rad²/s²); the generic filter follows the dtype of its inp
 """
 
 from __future__ import annotations
+
+from typing import Protocol
 
 import equinox as eqx
 import jax
@@ -327,7 +331,7 @@ def _positive(name: str, unit: str):
         value = _concrete(getattr(self, name))
         if value is not None and not (np.all(np.isfinite(value)) and np.all(value > 0)):
             raise ValueError(
-                f"INSChannel.{name} must be positive and finite, got "
+                f"{type(self).__name__}.{name} must be positive and finite, got "
                 f"{np.asarray(value).tolist()} {unit}."
             )
 
@@ -343,6 +347,45 @@ _INS_UNITS = {
     "gravity": "m/s²",
     "radius": "m",
 }
+
+
+def _check_interval(owner: str, sample_interval) -> None:
+    concrete = _concrete(sample_interval)
+    if concrete is not None and not (np.isfinite(concrete) and concrete > 0):
+        raise ValueError(
+            f"{owner}.discretise: sample_interval must be positive, got "
+            f"{np.asarray(concrete).tolist()} s."
+        )
+
+
+def _discretise(a, diffusion, h, velocity_noise, sample_interval) -> LinearGaussianModel:
+    """Van Loan: F = e^{AΔ}, Q = ∫₀^Δ e^{As} D e^{Aᵀs} ds from one block exponential; R = σ_v²."""
+    dt = jnp.asarray(sample_interval, a.dtype)
+    n = a.shape[0]
+    block = jnp.block([[-a, diffusion], [jnp.zeros_like(a), a.T]]) * dt
+    e = jsl.expm(block)
+    transition = e[n:, n:].T
+    process = _symmetrise(transition @ e[:n, n:])
+    r = jnp.reshape(velocity_noise**2, (1, 1)).astype(a.dtype)
+    return LinearGaussianModel(transition, process, h, r)
+
+
+def _gauss_markov(sigma, tau):
+    """(A_s, D_s) of a Gauss–Markov state: −1/τ and 2σ²/τ."""
+    return jnp.reshape(-1 / tau, (1, 1)), jnp.reshape(2 * sigma**2 / tau, (1, 1))
+
+
+def _generator(gravity, radius, accel, gyro) -> tuple[Array, Array, Array]:
+    """(A, D, H) of the channel [ΔV, δ, accelerometer states, gyro states] from each sensor's
+    (A_s, D_s, H_s, q): its state drives ΔV (δ) through H_s, its white intensity q directly."""
+    (aa, da, ha, qa), (ag, dg, hg, qg) = accel, gyro
+    na, n = aa.shape[0], 2 + aa.shape[0] + ag.shape[0]
+    dtype = jnp.result_type(aa, ag, radius)
+    a = jnp.zeros((n, n), dtype).at[0, 1].set(-gravity).at[1, 0].set(1 / radius)
+    a = a.at[0, 2 : 2 + na].set(ha[0]).at[1, 2 + na :].set(hg[0])
+    a = a.at[2 : 2 + na, 2 : 2 + na].set(aa).at[2 + na :, 2 + na :].set(ag)
+    diffusion = jsl.block_diag(jnp.diag(jnp.stack([qa, qg]).astype(dtype)), da, dg)
+    return a, diffusion, jnp.zeros((1, n), dtype).at[0, 0].set(1)
 
 
 class INSChannel(eqx.Module):
@@ -382,30 +425,10 @@ class INSChannel(eqx.Module):
     def continuous(self) -> tuple[Array, Array, Array]:
         """(A, G Q_c Gᵀ, H) of the continuous model: dx/dt = A x + G w, z = H x + v."""
         dtype = jnp.result_type(self.accel_sigma, self.gyro_sigma, self.radius)
-        zero = jnp.zeros((), dtype)
-        one = jnp.ones((), dtype)
-        a = jnp.array(
-            [
-                [zero, -self.gravity, one, zero],
-                [1 / self.radius, zero, zero, one],
-                [zero, zero, -1 / self.accel_correlation_time, zero],
-                [zero, zero, zero, -1 / self.gyro_correlation_time],
-            ],
-            dtype=dtype,
-        )
-        diffusion = jnp.diag(
-            jnp.array(
-                [
-                    zero,
-                    zero,
-                    2 * self.accel_sigma**2 / self.accel_correlation_time,
-                    2 * self.gyro_sigma**2 / self.gyro_correlation_time,
-                ],
-                dtype=dtype,
-            )
-        )
-        h = jnp.array([[one, zero, zero, zero]], dtype=dtype)
-        return a, diffusion, h
+        one, zero = jnp.ones((1, 1), dtype), jnp.zeros((), dtype)
+        accel = (*_gauss_markov(self.accel_sigma, self.accel_correlation_time), one, zero)
+        gyro = (*_gauss_markov(self.gyro_sigma, self.gyro_correlation_time), one, zero)
+        return _generator(self.gravity, self.radius, accel, gyro)
 
     def discretise(self, sample_interval: float = 1.0) -> LinearGaussianModel:
         """Exact discretisation over `sample_interval` [s] (default 1 s, the paper's 1 Hz).
@@ -413,25 +436,21 @@ class INSChannel(eqx.Module):
         F = e^{AΔ} and Q = ∫₀^Δ e^{As} G Q_c Gᵀ e^{Aᵀs} ds by Van Loan's block exponential
         (one `jax.scipy.linalg.expm`); R = σ_v². float64 recommended.
         """
-        concrete = _concrete(sample_interval)
-        if concrete is not None and not (np.isfinite(concrete) and concrete > 0):
-            raise ValueError(
-                f"INSChannel.discretise: sample_interval must be positive, got "
-                f"{np.asarray(concrete).tolist()} s."
-            )
-        a, diffusion, h = self.continuous()
-        dt = jnp.asarray(sample_interval, a.dtype)
-        n = a.shape[0]
-        block = jnp.block([[-a, diffusion], [jnp.zeros_like(a), a.T]]) * dt
-        e = jsl.expm(block)
-        transition = e[n:, n:].T
-        process = _symmetrise(transition @ e[:n, n:])
-        r = jnp.reshape(self.velocity_noise**2, (1, 1)).astype(a.dtype)
-        return LinearGaussianModel(transition, process, h, r)
+        _check_interval("INSChannel", sample_interval)
+        return _discretise(*self.continuous(), self.velocity_noise, sample_interval)
 
     def stationary_sensor_covariance(self) -> Array:
         """diag(σ_a², σ_ω²), the stationary covariance of [Δa, Δω]."""
         return jnp.diag(jnp.stack([self.accel_sigma**2, self.gyro_sigma**2]))
+
+
+class _Channel(Protocol):
+    """What the consistency trial reads of a channel: `INSChannel` or
+    `accel_jax._kalman_models.INSNoiseChannel` (which imports this module)."""
+
+    def discretise(self, sample_interval: float = 1.0) -> LinearGaussianModel: ...
+
+    def stationary_sensor_covariance(self) -> Array: ...
 
 
 def scale_noise_coefficients(
@@ -468,21 +487,19 @@ def scale_noise_coefficients(
 
 
 def ins_initial_covariance(
-    channel: INSChannel, *, velocity_sigma: float = 0.1, vertical_sigma: float = 1e-4
+    channel: _Channel,
+    *,
+    velocity_sigma: float = 0.1,
+    vertical_sigma: float = 1e-4,
 ) -> Array:
     """Prior covariance diag(σ_V², σ_δ², σ_a², σ_ω²): initial velocity [m/s] and vertical
-    [rad] uncertainty as given, the sensor errors at their stationary variance."""
-    dtype = channel.accel_sigma.dtype
-    return jnp.diag(
-        jnp.stack(
-            [
-                jnp.asarray(velocity_sigma, dtype) ** 2,
-                jnp.asarray(vertical_sigma, dtype) ** 2,
-                channel.accel_sigma**2,
-                channel.gyro_sigma**2,
-            ]
-        )
+    [rad] uncertainty as given, the sensor states at their stationary covariance."""
+    sensors = channel.stationary_sensor_covariance()
+    dtype = sensors.dtype
+    kinematic = jnp.stack(
+        [jnp.asarray(velocity_sigma, dtype) ** 2, jnp.asarray(vertical_sigma, dtype) ** 2]
     )
+    return jsl.block_diag(jnp.diag(kinematic), sensors)
 
 
 class ConsistencyTrial(eqx.Module):
@@ -492,7 +509,7 @@ class ConsistencyTrial(eqx.Module):
 
     - `vertical_error`: δ − δ̂ [rad], shape (T,).
     - `vertical_sigma`: √P_δδ [rad] the filter predicts, shape (T,).
-    - `nees`: NEES per step (χ²(4) if consistent), shape (T,).
+    - `nees`: NEES per step (χ²(n), n states, if consistent), shape (T,).
     - `nis`: NIS per step (χ²(1) if consistent), shape (T,).
     - `fraction_outside_3sigma`: share of steps with |δ − δ̂| > 3√P_δδ.
     """
@@ -505,8 +522,8 @@ class ConsistencyTrial(eqx.Module):
 
 
 def ins_consistency_trial(
-    truth: INSChannel,
-    assumed: INSChannel,
+    truth: _Channel,
+    assumed: _Channel,
     key: Array,
     *,
     num_steps: int,
@@ -518,11 +535,17 @@ def ins_consistency_trial(
     `assumed` one; vmap over `key` (or `accel_jax.sweep`) for Monte Carlo statistics.
 
     The truth starts from N(0, P0_truth) and the filter from N(0, P0_assumed), both from
-    `ins_initial_covariance`. float64 required.
+    `ins_initial_covariance`. Either channel is an `INSChannel` or an `INSNoiseChannel`, the
+    two with one state layout. float64 required.
     """
     true_model = truth.discretise(sample_interval)
     filter_model = assumed.discretise(sample_interval)
     n = true_model.state_size
+    if filter_model.state_size != n:
+        raise ValueError(
+            f"ins_consistency_trial: the truth has {n} states and the assumed channel "
+            f"{filter_model.state_size}; the NEES compares states one to one."
+        )
     dtype = true_model.transition.dtype
     p0_true = ins_initial_covariance(
         truth, velocity_sigma=velocity_sigma, vertical_sigma=vertical_sigma
