@@ -22,3 +22,4 @@ from ._kalman import normalised_innovation_squared as normalised_innovation_squa
 from ._kalman import rts_smoother as rts_smoother
 from ._kalman import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
+from ._kalman_models import INSNoiseChannel as INSNoiseChannel

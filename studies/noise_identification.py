@@ -838,8 +838,10 @@ def _summary_rows(result: dict) -> list[dict]:
             "Built: the batch loop (smoothed over a whole log). Not built: the paper's "
             "real-time variant (identification over a sliding window of the filter's own "
             "estimates as it runs, which needs a fixed-lag smoother and a retuning schedule) "
-            "and an exponential-cosine sensor state in INSChannel (structure selection picks "
-            "the model; the filter cannot yet carry it)",
+            "and a loop whose filter carries the exponential-cosine model that structure "
+            "selection picks (the channel exists: accel_jax.kalman.INSNoiseChannel, a "
+            "white, Gauss–Markov or exp-cos error per sensor; this loop still retunes "
+            "INSChannel's Gauss–Markov states)",
         }
     )
     for name, paper in (

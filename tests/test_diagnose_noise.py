@@ -1,5 +1,5 @@
 """The sim-to-real diagnosis of static noise records (accel_jax.diagnose.noise, its
-effects, noise_fit), the ranking's nested-effect rule, its CLI use and a real MEMS
+effects, fit), the ranking's nested-effect rule, its CLI use and a real MEMS
 record: simulate-then-diagnose-then-recover against `simulate_noise`, and the fast noise
 filter against the generic exact likelihood of `accel_jax._noise`."""
 
@@ -22,9 +22,9 @@ from accel_jax.diagnose import (
     diagnose,
     diagnose_many,
     effect_library,
-    noise_fit,
     rank_candidates,
 )
+from accel_jax.diagnose.noise import fit as noise_fit
 from accel_jax.diagnose.noise.effects import NoiseComponents
 
 ROOT = Path(__file__).resolve().parent.parent

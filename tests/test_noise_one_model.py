@@ -6,7 +6,7 @@
 - The sensor analysis' Whittle spectrum (`_noise.spectral.spectrum`), for each component
   alone and all together at random parameters, equals the models' spectrum of the
   differenced record; `spectral.component_models` gives those models.
-- The noise diagnosis' Whittle spectrum (`diagnose.noise_fit.spectrum`), for each
+- The noise diagnosis' Whittle spectrum (`diagnose.noise.fit.spectrum`), for each
   candidate at random parameters, equals the models'.
 - The diagnosis' hand-unrolled Kalman filter (`noise_fit.filter_terms`) gives the
   log-likelihood terms of `accel_jax._kalman.kalman_filter` on the models' state space.
@@ -36,7 +36,7 @@ from accel_jax._noise.models import (
     WhiteNoise,
     differencing_gain,
 )
-from accel_jax.diagnose import noise_fit
+from accel_jax.diagnose.noise import fit as noise_fit
 
 DT = 0.01
 DRAWS = 6
@@ -191,7 +191,7 @@ def test_spectral_whittle_spectrum_is_the_models(names):
 
 
 # --------------------------------------------------------------------------------------
-# The noise diagnosis' Whittle spectrum and Kalman filter (`diagnose.noise_fit`)
+# The noise diagnosis' Whittle spectrum and Kalman filter (`diagnose.noise.fit`)
 # --------------------------------------------------------------------------------------
 
 CANDIDATES = {0: "white", 1: "gauss_markov", 2: "exp_cosine", 3: "random_walk"}

@@ -101,6 +101,7 @@ _LAYERS = {
         "_ml_estimate",
         "_noise",
         "_kalman",
+        "_kalman_models",
         "_vibration",
         "_tolerance",
         "_sweep",
@@ -113,6 +114,7 @@ _SAME_LAYER = {
     ("_tolerance", "_vibration"),
     ("_identify", "_noise"),
     ("_identify", "_sweep"),
+    ("_kalman_models", "_kalman"),
 }
 # Upward imports inside functions, each for one name: the package version for provenance,
 # and whether the user set XLA's log level before `import accel_jax`.
@@ -184,19 +186,16 @@ def test_import_layers_catch_an_upward_import(monkeypatch):
 
 # Inside the diagnosis (docs/architecture.md): the modules every kind shares, below the
 # kinds; each kind is a subpackage that imports, of the diagnosis, only those and itself (the
-# noise kind also its fit, `noise_fit`); and nothing imports an old place of the kinds'
+# kinds' fits included); and nothing imports an old place of the kinds'
 # modules (kept for one release, CHANGELOG.md).
 _DIAGNOSE_SHARED = {"base", "openworld"}
-_DIAGNOSE_KINDS = {"step": set(), "noise": {"noise_fit"}, "vibration": set()}
+_DIAGNOSE_KINDS = {"step": set(), "noise": set(), "vibration": set()}
 _DIAGNOSE_OLD = {
     "step_fit", "step_input", "step_effects", "step_assess", "step_verdict", "step_refit",
     "step_nuisance", "step_joint", "step_joint_verdict", "step_design", "step_record",
-    "noise_effects", "noise_sensor", "vibration_effects",
+    "noise_effects", "noise_sensor", "noise_fit", "vibration_effects",
 }  # fmt: skip
-# Until its own change moves the import to `noise.effects`: noise_fit reads the noise
-# effects' base class and components from their old place (which keeps those two names
-# without a warning for it).
-_OLD_PLACE_PENDING = {"accel_jax/diagnose/noise_fit.py": {"noise_effects"}}
+_OLD_PLACE_PENDING: dict[str, set[str]] = {}  # a module still reading an old place (none)
 
 
 def test_the_diagnosis_kinds_sit_on_its_shared_modules():

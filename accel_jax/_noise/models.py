@@ -15,7 +15,7 @@ identified is (16), realised here exactly. Random walk x_{k+1} = x_k + w, var w 
 lists its parameters as plain floats.
 
 This module is the one definition of the noise spectra that the Whittle fits use (the
-sensor analysis `spectral` and the noise diagnosis `accel_jax.diagnose.noise_fit`): each
+sensor analysis `spectral` and the noise diagnosis `accel_jax.diagnose.noise.fit`): each
 model's `spectrum(ω, Δ)` is its two-sided spectral density per sample, f(ω) at ω in
 rad/sample, |ω| ≤ π, with R_k = (1/2π) ∫ f(ω) e^{iωk} dω (the continuous two-sided PSD
 below the Nyquist frequency is Δ f(2πfΔ), aliasing aside), computed by a static

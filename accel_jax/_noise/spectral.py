@@ -332,13 +332,29 @@ def deviance_terms(z, mask, gram: Periodogram, floor):
 
 
 N_STARTS = 4
-"""Starts per structure, fitted as one vmapped batch (one compilation for every
-structure of a record: the structure is the `mask` argument)."""
+"""Starts per structure, fitted in one compiled call (one compilation for every structure
+of a record: the structure is the `mask` argument)."""
 
 
 @eqx.filter_jit
-def _fit_all(z0s, mask, gram, floor):
-    return jax.vmap(lambda z0: _fit(z0, mask, gram, floor))(z0s)
+def _fit_all(z0s, repeated, mask, gram, floor):
+    """The fit from each start of `z0s`, one after another (`lax.map`): each stops at its own
+    step count, where a vmapped batch ran every start until the slowest stopped (BFGS takes
+    from a few to the full `STEPS` here), and a start that repeats an earlier one
+    (`repeated`: fewer distinct starts than `N_STARTS`) is not fitted again (log-likelihood
+    −inf). The same fits to round-off; measured on the 2-core CPU, `analyse_static_record`
+    of a 16,000-sample record 146 → 115 s (one run each, the machine busy), its results
+    within 1.3e-6 relative."""
+
+    def one(args):
+        z0, skip = args
+        return jax.lax.cond(
+            skip,
+            lambda: (z0, jnp.asarray(-jnp.inf, z0.dtype), jnp.asarray(False)),
+            lambda: _fit(z0, mask, gram, floor),
+        )
+
+    return jax.lax.map(one, (z0s, repeated))
 
 
 def _fit(z0, mask, gram, floor):
@@ -412,10 +428,10 @@ def fit_structure(
     names, gram: Periodogram, floor: float, variance: float, parent=None, parent_names=()
 ):
     """Maximum Whittle likelihood of the structure `names` (a subset of `COMPONENTS` on top
-    of white noise): the best of `starts`, run as one vmapped batch of `N_STARTS`. With
-    `parent` (the fit of the structure `parent_names` ⊂ `names`), every start also carries
-    the parent's optimum in the parent's slots, so the extended fit starts where the nested
-    one ended (and cannot end below it but by a failed search).
+    of white noise): the best of `starts`, `N_STARTS` of them fitted in one compiled call
+    (`_fit_all`). With `parent` (the fit of the structure `parent_names` ⊂ `names`), every
+    start also carries the parent's optimum in the parent's slots, so the extended fit
+    starts where the nested one ended (and cannot end below it but by a failed search).
 
     Returns (z, log-likelihood, converged)."""
     mask = jnp.asarray(_mask(names))
@@ -425,9 +441,16 @@ def fit_structure(
         inherited = _mask(parent_names) > 0
         candidates = [np.where(inherited, np.asarray(parent), c) for c in candidates]
     candidates = (candidates * N_STARTS)[:N_STARTS]
+    repeated = [any(np.array_equal(c, b) for b in candidates[:i]) for i, c in enumerate(candidates)]
     z, log_lik, ok = (
         np.asarray(a)
-        for a in _fit_all(jnp.asarray(np.stack(candidates)), mask, gram, jnp.asarray(floor))
+        for a in _fit_all(
+            jnp.asarray(np.stack(candidates)),
+            jnp.asarray(repeated),
+            mask,
+            gram,
+            jnp.asarray(floor),
+        )
     )
     log_lik = np.where(np.isfinite(log_lik), log_lik, -np.inf)
     i = int(np.argmax(log_lik))

@@ -11,7 +11,7 @@ effect is added.
 Several step records of one device together: `diagnose_step_set` (`step/joint_verdict.py`;
 the joint fit in `step/joint.py`).
 
-Kinds, one subpackage each: `step`, `vibration` and `noise` (whose fit is `noise_fit`),
+Kinds, one subpackage each: `step`, `vibration` and `noise`,
 beside what they share: `base` (the effect interface, evidence, `DiagnosisResult`),
 `openworld` (the open-world verdict) and `dispatch`. A kind provides its nominal model, an
 effect base class with hooks, the effects registered with `register_effect`, and a

@@ -3,9 +3,6 @@ forwards, for one release."""
 
 from .._deprecated import moved_names
 
-# Read without a warning until noise_fit imports them from noise.effects (its own change).
-from .noise.effects import AbstractNoiseEffect, NoiseComponents  # noqa: F401
-
 __getattr__ = moved_names(
     __name__,
     "accel_jax.diagnose.noise.effects",

@@ -23,7 +23,7 @@ An exponential-cosine noise at β = 0 is a Gauss–Markov noise, and a Gauss–M
 τ_c outgrows the record looks like a random walk; those nested pairs are told apart by a
 likelihood-ratio test when the evidence alone ties (`rank_candidates(nested=...)`).
 
-**Fit** (`noise_fit`): exact maximum likelihood on the training part (the first
+**Fit** (`fit`): exact maximum likelihood on the training part (the first
 `1 − HELD_OUT_FRACTION` of the record): a Whittle (frequency-domain) fit of the differenced
 record gives the start, then BFGS (optimistix) on the exact likelihood polishes it. The
 likelihood is the Kalman filter of the state-space forms of `accel_jax._noise` (state:
@@ -47,7 +47,7 @@ leaves a record open, and alone on records over `EXACT_LIMIT` samples.
 **Modules.** `entry` (`diagnose_noise`), `record` (a record read into a `NoiseRecord`, the
 typed state of `state`), `effects`, `verdict` (the evidence, the open-world decision, the
 refit), `localise` (where the white-noise residual departs from white), `sensor` (the
-forward selection and the Allan deviation); the fit itself is `accel_jax.diagnose.noise_fit`.
+forward selection and the Allan deviation); the fit itself is `accel_jax.diagnose.noise.fit`.
 
 Float64 throughout (log-likelihoods of thousands of samples compared to within a unit).
 """

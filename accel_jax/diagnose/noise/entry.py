@@ -1,5 +1,5 @@
 """The `noise` kind's entry: `diagnose_noise` prepares each record (`record.prepare`), fits
-every candidate of records of one length as one batch (`noise_fit._fit_record`, vmapped in
+every candidate of records of one length as one batch (`fit._fit_record`, vmapped in
 chunks of `BATCH_CHUNK` records), judges each record (`verdict.evaluate`), and adds the
 forward selection of real-sensor effects where the exact verdict leaves a record open and
 alone beyond `EXACT_LIMIT` samples (`sensor`). The kind itself is described in the package
@@ -14,7 +14,7 @@ import numpy as np
 from ..._data import DataError, NoiseData, NominalDevice
 from ..._sweep import even_chunk_size, sweep
 from ..base import DiagnosisResult, require_float64
-from ..noise_fit import _bands, _effects, _fit_record
+from .fit import _bands, _effects, _fit_record
 from . import sensor
 from .localise import welch
 from .record import prepare

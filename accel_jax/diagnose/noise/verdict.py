@@ -21,7 +21,7 @@ from ..base import (
     held_out_gap,
     rank_candidates,
 )
-from ..noise_fit import model_intervals
+from .fit import model_intervals
 from .localise import localise
 from .state import NoiseRecord
 
@@ -31,7 +31,7 @@ NESTED = {"exp_cosine": "gauss_markov", "gauss_markov": "random_walk"}
 
 
 def evaluate(data: NoiseData, rec: NoiseRecord, effects, outputs) -> DiagnosisResult:
-    """The diagnosis of one record from its fits (`outputs` of `noise_fit._fit_record`: z,
+    """The diagnosis of one record from its fits (`outputs` of `fit._fit_record`: z,
     innovations, their predicted variances, log-likelihoods, convergence and steps of every
     candidate): evidence and ranking, the open-world verdict, the held-out gap, the refit
     and the localisation of the white-noise residual."""
