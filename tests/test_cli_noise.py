@@ -31,23 +31,34 @@ def noise_csv(tmp_path_factory):
     return path
 
 
-def test_noise_command_reports_terms_effects_and_exports(noise_csv, tmp_path):
+@pytest.fixture(scope="module")
+def first_run(noise_csv, tmp_path_factory):
+    """The command run once in full (--json, --plot, --export gnss-ins-sim), with a spy on
+    the library's analysis that keeps what it computed: the tests of the other exports
+    give the command that analysis back instead of computing it again (~1½ min of CPU
+    each), so that they test what is theirs, the export and the files written."""
+    import accel_jax.noise as noise_namespace
+
+    real, seen = noise_namespace.analyse_static_record, []
+
+    def spy(*args, **kwargs):
+        seen.append((args, kwargs, real(*args, **kwargs)))
+        return seen[-1][2]
+
+    folder = tmp_path_factory.mktemp("first_run")
+    out_json, out_png = folder / "n.json", folder / "n.png"
+    args = ["noise", str(noise_csv), "--json", str(out_json), "--plot", str(out_png)]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(noise_namespace, "analyse_static_record", spy)
+        result = CliRunner().invoke(main, [*args, "--export", "gnss-ins-sim"])
+    return result, out_json, out_png, seen
+
+
+def test_noise_command_reports_terms_effects_and_exports(noise_csv, first_run):
     runner = CliRunner()
-    out_json, out_png = tmp_path / "n.json", tmp_path / "n.png"
-    result = runner.invoke(
-        main,
-        [
-            "noise",
-            str(noise_csv),
-            "--json",
-            str(out_json),
-            "--plot",
-            str(out_png),
-            "--export",
-            "gnss-ins-sim",
-        ],
-    )
+    result, out_json, out_png, seen = first_run
     assert result.exit_code == 0, result.output
+    assert len(seen) == 1  # the command analysed the record once, through the library
     assert "IEEE noise terms" in result.output and "effects: " in result.output
     saved = json.loads(out_json.read_text())
     assert {"random_walk", "quantization"} <= set(saved["effects"]["effects"])
@@ -71,7 +82,17 @@ def test_noise_command_reports_terms_effects_and_exports(noise_csv, tmp_path):
 
 
 @pytest.mark.parametrize("fmt", ["kalibr", "ieee"])
-def test_noise_command_other_exports(noise_csv, fmt, tmp_path):
+def test_noise_command_other_exports(noise_csv, first_run, fmt, tmp_path, monkeypatch):
+    import accel_jax.noise as noise_namespace
+
+    (analysed_args, analysed_kwargs, analysed), = first_run[3]
+
+    def analysis_of_the_first_run(*args, **kwargs):  # the same record, the same options
+        assert np.array_equal(args[0], analysed_args[0]) and args[1:] == analysed_args[1:]
+        assert kwargs == analysed_kwargs
+        return analysed
+
+    monkeypatch.setattr(noise_namespace, "analyse_static_record", analysis_of_the_first_run)
     if fmt == "ieee":
         result = CliRunner().invoke(main, ["noise", str(noise_csv), "--export", fmt])
         assert result.exit_code == 0, result.output
