@@ -498,9 +498,9 @@ def test_evidence_slack_in_the_likelihoods_units():
 
     n, sigma, decrement = 800, 1e-3, 5.0
     prep = SimpleNamespace(sigma=sigma)  # the `StepRecord` field it reads
-    at_floor = {"innovation_variance": sigma**2, "decrement": decrement}
+    at_floor = SimpleNamespace(innovation_variance=sigma**2, decrement=decrement)
     assert evidence_slack(at_floor, prep, n) == pytest.approx(2 * decrement, rel=0.02)
-    far = {"innovation_variance": (500 * sigma) ** 2, "decrement": decrement}
+    far = SimpleNamespace(innovation_variance=(500 * sigma) ** 2, decrement=decrement)
     assert evidence_slack(far, prep, n) == pytest.approx(2 * decrement / 500**2, rel=1e-3)
-    whole = {"innovation_variance": sigma**2, "decrement": n}  # the step removes it all
+    whole = SimpleNamespace(innovation_variance=sigma**2, decrement=n)  # removes it all
     assert evidence_slack(whole, prep, n) == float("inf")

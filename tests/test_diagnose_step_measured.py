@@ -93,7 +93,7 @@ def _fit(gain_sigma=0.0, timing=(), levels=(), j_padded=8):
     w = np.zeros(W.FIXED + 2 * j_padded + 1)  # timing, levels, the input channel's drift
     w[W.timing(len(timing))] = timing
     w[W.levels(j_padded)][: len(levels)] = levels
-    return {"w": w, "z_gain": gain_sigma}
+    return SimpleNamespace(w=w, z_gain=gain_sigma)  # the `CandidateFit` fields it reads
 
 
 def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
@@ -120,10 +120,10 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
 
 
 def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
-    nominal = {"effect": "nominal", "objective": 2000.0}
-    better = {"effect": "torquer_lag", "objective": 1990.0}
-    roundoff = {"effect": "output_filter", "objective": 2000.0 + 1e-4}
-    lost = {"effect": "stop_saturation", "objective": 2010.0}
+    nominal = SimpleNamespace(effect="nominal", objective=2000.0)
+    better = SimpleNamespace(effect="torquer_lag", objective=1990.0)
+    roundoff = SimpleNamespace(effect="output_filter", objective=2000.0 + 1e-4)
+    lost = SimpleNamespace(effect="stop_saturation", objective=2010.0)
     assert nested_shortfall(better, nominal) < 0 and not nested_failed(better, nominal)
     assert not nested_failed(roundoff, nominal)  # within round-off
     assert nested_shortfall(lost, nominal) == pytest.approx(5.0)  # ½ of the objective

@@ -170,7 +170,7 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
     assert 20 < expected < 500
     truth = sd._simulate_design(fits["torquer_lag"], prepared, NOMINAL, "torquer_lag", design)
     base = prepared.preps[0]
-    clean = fits["torquer_lag"]["prediction"][0, : base.n]
+    clean = fits["torquer_lag"].prediction[0, : base.n]
     draws = []
     for k in range(10):
         rng = np.random.default_rng(100 + k)
@@ -188,12 +188,12 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
         combined = sj.stack([old, new], prepared.stop_voltage)
         chi2 = []
         for name in ("torquer_lag", "output_filter"):
-            start = sj._transfer_start(fits[name]["x"], prepared, combined)
+            start = sj._transfer_start(fits[name].x, prepared, combined)
             fit = sj.fit_set(combined, NOMINAL, candidates=[name], starts={name: start})[name]
             chi2.append(
                 sum(
                     float(
-                        np.sum((combined.data[r, : p.n] - fit["prediction"][r, : p.n]) ** 2)
+                        np.sum((combined.data[r, : p.n] - fit.prediction[r, : p.n]) ** 2)
                     )
                     / p.sigma**2
                     for r, p in enumerate(combined.preps)

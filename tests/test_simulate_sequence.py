@@ -305,7 +305,7 @@ def test_every_effect_is_the_nominal_model_at_zero():
         m = unpack(w, i, effects, base, sigma, ctx)
         y = predict(m, ctx, N, effect.nonlinear)
         np.testing.assert_allclose(y, y0, rtol=0, atol=1e-12, err_msg=effect.name)
-        assert float(m["phi"]) == 0.0 and float(m["output_offset"]) == 0.0
+        assert float(m.phi) == 0.0 and float(m.output_offset) == 0.0
 
 
 def test_innovations_of_white_plus_ar1_noise():

@@ -33,10 +33,12 @@ a domain check (`domain`) that refuses records the model family cannot describe.
 
 **Modules.** `entry` (`diagnose_step`), `record` (a record read into a `StepRecord`, the
 typed state of `state`; `segments`, `domain`), `inputs` (a measured input read as
-plateaus), `effects`, `fit` (the JAX fit of every candidate; `layout` names each parameter
-of its vector and of the joint fit's), `assess` (each candidate's entry), `verdict` (the
-open-world decision), `refit` and `nuisance` (what the refit says); several records of one
-device: `joint` (the joint fit), `joint_verdict` (its ranking and verdict,
+plateaus), `effects`, `fit` (the JAX fit of every candidate, each model a `CandidateModel`;
+`layout` names each parameter of its vector and of the joint fit's), `assess` (each
+candidate's fit, a `state.CandidateFit`, and its assessment), `verdict` (the open-world
+decision; the ranking's entries, as reported, from `ranking_entry`), `refit` and `nuisance`
+(what the refit says); several records of one device: `joint` (the joint fit, each
+candidate's a `state.JointFit`), `joint_verdict` (its ranking and verdict,
 `diagnose_step_set`), `design` (the next experiment for a lag tie).
 
 Everything is float64 (enable x64: the fitted change times are ~1e-7 s, and the evidence

@@ -32,6 +32,7 @@ from .joint import (
     stack,
 )
 from .record import prior_sigma_of
+from .state import JointFit
 
 
 def experiment_menu(nominal: NominalDevice, sample_rate: float, noise_V: float) -> list[dict]:
@@ -94,13 +95,15 @@ def experiment_menu(nominal: NominalDevice, sample_rate: float, noise_V: float) 
     return menu
 
 
-def _simulate_design(fit, prepared: PreparedSet, nominal, candidate, design) -> StepData:
+def _simulate_design(
+    fit: JointFit, prepared: PreparedSet, nominal, candidate, design
+) -> StepData:
     """The design's record as the fitted `candidate` predicts it (noise-free): the set's
     shared values, polarity +1, no offset, at rest at the start."""
     record = design["record"]
     probe = prepare_set([_with_output(record, nominal)], nominal)
     ctx = jax.tree_util.tree_map(lambda leaf: leaf[0], probe.ctx)
-    shared = jnp.asarray(fit["x"][:N_SHARED])
+    shared = jnp.asarray(fit.x[:N_SHARED])
     own = np.zeros(probe.layout.width)  # the design's changes at its samples' boundaries
     ctx = dataclasses.replace(ctx, polarity=jnp.asarray(1.0), accel_sign=jnp.asarray(1.0))
     n = probe.layout.n_padded
@@ -145,17 +148,17 @@ def expected_evidence(
     preps = []
     for r, p in enumerate(prepared.preps):
         u_out = np.zeros_like(p.u_out)
-        u_out[: p.n] = truth_fit["prediction"][r, : p.n]
+        u_out[: p.n] = truth_fit.prediction[r, : p.n]
         preps.append(dataclasses.replace(p, u_out=u_out))
     added = new.preps[0]
     added = dataclasses.replace(added, sigma=design["noise_V"] / math.sqrt(added.block))
     combined = stack(preps + [added], prepared.stop_voltage, prepared.layout.lag_states)
-    start = _transfer_start(fits[rival]["x"], prepared, combined)
+    start = _transfer_start(fits[rival].x, prepared, combined)
     fit = fit_set(combined, nominal, candidates=[rival], starts={rival: start})[rival]
     chi2 = 0.0
     for r, p in enumerate(combined.preps):
         n = p.n
-        error = combined.data[r, :n] - fit["prediction"][r, :n]
+        error = combined.data[r, :n] - fit.prediction[r, :n]
         chi2 += float(np.sum(error**2)) / p.sigma**2
     return chi2
 

@@ -19,7 +19,7 @@ from .effects import step_effects
 from .fit import BATCH_CHUNK, fit_linear, fit_nonlinear
 from .layout import W
 from .record import prepare, prior_sigma_of, stack_on_host
-from .state import RecordShape, StepRecord
+from .state import CandidateFit, RecordShape, StepRecord
 from .verdict import evaluate
 
 
@@ -46,9 +46,9 @@ def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candi
 
 def _fit_grouped(
     fn, nominal, records: list[StepRecord], starts: dict[int, np.ndarray], candidates, effects, desc
-) -> dict:
+) -> dict[int, list[CandidateFit]]:
     """Fit `candidates` of the records `starts` names ({record index: its starts}), one
-    batch per record shape (one compiled program each); returns {i: fit entries}."""
+    batch per record shape (one compiled program each); returns {i: each candidate's fit}."""
     groups: dict[RecordShape, list[int]] = {}
     for i in starts:
         groups.setdefault(records[i].shape, []).append(i)
@@ -99,7 +99,8 @@ def diagnose_step(
         fit_linear, nominal, records, {i: rec.guesses_linear for i, rec in enumerate(records)},
         linear, effects, "diagnose step",
     )
-    fits: list[list] = [entries[i] for i in range(len(records))]  # every record's linear fits
+    # Every record's linear fits.
+    fits: list[list[CandidateFit]] = [entries[i] for i in range(len(records))]
     # Nested fits never lose: an effect at z = 0 is the nominal model, so a linear
     # candidate whose best fit ends below the nominal's log-likelihood started in the wrong
     # basin. Its record is fitted again with every candidate's second start at the nominal
@@ -119,14 +120,14 @@ def diagnose_step(
             # the nominal model), one from the record's own starting point: the nominal fit
             # may have bent its nuisances (change times, offset) to absorb the clipping.
             guesses = np.array(rec.guesses_nonlinear)
-            guesses[:, 0, W.BEFORE_EFFECT] = fits[i][0]["w"][W.BEFORE_EFFECT]
-            guesses[:, 0, W.INPUT] = fits[i][0]["w"][W.INPUT]
+            guesses[:, 0, W.BEFORE_EFFECT] = fits[i][0].w[W.BEFORE_EFFECT]
+            guesses[:, 0, W.INPUT] = fits[i][0].w[W.INPUT]
             # And a third: the nominal optimum itself, the effect at its no-effect value
             # (z = 0 is the nominal model), so that a nested fit never ends below the
             # nominal's likelihood (from the peak starts alone, a stop fit lost by
             # thousands on records that a compliant contact clipped).
             at_nominal = np.broadcast_to(
-                _at_nominal(fits[i][0]["w_trained"]), guesses[:, :1].shape
+                _at_nominal(fits[i][0].w_trained), guesses[:, :1].shape
             )
             stop_starts[i] = np.concatenate([guesses, at_nominal], axis=1)
     entries = _fit_grouped(
@@ -173,7 +174,7 @@ def _restart_from_nominal(
     again_starts = {}
     for i in losing:
         guesses = np.array(records[i].guesses_linear)
-        guesses[:, 1, :] = _at_nominal(fits[i][0]["w_trained"])
+        guesses[:, 1, :] = _at_nominal(fits[i][0].w_trained)
         again_starts[i] = guesses
     entries = _fit_grouped(
         fit_linear, nominal, records, again_starts, linear, effects,
@@ -181,7 +182,7 @@ def _restart_from_nominal(
     )
     for i, again in entries.items():
         fits[i] = [
-            new if new["objective"] < old["objective"] else old
+            new if new.objective < old.objective else old
             for old, new in zip(fits[i], again, strict=True)
         ]
         note = (

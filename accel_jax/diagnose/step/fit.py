@@ -152,7 +152,35 @@ def _barrier(w, bound):
     return BARRIER * jnp.maximum(jnp.abs(w) - bound, 0.0)
 
 
-def unpack(w, candidate, effects, base, prior_sigma, ctx):
+class CandidateModel(eqx.Module):
+    """One candidate model at its parameters w (`unpack`), as `predict` simulates it.
+
+    **Fields:** `params` the device (`ServoParams`: refitted, the effect's change applied);
+    `gain` [V/V] the test winding's gain with its polarity; `moment` [V] the external
+    moment; `rate` [V/s] a drift's rate; `dv`, `dw` [V] the initial displacement and
+    velocity; `shift` (J,) [samples] each change's time shift; `step` (J,) [V] each
+    change's ΔU_test (a measured input's level errors added); `inverse_stop` [1/V] the
+    stops' inverse voltage (0: no stops); `output_offset` [V]; `phi`, `share` the noise
+    model's AR(1) coefficient and white share (0, 0: white); `penalties` the residuals of
+    every prior and barrier.
+    """
+
+    params: ServoParams
+    gain: jax.Array
+    moment: jax.Array
+    rate: jax.Array
+    dv: jax.Array
+    dw: jax.Array
+    shift: jax.Array
+    step: jax.Array
+    inverse_stop: jax.Array
+    output_offset: jax.Array
+    phi: jax.Array
+    share: jax.Array
+    penalties: jax.Array
+
+
+def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
     """The model of candidate `candidate` (0: nominal; i: effect i − 1 of `effects`) at the
     parameters w = [refit z (4), moment, gain z, dv, dw, effect slot (2), change times (J)]
     and, for a measured test input (`ctx.level_sigma`), the errors of the levels after each
@@ -212,21 +240,21 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx):
             levels,  # the level errors' standard normal prior (empty for an exact input)
         ]
     )
-    return {
-        "params": params,
-        "gain": gain,
-        "moment": ctx.scale * w[W.MOMENT],
-        "rate": rate,
-        "dv": ctx.scale * w[W.DV],
-        "dw": ctx.scale * w[W.DW],
-        "shift": shift,
-        "step": step,
-        "inverse_stop": inverse,
-        "output_offset": offset,
-        "phi": phi,
-        "share": share,
-        "penalties": penalties,
-    }
+    return CandidateModel(
+        params=params,
+        gain=gain,
+        moment=ctx.scale * w[W.MOMENT],
+        rate=rate,
+        dv=ctx.scale * w[W.DV],
+        dw=ctx.scale * w[W.DW],
+        shift=shift,
+        step=step,
+        inverse_stop=inverse,
+        output_offset=offset,
+        phi=phi,
+        share=share,
+        penalties=penalties,
+    )
 
 
 def moment_jumps(params, ctx, gain: float | jax.Array = 1.0):
@@ -237,30 +265,30 @@ def moment_jumps(params, ctx, gain: float | jax.Array = 1.0):
     return ctx.accel_sign * gain * accel_moment(params) * ctx.change_accel
 
 
-def predict(m, ctx, n, nonlinear: bool):
+def predict(m: CandidateModel, ctx, n, nonlinear: bool):
     sequence = SequenceInputs(
         ctx.first_level,
-        m["gain"],
-        m["moment"],
-        m["rate"],
-        m["dv"],
-        m["dw"],
+        m.gain,
+        m.moment,
+        m.rate,
+        m.dv,
+        m.dw,
         ctx.change_index,
-        m["step"],
-        m["shift"],
-        moment_jumps(m["params"], ctx, m.get("accel_gain", 1.0)),
+        m.step,
+        m.shift,
+        moment_jumps(m.params, ctx),
     )
-    args = (m["params"], ctx.dt, n, sequence)
+    args = (m.params, ctx.dt, n, sequence)
     if not nonlinear:
         record = linear_record(
             *args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration
         )
-        return record + m["output_offset"]
-    inverse = m["inverse_stop"]
+        return record + m.output_offset
+    inverse = m.inverse_stop
     safe = jnp.where(inverse > 0, inverse, 1.0)
     stop = jnp.where(inverse > 0, ctx.half / safe, 1e6 * ctx.half)
     record = stop_record(*args, stop, -stop, block=ctx.block, duration=ctx.duration)
-    return record + m["output_offset"]
+    return record + m.output_offset
 
 
 def innovation_terms(error, phi, share):
@@ -380,12 +408,12 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
     def error_of(w, candidate):
         m = unpack(w, candidate, effects, base, prior_sigma, ctx)
         prediction = predict(m, ctx, n, nonlinear)
-        a, log_v = innovation_terms(u_out - prediction, m["phi"], m["share"])
+        a, log_v = innovation_terms(u_out - prediction, m.phi, m.share)
         return m, prediction, a, log_v
 
     def residuals(w, candidate):
         m, _, a, _ = error_of(w, candidate)
-        return jnp.concatenate([a * ctx.train / ctx.sigma_ref, m["penalties"]])
+        return jnp.concatenate([a * ctx.train / ctx.sigma_ref, m.penalties])
 
     solver = optx.LevenbergMarquardt(
         rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE, linear_solver=lx.Normal(lx.Cholesky())
@@ -445,7 +473,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
             if ctx.level_sigma is not None:  # a held-out level's error, under its prior
                 prior = jnp.concatenate([prior, ctx.held_out_level * levels])
             out = jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])
-            train = jnp.sum((a * ctx.train / ctx.sigma_ref) ** 2) + jnp.sum(m["penalties"] ** 2)
+            train = jnp.sum((a * ctx.train / ctx.sigma_ref) ** 2) + jnp.sum(m.penalties**2)
             return out, (out, train)
 
         def refine(base):

@@ -68,7 +68,7 @@ from .fit import (
 )
 from .layout import N_LAG_STATES, Own, Shared, W
 from .record import MAX_CHANGES, prepare, prior_sigma_of, stack_on_host
-from .state import StepRecord
+from .state import JointFit, JointScore, StepRecord
 
 CANDIDATES = ("nominal", "torquer_lag", "output_filter")
 """The joint fit's models: the nominal device and the two lags that a small step cannot
@@ -413,12 +413,11 @@ def _start(prepared: PreparedSet) -> np.ndarray:
 
 def fit_set(
     prepared: PreparedSet, nominal: NominalDevice, candidates=CANDIDATES, start=None, starts=None
-):
-    """Fit the candidates to the set. Returns one dict per candidate: x, cost, prediction
-    (records, blocks), penalties, converged. The nominal is fitted first (from `start`, by
-    default `_start`'s regression); each lag starts from its solution with the lag at
-    `LAG_STARTS`. `starts` {candidate: x} instead starts each candidate from its own x, its
-    lag included (all in one batch, at most `MAX_STEPS`)."""
+) -> dict[str, JointFit]:
+    """Fit the candidates to the set. Returns {candidate: its fit (`JointFit`)}. The nominal
+    is fitted first (from `start`, by default `_start`'s regression); each lag starts from
+    its solution with the lag at `LAG_STARTS`. `starts` {candidate: x} instead starts each
+    candidate from its own x, its lag included (all in one batch, at most `MAX_STEPS`)."""
     names = list(candidates)
     base = nominal.params
     prior_sigma = jnp.asarray(prior_sigma_of(nominal))
@@ -437,12 +436,12 @@ def fit_set(
         out = _fit(x, ids, *args, MAX_STEPS)
         return {c: _best(out, [i]) for i, c in enumerate(names)}
     x0 = _start(prepared) if start is None else np.asarray(start)
-    fits = {}
+    fits: dict[str, JointFit] = {}
     if "nominal" in names:
         starts = np.stack([x0])
         out = _fit(jnp.asarray(starts), jnp.zeros(1, jnp.int32), *args, NOMINAL_MAX_STEPS)
-        fits["nominal"] = _best(out, [0])
-        x0 = np.asarray(fits["nominal"]["x"])
+        nominal_fit = fits["nominal"] = _best(out, [0])
+        x0 = np.asarray(nominal_fit.x)
     lags = [c for c in names if c != "nominal"]
     if lags:
         starts, ids, owners = [], [], []
@@ -459,27 +458,27 @@ def fit_set(
     return fits
 
 
-def _best(out, rows):
+def _best(out, rows) -> JointFit:
     x, cost, prediction, penalties, solved, steps = (np.asarray(o) for o in out)
     i = rows[int(np.argmin(cost[rows]))]
-    return {
-        "x": x[i],
-        "cost": float(cost[i]),
-        "prediction": prediction[i],
-        "penalties": penalties[i],
-        "converged": bool(solved[i]),
-        "steps": [int(steps[k]) for k in rows],
-    }
+    return JointFit(
+        x=x[i],
+        cost=float(cost[i]),
+        prediction=prediction[i],
+        penalties=penalties[i],
+        converged=bool(solved[i]),
+        steps=[int(steps[k]) for k in rows],
+    )
 
 
-def _score(fit, prepared: PreparedSet, nominal: NominalDevice) -> dict:
+def _score(fit: JointFit, prepared: PreparedSet, nominal: NominalDevice) -> JointScore:
     """Profiled log-likelihood, per-record excess over the floor, and the physical values."""
     preps = prepared.preps
     log_like = 0.0
     records = []
     for r, p in enumerate(preps):
         n = p.n
-        error = prepared.data[r, :n] - fit["prediction"][r, :n]
+        error = prepared.data[r, :n] - fit.prediction[r, :n]
         rss = max(float(np.sum(error**2)), 1e-300)
         log_like += -0.5 * n * math.log(rss / n)
         sigma = p.sigma
@@ -492,16 +491,18 @@ def _score(fit, prepared: PreparedSet, nominal: NominalDevice) -> dict:
                 "at_floor": bool(over <= openworld.FLOOR_FACTOR),
             }
         )
-    shared = fit["x"][:N_SHARED]
+    shared = fit.x[:N_SHARED]
     priors = np.concatenate([shared[Shared.REFIT], shared[Shared.SCALES]])
     log_like -= 0.5 * float(np.sum(priors**2))
-    return {"log_likelihood": log_like, "records": records, "n": sum(p.n for p in preps)}
+    return JointScore(log_likelihood=log_like, records=records, n=sum(p.n for p in preps))
 
 
-def shared_values(fit, prepared: PreparedSet, nominal: NominalDevice, candidate: str) -> dict:
+def shared_values(
+    fit: JointFit, prepared: PreparedSet, nominal: NominalDevice, candidate: str
+) -> dict:
     """The shared physical values of a fitted candidate."""
     base = nominal.params
-    x = fit["x"]
+    x = fit.x
     sigma = prior_sigma_of(nominal)
     refit = x[Shared.REFIT]
     values = {}
@@ -554,7 +555,9 @@ def _transfer_start(x, old: PreparedSet, new: PreparedSet) -> np.ndarray:
     return np.concatenate([shared, own.ravel()])
 
 
-def release_lag_states(prepared: PreparedSet, nominal: NominalDevice, fits: dict):
+def release_lag_states(
+    prepared: PreparedSet, nominal: NominalDevice, fits: dict[str, JointFit]
+):
     """The second stage: every candidate refitted with each record's initial lag states free
     (N(0, 1) in the record's scale), from its first-stage solution. A record that starts in
     a transient soon after a stop contact or an earlier level, with a long lag, departs from
@@ -563,6 +566,6 @@ def release_lag_states(prepared: PreparedSet, nominal: NominalDevice, fits: dict
     penalised cost can rise (a single record's misfit can). Returns the widened set and its
     fits."""
     wide = stack(prepared.preps, prepared.stop_voltage, lag_states=True)
-    starts = {c: _transfer_start(fits[c]["x"], prepared, wide) for c in fits}
+    starts = {c: _transfer_start(fits[c].x, prepared, wide) for c in fits}
     return wide, fit_set(wide, nominal, candidates=list(fits), starts=starts)
 

@@ -158,21 +158,21 @@ def _rank(fits, prepared: PreparedSet, nominal: NominalDevice):
     """Each candidate's score (`_score`) and ranking entry: evidence against the nominal
     (Schwarz: ln n per lag parameter), records at their floor, shared values."""
     scores = {c: _score(fits[c], prepared, nominal) for c in CANDIDATES}
-    n_total = scores["nominal"]["n"]
+    n_total = scores["nominal"].n
     ranking = []
     for c in CANDIDATES:
-        evidence = 2 * (scores[c]["log_likelihood"] - scores["nominal"]["log_likelihood"])
+        evidence = 2 * (scores[c].log_likelihood - scores["nominal"].log_likelihood)
         if c != "nominal":
             evidence -= math.log(n_total)
         ranking.append(
             {
                 "effect": c,
                 "evidence": float(evidence) if c != "nominal" else 0.0,
-                "all_at_floor": all(r["at_floor"] for r in scores[c]["records"]),
+                "all_at_floor": all(r["at_floor"] for r in scores[c].records),
                 "worst_excess_over_floor": max(
-                    r["excess_over_floor"] for r in scores[c]["records"]
+                    r["excess_over_floor"] for r in scores[c].records
                 ),
-                "converged": fits[c]["converged"],
+                "converged": fits[c].converged,
                 "shared": shared_values(fits[c], prepared, nominal, c),
             }
         )
@@ -225,7 +225,7 @@ def _diagnose_prepared(prepared, nominal, fits, scores, ranking, names, notes, r
     records = []
     for r, (name, p) in enumerate(zip(names, prepared.preps, strict=True)):
         entry = {"name": name, "on_stops": p.on_stops, "has_accel": p.has_accel}
-        entry.update(scores[chosen]["records"][r])
+        entry.update(scores[chosen].records[r])
         records.append(entry)
     traces = {
         "records": [
@@ -234,7 +234,7 @@ def _diagnose_prepared(prepared, nominal, fits, scores, ranking, names, notes, r
                 "t": np.asarray(p.view.t),
                 "u_out": prepared.data[r, : p.n],
                 "sigma": p.sigma,
-                "predictions": {c: fits[c]["prediction"][r, : p.n] for c in CANDIDATES},
+                "predictions": {c: fits[c].prediction[r, : p.n] for c in CANDIDATES},
             }
             for r, (name, p) in enumerate(zip(names, prepared.preps, strict=True))
         ],

@@ -12,7 +12,7 @@ import numpy as np
 
 from .fit import GAIN_SIGMA, n_timing, timing_terms
 from .layout import W
-from .state import StepRecord
+from .state import CandidateFit, StepRecord
 
 
 NUISANCE_ALPHA = 0.01
@@ -21,7 +21,7 @@ whose nuisances are what their priors say, it trips in at most this share (Bonfe
 the standardised shifts, each at most N(0, 1) under its prior: fitted shifts are shrunk)."""
 
 
-def nuisance_test(fit, rec: StepRecord) -> dict:
+def nuisance_test(fit: CandidateFit, rec: StepRecord) -> dict:
     """Every fitted nuisance of `fit` with its shift in σ of its prior, judged together.
 
     Standardised: the test winding's gain (log-normal, `GAIN_SIGMA`); each change time
@@ -33,13 +33,13 @@ def nuisance_test(fit, rec: StepRecord) -> dict:
     min(1, K · 2Φ(−max|z|)); `strained` when p < `NUISANCE_ALPHA`."""
     from scipy import stats
 
-    w = np.asarray(fit["w"])
+    w = np.asarray(fit.w)
     ctx = rec.ctx
     n_changes = int(rec.change_index.size)
     n_t = n_timing(ctx)
     timing = change_shifts(w, ctx)[:n_changes]
     delay = float(np.mean(timing)) if n_changes else 0.0
-    shifts = [("test_winding_gain", float(fit["z_gain"]))]
+    shifts = [("test_winding_gain", float(fit.z_gain))]
     if rec.clock is not None:  # the clock's rate (its shift is the delay)
         shifts.append(("input_clock_rate", float(w[W.timing(n_t)][1])))
     elif n_changes > 1:

@@ -16,7 +16,7 @@ from .fit import REFIT_FIELDS, refitted_device
 from .layout import W
 from .nuisance import change_shifts
 from .segments import segments, time_text
-from .state import RecordView, StepRecord
+from .state import CandidateFit, RecordView, StepRecord
 
 
 TRANSIENT_FRACTION = 0.25
@@ -50,18 +50,18 @@ def _describe_where(residual, rec, data, sigma) -> str:
     return where + f" (RMS {total:.3g} V over the record)"
 
 
-def _parameter_shifts(nominal, fit, rec) -> dict:
+def _parameter_shifts(nominal, fit: CandidateFit, rec: StepRecord) -> dict:
     parameters = {}
     for j, field in enumerate(REFIT_FIELDS):
         if rec.prior_sigma[j] == 0:
             continue
         value0 = float(getattr(nominal.params, field))
-        value = value0 * math.exp(rec.prior_sigma[j] * fit["z"][j])
+        value = value0 * math.exp(rec.prior_sigma[j] * fit.z[j])
         parameters[field] = {
             "nominal": value0,
             "refitted": value,
             "shift_relative": value / value0 - 1,
-            "shift_sigma": float(fit["z"][j]),
+            "shift_sigma": float(fit.z[j]),
         }
     return parameters
 
@@ -103,34 +103,54 @@ def _known_text(nominal) -> str:
     return f"taken as known from the nominal device: {lags} (a lag effect departs from these)"
 
 
-def _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict):
+def _refit_report(
+    nominal,
+    nominal_fit: CandidateFit,
+    by_name: dict[str, CandidateFit],
+    shown,
+    rec: StepRecord,
+    sigma,
+    verdict,
+    nuisance_test: dict,
+):
     """The refit as the summary shows it: the device's values under the model the verdict
     names (or the first of a tie; the nominal model when it names none), and beside them
     the nominal model's own refit, labelled as such: the refit a model without the effect
-    needs is not the device's state."""
+    needs is not the device's state; the nuisances judged together (`nuisance_test`,
+    `nuisance.nuisance_test`'s) last."""
     model_fit = by_name.get(shown) if shown else None
-    if model_fit is None or model_fit.get("z") is None:
+    if model_fit is None:
         model_fit = nominal_fit
     parameters = _parameter_shifts(nominal, model_fit, rec)
-    w = nominal_fit["w"]
+    w = nominal_fit.w
     ctx_scale = float(rec.ctx.scale)
     shifts = change_shifts(np.asarray(w), rec.ctx)[: rec.change_index.size]
-    measured = np.asarray(nominal_fit["prediction"]) + nominal_fit["error"]
-    rms_prior = float(np.sqrt(np.mean((measured - nominal_fit["prior_prediction"]) ** 2)))
-    rms_refit = float(np.sqrt(np.mean(nominal_fit["error"] ** 2)))
-    refit = {
+    measured = np.asarray(nominal_fit.prediction) + nominal_fit.error
+    rms_prior = float(np.sqrt(np.mean((measured - nominal_fit.prior_prediction) ** 2)))
+    rms_refit = float(np.sqrt(np.mean(nominal_fit.error**2)))
+
+    def scale_factor_of(fit: CandidateFit) -> float:
+        z, prior_sigma = jnp.asarray(fit.z), jnp.asarray(rec.prior_sigma)
+        return float(scale_factor(refitted_device(nominal.params, z, prior_sigma)))
+
+    scale_factors = {
+        "nominal_refit": scale_factor_of(nominal_fit),
+        "with_effect": scale_factor_of(by_name.get(shown) or nominal_fit),
+        "prior": float(scale_factor(nominal.params)),
+    }
+    return {
         "parameters": parameters,
         "model": shown if model_fit is not nominal_fit else "nominal",
         "nominal_model_parameters": _parameter_shifts(nominal, nominal_fit, rec),
-        "nominal_model_out_of_prior": nominal_fit["out_of_prior"],
+        "nominal_model_out_of_prior": list(nominal_fit.out_of_prior),
         "nominal_device": _known_values(nominal, rec),
-        "converged": nominal_fit["converged"],
-        "credible": nominal_fit["plausible"],
-        "out_of_prior": nominal_fit["out_of_prior"],
+        "converged": nominal_fit.converged,
+        "credible": nominal_fit.plausible,
+        "out_of_prior": list(nominal_fit.out_of_prior),
         "nuisances": {
             "test_winding_polarity": "reversed" if rec.polarity < 0 else "as the nominal",
-            "test_winding_gain": abs(nominal_fit["gain"]),
-            "test_winding_gain_sigma": nominal_fit["z_gain"],
+            "test_winding_gain": abs(nominal_fit.gain),
+            "test_winding_gain_sigma": nominal_fit.z_gain,
             "external_moment_V": ctx_scale * float(w[W.MOMENT]),
             "external_moment_Nm": ctx_scale * float(w[W.MOMENT]) * rec.host.torquer_gain,
             "initial_displacement_V": ctx_scale * float(w[W.DV]),
@@ -144,25 +164,15 @@ def _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict):
         "description": "J, μ, c, k_dm refitted under their prior; the nuisances (test winding "
         "polarity and gain, offset, initial state, change times) fitted in every model; "
         + _known_text(nominal),
+        "scale_factor_V_per_mps2": scale_factors,
+        "scale_factor_shift_by_effect": (
+            scale_factors["with_effect"] / scale_factors["nominal_refit"] - 1
+        ),
+        "parameter_error": bool(
+            verdict == "none" and rms_prior > 3 * sigma and rms_refit < 1.5 * sigma
+        ),
+        "nuisance_test": nuisance_test,
     }
-    scale_factors = {}
-    for label, fit in (
-        ("nominal_refit", nominal_fit),
-        ("with_effect", by_name.get(shown) or nominal_fit),
-    ):
-        device = refitted_device(
-            nominal.params, jnp.asarray(fit["z"]), jnp.asarray(rec.prior_sigma)
-        )
-        scale_factors[label] = float(scale_factor(device))
-    scale_factors["prior"] = float(scale_factor(nominal.params))
-    refit["scale_factor_V_per_mps2"] = scale_factors
-    refit["scale_factor_shift_by_effect"] = (
-        scale_factors["with_effect"] / scale_factors["nominal_refit"] - 1
-    )
-    refit["parameter_error"] = bool(
-        verdict == "none" and rms_prior > 3 * sigma and rms_refit < 1.5 * sigma
-    )
-    return refit
 
 
 def _localise(data: RecordView, residual: np.ndarray, sigma: float, rec: StepRecord) -> dict:

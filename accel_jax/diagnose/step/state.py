@@ -1,16 +1,21 @@
 """The step diagnosis's typed state of one record (host side, NumPy): what `record.prepare`
 reads from a record (`StepRecord`), the scales its effects start from and report in
 (`RecordHost`; with a candidate's fit, `CandidateHost`), the noise floor measured without a
-model (`NoiseFloor`), a measured clocked sequence's distinct levels (`LevelGroups`) and the
-shape that batches records into one compiled program (`RecordShape`).
+model (`NoiseFloor`), a measured clocked sequence's distinct levels (`LevelGroups`), the
+shape that batches records into one compiled program (`RecordShape`), each candidate's
+fit and its assessment (`CandidateFit`), and a candidate's joint fit to a set of records
+(`JointFit`) and its score (`JointScore`).
 
 Each is a frozen dataclass: a later stage that changes a record (a note added, the joint
-fit's `on_stops`, a design's floor) makes a new one with `dataclasses.replace`.
+fit's `on_stops`, a design's floor) or a fit (its assessment) makes a new one with
+`dataclasses.replace`. What the diagnosis reports stays dicts, built where it is reported
+(`verdict.ranking_entry`, `refit`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import TYPE_CHECKING, Any
 
 import equinox as eqx
@@ -19,6 +24,7 @@ import numpy as np
 from ..._data import StepData
 
 if TYPE_CHECKING:
+    from .effects import AbstractStepEffect
     from .fit import StepContext
     from .inputs import Clock
 
@@ -234,3 +240,108 @@ class StepRecord:
     def with_note(self, note: str) -> StepRecord:
         """This record with `note` added to its notes."""
         return dataclasses.replace(self, notes=self.notes + (note,))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CandidateFit:
+    """One candidate model's fit to one record (`assess.fit_entries`, host side) and, once
+    judged, its assessment (`assess.assess_fit`, `verdict.evaluate`).
+
+    **The fit:**
+
+    - `effect`: the candidate's name (`nominal` or the effect's); `model` the effect
+        (`AbstractStepEffect`; None for the nominal model); `stochastic` whether it is a
+        noise model; `k` its number of parameters.
+    - `w`: the fitted parameter vector (`layout.W`), the held-out nuisances moved;
+        `w_trained` the training optimum before they moved; `z` its refit part (4,) and
+        `z_gain` the test winding's gain z; `gain` [V/V] the test winding's gain with its
+        polarity.
+    - `log_likelihood`: the profiled ln L of the training part (with the refit's and the
+        gain's priors); `innovation_variance` [V²] the one-step prediction variance there.
+    - `prediction`, `prior_prediction` (n,) [V]: the fitted model's block means and the
+        same model with the device at its prior values; `error` (n,) [V] the measured
+        block means less `prediction`; `innovations` (n,) [V] the one-step errors.
+    - `converged`: the solver's or the Newton decrement's word (`fit.CONVERGED_DECREMENT`);
+        `steps` the solver's steps; `decrement` the Newton decrement; `objective` the
+        solver's penalised cost at `w_trained` (`assess.nested_failed`).
+    - `params`: the effect's physical values (`AbstractStepEffect.physical`; empty for the
+        nominal model).
+
+    **The assessment** (NaN / False / None before `assess.assess_fit`): `ms_train`, `ms_held`
+    [V²] the free-run errors' mean squares on the training and held-out parts,
+    `ms_held_one_step` [V²] the one-step errors' on the held-out part;
+    `model_noise_variance` [V²] the noise variance the model predicts (the floor's, or a
+    noise model's σ_w² + σ_s²); `gap_train`, `gap_held` [V] the excess over it
+    (`openworld.excess`); `explains` whether the model explains the record;
+    `explains_model_form` whether a deterministic effect explains it up to its model form
+    (`openworld.MODEL_FORM`); `out_of_prior` the refitted values beyond
+    `openworld.PRIOR_LIMIT`; `plausible` whether it is credible. A noise model's
+    `one_step_whiteness` (the held-out innovations' Ljung–Box test),
+    `free_run_over_noise_variance` (training, held-out) and `variance_consistent`; the
+    nominal model's `whiteness` (its held-out free-run errors'); None elsewhere.
+    """
+
+    effect: str
+    model: AbstractStepEffect | None
+    stochastic: bool
+    k: int
+    w: np.ndarray
+    w_trained: np.ndarray
+    z: np.ndarray
+    z_gain: float
+    gain: float
+    log_likelihood: float
+    innovation_variance: float
+    prediction: np.ndarray
+    prior_prediction: np.ndarray
+    error: np.ndarray
+    innovations: np.ndarray
+    converged: bool
+    steps: int
+    decrement: float
+    objective: float
+    params: dict[str, Any]
+    ms_train: float = math.nan
+    ms_held: float = math.nan
+    ms_held_one_step: float = math.nan
+    model_noise_variance: float = math.nan
+    gap_train: float = math.nan
+    gap_held: float = math.nan
+    explains: bool = False
+    explains_model_form: bool = False
+    out_of_prior: tuple[str, ...] = ()
+    plausible: bool = False
+    one_step_whiteness: dict[str, Any] | None = None
+    free_run_over_noise_variance: list[float] | None = None
+    variance_consistent: bool | None = None
+    whiteness: dict[str, Any] | None = None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class JointFit:
+    """One candidate's fit to a set of records of one device (`joint.fit_set`).
+
+    **Fields:** `x` the fitted vector (the shared parameters, `layout.Shared`, then each
+    record's own, `layout.Own`); `cost` the penalised cost Σr² at x (inf when not finite);
+    `prediction` (records, blocks) [V] each record's fitted block means (padded);
+    `penalties` the residuals of the priors and barriers at x; `converged` the solver's
+    word; `steps` the solver's steps of each start tried.
+    """
+
+    x: np.ndarray
+    cost: float
+    prediction: np.ndarray
+    penalties: np.ndarray
+    converged: bool
+    steps: list[int]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class JointScore:
+    """A joint fit's score (`joint._score`): `log_likelihood` the profiled ln L of every
+    record with the shared priors; `records` each record's misfit as reported (`rms_V`,
+    `noise_floor_V`, `excess_over_floor`, `at_floor`); `n` the blocks of the set."""
+
+    log_likelihood: float
+    records: list[dict[str, Any]]
+    n: int

@@ -5,6 +5,7 @@ and the refit and where the residual lies (`refit`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -13,100 +14,57 @@ from ..._data import NominalDevice
 from .. import openworld
 from ..base import SIGNIFICANCE, DiagnosisResult, held_out_gap
 from . import assess, nuisance
-from .assess import _assess
+from .assess import assess_fit
 from .fit import REFIT_FIELDS
 from .refit import _describe_where, _localise, _ranges, _refit_report
-from .state import StepRecord
+from .state import CandidateFit, StepRecord
 
 LOCK_WINDOW = 10.0
 """Window after each change for the input-locked predictor, in loop time constants T."""
 
 
-def evaluate(data, nominal: NominalDevice, rec: StepRecord, fits) -> DiagnosisResult:
+def evaluate(
+    data, nominal: NominalDevice, rec: StepRecord, fits: list[CandidateFit]
+) -> DiagnosisResult:
     held, sigma = rec.held, rec.sigma
-    for fit in fits:
-        _assess(fit, rec)
+    fits = [assess_fit(fit, rec) for fit in fits]
     nominal_fit, candidates = fits[0], fits[1:]
     n_train = int(np.sum(~held))
-    nominal_fit["whiteness"] = openworld.whiteness(nominal_fit["error"][held])
-    nominal_fit["explains"] = bool(
-        nominal_fit["gap_train"] <= openworld.FLOOR_FACTOR * sigma
-        and nominal_fit["gap_held"] <= openworld.FLOOR_FACTOR * sigma
+    whiteness = openworld.whiteness(nominal_fit.error[held])
+    nominal_fit = dataclasses.replace(
+        nominal_fit,
+        whiteness=whiteness,
+        explains=bool(
+            nominal_fit.gap_train <= openworld.FLOOR_FACTOR * sigma
+            and nominal_fit.gap_held <= openworld.FLOOR_FACTOR * sigma
+        ),
     )
     # A deterministic effect also explains the record when what it leaves is a small part
     # of the gap it closed (a model-form difference, e.g. another contact law at a stop):
     # named, with the remaining gap reported (`openworld.MODEL_FORM`).
-    for fit in candidates:
-        if fit["stochastic"] or fit["explains"]:
-            continue
-        fit["explains_model_form"] = bool(
-            fit["gap_train"] <= openworld.MODEL_FORM * nominal_fit["gap_train"]
-            and fit["gap_held"] <= openworld.MODEL_FORM * nominal_fit["gap_held"]
-        )
-        fit["explains"] = fit["explains_model_form"]
+    candidates = [
+        fit if fit.stochastic or fit.explains else _up_to_model_form(fit, nominal_fit)
+        for fit in candidates
+    ]
     window = max(int(LOCK_WINDOW * rec.period / rec.dt), 4)
     predictable = openworld.predictability(
-        nominal_fit["error"], held, rec.dt, rec.change_block, rec.change_step, window
+        nominal_fit.error, held, rec.dt, rec.change_block, rec.change_step, window
     )
     # The nominal fit may stop short of its minimum: an effect's evidence is then overstated
     # by up to what the rest of the way would add to the nominal's log-likelihood.
-    slack = (
-        0.0 if nominal_fit["converged"] else assess.evidence_slack(nominal_fit, rec, n_train)
+    slack = 0.0 if nominal_fit.converged else assess.evidence_slack(nominal_fit, rec, n_train)
+    nominal_fit = dataclasses.replace(
+        nominal_fit, plausible=bool(nominal_fit.converged and not nominal_fit.out_of_prior)
     )
-    nominal_fit["plausible"] = bool(nominal_fit["converged"] and not nominal_fit["out_of_prior"])
-    entries = []
-    for fit in candidates:
-        evidence = 2 * (
-            fit["log_likelihood"]
-            - 0.5 * fit["k"] * math.log(n_train)
-            - nominal_fit["log_likelihood"]
-        )
-        if fit["stochastic"]:
-            improves = fit["ms_held_one_step"] < nominal_fit["ms_held"]
-        else:
-            improves = fit["ms_held"] < nominal_fit["ms_held"]
-        if not np.isfinite(evidence):
-            evidence = -np.inf
-        fraction = openworld.explained_fraction(nominal_fit["gap_held"], fit["gap_held"])
-        # A nested fit that ended below the nominal's likelihood is a solver failure (it
-        # was restarted from the nominal optimum first): flagged, never an effect.
-        failed = assess.nested_failed(fit, nominal_fit)
-        entry = {
-            "effect": fit["effect"],
-            "evidence": float(evidence),
-            "fit_failed": failed,
-            "objective_below_nominal": max(assess.nested_shortfall(fit, nominal_fit), 0.0),
-            "significant": bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
-            "stochastic": fit["stochastic"],
-            "explains": fit["explains"],
-            "explains_up_to_model_form": fit.get("explains_model_form", False),
-            "plausible": fit["plausible"] and not failed,
-            "explained_fraction": 0.0 if failed else fraction,
-            "gap_after_V": fit["gap_held"],
-            "gap_shrink": (
-                1 - fit["gap_held"] / nominal_fit["gap_held"]
-                if nominal_fit["gap_held"] > 0
-                else 0.0
-            ),
-            "held_out_mean_square": fit["ms_held"],
-            "held_out_one_step_mean_square": fit["ms_held_one_step"],
-            "params": fit["params"],
-            "converged": fit["converged"],
-            "fit_steps": fit["steps"],
-            "out_of_prior": fit["out_of_prior"],
-        }
-        if fit["stochastic"]:
-            entry["deterministic_misfit"] = bool(predictable.get("deterministic", False))
-            entry["one_step_whiteness"] = fit["one_step_whiteness"]
-            entry["variance_consistent"] = fit["variance_consistent"]
-            if entry["deterministic_misfit"]:
-                # A noise that absorbs a predictable misfit explains none of it.
-                entry["explained_fraction"] = 0.0
-        entries.append(entry)
+    fits = [nominal_fit, *candidates]
+    entries = [
+        ranking_entry(fit, nominal_fit, n_train=n_train, slack=slack, predictable=predictable)
+        for fit in candidates
+    ]
     nominal_status = {
-        "explains": nominal_fit["explains"],
-        "white": nominal_fit["whiteness"]["white"],
-        "plausible": nominal_fit["plausible"],
+        "explains": nominal_fit.explains,
+        "white": whiteness["white"],
+        "plausible": nominal_fit.plausible,
     }
     decision = openworld.decide(nominal_status, entries, domain=list(rec.domain_problems))
     # The nuisances judged together: a record whose nominal refit needs strained nuisances
@@ -116,20 +74,20 @@ def evaluate(data, nominal: NominalDevice, rec: StepRecord, fits) -> DiagnosisRe
         decision = {**decision, "verdict": "unexplained", "path": "nuisances"}
     entries.sort(key=lambda r: (not r["fit_failed"], r["significant"], r["evidence"]), reverse=True)
     verdict = decision["verdict"]
-    by_name = {f["effect"]: f for f in fits}
+    by_name = {f.effect: f for f in fits}
     shown = decision["chosen"] or decision["best_partial"]
     after_fit = by_name[shown] if shown else nominal_fit
-    floor_after = after_fit["model_noise_variance"] if after_fit["stochastic"] else None
+    floor_after = after_fit.model_noise_variance if after_fit.stochastic else None
     gap = held_out_gap(
-        nominal_fit["error"][held], after_fit["error"][held], sigma**2, floor_after=floor_after
+        nominal_fit.error[held], after_fit.error[held], sigma**2, floor_after=floor_after
     )
     gap.update(
         {
             "unit": "V",
             "model_after": shown or "nominal",
             "metric": "held-out free-run simulation error (RMS) in excess of the noise floor",
-            "one_step_before_rms_V": math.sqrt(nominal_fit["ms_held"]),
-            "one_step_after_rms_V": math.sqrt(after_fit["ms_held_one_step"]),
+            "one_step_before_rms_V": math.sqrt(nominal_fit.ms_held),
+            "one_step_after_rms_V": math.sqrt(after_fit.ms_held_one_step),
             "held_out": (
                 f"{int(np.sum(held))} of {rec.n} block means of {rec.block} samples: "
                 f"{rec.held_rule}"
@@ -140,8 +98,8 @@ def evaluate(data, nominal: NominalDevice, rec: StepRecord, fits) -> DiagnosisRe
         }
     )
     fraction = next((e["explained_fraction"] for e in entries if e["effect"] == shown), 0.0)
-    remaining = after_fit["gap_held"]
-    where_text = _describe_where(after_fit["error"], rec, rec.view, sigma)
+    remaining = after_fit.gap_held
+    where_text = _describe_where(after_fit.error, rec, rec.view, sigma)
     remaining_gap = {
         "V": remaining,
         "noise_floor_V": sigma,
@@ -152,12 +110,13 @@ def evaluate(data, nominal: NominalDevice, rec: StepRecord, fits) -> DiagnosisRe
     reason = _reason(
         decision, nominal_fit, by_name, entries, rec, predictable, remaining, sigma, where_text
     )
-    refit = _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict)
-    refit["nuisance_test"] = nuisances
-    where = _localise(rec.view, nominal_fit["error"], sigma, rec)
-    where["predictability"] = predictable
-    where["noise_floor"] = rec.floor.to_dict()
-    where["domain"] = rec.domain
+    refit = _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict, nuisances)
+    where = {
+        **_localise(rec.view, nominal_fit.error, sigma, rec),
+        "predictability": predictable,
+        "noise_floor": rec.floor.to_dict(),
+        "domain": rec.domain,
+    }
     chosen_fit = after_fit
     view = rec.view
     traces = {
@@ -165,14 +124,14 @@ def evaluate(data, nominal: NominalDevice, rec: StepRecord, fits) -> DiagnosisRe
         "u_test": np.asarray(view.u_test),
         "measured": np.asarray(view.u_out),
         "block_samples": rec.block,
-        "nominal_unrefitted": nominal_fit["prior_prediction"],
-        "nominal": nominal_fit["prediction"],
-        "best": chosen_fit["prediction"],
+        "nominal_unrefitted": nominal_fit.prior_prediction,
+        "nominal": nominal_fit.prediction,
+        "best": chosen_fit.prediction,
         "best_name": shown or "nominal",
-        "residual_before": nominal_fit["error"],
-        "residual_after": chosen_fit["innovations"]
-        if chosen_fit["stochastic"]
-        else chosen_fit["error"],
+        "residual_before": nominal_fit.error,
+        "residual_after": chosen_fit.innovations
+        if chosen_fit.stochastic
+        else chosen_fit.error,
         "held_out": held,
     }
     notes = list(getattr(data, "notes", ())) + list(rec.notes)
@@ -192,11 +151,88 @@ def evaluate(data, nominal: NominalDevice, rec: StepRecord, fits) -> DiagnosisRe
     )
 
 
+def _up_to_model_form(fit: CandidateFit, nominal_fit: CandidateFit) -> CandidateFit:
+    """`fit` (deterministic, not explaining the record) with `explains_model_form`: what it
+    leaves is within `openworld.MODEL_FORM` of the nominal's gap on both parts."""
+    form = bool(
+        fit.gap_train <= openworld.MODEL_FORM * nominal_fit.gap_train
+        and fit.gap_held <= openworld.MODEL_FORM * nominal_fit.gap_held
+    )
+    return dataclasses.replace(fit, explains_model_form=form, explains=form)
+
+
+def ranking_entry(
+    fit: CandidateFit, nominal_fit: CandidateFit, *, n_train: int, slack: float, predictable
+) -> dict:
+    """A candidate's entry in the diagnosis's ranking (`DiagnosisResult.ranking`, as
+    reported): its evidence 2 ln B over the nominal model (Schwarz: ln n per parameter),
+    whether it is significant (by `slack` more than `SIGNIFICANCE`, improving the held-out
+    error, its nested fit not failed), explains and is credible, and what it closes of the
+    nominal's held-out gap; a noise model's whiteness and whether the misfit it absorbs is
+    predictable (`predictable`: `openworld.predictability`)."""
+    evidence = 2 * (
+        fit.log_likelihood - 0.5 * fit.k * math.log(n_train) - nominal_fit.log_likelihood
+    )
+    if fit.stochastic:
+        improves = fit.ms_held_one_step < nominal_fit.ms_held
+    else:
+        improves = fit.ms_held < nominal_fit.ms_held
+    if not np.isfinite(evidence):
+        evidence = -np.inf
+    fraction = openworld.explained_fraction(nominal_fit.gap_held, fit.gap_held)
+    # A nested fit that ended below the nominal's likelihood is a solver failure (it
+    # was restarted from the nominal optimum first): flagged, never an effect.
+    failed = assess.nested_failed(fit, nominal_fit)
+    # A noise that absorbs a predictable misfit explains none of it.
+    absorbed = fit.stochastic and bool(predictable.get("deterministic", False))
+    noise = {}
+    if fit.stochastic:
+        noise = {
+            "deterministic_misfit": absorbed,
+            "one_step_whiteness": fit.one_step_whiteness,
+            "variance_consistent": fit.variance_consistent,
+        }
+    return {
+        "effect": fit.effect,
+        "evidence": float(evidence),
+        "fit_failed": failed,
+        "objective_below_nominal": max(assess.nested_shortfall(fit, nominal_fit), 0.0),
+        "significant": bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
+        "stochastic": fit.stochastic,
+        "explains": fit.explains,
+        "explains_up_to_model_form": fit.explains_model_form,
+        "plausible": fit.plausible and not failed,
+        "explained_fraction": 0.0 if failed or absorbed else fraction,
+        "gap_after_V": fit.gap_held,
+        "gap_shrink": (
+            1 - fit.gap_held / nominal_fit.gap_held if nominal_fit.gap_held > 0 else 0.0
+        ),
+        "held_out_mean_square": fit.ms_held,
+        "held_out_one_step_mean_square": fit.ms_held_one_step,
+        "params": fit.params,
+        "converged": fit.converged,
+        "fit_steps": fit.steps,
+        "out_of_prior": list(fit.out_of_prior),
+        **noise,
+    }
+
+
 def _pct(x: float) -> str:
     return f"{x:+.1%}" if abs(x) < 10 else f"{x:+.3g}×"
 
 
-def _reason(decision, nominal_fit, by_name, entries, rec, predictable, remaining, sigma, where):
+def _reason(
+    decision,
+    nominal_fit: CandidateFit,
+    by_name: dict[str, CandidateFit],
+    entries,
+    rec: StepRecord,
+    predictable,
+    remaining,
+    sigma,
+    where,
+):
+    whiteness = nominal_fit.whiteness or {}  # (the nominal fit's, set by `evaluate`)
     path = decision["path"]
     verdict = decision["verdict"]
     floor = f"{sigma:.3g} V noise floor"
@@ -213,8 +249,8 @@ def _reason(decision, nominal_fit, by_name, entries, rec, predictable, remaining
     if verdict == "none":
         return (
             "the refitted nominal model leaves the held-out residual at the noise floor "
-            f"(excess {nominal_fit['gap_held'] / sigma:.2f}× the {floor}) and white "
-            f"(Ljung–Box p = {nominal_fit['whiteness']['p_value']:.2g}); no effect is significant."
+            f"(excess {nominal_fit.gap_held / sigma:.2f}× the {floor}) and white "
+            f"(Ljung–Box p = {whiteness['p_value']:.2g}); no effect is significant."
         )
     entry = {e["effect"]: e for e in entries}
     if verdict == "cannot_tell":
@@ -227,17 +263,17 @@ def _reason(decision, nominal_fit, by_name, entries, rec, predictable, remaining
     if verdict != "unexplained":
         fit = by_name[verdict]
         text = (
-            f"{verdict} brings the held-out gap from {nominal_fit['gap_held']:.3g} V to "
-            f"{fit['gap_held']:.3g} V ({fit['gap_held'] / sigma:.2f}× the {floor}); evidence "
+            f"{verdict} brings the held-out gap from {nominal_fit.gap_held:.3g} V to "
+            f"{fit.gap_held:.3g} V ({fit.gap_held / sigma:.2f}× the {floor}); evidence "
             f"2 ln B = {entry[verdict]['evidence']:.1f} over the nominal model"
         )
-        if fit.get("explains_model_form"):
+        if fit.explains_model_form:
             text += (
-                f"; what remains ({fit['gap_held'] / nominal_fit['gap_held']:.1%} of the gap it "
+                f"; what remains ({fit.gap_held / nominal_fit.gap_held:.1%} of the gap it "
                 "closed) stands above the floor: the effect is right, and the record's physics "
                 "differs from its model in detail"
             )
-        if fit["stochastic"]:
+        if fit.stochastic:
             text += (
                 "; the misfit is not predictable from the input changes, a periodic component "
                 "or a trend (held-out fractions removed: "
@@ -247,21 +283,21 @@ def _reason(decision, nominal_fit, by_name, entries, rec, predictable, remaining
             )
         return text + "."
     parts = []
-    if not nominal_fit["converged"]:
+    if not nominal_fit.converged:
         parts.append("the nominal refit did not converge")
-    if nominal_fit["out_of_prior"]:
+    if nominal_fit.out_of_prior:
         moved = []
-        for field in nominal_fit["out_of_prior"]:
+        for field in nominal_fit.out_of_prior:
             if field in REFIT_FIELDS:
                 j = REFIT_FIELDS.index(field)
-                z = nominal_fit["z"][j]
+                z = nominal_fit.z[j]
                 shift = math.exp(rec.prior_sigma[j] * z) - 1
                 moved.append(f"{field} {_pct(shift)} ({z:+.1f}σ)")
         shifts = ", ".join(moved)
-        if "test_winding_gain" in nominal_fit["out_of_prior"]:
+        if "test_winding_gain" in nominal_fit.out_of_prior:
             shifts += (
                 ", " if shifts else ""
-            ) + f"test winding gain ×{abs(nominal_fit['gain']):.3g}"
+            ) + f"test winding gain ×{abs(nominal_fit.gain):.3g}"
         parts.append(
             f"the refit needs {shifts}: beyond {openworld.PRIOR_LIMIT:.0f}σ of the prior "
             "(not this device? give its values with --params)"
@@ -275,10 +311,10 @@ def _reason(decision, nominal_fit, by_name, entries, rec, predictable, remaining
         )
     else:
         significant = [e for e in entries if e["significant"]]
-        if nominal_fit["explains"] and not nominal_fit["whiteness"]["white"] and not significant:
+        if nominal_fit.explains and not whiteness["white"] and not significant:
             parts.append(
                 "the held-out residual is at the floor but not white (Ljung–Box p = "
-                f"{nominal_fit['whiteness']['p_value']:.2g}) and no library effect is significant"
+                f"{whiteness['p_value']:.2g}) and no library effect is significant"
             )
         else:
             parts.append(
