@@ -35,7 +35,7 @@ a domain check (`domain`) that refuses records the model family cannot describe.
 typed state of `state`; `segments`, `domain`), `inputs` (a measured input read as
 plateaus), `effects`, `fit` (the JAX fit of every candidate, each model a `CandidateModel`;
 `layout` names each parameter of its vector and of the joint fit's), `assess` (each
-candidate's fit, a `state.CandidateFit`, and its assessment), `verdict` (the open-world
+candidate's fit, a `state.StepFit`, and its assessment), `verdict` (the open-world
 decision; the ranking's entries, as reported, from `ranking_entry`), `refit` and `nuisance`
 (what the refit says); several records of one device: `joint` (the joint fit, each
 candidate's a `state.JointFit`), `joint_verdict` (its ranking and verdict,

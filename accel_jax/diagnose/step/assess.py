@@ -1,5 +1,5 @@
 """Each candidate of the step diagnosis judged on its own (host side): its fit read from the
-compiled fit's outputs (`fit_entries`: a `state.CandidateFit` each), its held-out gap and
+compiled fit's outputs (`fit_entries`: a `state.StepFit` each), its held-out gap and
 credibility (`assess_fit`), the slack of its evidence, whether its
 noise model explains the free-run errors (`NOISE_VARIANCE_FACTOR`), whether it explains
 the record deterministically, and whether a nested effect's fit ended below the nominal
@@ -17,7 +17,7 @@ import numpy as np
 from .. import openworld
 from .fit import GAIN_SIGMA, REFIT_FIELDS
 from .layout import W
-from .state import CandidateFit, StepRecord
+from .state import StepFit, StepRecord
 
 
 NOISE_VARIANCE_FACTOR = 4.0
@@ -41,7 +41,7 @@ def _fit_entry(
     decrement,
     objective,
     trained,
-) -> CandidateFit:
+) -> StepFit:
     train = ~rec.held
     n_train = int(np.sum(train))
     z = np.asarray(w[W.REFIT])
@@ -61,7 +61,7 @@ def _fit_entry(
     if effect is not None:
         params = effect.physical(w[W.effect(effect.n_params)], context)
     error = u_out - prediction
-    return CandidateFit(
+    return StepFit(
         effect="nominal" if effect is None else effect.name,
         model=effect,
         stochastic=bool(effect is not None and effect.stochastic),
@@ -85,8 +85,8 @@ def _fit_entry(
     )
 
 
-def fit_entries(rec: StepRecord, effects_all, candidates, outputs, u_out) -> list[CandidateFit]:
-    """Each candidate's fit (`CandidateFit`) from the outputs of `fit._fit_record` for one
+def fit_entries(rec: StepRecord, effects_all, candidates, outputs, u_out) -> list[StepFit]:
+    """Each candidate's fit (`StepFit`) from the outputs of `fit._fit_record` for one
     record (its padding cut off)."""
     w, prediction, innovations, log_v, converged, steps, prior, decrement, objective, trained = (
         np.asarray(o) for o in outputs
@@ -130,7 +130,7 @@ NESTED_ABSOLUTE = 1e-3
 """The least shortfall [in ln L units] that counts as a failed nested fit."""
 
 
-def nested_shortfall(fit: CandidateFit, nominal_fit: CandidateFit) -> float:
+def nested_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:
     """How far `fit`'s maximised penalised log-likelihood (−½ the solver's objective: the
     training residuals, the priors of the refit, the nuisances and the effect) ends below
     the nominal fit's (≤ 0: not below). The reported ln L, which leaves out the change
@@ -138,22 +138,22 @@ def nested_shortfall(fit: CandidateFit, nominal_fit: CandidateFit) -> float:
     return 0.5 * (float(fit.objective) - float(nominal_fit.objective))
 
 
-def nested_failed(fit: CandidateFit, nominal_fit: CandidateFit) -> bool:
+def nested_failed(fit: StepFit, nominal_fit: StepFit) -> bool:
     """Whether a nested fit ended below the nominal's penalised likelihood beyond
     round-off (`NESTED_TOLERANCE`)."""
     scale = 0.5 * abs(float(nominal_fit.objective))
     return nested_shortfall(fit, nominal_fit) > max(NESTED_TOLERANCE * scale, NESTED_ABSOLUTE)
 
 
-def nested_losers(fits: list[CandidateFit]) -> list[str]:
+def nested_losers(fits: list[StepFit]) -> list[str]:
     """The candidates of one record (`fits[0]` the nominal) whose fit lost to the nominal."""
     return [f.effect for f in fits[1:] if nested_failed(f, fits[0])]
 
 
-def assess_fit(fit: CandidateFit, rec: StepRecord) -> CandidateFit:
+def assess_fit(fit: StepFit, rec: StepRecord) -> StepFit:
     """Held-out and training gaps of one fit against the noise floor (its own noise model
     for a stochastic effect), credibility, and whether it explains the record: `fit` with
-    its assessment (`CandidateFit`)."""
+    its assessment (`StepFit`)."""
     held, sigma = rec.held, rec.sigma
     e = fit.error
     floor_var = sigma**2
@@ -207,7 +207,7 @@ def assess_fit(fit: CandidateFit, rec: StepRecord) -> CandidateFit:
     )
 
 
-def evidence_slack(fit: CandidateFit, rec: StepRecord, n_train: int) -> float:
+def evidence_slack(fit: StepFit, rec: StepRecord, n_train: int) -> float:
     """How much 2 ln L a fit that stopped short of its minimum could still gain.
 
     The Newton decrement D is the decrease of the cost ½Σ(a/σ)² (σ the noise floor the fit
@@ -225,7 +225,7 @@ def evidence_slack(fit: CandidateFit, rec: StepRecord, n_train: int) -> float:
     return -n_train * math.log1p(-share)
 
 
-def explains_deterministically(fit: CandidateFit, rec: StepRecord) -> bool:
+def explains_deterministically(fit: StepFit, rec: StepRecord) -> bool:
     if fit.stochastic:
         return False
     e, held, sigma = fit.error, rec.held, rec.sigma

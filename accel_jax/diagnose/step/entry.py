@@ -19,7 +19,7 @@ from .effects import step_effects
 from .fit import BATCH_CHUNK, fit_linear, fit_nonlinear
 from .layout import W
 from .record import prepare, prior_sigma_of, stack_on_host
-from .state import CandidateFit, RecordShape, StepRecord
+from .state import StepFit, RecordShape, StepRecord
 from .verdict import evaluate
 
 
@@ -46,7 +46,7 @@ def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candi
 
 def _fit_grouped(
     fn, nominal, records: list[StepRecord], starts: dict[int, np.ndarray], candidates, effects, desc
-) -> dict[int, list[CandidateFit]]:
+) -> dict[int, list[StepFit]]:
     """Fit `candidates` of the records `starts` names ({record index: its starts}), one
     batch per record shape (one compiled program each); returns {i: each candidate's fit}."""
     groups: dict[RecordShape, list[int]] = {}
@@ -100,7 +100,7 @@ def diagnose_step(
         linear, effects, "diagnose step",
     )
     # Every record's linear fits.
-    fits: list[list[CandidateFit]] = [entries[i] for i in range(len(records))]
+    fits: list[list[StepFit]] = [entries[i] for i in range(len(records))]
     # Nested fits never lose: an effect at z = 0 is the nominal model, so a linear
     # candidate whose best fit ends below the nominal's log-likelihood started in the wrong
     # basin. Its record is fitted again with every candidate's second start at the nominal

@@ -12,7 +12,7 @@ import numpy as np
 
 from .fit import GAIN_SIGMA, n_timing, timing_terms
 from .layout import W
-from .state import CandidateFit, StepRecord
+from .state import StepFit, StepRecord
 
 
 NUISANCE_ALPHA = 0.01
@@ -21,7 +21,7 @@ whose nuisances are what their priors say, it trips in at most this share (Bonfe
 the standardised shifts, each at most N(0, 1) under its prior: fitted shifts are shrunk)."""
 
 
-def nuisance_test(fit: CandidateFit, rec: StepRecord) -> dict:
+def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
     """Every fitted nuisance of `fit` with its shift in σ of its prior, judged together.
 
     Standardised: the test winding's gain (log-normal, `GAIN_SIGMA`); each change time

@@ -16,7 +16,7 @@ from .fit import REFIT_FIELDS, refitted_device
 from .layout import W
 from .nuisance import change_shifts
 from .segments import segments, time_text
-from .state import CandidateFit, RecordView, StepRecord
+from .state import StepFit, RecordView, StepRecord
 
 
 TRANSIENT_FRACTION = 0.25
@@ -50,7 +50,7 @@ def _describe_where(residual, rec, data, sigma) -> str:
     return where + f" (RMS {total:.3g} V over the record)"
 
 
-def _parameter_shifts(nominal, fit: CandidateFit, rec: StepRecord) -> dict:
+def _parameter_shifts(nominal, fit: StepFit, rec: StepRecord) -> dict:
     parameters = {}
     for j, field in enumerate(REFIT_FIELDS):
         if rec.prior_sigma[j] == 0:
@@ -105,8 +105,8 @@ def _known_text(nominal) -> str:
 
 def _refit_report(
     nominal,
-    nominal_fit: CandidateFit,
-    by_name: dict[str, CandidateFit],
+    nominal_fit: StepFit,
+    by_name: dict[str, StepFit],
     shown,
     rec: StepRecord,
     sigma,
@@ -129,7 +129,7 @@ def _refit_report(
     rms_prior = float(np.sqrt(np.mean((measured - nominal_fit.prior_prediction) ** 2)))
     rms_refit = float(np.sqrt(np.mean(nominal_fit.error**2)))
 
-    def scale_factor_of(fit: CandidateFit) -> float:
+    def scale_factor_of(fit: StepFit) -> float:
         z, prior_sigma = jnp.asarray(fit.z), jnp.asarray(rec.prior_sigma)
         return float(scale_factor(refitted_device(nominal.params, z, prior_sigma)))
 

@@ -3,7 +3,7 @@ reads from a record (`StepRecord`), the scales its effects start from and report
 (`RecordHost`; with a candidate's fit, `CandidateHost`), the noise floor measured without a
 model (`NoiseFloor`), a measured clocked sequence's distinct levels (`LevelGroups`), the
 shape that batches records into one compiled program (`RecordShape`), each candidate's
-fit and its assessment (`CandidateFit`), and a candidate's joint fit to a set of records
+fit and its assessment (`StepFit`), and a candidate's joint fit to a set of records
 (`JointFit`) and its score (`JointScore`).
 
 Each is a frozen dataclass: a later stage that changes a record (a note added, the joint
@@ -243,7 +243,7 @@ class StepRecord:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class CandidateFit:
+class StepFit:
     """One candidate model's fit to one record (`assess.fit_entries`, host side) and, once
     judged, its assessment (`assess.assess_fit`, `verdict.evaluate`).
 

@@ -17,14 +17,14 @@ from . import assess, nuisance
 from .assess import assess_fit
 from .fit import REFIT_FIELDS
 from .refit import _describe_where, _localise, _ranges, _refit_report
-from .state import CandidateFit, StepRecord
+from .state import StepFit, StepRecord
 
 LOCK_WINDOW = 10.0
 """Window after each change for the input-locked predictor, in loop time constants T."""
 
 
 def evaluate(
-    data, nominal: NominalDevice, rec: StepRecord, fits: list[CandidateFit]
+    data, nominal: NominalDevice, rec: StepRecord, fits: list[StepFit]
 ) -> DiagnosisResult:
     held, sigma = rec.held, rec.sigma
     fits = [assess_fit(fit, rec) for fit in fits]
@@ -151,7 +151,7 @@ def evaluate(
     )
 
 
-def _up_to_model_form(fit: CandidateFit, nominal_fit: CandidateFit) -> CandidateFit:
+def _up_to_model_form(fit: StepFit, nominal_fit: StepFit) -> StepFit:
     """`fit` (deterministic, not explaining the record) with `explains_model_form`: what it
     leaves is within `openworld.MODEL_FORM` of the nominal's gap on both parts."""
     form = bool(
@@ -162,7 +162,7 @@ def _up_to_model_form(fit: CandidateFit, nominal_fit: CandidateFit) -> Candidate
 
 
 def ranking_entry(
-    fit: CandidateFit, nominal_fit: CandidateFit, *, n_train: int, slack: float, predictable
+    fit: StepFit, nominal_fit: StepFit, *, n_train: int, slack: float, predictable
 ) -> dict:
     """A candidate's entry in the diagnosis's ranking (`DiagnosisResult.ranking`, as
     reported): its evidence 2 ln B over the nominal model (Schwarz: ln n per parameter),
@@ -223,8 +223,8 @@ def _pct(x: float) -> str:
 
 def _reason(
     decision,
-    nominal_fit: CandidateFit,
-    by_name: dict[str, CandidateFit],
+    nominal_fit: StepFit,
+    by_name: dict[str, StepFit],
     entries,
     rec: StepRecord,
     predictable,
