@@ -106,6 +106,7 @@ def pytest_collection_modifyitems(config, items):
         partial.replace(target)  # every worker collects the same tests: the same groups
 
 
+@pytest.hookimpl(optionalhook=True)  # a pytest-xdist hook: the suite also runs without it
 def pytest_xdist_make_scheduler(config, log):
     if config.getoption("dist") != "loadgroup":
         return None
