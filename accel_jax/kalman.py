@@ -23,3 +23,9 @@ from ._kalman import rts_smoother as rts_smoother
 from ._kalman import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
 from ._kalman_models import INSNoiseChannel as INSNoiseChannel
+from ._kalman_online import OnlineIdentification as OnlineIdentification
+from ._kalman_online import OnlineRun as OnlineRun
+from ._kalman_online import SensorErrorModel as SensorErrorModel
+from ._kalman_online import choose_structure as choose_structure
+from ._kalman_online import identify_in_flight as identify_in_flight
+from ._kalman_online import online_channel as online_channel

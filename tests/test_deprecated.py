@@ -137,7 +137,17 @@ def test_every_alias_is_in_the_changelog():
 
 _NAMESPACES = ("noise", "vibration", "kalman")
 # Names new in 0.2, in their namespace only (never at the top level, so no alias there).
-_NEW_IN_NAMESPACES = {"StaticRecordAnalysis", "HeldOutCheck", "INSNoiseChannel"}
+_NEW_IN_NAMESPACES = {
+    "StaticRecordAnalysis",
+    "HeldOutCheck",
+    "INSNoiseChannel",
+    "OnlineIdentification",
+    "OnlineRun",
+    "SensorErrorModel",
+    "choose_structure",
+    "identify_in_flight",
+    "online_channel",
+}
 
 
 def _public(module):

@@ -102,6 +102,7 @@ _LAYERS = {
         "_noise",
         "_kalman",
         "_kalman_models",
+        "_kalman_online",
         "_vibration",
         "_tolerance",
         "_sweep",
@@ -115,6 +116,8 @@ _SAME_LAYER = {
     ("_identify", "_noise"),
     ("_identify", "_sweep"),
     ("_kalman_models", "_kalman"),
+    ("_kalman_online", "_kalman"),
+    ("_kalman_online", "_noise"),
 }
 # Upward imports inside functions, each for one name: the package version for provenance,
 # and whether the user set XLA's log level before `import accel_jax`.

@@ -1,0 +1,490 @@
+"""Identification of the INS sensor-error models in flight, from the filter's own running
+estimates, with the change of model structure inside the filter (docs/models.md §4, the
+paper's section 1 and its Fig. 2); and the innovation-based adaptive filter it is compared
+with.
+
+The filter runs on the single-channel INS with each sensor's error in a two-state block,
+the exponential-cosine model (16) R(τ) = σ² e^{−α|τ|} cos βτ realised as the damped rotation
+ds = (−αI + βJ) s dt + σ√(2α) dW (J = [[0, −1], [1, 0]]; its first component is the error).
+β = 0 is the first-order Gauss–Markov model (7) (the second component is then a decoupled
+copy the observation never sees), so a change of structure is a change of β, and the
+state vector [ΔV, δ, a₁, a₂, ω₁, ω₂] keeps its shape: the whole flight is one `lax.scan`.
+
+`identify_in_flight` runs the filter block by block (`retune_every` steps). After each block:
+
+1. The filtered estimates of Δa and Δω, taken every `decimation` steps, fill a sliding
+   window (the last `window` of them); its sample autocovariance R̂_k (11) is computed over
+   `max_lag` lags by FFT.
+2. Structure: the paper's rules fit both models to R̂ — rule (15) for Gauss–Markov (lags
+   while r_j > e⁻¹), rules (19)–(21) for exponential-cosine — and a Whittle likelihood of the
+   window's periodogram under each fitted spectrum chooses: exponential-cosine when its
+   log-likelihood exceeds Gauss–Markov's by more than ½ ln(n/2) (the BIC price of β),
+   n the window's sample count. The same test is `choose_structure`, for batch use.
+3. Shrinkage: the filtered mean x̂ is a conditional mean, so its autocovariance is lower
+   than the sensor error's: by the law of total covariance, Cov(x_{t+k}, x_t) =
+   Cov(x̂_{t+k}, x̂_t) + (Φ_s(kΔ) P_s)₀₀ with P_s the filter's covariance of the sensor block
+   and Φ_s its transition (a future state is correlated with today's error through the
+   dynamics only; e_{t+k} is orthogonal to x̂_t). The window's mean P_s, carried by the
+   current model, is added to R̂ before the parameters are fitted (`correct_shrinkage`).
+   Without it the loop feeds on estimates that shrink as the filter trusts its model more.
+   The structure test of step 2 sees the estimates alone (the added term has the current
+   model's shape and would vote for the structure the filter already has).
+4. Guards: no retune before `min_window` samples are in the window, when a rule fails, or
+   when the window spans fewer than `min_correlation_times` correlation times of the new
+   model; σ and α change by at most `max_change` per retune.
+5. The chosen model's parameters are re-identified (σ² = R_0, α by (15) or (21), β by (19)),
+   the discrete model is rebuilt (Van Loan, as `INSNoiseChannel`) and the filter goes on
+   with its state and covariance.
+
+`adaptation="sage_husa"` is the baseline the paper argues against: the model structure and
+parameters stay as started and the process covariance follows the innovations alone, the
+simplified Sage–Husa estimator Q_k = (1 − d_k) Q_{k−1} + d_k K_k ν_k² K_kᵀ, d_k = (1 − b)/
+(1 − b^{k+1}), b = 1 − 1/`fading_window` (the form without P_k − Φ P_{k−1} Φᵀ, which keeps
+Q positive semi-definite). `adaptation="none"` is the filter with the models it is given.
+
+What velocity aiding can observe: ΔV' = −gδ + Δa, so the velocity record sees Δa and the
+tilt δ only through −gδ + Δa; they separate through δ's slow Schuler dynamics (period
+2π√(R/g) ≈ 84 min), so a sensor error's slow part is shared with tilt and is shrunk most
+(`tests/test_kalman_online.py` and the noise study give the steady-state variance each
+sensor error keeps).
+
+float64 throughout (gyro variances ~1e-15 rad²/s² beside g).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+from ._kalman import (
+    EARTH_RADIUS,
+    LinearGaussianModel,
+    Scalar,
+    _discretise,
+    _generator,
+    _symmetrise,
+)
+from ._noise.models import ExponentialCosine
+from ._noise.paper import fit_exp_cosine_paper, fit_gauss_markov_paper
+from ._noise.record import NoiseFitResult
+from ._params import _as_float, _concrete
+from ._static import STANDARD_GRAVITY
+
+
+class SensorErrorModel(eqx.Module):
+    """One sensor's error in the in-flight filter: R(τ) = σ² e^{−α|τ|} cos βτ, β = 0 being
+    the first-order Gauss–Markov model (τ_c = 1/α).
+
+    **Fields:** `sigma` σ [sensor unit]; `decay_rate` α [1/s]; `angular_frequency` β
+    [rad/s] (≥ 0).
+    """
+
+    sigma: Scalar = eqx.field(converter=_as_float)
+    decay_rate: Scalar = eqx.field(converter=_as_float)
+    angular_frequency: Scalar = eqx.field(converter=_as_float, default=0.0)
+
+    def __check_init__(self):
+        for name, low in (("sigma", 0.0), ("decay_rate", 0.0)):
+            value = _concrete(getattr(self, name))
+            if value is not None and not (np.all(np.isfinite(value)) and np.all(value > low)):
+                raise ValueError(f"SensorErrorModel.{name} must be positive, got {value!r}.")
+        beta = _concrete(self.angular_frequency)
+        if beta is not None and not (np.all(np.isfinite(beta)) and np.all(beta >= 0)):
+            raise ValueError(f"SensorErrorModel.angular_frequency must be ≥ 0, got {beta!r}.")
+
+    @classmethod
+    def gauss_markov(cls, sigma, correlation_time) -> SensorErrorModel:
+        return cls(sigma, 1.0 / jnp.asarray(correlation_time, float), 0.0)
+
+    def autocovariance(self, lag_times) -> Array:
+        lag_times = jnp.abs(jnp.asarray(lag_times))
+        return (
+            self.sigma**2
+            * jnp.exp(-self.decay_rate * lag_times)
+            * jnp.cos(self.angular_frequency * lag_times)
+        )
+
+    def generator(self) -> tuple[Array, Array, Array, Array]:
+        """(A_s, D_s, H_s, q) of the two-state block: −αI + βJ, 2ασ² I, [1, 0], 0."""
+        alpha, beta = self.decay_rate, self.angular_frequency
+        a = jnp.stack([jnp.stack([-alpha, -beta]), jnp.stack([beta, -alpha])])
+        d = 2 * alpha * self.sigma**2 * jnp.eye(2, dtype=a.dtype)
+        h = jnp.array([[1.0, 0.0]], dtype=a.dtype)
+        return a, d, h, jnp.zeros((), a.dtype)
+
+    def transition(self, lag_time) -> Array:
+        """Φ_s(τ) = e^{−ατ} [[cos βτ, −sin βτ], [sin βτ, cos βτ]]."""
+        c, s = jnp.cos(self.angular_frequency * lag_time), jnp.sin(self.angular_frequency * lag_time)
+        return jnp.exp(-self.decay_rate * lag_time) * jnp.array([[c, -s], [s, c]])
+
+
+def online_channel(
+    accel: SensorErrorModel,
+    gyro: SensorErrorModel,
+    velocity_noise,
+    sample_interval: float = 1.0,
+    *,
+    gravity=STANDARD_GRAVITY,
+    radius=EARTH_RADIUS,
+) -> LinearGaussianModel:
+    """The discrete six-state channel [ΔV, δ, a₁, a₂, ω₁, ω₂] (exact, Van Loan) with the two
+    sensor blocks of `SensorErrorModel`; z = ΔV + v, R = σ_v². The same generator and
+    discretisation as `INSNoiseChannel` (tests check the two agree)."""
+    a, d, h = _generator(
+        jnp.asarray(gravity, float), jnp.asarray(radius, float), accel.generator(), gyro.generator()
+    )
+    return _discretise(a, d, h, jnp.asarray(velocity_noise, float), sample_interval)
+
+
+class OnlineIdentification(eqx.Module):
+    """Settings of `identify_in_flight` (steps and samples are counts at the filter's rate).
+
+    - `adaptation`: "identify" (the paper's loop), "sage_husa" (the innovation-based
+      baseline) or "none" (the filter with the models it is given).
+    - `retune_every`: steps per block; the models are re-identified after each.
+    - `decimation`: the estimates enter the autocovariance every `decimation` steps.
+    - `window`: samples (decimated) in the sliding window.
+    - `max_lag`: lags (decimated) of the autocovariance.
+    - `min_window`: samples (decimated) in the window before the first retune.
+    - `min_correlation_times`: the window must span this many correlation times 1/α̂.
+    - `max_change`: σ and α change by at most this factor per retune.
+    - `correct_shrinkage`: add the filter's propagated covariance to the estimates'
+      autocovariance (law of total covariance).
+    - `choose_structure`: let the structure test switch between Gauss–Markov and
+      exponential-cosine (otherwise each sensor keeps the structure it starts with).
+    - `fading_window`: Sage–Husa's memory N (b = 1 − 1/N), in steps.
+    """
+
+    adaptation: Literal["identify", "sage_husa", "none"] = eqx.field(static=True, default="identify")
+    retune_every: int = eqx.field(static=True, default=1800)
+    decimation: int = eqx.field(static=True, default=30)
+    window: int = eqx.field(static=True, default=2880)
+    max_lag: int = eqx.field(static=True, default=480)
+    min_window: int = eqx.field(static=True, default=720)
+    min_correlation_times: float = eqx.field(static=True, default=10.0)
+    max_change: float = eqx.field(static=True, default=10.0)
+    correct_shrinkage: bool = eqx.field(static=True, default=True)
+    choose_structure: bool = eqx.field(static=True, default=True)
+    fading_window: float = eqx.field(static=True, default=3600.0)
+
+    def __check_init__(self):
+        if self.adaptation not in ("identify", "sage_husa", "none"):
+            raise ValueError(
+                "OnlineIdentification.adaptation must be 'identify', 'sage_husa' or 'none', "
+                f"got {self.adaptation!r}."
+            )
+        for name in ("retune_every", "decimation", "window", "max_lag", "min_window"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"OnlineIdentification.{name} must be ≥ 1, got {getattr(self, name)!r}.")
+        if self.retune_every % self.decimation:
+            raise ValueError(
+                f"OnlineIdentification: retune_every ({self.retune_every}) must be a multiple "
+                f"of decimation ({self.decimation})."
+            )
+        if 2 * (self.max_lag + 1) > self.window:
+            raise ValueError(
+                f"OnlineIdentification: the window ({self.window} samples) must hold at least "
+                f"2 (max_lag + 1) = {2 * (self.max_lag + 1)} samples."
+            )
+        if not (self.max_change > 1 and self.fading_window >= 1 and self.min_correlation_times > 0):
+            raise ValueError(
+                "OnlineIdentification: max_change must be > 1, fading_window ≥ 1 and "
+                "min_correlation_times > 0."
+            )
+
+
+class OnlineRun(eqx.Module):
+    """The in-flight filter over T steps in B blocks.
+
+    **Fields:**
+
+    - `kinematic_means`: [ΔV̂, δ̂] filtered, shape (T, 2).
+    - `kinematic_covariances`: their filtered covariance, shape (T, 2, 2).
+    - `innovations`, `innovation_variances`: ν_k and S_k, shape (T,).
+    - `sensor_estimates`: the filtered Δâ, Δω̂ every `decimation` steps (the series the
+      loop identifies from), shape (T / decimation, 2).
+    - `models`: (σ, α, β) of [accelerometer, gyro] in force during each block, shape
+      (B, 2, 3) (block 0: the starting models).
+    - `retuned`: whether the models were re-identified after each block, shape (B, 2).
+    - `structure_statistic`: the Whittle log-likelihood of exponential-cosine over
+      Gauss–Markov less the BIC price after each block, shape (B, 2) (> 0: exp-cos chosen;
+      NaN where a rule failed).
+    """
+
+    kinematic_means: Array
+    kinematic_covariances: Array
+    innovations: Array
+    innovation_variances: Array
+    sensor_estimates: Array
+    models: Array
+    retuned: Array
+    structure_statistic: Array
+
+
+def _window_autocovariance(x, count, max_lag):
+    """Centred autocovariance (11) of the masked window x (zeros outside), count samples."""
+    size = x.shape[0]
+    mask = jnp.arange(size) >= size - count
+    mean = jnp.sum(jnp.where(mask, x, 0.0)) / count
+    centred = jnp.where(mask, x - mean, 0.0)
+    fft_size = 1 << (2 * size - 1).bit_length()
+    spectrum = jnp.fft.rfft(centred, n=fft_size)
+    raw = jnp.fft.irfft(spectrum * jnp.conj(spectrum), n=fft_size)[: max_lag + 1]
+    lags = jnp.arange(max_lag + 1, dtype=x.dtype)
+    return raw / jnp.maximum(count - lags, 1.0), centred
+
+
+def _whittle(periodogram, omega, model: SensorErrorModel, lag_time, weight):
+    f = ExponentialCosine.discrete_spectrum(
+        omega,
+        model.sigma**2,
+        jnp.exp(-model.decay_rate * lag_time),
+        model.angular_frequency * lag_time,
+    )
+    return -weight * jnp.sum(jnp.log(f) + periodogram / f)
+
+
+def choose_structure(
+    autocovariance: ArrayLike,
+    centred: ArrayLike,
+    count,
+    lag_time: float,
+) -> tuple[SensorErrorModel, SensorErrorModel, Array, Array, Array]:
+    """The structure test of the in-flight loop, for a window of a series.
+
+    Fits Gauss–Markov by rule (15) (lags while r_j > e⁻¹) and exponential-cosine by rules
+    (19)–(21) to `autocovariance` (R_0..R_K of the series sampled every `lag_time` s), then
+    scores both by the Whittle log-likelihood of the periodogram of `centred` (the window,
+    mean removed, zeros where empty; `count` samples in it).
+
+    **Returns:** (gauss_markov, exp_cosine, statistic, gm_ok, ec_ok): the two fitted models,
+    ℓ_ec − ℓ_gm − ½ ln(count/2) (> 0 chooses exponential-cosine; NaN where either rule
+    fails), and whether each rule succeeded. Jit/vmap-safe.
+    """
+    R = jnp.asarray(autocovariance)
+    gm = fit_gauss_markov_paper(R, lag_time, min_correlation=float(np.exp(-1)), throw=False)
+    ec = fit_exp_cosine_paper(R, lag_time, throw=False)
+    gm_ok = gm.result == NoiseFitResult.successful
+    ec_ok = ec.result == NoiseFitResult.successful
+    gm_model = SensorErrorModel(gm.model.sigma, gm.decay_rate, jnp.zeros_like(gm.decay_rate))
+    ec_model = SensorErrorModel(ec.model.sigma, ec.model.decay_rate, ec.model.angular_frequency)
+    x = jnp.asarray(centred)
+    size = x.shape[0]
+    count = jnp.asarray(count, x.dtype)
+    j = jnp.arange(1, size // 2)
+    omega = 2 * jnp.pi * j / size
+    periodogram = (jnp.abs(jnp.fft.rfft(x)) ** 2 / count)[j]
+    # The window holds `count` samples; its size // 2 frequencies oversample the
+    # count // 2 independent ones by size / count.
+    weight = count / size
+    ell_gm = _whittle(periodogram, omega, gm_model, lag_time, weight)
+    ell_ec = _whittle(periodogram, omega, ec_model, lag_time, weight)
+    statistic = ell_ec - ell_gm - 0.5 * jnp.log(count / 2)
+    statistic = jnp.where(ec_ok & gm_ok, statistic, jnp.nan)
+    return gm_model, ec_model, statistic, gm_ok, ec_ok
+
+
+def _retune(current, x_window, p_window, count, settings: OnlineIdentification, lag_time):
+    """One sensor's re-identification after a block: (model, retuned, statistic)."""
+    R, centred = _window_autocovariance(x_window, count, settings.max_lag)
+    added = None
+    if settings.correct_shrinkage:
+        mask = jnp.arange(x_window.shape[0]) >= x_window.shape[0] - count
+        p_mean = jnp.sum(jnp.where(mask[:, None, None], p_window, 0.0), axis=0) / count
+        lags = jnp.arange(settings.max_lag + 1, dtype=R.dtype) * lag_time
+        added = jax.vmap(lambda tau: (current.transition(tau) @ p_mean)[0, 0])(lags)
+    # The structure is judged on the estimates alone: the added term has the current
+    # model's shape and would vote for the structure the filter already has.
+    _, _, statistic, _, _ = choose_structure(R, centred, count, lag_time)
+    if added is not None:
+        R = R + added
+    gm, ec, _, gm_ok, ec_ok = choose_structure(R, centred, count, lag_time)
+    if settings.choose_structure:
+        use_ec = jnp.nan_to_num(statistic, nan=-1.0) > 0
+    else:
+        use_ec = current.angular_frequency > 0
+    new = jax.tree.map(lambda e, g: jnp.where(use_ec, e, g), ec, gm)
+    ok = jnp.where(use_ec, ec_ok, gm_ok)
+    span = count * lag_time
+    ok = ok & (count >= settings.min_window)
+    ok = ok & (span * new.decay_rate >= settings.min_correlation_times)
+    limit = settings.max_change
+    sigma = jnp.clip(new.sigma, current.sigma / limit, current.sigma * limit)
+    alpha = jnp.clip(new.decay_rate, current.decay_rate / limit, current.decay_rate * limit)
+    new = SensorErrorModel(sigma, alpha, new.angular_frequency)
+    model = jax.tree.map(lambda n, c: jnp.where(ok, n, c), new, current)
+    return model, ok, statistic
+
+
+def _check_log(observations, settings: OnlineIdentification):
+    z = jnp.asarray(observations, float)
+    if z.ndim != 1:
+        raise ValueError(f"identify_in_flight: observations must be 1-D (T,), got shape {z.shape}.")
+    if z.shape[0] < settings.retune_every or z.shape[0] % settings.retune_every:
+        raise ValueError(
+            f"identify_in_flight: the log's length ({z.shape[0]} steps) must be a positive "
+            f"multiple of retune_every ({settings.retune_every}); trim or pad the log."
+        )
+    concrete = _concrete(z)
+    if concrete is not None and not np.all(np.isfinite(concrete)):
+        raise ValueError(
+            f"identify_in_flight: observation {int(np.argmax(~np.isfinite(concrete)))} is not "
+            "finite; the log must be finite."
+        )
+    return z
+
+
+def identify_in_flight(
+    observations: ArrayLike,
+    accel: SensorErrorModel,
+    gyro: SensorErrorModel,
+    *,
+    velocity_noise,
+    settings: OnlineIdentification = OnlineIdentification(),
+    sample_interval: float = 1.0,
+    initial_covariance: ArrayLike | None = None,
+    gravity=STANDARD_GRAVITY,
+    radius=EARTH_RADIUS,
+) -> OnlineRun:
+    """Filter a velocity log with the six-state INS channel and re-identify its sensor
+    models in flight (see the module docstring), as one `lax.scan`; jit/vmap-safe (vmap over
+    Monte Carlo logs).
+
+    **Arguments:**
+
+    - `observations`: z_k = ΔV_k + v_k [m/s], shape (T,), T a multiple of
+      `settings.retune_every`.
+    - `accel`, `gyro`: the starting `SensorErrorModel`s [m/s², rad/s].
+    - `velocity_noise`: σ_v [m/s].
+    - `settings`: `OnlineIdentification`.
+    - `sample_interval`: Δ [s].
+    - `initial_covariance`: the prior (6 × 6) at the first observation; default diag(0.1²,
+      1e-4², sensors at their stationary σ²), the prior of `ins_initial_covariance`.
+
+    **Returns:** `OnlineRun`. float64 required.
+    """
+    z = _check_log(observations, settings)
+    dt = float(sample_interval)
+    block, dec = settings.retune_every, settings.decimation
+    n_blocks = z.shape[0] // block
+    per_block = block // dec
+    n_dec = n_blocks * per_block
+    lag_time = dec * dt
+    size = settings.window
+    if initial_covariance is None:
+        p0 = jnp.diag(
+            jnp.stack(
+                [
+                    jnp.asarray(0.01),
+                    jnp.asarray(1e-8),
+                    accel.sigma**2,
+                    accel.sigma**2,
+                    gyro.sigma**2,
+                    gyro.sigma**2,
+                ]
+            ).astype(float)
+        )
+    else:
+        p0 = jnp.asarray(initial_covariance, float)
+        if p0.shape != (6, 6):
+            raise ValueError(f"identify_in_flight: initial_covariance must be 6 × 6, got {p0.shape}.")
+    r = jnp.asarray(velocity_noise, float) ** 2
+    eye = jnp.eye(6)
+    fade = 1.0 - 1.0 / settings.fading_window
+
+    def model_of(accel, gyro):
+        return online_channel(
+            accel, gyro, velocity_noise, dt, gravity=gravity, radius=radius
+        )
+
+    def inner(carry, z_k, transition):
+        mean, cov, q, k = carry
+        innovation = z_k - mean[0]
+        s = cov[0, 0] + r
+        gain = cov[:, 0] / s
+        mean = mean + gain * innovation
+        ikh = eye - jnp.outer(gain, eye[0])
+        cov = _symmetrise(ikh @ cov @ ikh.T + r * jnp.outer(gain, gain))
+        out = (
+            mean[:2],
+            cov[:2, :2],
+            innovation,
+            s,
+            mean[jnp.array([2, 4])],
+            jnp.stack([cov[2:4, 2:4], cov[4:6, 4:6]]),
+        )
+        if settings.adaptation == "sage_husa":
+            d = (1 - fade) / (1 - fade ** (k + 1))
+            q = (1 - d) * q + d * innovation**2 * jnp.outer(gain, gain)
+        new_mean = transition @ mean
+        new_cov = _symmetrise(transition @ cov @ transition.T + q)
+        return (new_mean, new_cov, q, k + 1), out
+
+    def outer(carry, b):
+        mean, cov, q, k, models, x_buf, p_buf = carry
+        accel_m = jax.tree.map(lambda v: v[0], models)
+        gyro_m = jax.tree.map(lambda v: v[1], models)
+        discrete = model_of(accel_m, gyro_m)
+        transition = discrete.transition
+        if settings.adaptation != "sage_husa":
+            q = discrete.process_covariance
+        z_block = jax.lax.dynamic_slice_in_dim(z, b * block, block)
+        (mean, cov, q, k), out = jax.lax.scan(
+            lambda c, zk: inner(c, zk, transition), (mean, cov, q, k), z_block
+        )
+        kin_mean, kin_cov, innovation, s, sensor_mean, sensor_cov = out
+        x_buf = jax.lax.dynamic_update_slice_in_dim(x_buf, sensor_mean[dec - 1 :: dec], size + b * per_block, 0)
+        p_buf = jax.lax.dynamic_update_slice_in_dim(p_buf, sensor_cov[dec - 1 :: dec], size + b * per_block, 0)
+        params = jnp.stack(
+            [
+                jnp.stack([m.sigma, m.decay_rate, m.angular_frequency])
+                for m in (accel_m, gyro_m)
+            ]
+        )
+        if settings.adaptation == "identify":
+            end = size + (b + 1) * per_block
+            count = jnp.minimum((b + 1) * per_block, size).astype(float)
+            new_models, retuned, statistic = [], [], []
+            for i, current in enumerate((accel_m, gyro_m)):
+                x_window = jax.lax.dynamic_slice_in_dim(x_buf[:, i], end - size, size)
+                p_window = jax.lax.dynamic_slice_in_dim(p_buf[:, i], end - size, size)
+                m, ok, stat = _retune(current, x_window, p_window, count, settings, lag_time)
+                new_models.append(m)
+                retuned.append(ok)
+                statistic.append(stat)
+            models = jax.tree.map(lambda a, g: jnp.stack([a, g]), *new_models)
+            retuned = jnp.stack(retuned)
+            statistic = jnp.stack(statistic)
+        else:
+            retuned = jnp.zeros(2, bool)
+            statistic = jnp.full(2, jnp.nan)
+        return (mean, cov, q, k, models, x_buf, p_buf), (
+            (kin_mean, kin_cov, innovation, s),
+            params,
+            retuned,
+            statistic,
+        )
+
+    models = jax.tree.map(lambda a, g: jnp.stack([a, g]), accel, gyro)
+    q0 = model_of(accel, gyro).process_covariance
+    # Buffers front-padded by one window of zeros, so every window is one dynamic slice.
+    x_buf = jnp.zeros((size + n_dec, 2))
+    p_buf = jnp.zeros((size + n_dec, 2, 2, 2))
+    carry = (jnp.zeros(6), p0, q0, jnp.zeros((), float), models, x_buf, p_buf)
+    final, (steps, params, retuned, statistic) = jax.lax.scan(outer, carry, jnp.arange(n_blocks))
+    kin_mean, kin_cov, innovation, s = (v.reshape((-1,) + v.shape[2:]) for v in steps)
+    return OnlineRun(
+        kinematic_means=kin_mean,
+        kinematic_covariances=kin_cov,
+        innovations=innovation,
+        innovation_variances=s,
+        sensor_estimates=final[5][size:],
+        models=params,
+        retuned=retuned,
+        structure_statistic=statistic,
+    )
