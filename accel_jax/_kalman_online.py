@@ -15,25 +15,32 @@ state vector [ΔV, δ, a₁, a₂, ω₁, ω₂] keeps its shape: the whole flig
 1. The filtered estimates of Δa and Δω, taken every `decimation` steps, fill a sliding
    window (the last `window` of them); its sample autocovariance R̂_k (11) is computed over
    `max_lag` lags by FFT.
-2. Structure: the paper's rules fit both models to R̂ — rule (15) for Gauss–Markov (lags
-   while r_j > e⁻¹), rules (19)–(21) for exponential-cosine — and a Whittle likelihood of the
-   window's periodogram under each fitted spectrum chooses: exponential-cosine when its
-   log-likelihood exceeds Gauss–Markov's by more than ½ ln(n/2) (the BIC price of β),
-   n the window's sample count. The same test is `choose_structure`, for batch use.
-3. Shrinkage: the filtered mean x̂ is a conditional mean, so its autocovariance is lower
+2. Shrinkage: the filtered mean x̂ is a conditional mean, so its autocovariance is lower
    than the sensor error's: by the law of total covariance, Cov(x_{t+k}, x_t) =
    Cov(x̂_{t+k}, x̂_t) + (Φ_s(kΔ) P_s)₀₀ with P_s the filter's covariance of the sensor block
    and Φ_s its transition (a future state is correlated with today's error through the
    dynamics only; e_{t+k} is orthogonal to x̂_t). The window's mean P_s, carried by the
-   current model, is added to R̂ before the parameters are fitted (`correct_shrinkage`).
-   Without it the loop feeds on estimates that shrink as the filter trusts its model more.
-   The structure test of step 2 sees the estimates alone (the added term has the current
-   model's shape and would vote for the structure the filter already has).
-4. Guards: no retune before `min_window` samples are in the window, when a rule fails, or
-   when the window spans fewer than `min_correlation_times` correlation times of the new
-   model; σ and α change by at most `max_change` per retune.
-5. The chosen model's parameters are re-identified (σ² = R_0, α by (15) or (21), β by (19)),
-   the discrete model is rebuilt (Van Loan, as `INSNoiseChannel`) and the filter goes on
+   current model, is added to R̂ (`correct_shrinkage`). Without it the loop feeds on
+   estimates that shrink as the filter trusts its model more, and collapses its own
+   process noise.
+3. Both structures are fitted by the paper's rules (`structure_candidates`): Gauss–Markov by
+   rule (15) on the corrected R̂ (lags while r_j > e⁻¹); exponential-cosine by (19)–(21),
+   its β and α from the estimates' own R̂ (whose zero crossing the correction would move),
+   its σ² from the corrected R̂_0.
+4. Structure: beside the main filter run two more, each with one sensor in the other
+   structure (its latest fit). Each sensor takes exponential-cosine when, over the window,
+   the velocity log's log-likelihood under the exponential-cosine filter exceeds that under
+   the Gauss–Markov one by more than ½ ln n (n the observations counted: the BIC price of
+   β) — the test the batch selection (`select_noise_model`) makes, on the observations the
+   filter has rather than on a sensor record. Blocks count once the alternative has been
+   fitted, and the test waits for `min_window` of them. (A test on the estimates' own
+   autocorrelation was tried first and rejected: their shape follows the filter's model,
+   and it switched a Gauss–Markov accelerometer to exponential-cosine on about half the
+   logs of a filter started with too slow a model.)
+5. Guards: no retune before `min_window` samples are in the window or when a rule fails;
+   σ and α move by at most `max_change` per retune; 1/α is capped at the window's span over
+   `min_correlation_times` (`cap_correlation_time`; otherwise such a retune is refused).
+6. The discrete model is rebuilt (Van Loan, as `INSNoiseChannel`) and the filter goes on
    with its state and covariance.
 
 `adaptation="sage_husa"` is the baseline the paper argues against: the model structure and
@@ -155,9 +162,12 @@ class OnlineIdentification(eqx.Module):
     - `max_change`: σ and α change by at most this factor per retune.
     - `correct_shrinkage`: add the filter's propagated covariance to the estimates'
       autocovariance (law of total covariance).
-    - `choose_structure`: let the structure test switch between Gauss–Markov and
-      exponential-cosine (otherwise each sensor keeps the structure it starts with).
+    - `choose_structure`: run the log-likelihood structure test (two more filters) and let
+      it switch between Gauss–Markov and exponential-cosine (otherwise each sensor keeps
+      the structure it starts with).
     - `fading_window`: Sage–Husa's memory N (b = 1 − 1/N), in steps.
+    - `cap_correlation_time`: a fitted 1/α longer than the window's span over
+      `min_correlation_times` is capped there (else the retune is refused).
     """
 
     adaptation: Literal["identify", "sage_husa", "none"] = eqx.field(static=True, default="identify")
@@ -171,6 +181,7 @@ class OnlineIdentification(eqx.Module):
     correct_shrinkage: bool = eqx.field(static=True, default=True)
     choose_structure: bool = eqx.field(static=True, default=True)
     fading_window: float = eqx.field(static=True, default=3600.0)
+    cap_correlation_time: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if self.adaptation not in ("identify", "sage_husa", "none"):
@@ -211,9 +222,10 @@ class OnlineRun(eqx.Module):
     - `models`: (σ, α, β) of [accelerometer, gyro] in force during each block, shape
       (B, 2, 3) (block 0: the starting models).
     - `retuned`: whether the models were re-identified after each block, shape (B, 2).
-    - `structure_statistic`: the Whittle log-likelihood of exponential-cosine over
-      Gauss–Markov less the BIC price after each block, shape (B, 2) (> 0: exp-cos chosen;
-      NaN where a rule failed).
+    - `structure_statistic`: after each block, the window's log-likelihood of the
+      exponential-cosine filter over the Gauss–Markov one less ½ ln n, per sensor, shape
+      (B, 2) (> 0: exponential-cosine chosen; NaN before the test has enough blocks or
+      without it).
     """
 
     kinematic_means: Array
@@ -239,86 +251,76 @@ def _window_autocovariance(x, count, max_lag):
     return raw / jnp.maximum(count - lags, 1.0), centred
 
 
-def _whittle(periodogram, omega, model: SensorErrorModel, lag_time, weight):
-    f = ExponentialCosine.discrete_spectrum(
-        omega,
-        model.sigma**2,
-        jnp.exp(-model.decay_rate * lag_time),
-        model.angular_frequency * lag_time,
-    )
-    return -weight * jnp.sum(jnp.log(f) + periodogram / f)
+def structure_candidates(
+    autocovariance: ArrayLike, lag_time: float, shape: ArrayLike | None = None
+) -> tuple[SensorErrorModel, SensorErrorModel, Array, Array]:
+    """The two structures' parameters from an autocovariance by the paper's rules.
 
+    Gauss–Markov by rule (15) over the lags while r_j > e⁻¹; exponential-cosine by rules
+    (19)–(21), its α and β from `shape` when given (the autocovariance of the estimates
+    alone, whose zero crossing the shrinkage correction would move), its σ² from
+    `autocovariance`'s R_0. `autocovariance`: R_0..R_K of a series sampled every `lag_time`
+    s.
 
-def choose_structure(
-    autocovariance: ArrayLike,
-    centred: ArrayLike,
-    count,
-    lag_time: float,
-) -> tuple[SensorErrorModel, SensorErrorModel, Array, Array, Array]:
-    """The structure test of the in-flight loop, for a window of a series.
-
-    Fits Gauss–Markov by rule (15) (lags while r_j > e⁻¹) and exponential-cosine by rules
-    (19)–(21) to `autocovariance` (R_0..R_K of the series sampled every `lag_time` s), then
-    scores both by the Whittle log-likelihood of the periodogram of `centred` (the window,
-    mean removed, zeros where empty; `count` samples in it).
-
-    **Returns:** (gauss_markov, exp_cosine, statistic, gm_ok, ec_ok): the two fitted models,
-    ℓ_ec − ℓ_gm − ½ ln(count/2) (> 0 chooses exponential-cosine; NaN where either rule
-    fails), and whether each rule succeeded. Jit/vmap-safe.
+    **Returns:** (gauss_markov, exp_cosine, gm_ok, ec_ok). Jit/vmap-safe.
     """
     R = jnp.asarray(autocovariance)
     gm = fit_gauss_markov_paper(R, lag_time, min_correlation=float(np.exp(-1)), throw=False)
-    ec = fit_exp_cosine_paper(R, lag_time, throw=False)
+    ec = fit_exp_cosine_paper(R if shape is None else jnp.asarray(shape), lag_time, throw=False)
     gm_ok = gm.result == NoiseFitResult.successful
     ec_ok = ec.result == NoiseFitResult.successful
     gm_model = SensorErrorModel(gm.model.sigma, gm.decay_rate, jnp.zeros_like(gm.decay_rate))
-    ec_model = SensorErrorModel(ec.model.sigma, ec.model.decay_rate, ec.model.angular_frequency)
-    x = jnp.asarray(centred)
-    size = x.shape[0]
-    count = jnp.asarray(count, x.dtype)
-    j = jnp.arange(1, size // 2)
-    omega = 2 * jnp.pi * j / size
-    periodogram = (jnp.abs(jnp.fft.rfft(x)) ** 2 / count)[j]
-    # The window holds `count` samples; its size // 2 frequencies oversample the
-    # count // 2 independent ones by size / count.
-    weight = count / size
-    ell_gm = _whittle(periodogram, omega, gm_model, lag_time, weight)
-    ell_ec = _whittle(periodogram, omega, ec_model, lag_time, weight)
-    statistic = ell_ec - ell_gm - 0.5 * jnp.log(count / 2)
-    statistic = jnp.where(ec_ok & gm_ok, statistic, jnp.nan)
-    return gm_model, ec_model, statistic, gm_ok, ec_ok
+    ec_model = SensorErrorModel(jnp.sqrt(R[0]), ec.model.decay_rate, ec.model.angular_frequency)
+    return gm_model, ec_model, gm_ok, ec_ok
 
 
-def _retune(current, x_window, p_window, count, settings: OnlineIdentification, lag_time):
-    """One sensor's re-identification after a block: (model, retuned, statistic)."""
-    R, centred = _window_autocovariance(x_window, count, settings.max_lag)
-    added = None
+def _limit(new, current, span, settings: OnlineIdentification):
+    """The guards on one retune: σ and α move by at most `max_change`, 1/α is capped at
+    span / `min_correlation_times` (or the retune refused); returns (model, ok)."""
+    limit = settings.max_change
+    sigma = jnp.clip(new.sigma, current.sigma / limit, current.sigma * limit)
+    alpha = jnp.clip(new.decay_rate, current.decay_rate / limit, current.decay_rate * limit)
+    ok = jnp.ones((), bool)
+    if settings.cap_correlation_time:
+        # The window tells correlation times up to span / min_correlation_times: a longer
+        # fit (often the current model's own, carried in by the shrinkage correction) is
+        # capped there rather than refused.
+        alpha = jnp.maximum(alpha, settings.min_correlation_times / span)
+    else:
+        ok = span * new.decay_rate >= settings.min_correlation_times
+    return SensorErrorModel(sigma, alpha, new.angular_frequency), ok
+
+
+def _retune(current, alternative, use_ec, x_window, p_window, count, settings, lag_time):
+    """One sensor's re-identification after a block: (model, alternative, retuned,
+    alternative retuned). The
+    structure `use_ec` is decided by the caller (the log-likelihood test); the model takes
+    that structure's fit, the alternative the other's."""
+    R, _ = _window_autocovariance(x_window, count, settings.max_lag)
+    shape = R
     if settings.correct_shrinkage:
         mask = jnp.arange(x_window.shape[0]) >= x_window.shape[0] - count
         p_mean = jnp.sum(jnp.where(mask[:, None, None], p_window, 0.0), axis=0) / count
         lags = jnp.arange(settings.max_lag + 1, dtype=R.dtype) * lag_time
-        added = jax.vmap(lambda tau: (current.transition(tau) @ p_mean)[0, 0])(lags)
-    # The structure is judged on the estimates alone: the added term has the current
-    # model's shape and would vote for the structure the filter already has.
-    _, _, statistic, _, _ = choose_structure(R, centred, count, lag_time)
-    if added is not None:
-        R = R + added
-    gm, ec, _, gm_ok, ec_ok = choose_structure(R, centred, count, lag_time)
-    if settings.choose_structure:
-        use_ec = jnp.nan_to_num(statistic, nan=-1.0) > 0
-    else:
-        use_ec = current.angular_frequency > 0
-    new = jax.tree.map(lambda e, g: jnp.where(use_ec, e, g), ec, gm)
-    ok = jnp.where(use_ec, ec_ok, gm_ok)
+        R = R + jax.vmap(lambda tau: (current.transition(tau) @ p_mean)[0, 0])(lags)
+    gm, ec, gm_ok, ec_ok = structure_candidates(R, lag_time, shape)
     span = count * lag_time
-    ok = ok & (count >= settings.min_window)
-    ok = ok & (span * new.decay_rate >= settings.min_correlation_times)
-    limit = settings.max_change
-    sigma = jnp.clip(new.sigma, current.sigma / limit, current.sigma * limit)
-    alpha = jnp.clip(new.decay_rate, current.decay_rate / limit, current.decay_rate * limit)
-    new = SensorErrorModel(sigma, alpha, new.angular_frequency)
-    model = jax.tree.map(lambda n, c: jnp.where(ok, n, c), new, current)
-    return model, ok, statistic
+    enough = count >= settings.min_window
+
+    def pick(flag, base):
+        new = jax.tree.map(lambda e, g: jnp.where(flag, e, g), ec, gm)
+        new, ok = _limit(new, base, span, settings)
+        ok = ok & enough & jnp.where(flag, ec_ok, gm_ok)
+        return jax.tree.map(lambda n, c: jnp.where(ok, n, c), new, base), ok
+
+    # The guards compare each structure's fit with the last model of that structure: the
+    # current model's when it keeps its structure, the alternative's when it changes.
+    switched = use_ec != (current.angular_frequency > 0)
+    base = jax.tree.map(lambda a, c: jnp.where(switched, a, c), alternative, current)
+    other = jax.tree.map(lambda c, a: jnp.where(switched, c, a), alternative, current)
+    model, ok = pick(use_ec, base)
+    alternative, alternative_ok = pick(~use_ec, other)
+    return model, alternative, ok, alternative_ok
 
 
 def _check_log(observations, settings: OnlineIdentification):
@@ -398,84 +400,156 @@ def identify_in_flight(
     fade = 1.0 - 1.0 / settings.fading_window
 
     def model_of(accel, gyro):
-        return online_channel(
-            accel, gyro, velocity_noise, dt, gravity=gravity, radius=radius
-        )
+        return online_channel(accel, gyro, velocity_noise, dt, gravity=gravity, radius=radius)
 
-    def inner(carry, z_k, transition):
-        mean, cov, q, k = carry
+    identify = settings.adaptation == "identify"
+    test = identify and settings.choose_structure
+    # Filters run side by side: the main one, and (with the structure test) one per sensor
+    # with that sensor in the other structure, for the log-likelihood comparison.
+    n_filters = 3 if test else 1
+    window_blocks = max(1, (size * dec) // block)
+    min_blocks = max(1, -(-(settings.min_window * dec) // block))
+    log_2pi = jnp.log(2 * jnp.pi)
+
+    def update_predict(mean, cov, z_k, transition, process):
         innovation = z_k - mean[0]
         s = cov[0, 0] + r
         gain = cov[:, 0] / s
         mean = mean + gain * innovation
         ikh = eye - jnp.outer(gain, eye[0])
         cov = _symmetrise(ikh @ cov @ ikh.T + r * jnp.outer(gain, gain))
-        out = (
-            mean[:2],
-            cov[:2, :2],
-            innovation,
-            s,
-            mean[jnp.array([2, 4])],
-            jnp.stack([cov[2:4, 2:4], cov[4:6, 4:6]]),
-        )
+        log_lik = -0.5 * (log_2pi + jnp.log(s) + innovation**2 / s)
+        new_mean = transition @ mean
+        new_cov = _symmetrise(transition @ cov @ transition.T + process)
+        return new_mean, new_cov, (mean, cov, innovation, s, gain, log_lik)
+
+    def inner(carry, z_k, transitions, processes):
+        means, covs, q, k = carry
+        if settings.adaptation == "sage_husa":
+            processes = processes.at[0].set(q)
+        means, covs, (mean, cov, innovation, s, gain, log_lik) = jax.vmap(
+            update_predict, in_axes=(0, 0, None, 0, 0)
+        )(means, covs, z_k, transitions, processes)
         if settings.adaptation == "sage_husa":
             d = (1 - fade) / (1 - fade ** (k + 1))
-            q = (1 - d) * q + d * innovation**2 * jnp.outer(gain, gain)
-        new_mean = transition @ mean
-        new_cov = _symmetrise(transition @ cov @ transition.T + q)
-        return (new_mean, new_cov, q, k + 1), out
+            q = (1 - d) * q + d * innovation[0] ** 2 * jnp.outer(gain[0], gain[0])
+            # The filter predicted with the previous Q; the next step uses the new one.
+        out = (
+            mean[0, :2],
+            cov[0, :2, :2],
+            innovation[0],
+            s[0],
+            mean[0, jnp.array([2, 4])],
+            jnp.stack([cov[0, 2:4, 2:4], cov[0, 4:6, 4:6]]),
+            log_lik,
+        )
+        return (means, covs, q, k + 1), out
+
+    def sensor(models, i):
+        return jax.tree.map(lambda v: v[i], models)
+
+    def stack(a, g):
+        return jax.tree.map(lambda x, y: jnp.stack([x, y]), a, g)
 
     def outer(carry, b):
-        mean, cov, q, k, models, x_buf, p_buf = carry
-        accel_m = jax.tree.map(lambda v: v[0], models)
-        gyro_m = jax.tree.map(lambda v: v[1], models)
-        discrete = model_of(accel_m, gyro_m)
-        transition = discrete.transition
-        if settings.adaptation != "sage_husa":
-            q = discrete.process_covariance
+        means, covs, q, k, models, alternatives, valid, x_buf, p_buf, l_buf, v_buf = carry
+        accel_m, gyro_m = sensor(models, 0), sensor(models, 1)
+        pairs = [(accel_m, gyro_m)]
+        if test:
+            pairs += [(sensor(alternatives, 0), gyro_m), (accel_m, sensor(alternatives, 1))]
+        discrete = [model_of(*pair) for pair in pairs]
+        transitions = jnp.stack([m.transition for m in discrete])
+        processes = jnp.stack([m.process_covariance for m in discrete])
         z_block = jax.lax.dynamic_slice_in_dim(z, b * block, block)
-        (mean, cov, q, k), out = jax.lax.scan(
-            lambda c, zk: inner(c, zk, transition), (mean, cov, q, k), z_block
+        (means, covs, q, k), out = jax.lax.scan(
+            lambda c, zk: inner(c, zk, transitions, processes), (means, covs, q, k), z_block
         )
-        kin_mean, kin_cov, innovation, s, sensor_mean, sensor_cov = out
-        x_buf = jax.lax.dynamic_update_slice_in_dim(x_buf, sensor_mean[dec - 1 :: dec], size + b * per_block, 0)
-        p_buf = jax.lax.dynamic_update_slice_in_dim(p_buf, sensor_cov[dec - 1 :: dec], size + b * per_block, 0)
+        kin_mean, kin_cov, innovation, s, sensor_mean, sensor_cov, log_lik = out
+        at = size + b * per_block
+        x_buf = jax.lax.dynamic_update_slice_in_dim(x_buf, sensor_mean[dec - 1 :: dec], at, 0)
+        p_buf = jax.lax.dynamic_update_slice_in_dim(p_buf, sensor_cov[dec - 1 :: dec], at, 0)
         params = jnp.stack(
-            [
-                jnp.stack([m.sigma, m.decay_rate, m.angular_frequency])
-                for m in (accel_m, gyro_m)
-            ]
+            [jnp.stack([m.sigma, m.decay_rate, m.angular_frequency]) for m in (accel_m, gyro_m)]
         )
-        if settings.adaptation == "identify":
+        retuned = jnp.zeros(2, bool)
+        statistic = jnp.full(2, jnp.nan)
+        if identify:
             end = size + (b + 1) * per_block
             count = jnp.minimum((b + 1) * per_block, size).astype(float)
-            new_models, retuned, statistic = [], [], []
-            for i, current in enumerate((accel_m, gyro_m)):
+            if test:
+                block_ll = jnp.sum(log_lik, axis=0)  # (3,)
+                is_ec = models.angular_frequency > 0
+                alt_ll = block_ll[1:]
+                ll_ec = jnp.where(is_ec, block_ll[0], alt_ll)
+                ll_gm = jnp.where(is_ec, alt_ll, block_ll[0])
+                l_buf = l_buf.at[window_blocks + b].set(ll_ec - ll_gm)
+                v_buf = v_buf.at[window_blocks + b].set(valid)
+                gain = jax.lax.dynamic_slice_in_dim(l_buf, b + 1, window_blocks)
+                counted = jax.lax.dynamic_slice_in_dim(v_buf, b + 1, window_blocks)
+                n_valid = jnp.sum(counted, axis=0)
+                difference = jnp.sum(jnp.where(counted, gain, 0.0), axis=0)
+                price = 0.5 * jnp.log(jnp.maximum(n_valid, 1) * block)
+                decided = n_valid >= min_blocks
+                statistic = jnp.where(decided, difference - price, jnp.nan)
+                use_ec = jnp.where(decided, difference > price, is_ec)
+            else:
+                use_ec = models.angular_frequency > 0
+            new_models, new_alternatives, alt_ok, oks = [], [], [], []
+            for i in range(2):
                 x_window = jax.lax.dynamic_slice_in_dim(x_buf[:, i], end - size, size)
                 p_window = jax.lax.dynamic_slice_in_dim(p_buf[:, i], end - size, size)
-                m, ok, stat = _retune(current, x_window, p_window, count, settings, lag_time)
+                m, alt, ok, aok = _retune(
+                    sensor(models, i),
+                    sensor(alternatives, i),
+                    use_ec[i],
+                    x_window,
+                    p_window,
+                    count,
+                    settings,
+                    lag_time,
+                )
                 new_models.append(m)
-                retuned.append(ok)
-                statistic.append(stat)
-            models = jax.tree.map(lambda a, g: jnp.stack([a, g]), *new_models)
-            retuned = jnp.stack(retuned)
-            statistic = jnp.stack(statistic)
-        else:
-            retuned = jnp.zeros(2, bool)
-            statistic = jnp.full(2, jnp.nan)
-        return (mean, cov, q, k, models, x_buf, p_buf), (
+                new_alternatives.append(alt)
+                oks.append(ok)
+                alt_ok.append(aok)
+            models, alternatives = stack(*new_models), stack(*new_alternatives)
+            retuned = jnp.stack(oks)
+            valid = valid | jnp.stack(alt_ok)
+        return (means, covs, q, k, models, alternatives, valid, x_buf, p_buf, l_buf, v_buf), (
             (kin_mean, kin_cov, innovation, s),
             params,
             retuned,
             statistic,
         )
 
-    models = jax.tree.map(lambda a, g: jnp.stack([a, g]), accel, gyro)
+    models = stack(accel, gyro)
+    # The other structure of each sensor, before it is first identified: a placeholder
+    # (βτ_c = 1) whose log-likelihood is not counted (`valid` is False until then).
+    alternatives = stack(
+        *(
+            SensorErrorModel(m.sigma, m.decay_rate, jnp.where(m.angular_frequency > 0, 0.0, m.decay_rate))
+            for m in (accel, gyro)
+        )
+    )
     q0 = model_of(accel, gyro).process_covariance
-    # Buffers front-padded by one window of zeros, so every window is one dynamic slice.
+    # Buffers front-padded by one window, so every window is one dynamic slice.
     x_buf = jnp.zeros((size + n_dec, 2))
     p_buf = jnp.zeros((size + n_dec, 2, 2, 2))
-    carry = (jnp.zeros(6), p0, q0, jnp.zeros((), float), models, x_buf, p_buf)
+    l_buf = jnp.zeros((window_blocks + n_blocks, 2))
+    v_buf = jnp.zeros((window_blocks + n_blocks, 2), bool)
+    carry = (
+        jnp.zeros((n_filters, 6)),
+        jnp.broadcast_to(p0, (n_filters, 6, 6)),
+        q0,
+        jnp.zeros((), float),
+        models,
+        alternatives,
+        jnp.zeros(2, bool),
+        x_buf,
+        p_buf,
+        l_buf,
+        v_buf,
+    )
     final, (steps, params, retuned, statistic) = jax.lax.scan(outer, carry, jnp.arange(n_blocks))
     kin_mean, kin_cov, innovation, s = (v.reshape((-1,) + v.shape[2:]) for v in steps)
     return OnlineRun(
@@ -483,7 +557,7 @@ def identify_in_flight(
         kinematic_covariances=kin_cov,
         innovations=innovation,
         innovation_variances=s,
-        sensor_estimates=final[5][size:],
+        sensor_estimates=final[7][size:],
         models=params,
         retuned=retuned,
         structure_statistic=statistic,

@@ -13,6 +13,11 @@ sensor errors — first-order Gauss-Markov by rule (15), exponential-cosine by (
    Fig. 4) against the filter tuned with parameters identified from sensor records (Fig. 5):
    the share of time the vertical error is outside ±3σ, NEES and NIS.
 4. The Allan deviation of a gyro-drift record as the cross-check the paper names.
+5. In flight (the paper's section 1, Fig. 2; `noise_in_flight.py`): the filter re-identifies
+   its sensor models from its own running estimates as the log goes on, switching to the
+   exponential-cosine structure when its test says so, beside the wrong model, the batch
+   loop, an innovation-based adaptive filter (Sage–Husa) and the oracle, on 48 h logs whose
+   gyro drift is exponential-cosine.
 
 Writes OUT/result.json and PNG figures. Run: `python studies/noise_identification.py
 [--out DIR] [--quick]` (float64: likelihoods of 10⁴-sample records compared to a unit, and
@@ -70,6 +75,9 @@ from accel_jax.noise import (  # noqa: E402
     select_noise_model,
     simulate_noise,
 )
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import noise_in_flight  # noqa: E402
+
 from accel_jax.report import (  # noqa: E402
     Figures,
     provenance,
@@ -535,7 +543,7 @@ def filter_identification_loop(
             if estimator == "rule_15"
             else "exact Gauss-Markov ML on each (rule (15) as its start)"
         )
-        + "; the real-time sliding-window variant is not built",
+        + "; the real-time variant is the in-flight part (noise_in_flight.py)",
     }
 
 
@@ -647,6 +655,13 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
         timing["filter_loop"] = time.perf_counter() - started
         allan = allan_case(5000 if quick else 100000, k_allan, quick)
         timing["allan"] = time.perf_counter() - started
+        in_flight = noise_in_flight.in_flight_study(
+            runs=2 if quick else 64,
+            hours=12 if quick else 48,
+            key=jax.random.fold_in(k_kal, 2),
+            quick=quick,
+        )
+        timing["in_flight"] = time.perf_counter() - started
 
     gm_ml = rec["gauss_markov"]["maximum_likelihood"]
     ec_ml = rec["exp_cosine"]["maximum_likelihood"]
@@ -678,6 +693,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
         "structure_selection": {k: v for k, v in structure.items() if k != "curves"},
         "kalman": kal,
         "filter_identification_loop": loop,
+        "in_flight": in_flight,
         "allan": allan,
         "assumptions": {
             "sample_interval_s": DT,
@@ -693,6 +709,7 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             "identified_model": "σ, τ of each sensor by ML on a static record of the sensor error at 1 Hz (record_hours in kalman.identification); the filter prior uses the identified σ",
             "ins_prior": "ΔV ~ N(0, 0.1² m²/s²), δ ~ N(0, 1e-4² rad²), sensors at their stationary variance",
             "precision": "float64",
+            "in_flight": in_flight["settings"],
         },
         "provenance": provenance(
             seeds={"root": seed},
@@ -835,15 +852,11 @@ def _summary_rows(result: dict) -> list[dict]:
             "ours": f"{100 * oracle['fraction_outside_3sigma']:.2f} / {oracle['mean_nees']:.1f}",
             "paper": "—",
             "note": f"{loop['runs']} runs of {loop['hours']:g} h; log {loop['log_hours']:g} h. "
-            "Built: the batch loop (smoothed over a whole log). Not built: the paper's "
-            "real-time variant (identification over a sliding window of the filter's own "
-            "estimates as it runs, which needs a fixed-lag smoother and a retuning schedule) "
-            "and a loop whose filter carries the exponential-cosine model that structure "
-            "selection picks (the channel exists: accel_jax.kalman.INSNoiseChannel, a "
-            "white, Gauss–Markov or exp-cos error per sensor; this loop still retunes "
-            "INSChannel's Gauss–Markov states)",
+            "This batch loop retunes INSChannel's Gauss–Markov states; the real-time loop and "
+            "the batch loop with the exponential-cosine structure are the in-flight rows below",
         }
     )
+    rows.extend(_in_flight_rows(result["in_flight"]))
     for name, paper in (
         ("wrong_model", "diverges: Δδ > 3σ_δ (Fig. 4)"),
         ("identified", "consistent (Fig. 5)"),
@@ -858,6 +871,185 @@ def _summary_rows(result: dict) -> list[dict]:
             }
         )
     return rows
+
+
+def _in_flight_rows(fl: dict) -> list[dict]:
+    """The in-flight part's rows: each configuration's consistency after the loop settles,
+    the structure switches, and the causes where the loop differs."""
+    rows = []
+    configs = fl["configurations"]
+    where = f"{fl['runs']} logs of {fl['hours']} h at 1 Hz; settled = the second half"
+    for name in ("too_large", "too_small"):
+        c = configs[name]
+        v = c["variants"]
+        oracle = v["oracle"]
+        real = v["real_time_loop"]
+        # A consistent filter has 0.27 % outside ±3σ; the oracle's own share is noisy
+        # over few logs, so the factor 2 is taken against the larger of the two.
+        reference = max(oracle["outside_3sigma_settled"], 0.0027)
+        within = real["outside_3sigma_settled"] <= 2 * reference
+        shown = ", ".join(
+            f"{k.replace('_', ' ')} {100 * m['outside_3sigma_settled']:.2f} % "
+            f"(NEES {m['nees_settled']:.2f}, NIS {m['nis_settled']:.2f})"
+            for k, m in v.items()
+        )
+        gyro = c["identified_final"]["gyro"]["median"]
+        accel = c["identified_final"]["accelerometer"]["median"]
+        entry = {
+            "quantity": f"in flight, filter started with drift and diffusion "
+            f"×{c['start_factor']:g}: vertical error outside ±3σ after the loop settles, "
+            "real-time loop against the oracle",
+            "ours": f"{100 * real['outside_3sigma_settled']:.2f} % against "
+            f"{100 * oracle['outside_3sigma_settled']:.2f} %",
+            "paper": "the real-time loop keeps the filter consistent (section 1, Fig. 2)",
+            "note": f"{shown}; {where}",
+            "status": "reproduced" if within else "differs",
+        }
+        entry["explanation"] = (
+            f"identified at the end (medians): gyro {gyro['structure']} τ_c "
+            f"{gyro['correlation_time_s']:.3g} s (true exp-cos 1/α 3600 s, βτ_c 2.5), σ "
+            f"{gyro['sigma']:.3g}; accelerometer τ {accel['correlation_time_s']:.3g} s (600 s). "
+            + (
+                "The loop never retuned: the window's shrinkage-corrected autocovariance, "
+                "dominated by the filter's own covariance carried with the (too slow) starting "
+                "model, gives a correlation time the 24 h window cannot hold 10 times, so the "
+                "guard keeps the starting model (which is conservative here)"
+                if not any(any(r) for r in c["structure"]["retuned_share"])
+                else "Without the shrinkage correction the same loop ends at "
+                f"{100 * v['real_time_loop_without_shrinkage_correction']['outside_3sigma_settled']:.1f} % "
+                "outside: the estimates it fits shrink as the filter trusts its model more"
+                if "real_time_loop_without_shrinkage_correction" in v
+                else ""
+            )
+        )
+        rows.append(entry)
+        sage = v.get("sage_husa")
+        if sage is not None:
+            rows.append(
+                {
+                    "quantity": f"in flight ×{c['start_factor']:g}: innovation-based adaptive "
+                    "filter (simplified Sage–Husa) against the identification loop, settled "
+                    "outside ±3σ",
+                    "ours": f"{100 * sage['outside_3sigma_settled']:.1f} % against "
+                    f"{100 * real['outside_3sigma_settled']:.2f} %",
+                    "paper": "identification of the sensor models, not adaptation to the "
+                    "innovations, is what restores consistency",
+                    "note": f"NIS {sage['nis_settled']:.2f} (matched to the innovations) but "
+                    f"NEES {sage['nees_settled']:.3g}: Q̂ = K ν² Kᵀ is rank one along the gain, "
+                    "so the innovations are matched while the tilt and drift covariance "
+                    "collapse",
+                    "status": "reproduced"
+                    if sage["outside_3sigma_settled"] > real["outside_3sigma_settled"]
+                    else "differs",
+                }
+            )
+    ec_rate = configs["too_large"]["structure"]["gyro_exp_cosine_at_end"]
+    ec_rate_small = configs["too_small"]["structure"]["gyro_exp_cosine_at_end"]
+    shrink = configs["too_large"]["filtered_estimate_variance_over_true_oracle"]
+    lik = configs["too_large"]["log_likelihood_second_half"]
+    rows.append(
+        {
+            "quantity": "in flight: logs whose gyro drift the loop ends modelling as "
+            "exponential-cosine (the truth), started ×10 / ÷10",
+            "ours": f"{100 * ec_rate:.0f} % / {100 * ec_rate_small:.0f} %",
+            "paper": "switches to the exponential-cosine model (16)–(17) when the "
+            "correlation calls for it (section 2, Fig. 3)",
+            "note": "target ≥ 90 %; " + where,
+            "status": "reproduced" if min(ec_rate, ec_rate_small) >= 0.9 else "differs",
+            "explanation": "the structure is not observable enough from velocity aiding. The "
+            "velocity log itself barely prefers the truth: over the second half its "
+            "log-likelihood under the true models exceeds that under the models the loop "
+            f"ended with by a median {lik['true_minus_identified_median']:.1f} nats (quartiles "
+            f"{lik['true_minus_identified_quartiles'][0]:.1f}, "
+            f"{lik['true_minus_identified_quartiles'][1]:.1f}), above the BIC price of the "
+            f"extra parameter ({lik['bic_price']:.1f}) on "
+            f"{100 * lik['share_above_bic_price']:.0f} % of logs, so no likelihood test on "
+            "these logs can choose the structure on ≥ 90 % of them. The oracle filter's "
+            f"running estimate of Δω keeps {100 * shrink['gyro']:.0f} % of the drift's variance "
+            f"(Δa {100 * shrink['accelerometer']:.0f} %), the rest shared with tilt through "
+            "the Schuler loop"
+            + (
+                "; on a log that carries the structure (strong_oscillation: the drift ten "
+                "times larger, βτ_c 37.7, a 0.01 m/s reference) the loop switches on "
+                f"{100 * configs['strong_oscillation']['structure']['gyro_exp_cosine_at_end']:.0f} % "
+                "of logs"
+                if "strong_oscillation" in configs
+                else ""
+            )
+            + ". A test on the estimates' own autocorrelation (a Whittle test, tried first) "
+            "switched the Gauss–Markov accelerometer on about half the logs started ÷10: the "
+            "estimates' shape follows the filter's model",
+        }
+    )
+    false_rate = configs["gauss_markov_truth"]["structure"]["gyro_exp_cosine_at_end"]
+    rows.append(
+        {
+            "quantity": "in flight: logs with a Gauss–Markov gyro drift that the loop ends "
+            "modelling as exponential-cosine",
+            "ours": f"{100 * false_rate:.0f} %",
+            "paper": "—",
+            "note": "target ≤ 5 %; " + where,
+            "status": "reproduced" if false_rate <= 0.05 else "differs",
+        }
+    )
+    batch = configs["too_large"]["variants"].get("batch_loop")
+    if batch is not None:
+        ratio = batch["smoothed_variance_over_true_last_iteration"]
+        bg = batch["final_models_median"]["gyro"]
+        rows.append(
+            {
+                "quantity": "in flight ×10: the batch loop with the same structure test "
+                f"({batch['iterations']} iterations over the whole log), settled outside ±3σ",
+                "ours": f"{100 * batch['outside_3sigma_settled']:.2f} %",
+                "paper": "—",
+                "note": f"gyro {bg['structure']} τ_c {bg['correlation_time_s']:.3g} s; the "
+                f"smoothed estimates keep {100 * ratio['gyro']:.0f} % (Δω) and "
+                f"{100 * ratio['accelerometer']:.0f} % (Δa) of the true variance, and the fit "
+                "ignores the smoothed covariances: the bias of the batch τ is that shrinkage",
+                "status": "explained",
+            }
+        )
+    return rows
+
+
+def _in_flight_figure(figures, fl):
+    configs = fl["configurations"]
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.4))
+    for ax, name in zip(axes[:2], ("too_large", "too_small")):
+        c = configs[name]
+        for k, v in c["variants"].items():
+            per_hour = 100 * np.asarray(v["outside_3sigma_per_hour"])
+            ax.semilogy(np.arange(1, per_hour.size + 1), np.maximum(per_hour, 1e-2), label=k)
+        ax.axhline(0.27, color="k", lw=0.8, ls=":")
+        ax.set_xlabel("hour of the log")
+        ax.set_ylabel("vertical error outside ±3σ [% of the hour]")
+        ax.set_title(f"start: drift and diffusion ×{c['start_factor']:g}")
+        ax.legend(fontsize=6)
+        ax.grid(alpha=0.3, which="both")
+    ax = axes[2]
+    for name in ("too_large", "too_small", "gauss_markov_truth"):
+        tr = configs[name]["identified_trajectory_median"]
+        hours = tr["block_hours"] * np.arange(len(tr["gyro"]["correlation_time_s"]))
+        ax.semilogy(hours, tr["gyro"]["correlation_time_s"], label=f"{name}: gyro 1/α")
+    ax.axhline(3600, color="k", lw=0.8, ls=":")
+    ax.set_xlabel("hour of the log")
+    ax.set_ylabel("identified gyro correlation time [s] (median over logs)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3, which="both")
+    figures.save(
+        fig,
+        "in_flight.png",
+        (
+            f"In flight ({fl['runs']} simulated logs of {fl['hours']} h at 1 Hz per configuration; "
+            "gyro drift exponential-cosine, 1/α = 3600 s, βτ_c = 2.5; accelerometer Gauss–Markov "
+            "600 s). Left and middle: share of each hour with the vertical error outside ±3σ for "
+            "the wrong starting model, the real-time identification loop (retuned every 30 min "
+            "from a 24 h sliding window of its own estimates every 30 s), the same loop without "
+            "the shrinkage correction, the batch loop, the simplified Sage–Husa adaptive filter "
+            "and the oracle; dotted: 0.27 %, a consistent filter. Right: the gyro correlation "
+            "time the loop identifies over the log (median over logs); dotted: the truth."
+        ),
+    )
 
 
 def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
@@ -1027,6 +1219,7 @@ def make_figures(out_dir, result, rec, structure, traces) -> list[dict]:
             f"{band['n_taus']} τ (nominal 68 % each; the τ of one record are correlated)."
         ),
     )
+    _in_flight_figure(figures, result["in_flight"])
     return figures.entries
 
 

@@ -144,7 +144,7 @@ _NEW_IN_NAMESPACES = {
     "OnlineIdentification",
     "OnlineRun",
     "SensorErrorModel",
-    "choose_structure",
+    "structure_candidates",
     "identify_in_flight",
     "online_channel",
 }
