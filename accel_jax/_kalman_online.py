@@ -219,6 +219,8 @@ class OnlineRun(eqx.Module):
     - `innovations`, `innovation_variances`: ν_k and S_k, shape (T,).
     - `sensor_estimates`: the filtered Δâ, Δω̂ every `decimation` steps (the series the
       loop identifies from), shape (T / decimation, 2).
+    - `sensor_covariances`: the filter's covariance of each sensor's two-state block at
+      the same steps, shape (T / decimation, 2, 2, 2) (the shrinkage correction's P_s).
     - `models`: (σ, α, β) of [accelerometer, gyro] in force during each block, shape
       (B, 2, 3) (block 0: the starting models).
     - `retuned`: whether the models were re-identified after each block, shape (B, 2).
@@ -233,6 +235,7 @@ class OnlineRun(eqx.Module):
     innovations: Array
     innovation_variances: Array
     sensor_estimates: Array
+    sensor_covariances: Array
     models: Array
     retuned: Array
     structure_statistic: Array
@@ -558,6 +561,7 @@ def identify_in_flight(
         innovations=innovation,
         innovation_variances=s,
         sensor_estimates=final[7][size:],
+        sensor_covariances=final[8][size:],
         models=params,
         retuned=retuned,
         structure_statistic=statistic,

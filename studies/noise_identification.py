@@ -716,7 +716,9 @@ def run(out_dir: Path, *, quick: bool = False, seed: int = 20261122) -> dict:
             precision="float64",
             extra={
                 "compiled_with_most_xla_optimisations_off": (
-                    "structure selection, Kalman filter, Allan deviation" if quick else "nothing"
+                    "structure selection, Kalman filter, Allan deviation, in-flight loop"
+                    if quick
+                    else "nothing"
                 )
             },
         ),

@@ -55,7 +55,7 @@ def test_quick_compiles_one_off_work_for_speed_and_says_so(report_dir):
         "stop identification, decompositions, gradient checks, fit comparison"
     )
     assert provenance("noise_identification")[key] == (
-        "structure selection, Kalman filter, Allan deviation"
+        "structure selection, Kalman filter, Allan deviation, in-flight loop"
     )
     for name in ("vibration_compensation", "tolerance_limits", "sim_to_real_validation"):
         assert provenance(name)["xla_most_optimizations_off"] is True, name

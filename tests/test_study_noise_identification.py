@@ -82,3 +82,32 @@ def test_study_filter_identification_loop(quick_report):
     assert 2.0 < loops["rule_15"]["oracle"]["mean_nees"] < 8.0
     summary = [row["quantity"] for row in saved["summary"]]
     assert any("the §4 paper's loop" in q and "oracle" in q for q in summary)
+
+
+@pytest.mark.slow
+def test_study_in_flight(quick_report):
+    """The in-flight part (studies/noise_in_flight.py), quick: per-hour statistics for every
+    variant; the oracle's innovations are white with the variance it predicts (NIS ≈ 1); the
+    wrong starting model leaves ±3σ far more often than the oracle; the simplified Sage–Husa
+    filter matches the innovations yet its NEES is far above χ²(2)'s 2 (its covariance
+    collapses); every in-flight row of the summary has a status."""
+    from helpers import study_result
+
+    _, saved = study_result(quick_report, "noise_identification")
+    fl = saved["in_flight"]
+    assert set(fl["configurations"]) >= {"too_large", "too_small", "gauss_markov_truth"}
+    for config in fl["configurations"].values():
+        for variant in config["variants"].values():
+            assert len(variant["outside_3sigma_per_hour"]) == fl["hours"]
+            assert len(variant["nis_per_hour"]) == fl["hours"]
+        assert 0.8 < config["variants"]["oracle"]["nis_settled"] < 1.2
+        assert config["log_likelihood_second_half"]["observations"] == fl["hours"] * 1800
+    large = fl["configurations"]["too_large"]["variants"]
+    assert large["wrong_model"]["outside_3sigma_settled"] > 3 * large["oracle"][
+        "outside_3sigma_settled"
+    ] + 0.01
+    assert 0.8 < large["sage_husa"]["nis_settled"] < 1.2
+    assert large["sage_husa"]["nees_settled"] > 10
+    rows = [row for row in saved["summary"] if row["quantity"].startswith("in flight")]
+    assert len(rows) >= 6
+    assert all(row.get("status") in {"reproduced", "explained", "differs"} for row in rows)
