@@ -453,6 +453,15 @@ class _Channel(Protocol):
     def stationary_sensor_covariance(self) -> Array: ...
 
 
+def _scale_check(drift_factor, diffusion_factor):
+    for name, value in (("drift_factor", drift_factor), ("diffusion_factor", diffusion_factor)):
+        concrete = _concrete(value)
+        if concrete is not None and not (np.isfinite(concrete) and concrete > 0):
+            raise ValueError(
+                f"scale_noise_coefficients: {name} must be positive, got {concrete!r}."
+            )
+
+
 def scale_noise_coefficients(
     channel: INSChannel, *, drift_factor: float, diffusion_factor: float
 ) -> INSChannel:
@@ -462,12 +471,7 @@ def scale_noise_coefficients(
     τ' = τ/drift_factor, σ'² = σ² · diffusion_factor/drift_factor (so 2σ'²/τ' = 2σ²/τ ·
     diffusion_factor).
     """
-    for name, value in (("drift_factor", drift_factor), ("diffusion_factor", diffusion_factor)):
-        concrete = _concrete(value)
-        if concrete is not None and not (np.isfinite(concrete) and concrete > 0):
-            raise ValueError(
-                f"scale_noise_coefficients: {name} must be positive, got {concrete!r}."
-            )
+    _scale_check(drift_factor, diffusion_factor)
     sigma_scale = jnp.sqrt(jnp.asarray(diffusion_factor) / jnp.asarray(drift_factor))
     return eqx.tree_at(
         lambda c: (

@@ -27,7 +27,9 @@ from ._kalman import (
     _gauss_markov,
     _generator,
     _positive,
+    _scale_check,
 )
+from ._kalman import scale_noise_coefficients as _scale_ins_channel
 from ._params import _as_float
 from ._static import STANDARD_GRAVITY
 
@@ -131,3 +133,43 @@ class INSNoiseChannel(eqx.Module):
         errors are white)."""
         blocks = [_sensor_block(m, 1.0)[3] for m in (self.accel_error, self.gyro_error)]
         return jsl.block_diag(*blocks)
+
+
+def scale_noise_coefficients(channel, *, drift_factor: float, diffusion_factor: float):
+    """The channel with both sensors' drift coefficient multiplied by `drift_factor` and
+    diffusion (white-noise intensity) by `diffusion_factor` — the paper's mis-tuned filter
+    has factors of 10 or 1/10.
+
+    - `INSChannel`, or a `GaussMarkov` error of `INSNoiseChannel`: drift 1/τ, diffusion
+      2σ²/τ, so τ' = τ/f_drift and σ'² = σ² f_diffusion/f_drift.
+    - `ExponentialCosine`: drift α (the decay of its shaping filter), diffusion 2ασ², so
+      α' = α f_drift, σ'² = σ² f_diffusion/f_drift; β is kept.
+    - `WhiteNoise`: no drift; its intensity σ²Δ scales by f_diffusion (σ' = σ √f_diffusion).
+    """
+    if not isinstance(channel, INSNoiseChannel):
+        return _scale_ins_channel(
+            channel, drift_factor=drift_factor, diffusion_factor=diffusion_factor
+        )
+    _scale_check(drift_factor, diffusion_factor)
+    drift, diffusion = jnp.asarray(drift_factor), jnp.asarray(diffusion_factor)
+    ratio = jnp.sqrt(diffusion / drift)
+
+    def scale(model):
+        kind = getattr(model, "name")
+        if kind == "white":
+            return eqx.tree_at(lambda m: m.sigma, model, model.sigma * jnp.sqrt(diffusion))
+        if kind == "gauss_markov":
+            return eqx.tree_at(
+                lambda m: (m.sigma, m.correlation_time),
+                model,
+                (model.sigma * ratio, model.correlation_time / drift),
+            )
+        return eqx.tree_at(
+            lambda m: (m.sigma, m.decay_rate), model, (model.sigma * ratio, model.decay_rate * drift)
+        )
+
+    return eqx.tree_at(
+        lambda c: (c.accel_error, c.gyro_error),
+        channel,
+        (scale(channel.accel_error), scale(channel.gyro_error)),
+    )

@@ -20,9 +20,9 @@ from ._kalman import kalman_filter as kalman_filter
 from ._kalman import normalised_estimation_error_squared as normalised_estimation_error_squared
 from ._kalman import normalised_innovation_squared as normalised_innovation_squared
 from ._kalman import rts_smoother as rts_smoother
-from ._kalman import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
 from ._kalman_models import INSNoiseChannel as INSNoiseChannel
+from ._kalman_models import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman_online import OnlineIdentification as OnlineIdentification
 from ._kalman_online import OnlineRun as OnlineRun
 from ._kalman_online import SensorErrorModel as SensorErrorModel

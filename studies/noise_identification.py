@@ -1051,7 +1051,8 @@ def _in_flight_figure(figures, fl):
             "the wrong starting model, the real-time identification loop (retuned every 30 min "
             "from a 24 h sliding window of its own estimates every 30 s), the same loop without "
             "the shrinkage correction, the batch loop, the simplified Sage–Husa adaptive filter "
-            "and the oracle; dotted: 0.27 %, a consistent filter. Right: the gyro correlation "
+            "and the oracle (an hour with none outside is drawn at 0.01 %); dotted: 0.27 %, a "
+            "consistent filter. Right: the gyro correlation "
             "time the loop identifies over the log (median over logs); dotted: the truth."
         ),
     )

@@ -233,3 +233,37 @@ def test_bad_inputs_raise_clear_errors():
         EC_CHANNEL.discretise(0.0)
     with pytest.raises(ValueError, match="6 states and the assumed channel 4"):
         ins_consistency_trial(EC_CHANNEL, GM_CHANNEL, jax.random.key(0), num_steps=10)
+
+
+@pytest.mark.parametrize("factors", [(10.0, 0.1), (0.1, 10.0), (10.0, 10.0)])
+def test_scale_noise_coefficients_on_either_channel(factors):
+    """The paper's mis-tuning on `INSNoiseChannel`: with Gauss–Markov errors it is
+    `INSChannel`'s (the same discrete model); for exponential-cosine the generator's decay
+    α is ×drift and its diffusion 2ασ² ×diffusion, β kept; a white error's intensity
+    ×diffusion."""
+    from accel_jax.kalman import scale_noise_coefficients
+
+    drift, diffusion = factors
+    with jax.enable_x64(True):
+        gm = scale_noise_coefficients(GM_NOISE_CHANNEL, drift_factor=drift, diffusion_factor=diffusion)
+        ref = scale_noise_coefficients(GM_CHANNEL, drift_factor=drift, diffusion_factor=diffusion)
+        assert isinstance(gm, INSNoiseChannel) and isinstance(ref, INSChannel)
+        a, b = gm.discretise(DT), ref.discretise(DT)
+        np.testing.assert_allclose(a.transition, b.transition, rtol=1e-12)
+        np.testing.assert_allclose(a.process_covariance, b.process_covariance, rtol=1e-10, atol=0)
+
+        mixed = INSNoiseChannel(WhiteNoise(1e-3), GYRO_EC, velocity_noise=0.1)
+        scaled = scale_noise_coefficients(mixed, drift_factor=drift, diffusion_factor=diffusion)
+        a0, d0, _ = mixed.continuous(DT)
+        a1, d1, _ = scaled.continuous(DT)
+        np.testing.assert_allclose(a1[2:, 2:], a0[2:, 2:] * jnp.array([[drift, 1], [1, drift]]), rtol=1e-12)
+        np.testing.assert_allclose(jnp.diag(d1)[2:], jnp.diag(d0)[2:] * diffusion, rtol=1e-12)
+        np.testing.assert_allclose(d1[0, 0], d0[0, 0] * diffusion, rtol=1e-12)  # white: ΔV
+        assert float(scaled.gyro_error.angular_frequency) == float(GYRO_EC.angular_frequency)
+
+
+def test_scale_noise_coefficients_refuses_a_bad_factor():
+    from accel_jax.kalman import scale_noise_coefficients
+
+    with pytest.raises(ValueError, match="drift_factor must be positive"):
+        scale_noise_coefficients(EC_CHANNEL, drift_factor=0.0, diffusion_factor=1.0)
