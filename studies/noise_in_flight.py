@@ -311,16 +311,9 @@ def in_flight_study(runs: int, hours: int, key, quick: bool) -> dict:
         # What the velocity log itself can tell: its log-likelihood over the second half
         # under the true models against under the models the loop ended with (each log's
         # own, held fixed from the start). A structure change costs ½ ln n (BIC).
-        final_models = jax.tree.map(
-            lambda v: v,
-            tuple(
-                SensorErrorModel(
-                    jnp.asarray(models[:, -1, i, 0]),
-                    jnp.asarray(models[:, -1, i, 1]),
-                    jnp.asarray(models[:, -1, i, 2]),
-                )
-                for i in range(2)
-            ),
+        final_models = tuple(
+            SensorErrorModel(*(jnp.asarray(models[:, -1, i, j]) for j in range(3)))
+            for i in range(2)
         )
         identified_ll = _second_half_log_likelihood(
             _run_logs_each(z, *final_models, velocity_noise, fixed)
