@@ -17,6 +17,7 @@ prints a Markdown table for docs/performance.md.
 5. Single-record commands as a user runs them: `accel-jax identify` and `accel-jax diagnose`
    of one step record, each a new process, cold (an empty compilation cache) and warm (the
    cache the cold run filled), against the 8 s target of GitHub issue 24.
+6. Step records diagnosed together (`diagnose_many`): one at a time against a vmapped batch.
 """
 
 from __future__ import annotations
@@ -754,6 +755,70 @@ def bench_cli(quick: bool):
     return out
 
 
+DIAGNOSE_PER_EFFECT = 3
+"""Step records per truth class in the throughput section (six classes: none, the two lags,
+stops, drift, coloured noise), drawn as the report's blind validation draws them."""
+
+
+def bench_diagnose_batch(quick: bool):
+    """Step records diagnosed together (`diagnose_many`, one process, warm), the workload of
+    the report's blind validation (its `step` truths: 1,200 samples at 100 kHz, six test
+    levels, every class of effect, stop records fitted sample by sample): the records fitted
+    one at a time (`step.fit.BATCH_CHUNK` = 1, the default) against vmapped batches of
+    eight (the default before 2026-11-27), interleaved, median of the repeats; each setting
+    run once untimed first (compilation). The verdicts must agree."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+    import sim_to_real_validation as blind
+
+    from accel_jax.diagnose import diagnose_many
+    from accel_jax.diagnose.step import entry
+
+    repeats = 1 if quick else 3
+    per_effect = 1 if quick else DIAGNOSE_PER_EFFECT
+    rng = np.random.default_rng(2027)
+    truths = [blind._draw(rng, effect) for effect in blind.EFFECTS for _ in range(per_effect)]
+    records, _ = blind.generate(truths, 2027)
+    nominal = aj.NominalDevice.reference(**blind.NOMINAL_LAGS)
+    settings = {"one at a time": 1, "vmapped batch of 8": 8}
+    seconds = {name: [] for name in settings}
+    verdicts = {}
+    saved = entry.BATCH_CHUNK
+    try:
+        for name, chunk in settings.items():  # compile each setting once, untimed
+            entry.BATCH_CHUNK = chunk
+            verdicts[name] = [r.verdict for r in diagnose_many(records, nominal, recommend=False)]
+        for _ in range(repeats):
+            for name, chunk in settings.items():
+                entry.BATCH_CHUNK = chunk
+                start = time.perf_counter()
+                diagnose_many(records, nominal, recommend=False)
+                seconds[name].append(time.perf_counter() - start)
+    finally:
+        entry.BATCH_CHUNK = saved
+    one, batch = (_median(seconds[name]) for name in settings)
+    return {
+        "work": f"{len(records)} step records of the blind validation's step truths "
+        f"({per_effect} per class of {', '.join(blind.EFFECTS)}; seed 2027), warm, "
+        "recommend=False",
+        "repeats": repeats,
+        "seconds": seconds,
+        "one_at_a_time_s": one,
+        "batch_of_8_s": batch,
+        "ratio_batch_over_one": batch / one,
+        "verdicts": verdicts,
+        "truths": [t["effect"] for t in truths],
+        "verdicts_agree": len({tuple(v) for v in verdicts.values()}) == 1,
+    }
+
+
+def _diagnose_line(row) -> str:
+    return (
+        f"diagnose_many, {row['work']}: one record at a time {row['one_at_a_time_s']:.1f} s, "
+        f"a vmapped batch of 8 {row['batch_of_8_s']:.1f} s (×{row['ratio_batch_over_one']:.2f}; "
+        f"median of {row['repeats']}); verdicts agree: {row['verdicts_agree']}"
+    )
+
+
 def _table(result):
     mc = result["monte_carlo_identification"]
     lines = ["| benchmark | work | accel_jax | baseline | ratio |", "|---|---|---|---|---|"]
@@ -848,6 +913,11 @@ def main(argv=None):
     parser.add_argument(
         "--only-mc", action="store_true", help="run section 1 (Monte Carlo identification) alone"
     )
+    parser.add_argument(
+        "--only-diagnose",
+        action="store_true",
+        help="run section 6 (step records diagnosed together) alone",
+    )
     parser.add_argument("--mc-rate", type=int, help=argparse.SUPPRESS)  # the all-core child
     args = parser.parse_args(argv)
     if args.mc_rate:
@@ -861,6 +931,14 @@ def main(argv=None):
         result["provenance"] = provenance(seeds={"draws": [0, 1, 2, 3, 4]}, precision="float64")
         write_json_atomic(Path(args.out) / "mc.json", result)
         print(_mc_summary(result["monte_carlo_identification"]))
+        return result
+    if args.only_diagnose:
+        result = {"device": _device(), "quick": args.quick}
+        result["diagnose_batch"] = bench_diagnose_batch(args.quick)
+        result["wall_s"] = time.perf_counter() - started
+        result["provenance"] = provenance(seeds={"record": 0}, precision="float64")
+        write_json_atomic(Path(args.out) / "diagnose.json", result)
+        print(_diagnose_line(result["diagnose_batch"]))
         return result
     if args.only_cli:
         result = {"device": _device(), "quick": args.quick, "cli": bench_cli(args.quick)}
@@ -882,6 +960,8 @@ def main(argv=None):
     result["gradient"] = bench_gradient(args.quick)
     print("5. single-record commands, cold and warm…", flush=True)
     result["cli"] = bench_cli(args.quick)
+    print("6. step records diagnosed together…", flush=True)
+    result["diagnose_batch"] = bench_diagnose_batch(args.quick)
     mc = result["monte_carlo_identification"]
     flops = mc["xla_cost_per_trajectory"]["flops"]
     traffic = mc["xla_cost_per_trajectory"]["bytes_accessed"]
@@ -944,6 +1024,7 @@ def main(argv=None):
     print(_table(result))
     print()
     print(_cli_table(result["cli"]))
+    print(_diagnose_line(result["diagnose_batch"]))
     print(f"\nprofile of (1), µs per trajectory (vmapped, N = {mc['profile_batch']}):")
     for name, value in mc["profile_us_per_trajectory"].items():
         print(f"  {name:70s} {value:8.1f}")

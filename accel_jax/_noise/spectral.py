@@ -170,12 +170,15 @@ def expected_periodogram(z, mask, gram, floor):
     The random walk's part of y is white and needs none."""
     stationary, walk = _parts(z, mask, gram.bins, floor)
     size = gram.grid
-    w = 2 * jnp.pi * jnp.arange(size) / size
-    folded = jnp.minimum(w, 2 * jnp.pi - w)
-    on_grid, _ = _parts(z, mask, folded, floor)
-    gamma = jnp.real(jnp.fft.ifft(on_grid))
-    correction = -jnp.real(jnp.fft.fft(gram.lag_weight * gamma))[: size // 2 + 1]
-    d = jnp.interp(gram.bins, w[: size // 2 + 1], correction)
+    # f_y is even in ω, so its values at ω_k = 2πk/size, k ≤ size/2, define it on the whole
+    # circular grid: γ_y is their inverse real FFT, and the correction (a real, even
+    # sequence's transform) the real part of a real FFT (half the spectrum evaluations and
+    # half the transform work of full complex FFTs; equal to round-off).
+    w = 2 * jnp.pi * jnp.arange(size // 2 + 1) / size
+    on_grid, _ = _parts(z, mask, w, floor)
+    gamma = jnp.fft.irfft(on_grid, size)
+    correction = -jnp.real(jnp.fft.rfft(gram.lag_weight * gamma))
+    d = jnp.interp(gram.bins, w, correction)
     per_bin = stationary + walk + d
     if gram.bins.shape == gram.omega.shape:  # full resolution
         return per_bin

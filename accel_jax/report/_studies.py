@@ -11,15 +11,16 @@ STUDIES = (
     "table5_gap",
 )
 # Wall time of each study in a full report on a 2-core CPU, two at a time, each process
-# pinned to one core (a fresh clone with a cold compilation cache, 2026-11-25) [s]: the
-# report starts the longest first when it runs studies side by side (its order stays
-# STUDIES).
+# pinned to one core (a fresh clone at c6485f4 with a cold compilation cache, 2026-11-27;
+# the blind validation as measured alone after its step fits stopped batching, the same
+# day) [s]: the report starts the longest first when it runs studies side by side (its
+# order stays STUDIES).
 TYPICAL_SECONDS: dict[str, float] = {
-    "scale_factor_identification": 92,
-    "sensing_element_ml": 113,
-    "vibration_compensation": 16,
-    "tolerance_limits": 10,
-    "noise_identification": 245,  # with the §4 paper's filter loop (issue 23), alone, 2026-11-25
-    "sim_to_real_validation": 815,  # 520 blind records (issue 19)
-    "table5_gap": 1,
+    "scale_factor_identification": 104,
+    "sensing_element_ml": 143,
+    "vibration_compensation": 17,
+    "tolerance_limits": 11,
+    "noise_identification": 874,  # the in-flight identification of issue 47: 711 s of it
+    "sim_to_real_validation": 1045,  # 520 blind records (issue 19)
+    "table5_gap": 2,
 }

@@ -338,8 +338,15 @@ def _first_order_filter(b, theta):
 FIT_TOLERANCE = 1e-6
 """rtol = atol of the Levenberg–Marquardt fits (on the O(1) parameters)."""
 
-BATCH_CHUNK = 8
-"""Records fitted per compiled call (a vmapped batch runs until its slowest fit stops)."""
+BATCH_CHUNK = 1
+"""Records fitted per compiled call. One: each record's fits stop at their own step counts.
+A vmapped batch of records runs every fit to its slowest member's step count, and a
+vmapped solver turns each branch into both branches; the stop candidate's sample-by-sample
+fits suffer most. On the 2-core CPU, warm, 18 records of the blind validation's step truths
+took 39.7 s one at a time against 52.3 s in batches of 8 (`benchmarks/bench.py
+--only-diagnose`), and the report's blind step diagnoses (200 records) 704 s against
+1,337 s, with the same verdicts. On several devices `sweep` still gives each device its
+own records."""
 
 
 STOP_FIT_MAX_STEPS = 20
