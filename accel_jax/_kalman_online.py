@@ -372,9 +372,19 @@ def identify_in_flight(
     - `initial_covariance`: the prior (6 × 6) at the first observation; default diag(0.1²,
       1e-4², sensors at their stationary σ²), the prior of `ins_initial_covariance`.
 
-    **Returns:** `OnlineRun`. float64 required.
+    **Returns:** `OnlineRun`. float64 required (a `ValueError` otherwise); models built
+    in float32 are widened.
     """
+    if jax.dtypes.canonicalize_dtype(np.float64) != np.float64:
+        raise ValueError(
+            "identify_in_flight needs float64: call jax.config.update('jax_enable_x64', True) "
+            "first (the tilt's variance, ~1e-8 rad², sits beside the velocity's ~1e-2 m²/s² "
+            "in one covariance)."
+        )
     z = _check_log(observations, settings)
+    # Models built before x64 was on hold float32 leaves: widen them (the scan's carry
+    # holds the models, and its types must not change).
+    accel, gyro = (jax.tree.map(lambda v: jnp.asarray(v, jnp.float64), m) for m in (accel, gyro))
     dt = float(sample_interval)
     block, dec = settings.retune_every, settings.decimation
     n_blocks = z.shape[0] // block

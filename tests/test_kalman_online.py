@@ -245,3 +245,23 @@ def test_bad_input_is_refused():
         OnlineIdentification(adaptation="mehra")
     with pytest.raises(ValueError, match="angular_frequency"):
         SensorErrorModel(1.0, 1.0, -1.0)
+
+
+def test_float32_models_are_widened_and_float32_mode_is_refused():
+    """Models built before x64 was switched on (float32 leaves) run as float64 models do
+    (the scan's carry held them as float32 and failed with a carry-type TypeError); with
+    x64 off the function refuses with one clear message instead of filtering in float32."""
+    z = 0.1 * np.random.default_rng(0).standard_normal(1800)
+    with jax.enable_x64(False):
+        a32 = SensorErrorModel.gauss_markov(1e-3, 60.0)
+        g32 = SensorErrorModel(5e-8, 1 / 360, 0.5 / 360)
+        assert a32.sigma.dtype == jnp.float32
+        with pytest.raises(ValueError, match="needs float64"):
+            identify_in_flight(z, a32, g32, velocity_noise=0.1, settings=_settings())
+    a64 = SensorErrorModel.gauss_markov(1e-3, 60.0)
+    g64 = SensorErrorModel(5e-8, 1 / 360, 0.5 / 360)
+    run32 = identify_in_flight(z, a32, g32, velocity_noise=0.1, settings=_settings())
+    run64 = identify_in_flight(z, a64, g64, velocity_noise=0.1, settings=_settings())
+    assert run32.innovations.dtype == jnp.float64
+    # The same up to the float32 rounding of the models' values (~6e-8 relative).
+    np.testing.assert_allclose(run32.innovations, run64.innovations, rtol=1e-5, atol=1e-9)
