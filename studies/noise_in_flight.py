@@ -284,6 +284,14 @@ def in_flight_study(runs: int, hours: int, key, quick: bool) -> dict:
             "gyro_exp_cosine_share_of_blocks_second_half": float(
                 np.mean(models[:, models.shape[1] // 2 :, 1, 2] > 0)
             ),
+            # Per block, the share of logs whose model of each sensor is exponential-cosine:
+            # a switch that is undone later (seen on the independent truth of
+            # tests/test_ins_truth.py: the accelerometer, Gauss–Markov in truth, switched at
+            # 12 h on 8 of 8 logs while the gyro was still mis-tuned, and back by 36 h).
+            "exp_cosine_share_by_block": {
+                sensor: np.mean(models[:, :, i, 2] > 0, axis=0).tolist()
+                for i, sensor in enumerate(("accelerometer", "gyro"))
+            },
             "retuned_share": np.mean(np.asarray(realtime.retuned), axis=0).tolist(),
             "gyro_statistic_median_last_block": float(
                 np.nanmedian(np.asarray(realtime.structure_statistic)[:, -1, 1])

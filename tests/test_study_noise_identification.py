@@ -102,6 +102,11 @@ def test_study_in_flight(quick_report):
             assert len(variant["nis_per_hour"]) == fl["hours"]
         assert 0.8 < config["variants"]["oracle"]["nis_settled"] < 1.2
         assert config["log_likelihood_second_half"]["observations"] == fl["hours"] * 1800
+        # the structure over time: a share of logs per block and sensor
+        shares = config["structure"]["exp_cosine_share_by_block"]
+        blocks = len(config["structure"]["retuned_share"])
+        assert all(len(shares[s]) == blocks for s in ("accelerometer", "gyro"))
+        assert all(0.0 <= v <= 1.0 for s in shares.values() for v in s)
     large = fl["configurations"]["too_large"]["variants"]
     assert large["wrong_model"]["outside_3sigma_settled"] > 3 * large["oracle"][
         "outside_3sigma_settled"
@@ -111,3 +116,5 @@ def test_study_in_flight(quick_report):
     rows = [row for row in saved["summary"] if row["quantity"].startswith("in flight")]
     assert len(rows) >= 6
     assert all(row.get("status") in {"reproduced", "explained", "differs"} for row in rows)
+    false_row = next(row for row in rows if "Gauss–Markov gyro drift" in row["quantity"])
+    assert "held as exponential-cosine at one time" in false_row["note"]
