@@ -80,9 +80,10 @@ FULL_RESOLUTION = 1 << 11
 BAND_RATIO = 1.003
 """Beyond `FULL_RESOLUTION` bins: the first 256 bins singly, then geometric bands of this
 width ratio, each entering as c (ln f̄ + Ī/f̄) with Ī the band's mean periodogram and f̄ the
-expected periodogram at the band's mean frequency (exact where the spectrum is flat across
-the band: the model's narrowest feature, a resonance of quality `MAX_QUALITY`, is wider than
-a band; checked against the full-resolution likelihood in the tests)."""
+mean of the expected periodogram over the band's bins (`expected_periodogram` evaluates it
+at every bin). Exact where the spectrum is flat across the band: the model's narrowest
+feature, a resonance of quality `MAX_QUALITY`, is wider than a band; checked against the
+full-resolution likelihood in the tests."""
 
 MID_GRID = 1 << 15
 """Grid of the debiasing correction for banded (long) records."""
