@@ -2,9 +2,19 @@
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 
 from ._params import _concrete
+
+
+def require_float64(who: str, why: str) -> None:
+    """Raise the one clear `ValueError` a float64-only computation gives when JAX's x64
+    is off: "`who` needs float64: call … first (`why`: what float32 would lose)"."""
+    if jax.dtypes.canonicalize_dtype(np.float64) != np.float64:
+        raise ValueError(
+            f"{who} needs float64: call jax.config.update('jax_enable_x64', True) first ({why})."
+        )
 
 
 def check_uniform_grid(ts, what: str, remedy: str = "Resample the record onto one.") -> None:

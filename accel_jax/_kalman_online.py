@@ -80,6 +80,7 @@ from ._kalman import (
 from ._noise.models import ExponentialCosine
 from ._noise.paper import fit_exp_cosine_paper, fit_gauss_markov_paper
 from ._noise.record import NoiseFitResult
+from ._checks import require_float64
 from ._params import _as_float, _concrete
 from ._static import STANDARD_GRAVITY
 
@@ -375,12 +376,11 @@ def identify_in_flight(
     **Returns:** `OnlineRun`. float64 required (a `ValueError` otherwise); models built
     in float32 are widened.
     """
-    if jax.dtypes.canonicalize_dtype(np.float64) != np.float64:
-        raise ValueError(
-            "identify_in_flight needs float64: call jax.config.update('jax_enable_x64', True) "
-            "first (the tilt's variance, ~1e-8 rad², sits beside the velocity's ~1e-2 m²/s² "
-            "in one covariance)."
-        )
+    require_float64(
+        "identify_in_flight",
+        "the tilt's variance, ~1e-8 rad², sits beside the velocity's ~1e-2 m²/s² in one "
+        "covariance",
+    )
     z = _check_log(observations, settings)
     # Models built before x64 was on hold float32 leaves: widen them (the scan's carry
     # holds the models, and its types must not change).

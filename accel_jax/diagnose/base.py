@@ -26,9 +26,9 @@ import dataclasses
 from typing import Any, ClassVar
 
 import equinox as eqx
-import jax
 import numpy as np
 
+from .._checks import require_float64 as _require_float64
 from .._noise.whiteness import ljung_box as ljung_box
 
 SIGNIFICANCE = 10.0
@@ -85,11 +85,7 @@ class AbstractEffect(eqx.Module):
 def require_float64(why: str) -> None:
     """Raise the one clear `ValueError` a diagnosis gives when x64 is off (`why`: what
     float32 would lose)."""
-    x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64
-    if not x64:
-        raise ValueError(
-            f"diagnose needs float64: call jax.config.update('jax_enable_x64', True) first ({why})."
-        )
+    _require_float64("diagnose", why)
 
 
 def register_effect(cls: type) -> type:

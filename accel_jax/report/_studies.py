@@ -11,7 +11,7 @@ STUDIES = (
     "table5_gap",
 )
 # Wall time of each study in a full report on a 2-core CPU, two at a time, each process
-# pinned to one core (a fresh clone at c6485f4 with a cold compilation cache, 2026-11-27;
+# pinned to one core (a fresh clone at c6485f4 with this machine's compilation cache, 2026-11-27;
 # the blind validation as measured alone after its step fits stopped batching, the same
 # day) [s]: the report starts the longest first when it runs studies side by side (its
 # order stays STUDIES).
