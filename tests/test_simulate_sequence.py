@@ -20,6 +20,7 @@ from accel_jax._simulate.sequence import (
 )
 from accel_jax.diagnose.step.effects import step_effects
 from accel_jax.diagnose.step.fit import StepContext, innovation_terms, predict, unpack
+from accel_jax.diagnose.step.layout import W
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -294,16 +295,18 @@ def test_every_effect_is_the_nominal_model_at_zero():
         "stop_saturation",
         "disturbance_drift",
         "colored_noise",
+        "stop_contact",
     ]
     ctx = _context(N, INDEX, STEPS)
     base = aj.ServoParams.reference()
     sigma = jnp.full(4, 0.05)
-    w = jnp.zeros(10 + INDEX.size).at[1].set(0.3).at[10:].set(jnp.asarray(_shifts()))
+    w = jnp.zeros(W.FIXED + INDEX.size).at[1].set(0.3).at[W.FIXED :].set(jnp.asarray(_shifts()))
     nominal = unpack(w, 0, effects, base, sigma, ctx)
-    y0 = predict(nominal, ctx, N, False)
+    y0 = predict(nominal, ctx, N, "linear")
     for i, effect in enumerate(effects, start=1):
         m = unpack(w, i, effects, base, sigma, ctx)
-        y = predict(m, ctx, N, effect.nonlinear)
+        mode = "contact" if effect.contact_stops else "clamp" if effect.nonlinear else "linear"
+        y = predict(m, ctx, N, mode)
         np.testing.assert_allclose(y, y0, rtol=0, atol=1e-12, err_msg=effect.name)
         assert float(m.phi) == 0.0 and float(m.output_offset) == 0.0
 

@@ -16,8 +16,10 @@ a sample (within ±1 sample of the sample where `u_test` shows it). The noise fl
 record's ADC quantisation, is measured without the model (`openworld.noise_floor`).
 
 **Effects** (each `AbstractStepEffect` changes the model through one hook and is the nominal model
-at z = 0): `torquer_lag`, `output_filter`, `stop_saturation`, `disturbance_drift` and
-`colored_noise`, each described where it is defined (`effects`).
+at z = 0): `torquer_lag`, `output_filter`, `stop_saturation`, `disturbance_drift`,
+`colored_noise` and `stop_contact` (compliant stops, fitted where the inelastic clamp of
+`stop_saturation` does not explain the record), each described where it is defined
+(`effects`).
 
 **Held out**: every third segment of constant test voltage, from the third on (the last
 third of the record when it has fewer than four segments; `record.held_out_samples`).
@@ -51,6 +53,7 @@ from .effects import AbstractStepEffect as AbstractStepEffect
 from .effects import ColoredNoise as ColoredNoise
 from .effects import DisturbanceDrift as DisturbanceDrift
 from .effects import OutputFilter as OutputFilter
+from .effects import StopContact as StopContact
 from .effects import StopSaturation as StopSaturation
 from .effects import TorquerLag as TorquerLag
 from .effects import step_effects as step_effects

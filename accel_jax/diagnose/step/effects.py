@@ -8,7 +8,11 @@ nominal loop at zero (the package `step` describes the kind; `fit` applies the h
 - `stop_saturation`: mechanical stops, upper and lower (`_simulate.sequence.stop_record`);
 - `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
 - `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
-  fitted through its one-step prediction errors (an ARMA(1,1) recursion).
+  fitted through its one-step prediction errors (an ARMA(1,1) recursion);
+- `stop_contact`: compliant stops, a unilateral spring-damper at each stop, each side at
+  its own clearance (one side may be out of reach): `_simulate.contact.contact_record`.
+  Fitted only where the inelastic clamp of `stop_saturation` was fitted and does not
+  explain the record (`entry`).
 
 Adding an effect: subclass `AbstractStepEffect`, set `name`, `parameter_names`, `description`,
 `starts`, override one hook and `physical`, decorate with `register_effect`.
@@ -26,6 +30,7 @@ import numpy as np
 
 from ..._params import ServoParams
 from ..base import AbstractEffect, effect_library, register_effect
+from .layout import SLOT
 
 if TYPE_CHECKING:
     from .state import CandidateHost, RecordHost
@@ -40,9 +45,13 @@ class AbstractStepEffect(AbstractEffect):
         none), with symmetric stops at deflection ±h; an effect with stops is `nonlinear`;
     - `output_offset(z, ctx)`: an offset c [V] added to the output (U_out = v + c);
     - `noise(z, ctx)`: (φ, s) of white + AR(1) output noise: φ the AR(1) coefficient, s
-        the white share of the one-step prediction variance (φ = 0: white).
+        the white share of the one-step prediction variance (φ = 0: white);
+    - `contact(z, ctx)`: (1/h_hi, 1/h_lo, κ, ζ_c) of compliant stops (clearances in units
+        of the training output's half range, 0: none on that side; κ the stiffness over
+        the loop's, ζ_c the damping ratio); an effect with it sets `contact`.
 
-    Class attributes: `nonlinear` (simulated with stops, sample by sample), `stochastic`
+    Class attributes: `nonlinear` (simulated with stops, sample by sample), `contact`
+    (its stops compliant: a program of its own, `fit.fit_contact`), `stochastic`
     (changes the noise model, not the prediction), `starts` (the starting points of its
     parameters, one tuple per start), `bounds` (|z| beyond which a steep penalty acts),
     `held_out_nuisance`
@@ -52,6 +61,7 @@ class AbstractStepEffect(AbstractEffect):
 
     kind = "step"
     nonlinear: ClassVar[bool] = False
+    contact_stops: ClassVar[bool] = False
     stochastic: ClassVar[bool] = False
     starts: ClassVar[tuple] = ((0.0,), (0.0,))
     bounds: ClassVar[tuple] = (10.0, 10.0)
@@ -69,9 +79,13 @@ class AbstractStepEffect(AbstractEffect):
     def output_offset(self, z, ctx):
         return jnp.zeros_like(z[0])
 
+    def contact(self, z, ctx):
+        zero = jnp.zeros_like(z[0])
+        return zero, zero, zero, zero
+
     def prior(self, z, ctx):
-        """Prior residuals of its parameters (shape (2,), the slot's; default none)."""
-        return jnp.zeros(2, z.dtype)
+        """Prior residuals of its parameters (shape (SLOT,), the slot's; default none)."""
+        return jnp.zeros(SLOT, z.dtype)
 
     def record_starts(self, host: RecordHost) -> tuple:
         """The starting points for one record (default `starts`), from its scales
@@ -167,7 +181,8 @@ class StopSaturation(AbstractStepEffect):
         # of reach (1/z → ∞) instead of leaving it where the fit started, at the training
         # peak. The output offset has a N(0, OFFSET_PRIOR) prior: with only one stop
         # reached it is not told from the external moment, and no offset is the default.
-        return jnp.stack([0.1 * z[0], self.output_offset(z, ctx) / OFFSET_PRIOR])
+        zero = jnp.zeros_like(z[0])
+        return jnp.stack([0.1 * z[0], self.output_offset(z, ctx) / OFFSET_PRIOR, zero, zero])
 
     def output_offset(self, z, ctx):
         return 0.1 * ctx.scale * z[1]
@@ -238,6 +253,100 @@ class ColoredNoise(AbstractStepEffect):
             "correlation_time_s": float(tau),
             "sigma_white_V": math.sqrt(white),
             "sigma_correlated_V": math.sqrt(ratio * white),
+        }
+
+
+CONTACT_STIFFNESS = 300.0
+"""κ of a compliant stop at z₂ = 0 (its stiffness over the loop's static stiffness)."""
+
+CONTACT_DAMPING = 0.3
+"""ζ_c of a compliant stop at z₃ = 0."""
+
+
+@register_effect
+class StopContact(AbstractStepEffect):
+    """Compliant stops: beyond each stop a unilateral spring-damper (it pushes, never
+    pulls) of stiffness κ times the loop's static stiffness and damping ratio ζ_c, the
+    upper stop at deflection voltage h_hi = half/|z₀| and the lower at −h_lo = −half/|z₁|
+    (half: the training output's half range; z = 0: no stop on that side, so a stop on one
+    side only is z₁ → 0), κ = `CONTACT_STIFFNESS`·e^{2 z₂}, ζ_c = `CONTACT_DAMPING`·e^{1.5 z₃}.
+
+    The clearances are measured from zero deflection, not from the output's level: the
+    external moment (a nuisance of every model) carries the output's offset, so no offset
+    parameter is needed and the two clearances may differ. A stop the record never
+    reaches is not measured: a weak pull moves it out of reach (as `stop_saturation`'s),
+    and its clearance is reported as not reached. κ and ζ_c have wide priors (σ of
+    ln κ: 4, of ln ζ_c: 3); a stiff, well-damped contact is close to the inelastic clamp."""
+
+    name = "stop_contact"
+    parameter_names = (
+        "stop_high_V",
+        "stop_low_V",
+        "contact_stiffness_over_loop",
+        "contact_damping_ratio",
+    )
+    description = (
+        "compliant mechanical stops (a spring-damper contact at each stop, each side at its "
+        "own clearance, or one side only)"
+    )
+    nonlinear = True
+    contact_stops = True
+    starts = ((1.02, 1.02, 0.0, 0.0), (0.75, 0.75, -1.15, -0.73))
+    """(reach, reach, z₂, z₃): each stop at `reach` times the training output's extreme on
+    its side; the second start deep inside it, soft (κ ≈ 30) and bouncing (ζ_c ≈ 0.1): a
+    soft contact lets the pendulum well past its clearance."""
+    bounds = (10.0, 10.0, 3.0, 3.0)
+
+    def contact(self, z, ctx):
+        stiffness = CONTACT_STIFFNESS * jnp.exp(2.0 * z[2])
+        damping = CONTACT_DAMPING * jnp.exp(1.5 * z[3])
+        return jnp.abs(z[0]), jnp.abs(z[1]), stiffness, damping
+
+    def prior(self, z, ctx):
+        # Weak pulls on the inverse clearances (a stop not reached moves out of reach) and
+        # wide priors on the contact's ln κ and ln ζ_c.
+        return jnp.stack([0.1 * z[0], 0.1 * z[1], 0.5 * z[2], 0.5 * z[3]])
+
+    def record_starts(self, host: RecordHost):
+        # Each stop just beyond the training output's extreme on its side (measured from
+        # zero deflection), at the contact's middling stiffness, then a stiffer one.
+        top, bottom = host.mid + host.half, host.mid - host.half
+
+        def inverse(extreme, reach):  # 1/h of a stop at reach × the extreme (0: none)
+            return host.half / (reach * max(abs(extreme), 1e-3 * host.half))
+
+        return tuple(
+            (
+                inverse(top, s[0]) if top > 0 else 0.0,
+                inverse(bottom, s[1]) if bottom < 0 else 0.0,
+                s[2],
+                s[3],
+            )
+            for s in self.starts
+        )
+
+    def physical(self, z, context: CandidateHost):
+        # A clearance beyond the record's extreme output on its side (by more than 3σ of
+        # the noise) was not reached: the record only says it lies beyond; reported as inf,
+        # with `stop_*_reached` 0.
+        def clearance(value, extreme):
+            h = context.half / abs(float(value)) if abs(float(value)) > 1e-9 else np.inf
+            margin = 3 * float(np.sqrt(max(context.innovation_variance, 0.0)))
+            return (h, 1.0) if h < extreme + margin else (np.inf, 0.0)
+
+        (high, high_reached), (low, low_reached) = (
+            clearance(z[0], context.top),
+            clearance(z[1], -context.bottom),
+        )
+        return {
+            "stop_high_V": high,
+            "stop_low_V": -low,
+            "stop_high_reached": high_reached,
+            "stop_low_reached": low_reached,
+            "stop_high_displacement_m": high / context.gain,
+            "stop_low_displacement_m": -low / context.gain,
+            "contact_stiffness_over_loop": float(CONTACT_STIFFNESS * np.exp(2.0 * float(z[2]))),
+            "contact_damping_ratio": float(CONTACT_DAMPING * np.exp(1.5 * float(z[3]))),
         }
 
 

@@ -16,7 +16,7 @@ from ..._sweep import even_chunk_size, sweep
 from ..base import DiagnosisResult, require_float64
 from .assess import explains_deterministically, fit_entries, nested_losers
 from .effects import step_effects
-from .fit import BATCH_CHUNK, fit_linear, fit_nonlinear
+from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_nonlinear
 from .layout import W
 from .record import prepare, prior_sigma_of, stack_on_host
 from .state import StepFit, RecordShape, StepRecord
@@ -94,6 +94,8 @@ def diagnose_step(
     effects = step_effects()
     linear = [0] + [i for i, e in enumerate(effects, start=1) if not e.nonlinear]
     nonlinear = [i for i, e in enumerate(effects, start=1) if e.nonlinear]
+    clamp = [i for i in nonlinear if not effects[i - 1].contact_stops]
+    contact = [i for i in nonlinear if effects[i - 1].contact_stops]
     records = [prepare(data, nominal, effects) for data in datasets]
     entries = _fit_grouped(
         fit_linear, nominal, records, {i: rec.guesses_linear for i, rec in enumerate(records)},
@@ -130,20 +132,55 @@ def diagnose_step(
                 _at_nominal(fits[i][0].w_trained), guesses[:, :1].shape
             )
             stop_starts[i] = np.concatenate([guesses, at_nominal], axis=1)
+    rows = {i: nonlinear.index(i) for i in nonlinear}  # each one's row of the guesses
     entries = _fit_grouped(
-        fit_nonlinear, nominal, records, stop_starts, nonlinear, effects,
+        fit_nonlinear, nominal, records,
+        {i: s[[rows[c] for c in clamp]] for i, s in stop_starts.items()}, clamp, effects,
         "diagnose step (stops)",
+    )
+    for i, record_fits in entries.items():
+        fits[i] = fits[i] + record_fits
+    # Compliant stops, where the clamp does not explain the record either: from the
+    # record's own starts, from the clamp's fit (its stops as the two clearances) and from
+    # the nominal optimum.
+    contact_starts = {}
+    for i, s in stop_starts.items():
+        if not contact or any(explains_deterministically(f, records[i]) for f in fits[i]):
+            continue
+        mine = s[[rows[c] for c in contact]]
+        own, at_nominal = mine[:, :-1], mine[:, -1:]  # its own starts, the nominal optimum
+        from_clamp = [
+            f for f in fits[i] if f.model is not None and f.model.nonlinear
+            and not f.model.contact_stops
+        ]
+        starts = [own]
+        if from_clamp:
+            for z_stiffness, z_damping in CONTACT_GRID:
+                moved = _contact_from_clamp(from_clamp[0], records[i], own[:, :1])
+                moved[..., W.EFFECT.start + 2] = z_stiffness
+                moved[..., W.EFFECT.start + 3] = z_damping
+                starts.append(moved)
+        contact_starts[i] = np.concatenate(starts + [at_nominal], axis=1)
+    entries = _fit_grouped(
+        fit_contact, nominal, records, contact_starts, contact, effects,
+        "diagnose step (compliant stops)",
     )
     for i, record_fits in entries.items():
         fits[i] = fits[i] + record_fits
     results = []
     for rec, record_fits in zip(records, fits, strict=True):
-        if len(record_fits) < 1 + len(effects):
+        fitted = {f.effect for f in record_fits}
+        if not any(effects[i - 1].name in fitted for i in clamp):
             skipped = [e.name for e in effects if e.nonlinear]
             rec = rec.with_note(
                 f"{', '.join(skipped)} not fitted: a linear model already explains the record"
                 if not rec.domain_problems
                 else f"{', '.join(skipped)} not fitted: the record failed the domain check"
+            )
+        elif contact and not any(effects[i - 1].name in fitted for i in contact):
+            rec = rec.with_note(
+                f"{', '.join(effects[i - 1].name for i in contact)} not fitted: a model with "
+                "inelastic stops or a linear model already explains the record"
             )
         results.append(evaluate(rec.data, nominal, rec, record_fits))
     if recommend:
@@ -191,6 +228,29 @@ def _restart_from_nominal(
         )
         if note not in records[i].notes:
             records[i] = records[i].with_note(note)
+
+
+CONTACT_GRID = ((0.0, 0.0), (-1.15, -0.73), (1.15, 0.8))
+"""(z₂, z₃) of the compliant-stop starts from the clamp's fit: κ ≈ 300, 30, 3000 with
+ζ_c ≈ 0.3, 0.1, 1 (`effects.StopContact`): a soft contact lets the pendulum well past the
+clamp's stop and bounces, a stiff one is near the clamp."""
+
+
+def _contact_from_clamp(fit: StepFit, rec: StepRecord, starts: np.ndarray) -> np.ndarray:
+    """Starts of the compliant stops (`starts`, one per contact candidate) moved to the
+    clamp's fit: its device and nuisances, its two stops (at the output offset c ± h) as
+    the clearances; the contact's stiffness and damping as they were."""
+    out = np.array(starts, dtype=np.float64)
+    w = np.asarray(fit.w_trained, dtype=np.float64)
+    half, scale = float(rec.host.half), float(rec.host.scale)
+    z_stop, z_offset = w[W.EFFECT][:2]
+    stop = half / abs(z_stop) if abs(z_stop) > 1e-9 else np.inf
+    offset = 0.1 * scale * z_offset
+    out[..., W.BEFORE_EFFECT] = w[W.BEFORE_EFFECT]
+    out[..., W.INPUT] = w[W.INPUT]
+    for k, edge in ((0, offset + stop), (1, stop - offset)):
+        out[..., W.EFFECT.start + k] = half / edge if np.isfinite(edge) and edge > 0 else 0.0
+    return out
 
 
 def _at_nominal(w_nominal) -> np.ndarray:

@@ -10,6 +10,8 @@ N(−0.5, 1) prior.
 
 from __future__ import annotations
 
+from functools import partial
+
 import math
 
 import equinox as eqx
@@ -19,6 +21,7 @@ import lineax as lx
 import optimistix as optx
 
 from ..._params import ServoParams
+from ..._simulate.contact import contact_record
 from ..._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
 from .effects import step_effects
 from .layout import SLOT, W
@@ -159,8 +162,11 @@ class CandidateModel(eqx.Module):
     `gain` [V/V] the test winding's gain with its polarity; `moment` [V] the external
     moment; `rate` [V/s] a drift's rate; `dv`, `dw` [V] the initial displacement and
     velocity; `shift` (J,) [samples] each change's time shift; `step` (J,) [V] each
-    change's ΔU_test (a measured input's level errors added); `inverse_stop` [1/V] the
-    stops' inverse voltage (0: no stops); `output_offset` [V]; `phi`, `share` the noise
+    change's ΔU_test (a measured input's level errors added); `inverse_high`,
+    `inverse_low` the upper and lower stop's inverse clearance in units of the training
+    output's half range (0: no stop on that side); `stiffness`, `damping_ratio` a compliant
+    contact's κ and ζ_c (`_simulate.contact`; used by a `contact` candidate only: the other
+    stops are inelastic); `output_offset` [V]; `phi`, `share` the noise
     model's AR(1) coefficient and white share (0, 0: white); `penalties` the residuals of
     every prior and barrier.
     """
@@ -173,7 +179,10 @@ class CandidateModel(eqx.Module):
     dw: jax.Array
     shift: jax.Array
     step: jax.Array
-    inverse_stop: jax.Array
+    inverse_high: jax.Array
+    inverse_low: jax.Array
+    stiffness: jax.Array
+    damping_ratio: jax.Array
     output_offset: jax.Array
     phi: jax.Array
     share: jax.Array
@@ -192,7 +201,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
     gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[W.GAIN])
     slot = w[W.EFFECT]
     rate = jnp.zeros_like(w[0])
-    inverse = offset = phi = share = jnp.zeros_like(w[0])
+    high = low = stiffness = damping = offset = phi = share = jnp.zeros_like(w[0])
     used = jnp.zeros(SLOT, w.dtype)
     bounds = jnp.full(SLOT, jnp.inf, w.dtype)
     prior = jnp.zeros(SLOT, w.dtype)
@@ -202,7 +211,10 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
         ze = jnp.where(on, slot, 0.0)
         params = effect.device(params, ze, ctx)
         rate = rate + effect.drift(ze, ctx)
-        inverse = inverse + effect.inverse_stop(ze, ctx)
+        symmetric = effect.inverse_stop(ze, ctx)
+        contact = effect.contact(ze, ctx)
+        high, low = high + symmetric + contact[0], low + symmetric + contact[1]
+        stiffness, damping = stiffness + contact[2], damping + contact[3]
         offset = offset + effect.output_offset(ze, ctx)
         p, s = effect.noise(ze, ctx)
         phi, share = phi + p, share + s
@@ -249,7 +261,10 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
         dw=ctx.scale * w[W.DW],
         shift=shift,
         step=step,
-        inverse_stop=inverse,
+        inverse_high=high,
+        inverse_low=low,
+        stiffness=stiffness,
+        damping_ratio=damping,
         output_offset=offset,
         phi=phi,
         share=share,
@@ -265,7 +280,14 @@ def moment_jumps(params, ctx, gain: float | jax.Array = 1.0):
     return ctx.accel_sign * gain * accel_moment(params) * ctx.change_accel
 
 
-def predict(m: CandidateModel, ctx, n, nonlinear: bool):
+MODES = ("linear", "clamp", "contact")
+"""How `predict` simulates a candidate (static): the linear loop (`linear_record`), with
+inelastic stops (`stop_record`) or with compliant ones (`_simulate.contact`)."""
+
+
+def predict(m: CandidateModel, ctx, n, mode: str):
+    """The candidate's noise-free output [V] at the record's blocks, simulated as `mode`
+    (`MODES`) says."""
     sequence = SequenceInputs(
         ctx.first_level,
         m.gain,
@@ -279,15 +301,24 @@ def predict(m: CandidateModel, ctx, n, nonlinear: bool):
         moment_jumps(m.params, ctx),
     )
     args = (m.params, ctx.dt, n, sequence)
-    if not nonlinear:
+    if mode == "linear":
         record = linear_record(
             *args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration
         )
         return record + m.output_offset
-    inverse = m.inverse_stop
-    safe = jnp.where(inverse > 0, inverse, 1.0)
-    stop = jnp.where(inverse > 0, ctx.half / safe, 1e6 * ctx.half)
-    record = stop_record(*args, stop, -stop, block=ctx.block, duration=ctx.duration)
+
+    def clearance(inverse):  # a stop's voltage, far out of reach for none
+        safe = jnp.where(inverse > 0, inverse, 1.0)
+        return jnp.where(inverse > 0, ctx.half / safe, 1e6 * ctx.half)
+
+    high, low = clearance(m.inverse_high), -clearance(m.inverse_low)
+    if mode == "contact":
+        record = contact_record(
+            *args, high, low, m.stiffness, m.damping_ratio, block=ctx.block,
+            duration=ctx.duration,
+        )
+    else:
+        record = stop_record(*args, high, low, block=ctx.block, duration=ctx.duration)
     return record + m.output_offset
 
 
@@ -358,6 +389,10 @@ FIT_MAX_STEPS = 30
 fits of effects that do not describe the record creep on for many steps after the loss has
 settled, so a fit that is not done by then is judged by its Newton decrement instead."""
 
+CONTACT_FIT_MAX_STEPS = 100
+"""Levenberg–Marquardt steps of a compliant-stop fit: its stiffness and damping move the
+record far from where a start puts them (a soft, bouncing contact)."""
+
 CONVERGED_DECREMENT = 0.5
 """A fit counts as converged when the solver says so or when a full Gauss–Newton step from
 its result would lower the cost ½Σr² (r in noise-floor units) by less than this plus 1e-8
@@ -405,7 +440,7 @@ def _newton_step(jac, r, x):
     return x - step, 0.5 * jnp.sum(r**2), gradient @ step
 
 
-def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: bool):
+def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     """Fit every candidate (vmapped) to one record: from each start on the training part
     (Levenberg–Marquardt, optimistix), then, from the best start, the held-out change times
     on the held-out part (a few Gauss–Newton steps)."""
@@ -414,7 +449,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
 
     def error_of(w, candidate):
         m = unpack(w, candidate, effects, base, prior_sigma, ctx)
-        prediction = predict(m, ctx, n, nonlinear)
+        prediction = predict(m, ctx, n, mode)
         a, log_v = innovation_terms(u_out - prediction, m.phi, m.share)
         return m, prediction, a, log_v
 
@@ -434,7 +469,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
             solver,
             guess,
             args=candidate,
-            max_steps=STOP_FIT_MAX_STEPS if nonlinear else FIT_MAX_STEPS,
+            max_steps={"linear": FIT_MAX_STEPS, "clamp": STOP_FIT_MAX_STEPS}.get(
+                mode, CONTACT_FIT_MAX_STEPS
+            ),
             throw=False,
         )
         # The residuals and the Jacobian at the solution as the solver left them: its state
@@ -510,7 +547,11 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         # From the fit and from its polished point at once (one batch of two, so the model
         # appears once in the program): the polished one is kept when it lowers the
         # training cost.
-        deltas, train_costs = jax.vmap(refine)(jnp.stack([w, polished]))
+        # (A compliant contact's record, `mode` "contact", branches at run time on the
+        # contact state sample by sample: mapped, not vmapped, so that each branch stays a
+        # branch instead of both being computed.)
+        batch = jax.vmap if mode != "contact" else lambda f, **kw: partial(_mapped, f, **kw)
+        deltas, train_costs = batch(refine)(jnp.stack([w, polished]))
         better = train_costs[1] < 2 * cost
         w = jnp.where(better, polished, w)
         trained = w  # the training optimum, before the held-out nuisances move
@@ -518,7 +559,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
         w = moved(w, best_delta)
         # The fitted model and the same model with the device at its prior values (what
         # the refit changed), as one batch of two.
-        _, predictions, a, log_v = jax.vmap(error_of, in_axes=(0, None))(
+        _, predictions, a, log_v = batch(error_of, in_axes=(0, None))(
             jnp.stack([w, w.at[W.REFIT].set(0.0)]), candidate
         )
         # The objective the solver minimised (Σ of the squared training residuals and of
@@ -555,9 +596,25 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, nonlinear: b
     return jax.lax.map(lambda args: fit_one(*args), (*per_start, candidates))
 
 
+def _mapped(f, *args, in_axes=0):
+    """`jax.vmap(f, in_axes)(*args)` computed as `lax.map` (one member after the other)."""
+    axes = (in_axes,) * len(args) if isinstance(in_axes, int) else in_axes
+    mapped = [a for a, ax in zip(args, axes) if ax is not None]
+
+    def one(members):
+        members = iter(members)
+        return f(*(next(members) if ax is not None else a for a, ax in zip(args, axes)))
+
+    return jax.lax.map(one, mapped)
+
+
 def fit_linear(base, prior_sigma, ctx, u_out, guesses, candidates):
-    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, False)
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, "linear")
 
 
 def fit_nonlinear(base, prior_sigma, ctx, u_out, guesses, candidates):
-    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, True)
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, "clamp")
+
+
+def fit_contact(base, prior_sigma, ctx, u_out, guesses, candidates):
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, "contact")

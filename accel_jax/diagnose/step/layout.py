@@ -6,8 +6,9 @@ every reader names what it takes by these indices and slices.
 
 from __future__ import annotations
 
-SLOT = 2
-"""Parameters of the effect slot of w: as many as the step effect with the most has."""
+SLOT = 4
+"""Parameters of the effect slot of w: as many as the step effect with the most has
+(`stop_contact`: two clearances, a stiffness and a damping ratio)."""
 
 N_LAG_STATES = 2
 """A set's free initial lag states per record (the joint fit's second stage)."""

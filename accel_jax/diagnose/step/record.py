@@ -398,6 +398,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         timing_late=timing_late,
         nominal_torquer_time_constant=float(base.torquer_time_constant),
         nominal_filter_time_constant=float(base.filter_time_constant),
+        top=float(np.max(yb)),
+        bottom=float(np.min(yb)),
     )
     linear = [e for e in effects if not e.nonlinear]
     nonlinear = [e for e in effects if e.nonlinear]

@@ -51,7 +51,8 @@ class RecordHost:
     acceleration over k_dm; `timing_late` each timing parameter's value at the nominal's
     second start (changes half a sample earlier: `TIMING_PRIOR`'s mean);
     `nominal_torquer_time_constant`, `nominal_filter_time_constant` [s] the nominal
-    device's lags T_dm, T_f (a lag effect departs from these).
+    device's lags T_dm, T_f (a lag effect departs from these); `top`, `bottom` [V] the
+    whole record's largest and smallest output (block means, held-out part included).
     """
 
     lag_unit: float
@@ -66,6 +67,8 @@ class RecordHost:
     timing_late: np.ndarray
     nominal_torquer_time_constant: float
     nominal_filter_time_constant: float
+    top: float
+    bottom: float
 
     def nominal_lag(self, field: str) -> float:
         """The nominal device's value [s] of the lag `ServoParams` field `field`
