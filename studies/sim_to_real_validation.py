@@ -86,7 +86,10 @@ EFFECTS = (
     "disturbance_drift",
     "colored_noise",
 )
-VERDICTS = EFFECTS[1:] + ("none", "cannot_tell", "unexplained")
+VERDICTS = EFFECTS[1:] + ("stop_contact", "none", "cannot_tell", "unexplained")
+FAMILY = {"stop_saturation": ("stop_contact",)}
+"""Verdicts that name a truth's effect by another member of its family: an inelastic stop
+named as compliant stops (`stop_contact`, of which the clamp is the stiff, damped limit)."""
 
 
 def _grid():
@@ -595,7 +598,8 @@ def score(
 ) -> dict:
     """Confusion matrix and rates of the blind verdicts against the truth.
 
-    - effects of the library: named (strict), or `cannot_tell` naming the truth (lenient);
+    - effects of the library: named (strict; a member of the truth's `FAMILY` counts: an
+      inelastic stop named as a compliant one), or `cannot_tell` naming the truth (lenient);
     - no-effect datasets: false alarms (any verdict but `none`);
     - out-of-library effects (`out_of_library`): `unexplained` is right;
     - `assurance`: per dataset, the true held-out gap over the true noise floor (see
@@ -613,7 +617,7 @@ def score(
         if t in out_of_library:
             ok = tied_ok = v == "unexplained"
         else:
-            ok = v == t
+            ok = v == t or v in FAMILY.get(t, ())
             tied_ok = v == "cannot_tell" and t in verdict["tied"]
         c = per_class.setdefault(t, {"n": 0, "correct": 0, "correct_or_tied": 0})
         c["n"] += 1
@@ -767,7 +771,7 @@ def _lag_breakdown(truths, verdicts):
 
 def _confusion_panel(ax, confusion: dict, rows, cols):
     """A confusion matrix drawn as row fractions with the counts written in; the image."""
-    matrix = np.array([[confusion[t][v] for v in cols] for t in rows], dtype=float)
+    matrix = np.array([[confusion[t].get(v, 0) for v in cols] for t in rows], dtype=float)
     shown = matrix / np.maximum(matrix.sum(1, keepdims=True), 1)
     im = ax.imshow(shown, cmap="Blues", vmin=0, vmax=1, aspect="auto")
     ax.set_xticks(range(len(cols)), cols, rotation=30, ha="right", fontsize=11)
