@@ -82,7 +82,6 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
-from scipy.signal import lfilter
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402
@@ -512,23 +511,7 @@ def simulate(device: ContactDevice, rec: step_truth.Record, *, rng, rtol=1e-10, 
     (rng.normal, drawn first), plus Gauss–Markov noise `rec.gm` (drawn next), quantised
     by `rec.adc_step` (0: none)."""
     result = run(device, rec, rtol=rtol, step_scale=step_scale)
-    return result["t"], result["u_test"], _recorded(rec, result["clean"], rng)
-
-
-def _recorded(rec: step_truth.Record, clean, rng):
-    """What the recorder writes of the clean output U_out (step_truth.simulate's order)."""
-    y_out = rec.output_sign * clean + rec.output_offset
-    if rec.noise > 0:
-        y_out = y_out + rng.normal(size=rec.n) * rec.noise
-    sigma, tau = rec.gm
-    if sigma > 0:
-        phi = np.exp(-1 / (rec.rate * tau))
-        w = rng.normal(size=rec.n) * sigma * np.sqrt(1 - phi**2)
-        w[0] = rng.normal() * sigma
-        y_out = y_out + lfilter([1.0], [1.0, -phi], w)
-    if rec.adc_step > 0:
-        y_out = rec.adc_step * np.round(y_out / rec.adc_step)
-    return y_out
+    return result["t"], result["u_test"], step_truth.recorded(rec, result["clean"], rng)
 
 
 # --------------------------------------------------------------------------------------
@@ -706,5 +689,5 @@ def make(truth: dict, rng: np.random.Generator, *, rtol=1e-10):
     record = contact_record(truth)
     result = run(contact_device(truth), record, rtol=rtol)
     t, clean = result["t"], result["clean"]
-    y = _recorded(record, clean, rng)
+    y = step_truth.recorded(record, clean, rng)
     return t - t[0], result["u_test"], y, y - (record.output_sign * clean + record.output_offset)

@@ -311,6 +311,25 @@ def _integrate(loop: _Loop, y, held, t_start, t_end, u, a, t_eval, out, rtol):
     return y, held
 
 
+def recorded(rec: Record, clean, rng: np.random.Generator):
+    """What the recorder writes of the clean output U_out [V]: output_sign × U_out +
+    output_offset, plus white noise of σ `rec.noise` (drawn first), plus Gauss–Markov noise
+    `rec.gm` (drawn next, stationary from the first sample), quantised by `rec.adc_step`
+    (0: none)."""
+    y_out = rec.output_sign * clean + rec.output_offset
+    if rec.noise > 0:
+        y_out = y_out + rng.normal(size=rec.n) * rec.noise
+    sigma, tau = rec.gm
+    if sigma > 0:
+        phi = np.exp(-1 / (rec.rate * tau))
+        w = rng.normal(size=rec.n) * sigma * np.sqrt(1 - phi**2)
+        w[0] = rng.normal() * sigma
+        y_out = y_out + lfilter([1.0], [1.0, -phi], w)
+    if rec.adc_step > 0:
+        y_out = rec.adc_step * np.round(y_out / rec.adc_step)
+    return y_out
+
+
 def simulate(device: Device, rec: Record, *, rng: np.random.Generator, rtol=1e-10):
     """(t [s], u_test column [V], u_out column [V]) of one record (see `Record`), and with
     an acceleration input (`rec.accel_levels` not None) (t, u_test, u_out, a_in column
@@ -362,17 +381,7 @@ def simulate(device: Device, rec: Record, *, rng: np.random.Generator, rtol=1e-1
             y, held = _integrate(loop, y, held, a, b, u, acc, pending, clean, rtol)
             done = pending[0] <= b
             pending = (pending[0][~done], pending[1][~done])
-    y_out = rec.output_sign * clean + rec.output_offset
-    if rec.noise > 0:
-        y_out = y_out + rng.normal(size=rec.n) * rec.noise
-    sigma, tau = rec.gm
-    if sigma > 0:
-        phi = np.exp(-1 / (rec.rate * tau))
-        w = rng.normal(size=rec.n) * sigma * np.sqrt(1 - phi**2)
-        w[0] = rng.normal() * sigma  # stationary from the first sample
-        y_out = y_out + lfilter([1.0], [1.0, -phi], w)
-    if rec.adc_step > 0:
-        y_out = rec.adc_step * np.round(y_out / rec.adc_step)
+    y_out = recorded(rec, clean, rng)
     if rec.accel_levels is None:
         return t, u_column, y_out
     return t, u_column, y_out, a_column

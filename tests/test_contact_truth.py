@@ -36,16 +36,7 @@ def _step_device(d: dict, h_max=float("inf")):
 
 def _contact_device(d: dict, **values):
     """A `ContactDevice` of a drawn device's values (no stops unless given)."""
-    return contact_truth.ContactDevice(
-        J=d["J"],
-        mu=d["mu"],
-        c=d["c"],
-        k_dm=d["k_dm"],
-        k_dp=d["k_dp"],
-        k_y=d["k_y"],
-        test_gain=d["test_gain"],
-        **values,
-    )
+    return dataclasses.replace(contact_truth._base_device(d), **values)
 
 
 def _drawn_start(truth):

@@ -347,7 +347,7 @@ def test_innovations_of_white_plus_ar1_noise():
 @pytest.mark.parametrize("theta", [0.0, -0.9, 0.999])
 def test_the_blocked_first_order_filter_is_the_plain_recursion(n, theta):
     # Lengths that are not a multiple of the block, a negative and a near-unit pole.
-    from accel_jax.diagnose.step.fit import _first_order_filter
+    from accel_jax.diagnose.step.innovations import _first_order_filter
 
     b = np.random.default_rng(n).normal(size=n)
     loop = np.empty(n)

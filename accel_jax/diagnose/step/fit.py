@@ -2,7 +2,7 @@
 one-step errors, and the vmapped least-squares fit of every candidate of a record.
 
 Parameters w = [refit z (4), external moment, test winding gain z, initial displacement
-(2), effect slot (2), change times (J)], all O(1), each named in `layout.W`: the refit as
+(2), effect slot (`layout.SLOT`), change times (J)], all O(1), each named in `layout.W`: the refit as
 log-normal deviations in units of their prior σ, held within ±`REFIT_BOUND`σ by a steep
 penalty; the change times in samples from where `u_test` shows each change, under a
 N(−0.5, 1) prior.
@@ -11,8 +11,6 @@ N(−0.5, 1) prior.
 from __future__ import annotations
 
 from functools import partial
-
-import math
 
 import equinox as eqx
 import jax
@@ -24,6 +22,7 @@ from ..._params import ServoParams
 from ..._simulate.contact import contact_record
 from ..._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
 from .effects import step_effects
+from .innovations import innovation_terms
 from .layout import SLOT, W
 
 REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
@@ -322,50 +321,6 @@ def predict(m: CandidateModel, ctx, n, mode: str):
     return record + m.output_offset
 
 
-def innovation_terms(error, phi, share):
-    """One-step prediction errors of white + AR(1) noise (an ARMA(1,1) recursion
-    a_k = e_k − φ e_{k−1} + θ a_{k−1}, θ = sφ, s the white share (`_white_share`)), and
-    ln V, V the variance of the first sample over σ_a², its exact stationary term
-    (σ_w² + σ_s²)/σ_a² = s + (1 − θφ)(1 − s)/(1 − φ²).
-
-    The recursion is a first-order linear filter, evaluated in two levels of matrix
-    products (`_first_order_filter`): a small program, which matters because every fit
-    differentiates it many times over (a parallel scan compiled 4× slower)."""
-    theta = share * phi
-    variance = share + (1 - theta * phi) * (1 - share) / (1 - phi**2)
-    first = error[:1] / jnp.sqrt(variance)
-    b = jnp.concatenate([first, error[1:] - phi * error[:-1]])
-    return _first_order_filter(b, theta), jnp.log(variance)
-
-
-def _first_order_filter(b, theta):
-    """a_k = b_k + θ a_{k−1} (a_0 = b_0), |θ| < 1, for a 1-D b of length n.
-
-    In blocks of B samples (B the power of two ≥ √n, at least 16): within each block a
-    lower-triangular Toeplitz matrix of θ^0 … θ^{B−1}; across blocks, the values at the
-    blocks' ends by a second such matrix in θ^B, carried into each block by θ^{i+1}. Only
-    non-negative powers of θ appear (no cancellation); memory O(n), work O(n√n)."""
-    n = b.shape[0]
-    size = max(16, 1 << math.ceil(math.log2(math.sqrt(n))))
-    blocks = -(-n // size)
-    rows = jnp.pad(b, (0, blocks * size - n)).reshape(blocks, size)
-
-    def powers(base, count):  # base^0 … base^(count−1), by products (any sign of base)
-        rest = jnp.cumprod(jnp.full(count - 1, base, b.dtype))
-        return jnp.concatenate([jnp.ones(1, b.dtype), rest])
-
-    def lower_toeplitz(values):
-        k = jnp.arange(values.shape[0])
-        lag = k[:, None] - k[None, :]
-        return jnp.where(lag >= 0, values[jnp.maximum(lag, 0)], 0.0)
-
-    within = powers(theta, size + 1)  # θ^0 … θ^B
-    local = rows @ lower_toeplitz(within[:size]).T
-    ends = lower_toeplitz(powers(within[size], blocks)) @ local[:, -1]
-    carried = jnp.concatenate([jnp.zeros(1, b.dtype), ends[:-1]])
-    return (local + within[1:][None, :] * carried[:, None]).reshape(-1)[:n]
-
-
 FIT_TOLERANCE = 1e-6
 """rtol = atol of the Levenberg–Marquardt fits (on the O(1) parameters)."""
 
@@ -547,10 +502,12 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
         # From the fit and from its polished point at once (one batch of two, so the model
         # appears once in the program): the polished one is kept when it lowers the
         # training cost.
-        # (A compliant contact's record, `mode` "contact", branches at run time on the
-        # contact state sample by sample: mapped, not vmapped, so that each branch stays a
-        # branch instead of both being computed.)
-        batch = jax.vmap if mode != "contact" else lambda f, **kw: partial(_mapped, f, **kw)
+        # (Batches of two: vmapped, except a compliant contact's record (`mode` "contact"),
+        # which branches at run time on the contact state sample by sample: mapped, so
+        # that each branch stays a branch instead of both being computed.)
+        def batch(f):
+            return jax.vmap(f) if mode != "contact" else partial(jax.lax.map, f)
+
         deltas, train_costs = batch(refine)(jnp.stack([w, polished]))
         better = train_costs[1] < 2 * cost
         w = jnp.where(better, polished, w)
@@ -559,8 +516,8 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
         w = moved(w, best_delta)
         # The fitted model and the same model with the device at its prior values (what
         # the refit changed), as one batch of two.
-        _, predictions, a, log_v = batch(error_of, in_axes=(0, None))(
-            jnp.stack([w, w.at[W.REFIT].set(0.0)]), candidate
+        _, predictions, a, log_v = batch(lambda w: error_of(w, candidate))(
+            jnp.stack([w, w.at[W.REFIT].set(0.0)])
         )
         # The objective the solver minimised (Σ of the squared training residuals and of
         # every prior and penalty: ½ of it is −ln of the penalised likelihood) at the
@@ -594,18 +551,6 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     flat = jax.lax.map(lambda pair: train_fit(*pair), pairs)
     per_start = jax.tree_util.tree_map(lambda x: x.reshape((count, starts) + x.shape[1:]), flat)
     return jax.lax.map(lambda args: fit_one(*args), (*per_start, candidates))
-
-
-def _mapped(f, *args, in_axes=0):
-    """`jax.vmap(f, in_axes)(*args)` computed as `lax.map` (one member after the other)."""
-    axes = (in_axes,) * len(args) if isinstance(in_axes, int) else in_axes
-    mapped = [a for a, ax in zip(args, axes) if ax is not None]
-
-    def one(members):
-        members = iter(members)
-        return f(*(next(members) if ax is not None else a for a, ax in zip(args, axes)))
-
-    return jax.lax.map(one, mapped)
 
 
 def fit_linear(base, prior_sigma, ctx, u_out, guesses, candidates):
