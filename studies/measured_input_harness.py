@@ -12,7 +12,8 @@ change) is added to the truth's classes. The diagnosis runs in a fresh process t
 CSV files (`--params`-like nominal device: the reference with T_dm = T_f = 0, as the blind
 validation's).
 
-Scored: the measured twin's verdict against the clean twin's (agreement), refusals of a
+Scored: the measured twin's verdict against the clean twin's (agreement: the stop models
+named as one family, `FAMILY_OF`; `agree_exact` the same name), refusals of a
 measured input, fits that ended below the nominal model's penalised likelihood (flagged
 `fit_failed`; counted over every ranking), `none` on a record whose truth has an effect
 (false assurance; the held-on-stop class included; the class that leaves its stop at the
@@ -225,6 +226,16 @@ def diagnose_blind(folders: list[Path]) -> dict:
         return json.loads(out.read_text())
 
 
+FAMILY_OF = {"stop_contact": "stop_saturation"}
+"""Verdicts that name one family: the inelastic stop is the compliant stops' stiff, damped
+limit (as `sim_to_real_validation.FAMILY`), so twins that name one and the other agree
+(`agree`; `agree_exact` counts the same name)."""
+
+
+def _family(verdict):
+    return FAMILY_OF.get(verdict, verdict)
+
+
 def score(truths: list[dict], rows: dict) -> dict:
     """The scores over the records in `rows` (`truths` indexed by the records' indices)."""
     per_class = {}
@@ -247,10 +258,14 @@ def score(truths: list[dict], rows: dict) -> dict:
             entry["refused"] += 1
             entry["verdicts"].append([clean.get("verdict"), "refused"])
             continue
-        same = clean.get("verdict") == measured["verdict"] and sorted(
-            clean.get("tied", [])
-        ) == sorted(measured["tied"])
+        same = _family(clean.get("verdict")) == _family(measured["verdict"]) and sorted(
+            map(_family, clean.get("tied", []))
+        ) == sorted(map(_family, measured["tied"]))
         entry["agree"] += int(same)
+        entry["agree_exact"] = entry.get("agree_exact", 0) + int(
+            clean.get("verdict") == measured["verdict"]
+            and sorted(clean.get("tied", [])) == sorted(measured["tied"])
+        )
         entry["none_clean"] += int(clean.get("verdict") == "none")
         entry["none_measured"] += int(measured["verdict"] == "none")
         entry["nuisance_trips"] += int(bool(clean.get("nuisance_strained")))

@@ -129,3 +129,52 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
     assert nested_shortfall(lost, nominal) == pytest.approx(5.0)  # ½ of the objective
     assert nested_failed(lost, nominal)
     assert nested_losers([nominal, better, roundoff, lost]) == ["stop_saturation"]
+
+
+# Record 306 of the measured-input harness's draw (studies/measured_input_harness.py,
+# 100 per class, seed 2027): stops at 0.90 of the largest test level, rate 0.5 MHz. With
+# its input measured, the nominal refit absorbs the clipping by moving the input's levels
+# by up to 1.1e4 of their standard errors; stop fits started from those levels did not
+# come back in their steps and the record read `unexplained` (the clean twin: the stop).
+STOP_306 = {
+    "effect": "stop_saturation",
+    "device": {
+        "J": 7.14806372077318e-09,
+        "mu": 2.5238464798139733e-05,
+        "c": 0.0003003898456753804,
+        "k_dm": 8.897793348388985e-06,
+        "k_dp": 253442.94849808337,
+        "k_y": 8.465487668441922,
+        "test_gain": -0.98795949383974,
+    },
+    "levels_V": [-2.050302322550749, 1.0251511612753745, 2.050302322550749, 0.0,
+                 1.0251511612753745, -2.050302322550749, 0.0],
+    "change_times_s": [0.0012992349801865942, 0.002724275958734983, 0.004603980368866619,
+                       0.006859221506902428, 0.00836276942151628, 0.010156654255995714],
+    "rate": 500000.0,
+    "noise_V": 0.0002112224378224457,
+    "adc_step_V": 7.62939453125e-05,
+    "output_offset_V": 0.03678514487209315,
+    "output_sign": -1.0,
+    "moment_Nm": 1.6403586073221413e-06,
+    "start": 0.00048715264461557145,
+    "start_level_V": 2.050302322550749,
+    "u_max_V": 2.050302322550749,
+    "stop_over_u_max": 0.9005651196662212,
+}
+
+
+@pytest.mark.slow
+def test_a_stop_record_with_a_measured_input_names_the_stop():
+    rng = np.random.default_rng([2027, 1, 306])  # the harness's stream of that record
+    t, u, y, _ = step_truth.make(STOP_306, rng)
+    column, _ = step_truth.measure_input(u, STOP_306["rate"], rng)
+    result = diagnose_many([StepData(t, column, y)], recommend=False)[0]
+    # The nominal refit's levels are strained (what the stop fits must not start from) …
+    test = result.refit["nuisance_test"]
+    assert test["strained"] and abs(test["largest_sigma"]) > 100, test
+    # … and a stop model, fitted from the nominal's device with the input's levels where
+    # the channel shows them, explains the record.
+    assert result.verdict in ("stop_saturation", "stop_contact"), result.reason
+    entry = next(e for e in result.ranking if e["effect"] == result.verdict)
+    assert entry["explains"] and not entry["fit_failed"], entry

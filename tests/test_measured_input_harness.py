@@ -84,3 +84,13 @@ def test_the_command_line_refuses_a_bad_shard_and_a_bad_merge(tmp_path, capsys):
     assert harness.main(["--merge", str(bad), "--out", str(tmp_path / "o")]) == 1
     assert "cannot merge" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_twins_that_name_the_stop_family_agree():
+    truths = [{"effect": "stop_saturation"}] * 2
+    rows = {
+        "clean/0000": _row("stop_saturation"), "measured/0000": _row("stop_contact"),
+        "clean/0001": _row("stop_saturation"), "measured/0001": _row("unexplained"),
+    }
+    entry = harness.score(truths, rows)["per_class"]["stop_saturation"]
+    assert (entry["records"], entry["agree"], entry["agree_exact"]) == (2, 1, 0)

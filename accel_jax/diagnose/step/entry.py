@@ -118,12 +118,14 @@ def diagnose_step(
         if rec.domain_problems or not nonlinear:
             continue
         if not any(explains_deterministically(f, rec) for f in fits[i]):
-            # One start from the nominal fit (a stop model with its stops out of reach is
-            # the nominal model), one from the record's own starting point: the nominal fit
-            # may have bent its nuisances (change times, offset) to absorb the clipping.
+            # One start from the nominal fit's device, output offset, gain and initial
+            # state with the input's nuisances (change times; a measured input's levels and
+            # drift) where the record shows them: the nominal fit may have bent those to
+            # absorb the clipping (a measured input's levels by thousands of their standard
+            # errors, seen on blind stop records, where no stop fit came back from them in
+            # its steps). One from the record's own starting point.
             guesses = np.array(rec.guesses_nonlinear)
             guesses[:, 0, W.BEFORE_EFFECT] = fits[i][0].w[W.BEFORE_EFFECT]
-            guesses[:, 0, W.INPUT] = fits[i][0].w[W.INPUT]
             # And a third: the nominal optimum itself, the effect at its no-effect value
             # (z = 0 is the nominal model), so that a nested fit never ends below the
             # nominal's likelihood (from the peak starts alone, a stop fit lost by
