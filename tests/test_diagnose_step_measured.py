@@ -85,7 +85,8 @@ def _prep(n_changes=5, j_padded=8, levels=False):
     )
     # The fields of a `StepRecord` that the test reads (an exact or few-change input).
     return SimpleNamespace(
-        change_index=np.arange(n_changes), ctx=ctx, clock=None, level_groups=None
+        change_index=np.arange(n_changes), ctx=ctx, clock=None, level_groups=None,
+        dt_sample=1e-6,
     )
 
 
@@ -99,7 +100,8 @@ def _fit(gain_sigma=0.0, timing=(), levels=(), j_padded=8):
 def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
     prep = _prep()
     calm = nuisance_test(_fit(0.4, timing=(-0.3, -0.6, -0.4, -0.5, -0.2)), prep)
-    assert not calm["strained"] and calm["count"] == 6  # the gain and five change times
+    # The gain, the output's lateness behind the input, five change times.
+    assert not calm["strained"] and calm["count"] == 7
     # A delay of two samples between the channels moves every change alike: reported as
     # the delay, not a strain.
     delayed = nuisance_test(_fit(0.4, timing=(-2.4, -2.6, -2.5, -2.3, -2.5)), prep)
@@ -108,15 +110,23 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
     # The −3.2σ test winding gain of a device resting on its stop at the start.
     strained = nuisance_test(_fit(-3.2, timing=(-0.5,) * 5), prep)
     assert strained["strained"] and strained["largest"] == "test_winding_gain"
-    assert strained["family_p_value"] == pytest.approx(6 * 2 * 0.000687, rel=0.01)
+    assert strained["family_p_value"] == pytest.approx(7 * 2 * 0.000687, rel=0.01)
     text = strained_sentence(strained, None)
     assert f"{math.exp(-3.2 * GAIN_SIGMA):.3g} of nominal (-3.2σ)" in text
     assert "resting on a stop" in text and "winding fault" in text
     # A measured input's levels are judged with them; Bonferroni keeps the family's level.
     measured = nuisance_test(_fit(0.0, timing=(-0.5,) * 5, levels=(0.5, -4.0)), _prep(levels=True))
-    assert measured["count"] == 12 and measured["largest"] == "input_level_3"
+    assert measured["count"] == 13 and measured["largest"] == "input_level_3"
     assert measured["strained"] == (measured["family_p_value"] < NUISANCE_ALPHA)
     assert "level 3 of the test input" in strained_sentence(measured, None)
+    # An output that follows the input 3 samples later than its column shows: a lag the
+    # model lacks, or a delay of the drive, which a free delay absorbs: a strain.
+    late = nuisance_test(_fit(0.0, timing=(3.0,) * 5), prep)
+    assert late["strained"] and late["largest"] == "input_delay"
+    assert late["largest_sigma"] == pytest.approx(-7.0)
+    assert "3.0 samples (3 µs) later" in strained_sentence(late, None)
+    # Half a sample late is the sampling phase's own spread: not a strain.
+    assert not nuisance_test(_fit(0.0, timing=(0.0,) * 5), prep)["strained"]
 
 
 def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
