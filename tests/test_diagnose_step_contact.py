@@ -72,6 +72,11 @@ def test_compliant_stops_are_named_with_their_stiffness_and_damping(diagnosed):
             expected = _output_stop(truth, sign)
             fitted = params["stop_high_V"] if expected > 0 else params["stop_low_V"]
             assert fitted == pytest.approx(expected, rel=0.01 if truth["contact_fraction"] > 0.05 else 0.02)
+        # The summary shows the named effect's fitted values, the contact's law included.
+        line = next(x for x in result.summary().splitlines() if x.startswith("fitted "))
+        assert line.startswith("fitted stop_contact: ")
+        assert f"contact_damping_ratio = {params['contact_damping_ratio']:.4g}" in line
+        assert "contact_stiffness_over_loop = " in line and "stop_high_V = " in line
 
 
 def test_a_stop_on_one_side_says_nothing_about_the_other(diagnosed):

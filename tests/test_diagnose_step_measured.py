@@ -188,3 +188,19 @@ def test_a_stop_record_with_a_measured_input_names_the_stop():
     assert result.verdict in ("stop_saturation", "stop_contact"), result.reason
     entry = next(e for e in result.ranking if e["effect"] == result.verdict)
     assert entry["explains"] and not entry["fit_failed"], entry
+
+
+def test_the_summary_shows_the_named_effects_fitted_values():
+    from accel_jax.diagnose.base import _fitted_lines
+
+    ranking = [
+        {"effect": "torquer_lag", "params": {"T_dm_s": 1.234567e-5}},
+        {"effect": "output_filter", "params": {"T_f_s": 2.5e-5}},
+        {"effect": "colored_noise", "params": {"gm_time_s": 1e-4}},
+    ]
+    tie = SimpleNamespace(verdict="cannot_tell", tied=["torquer_lag", "output_filter"], ranking=ranking)
+    assert _fitted_lines(tie) == [
+        "fitted torquer_lag: T_dm_s = 1.235e-05",
+        "fitted output_filter: T_f_s = 2.5e-05",
+    ]
+    assert _fitted_lines(SimpleNamespace(verdict="none", tied=[], ranking=ranking)) == []

@@ -388,6 +388,7 @@ class DiagnosisResult:
             lines.append(f"verdict: {self.verdict}")
         if self.reason:
             lines.append(f"why: {self.reason}")
+        lines.extend(_fitted_lines(self))
         unit = self.gap.get("unit", "")
         remaining = self.remaining_gap
         if remaining:
@@ -464,6 +465,21 @@ class DiagnosisResult:
             )
         lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)
+
+
+def _fitted_lines(result) -> list[str]:
+    """The named effect's fitted physical values (the tied pair's, for `cannot_tell`), as
+    its ranking entry holds them (`params`; the unit in each key's name)."""
+    named = list(result.tied) if result.verdict == "cannot_tell" else [result.verdict]
+    lines = []
+    for entry in result.ranking:
+        if entry.get("effect") in named and entry.get("params"):
+            values = ", ".join(
+                f"{key} = {value:.4g}" if isinstance(value, (int, float)) else f"{key} = {value}"
+                for key, value in entry["params"].items()
+            )
+            lines.append(f"fitted {entry['effect']}: {values}")
+    return lines
 
 
 def _nuisance_lines(refit: dict) -> list[str]:
