@@ -143,7 +143,12 @@ def test_a_prbs_record_is_diagnosed_like_its_step_sequence_twin():
     for r in results[1:]:
         assert any(n.startswith("u_test: 220 changes on one bit clock") for n in r.notes)
         assert any(n.startswith("no next experiment designed") for n in r.notes)
-    assert not results[1].refit["nuisance_test"]["strained"], results[1].refit["nuisance_test"]
+    # The clean twin's nominal fit (the wrong model) strains one nuisance only: the
+    # output's lateness behind the input's column, the torquer lag's own signature
+    # (`nuisance.LATE_OUTPUT_SIGMA`); the clock's rate and the gain stay within 3σ.
+    test = results[1].refit["nuisance_test"]
+    assert not test["strained"] or test["largest"] == "input_delay", test
+    assert all(abs(v) < 3 for k, v in test["standardised"].items() if k != "input_delay"), test
     # The measured twin's nominal fit (the wrong model: the truth has a torquer lag) may
     # strain one nuisance only: the input channel's drift, which the PRBS's 221 plateaus of
     # two levels pin to ±71 µV over the record (the truth's channel drifts by −13 µV), so it
