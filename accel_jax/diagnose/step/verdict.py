@@ -108,7 +108,8 @@ def evaluate(
         "where": where_text,
     }
     reason = _reason(
-        decision, nominal_fit, by_name, entries, rec, predictable, remaining, sigma, where_text
+        decision, nominal_fit, by_name, entries, rec, predictable, remaining, sigma, where_text,
+        nuisances,
     )
     refit = _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict, nuisances)
     where = {
@@ -231,6 +232,7 @@ def _reason(
     remaining,
     sigma,
     where,
+    nuisances: dict,
 ):
     whiteness = nominal_fit.whiteness or {}  # (the nominal fit's, set by `evaluate`)
     path = decision["path"]
@@ -241,9 +243,7 @@ def _reason(
     if path == "nuisances":
         return (
             "the refitted nominal model reaches the noise floor only with strained nuisances: "
-            + nuisance.strained_sentence(
-                nuisance.nuisance_test(nominal_fit, rec), nominal_fit
-            )
+            + nuisance.strained_sentence(nuisances, nominal_fit)
             + "."
         )
     if verdict == "none":
