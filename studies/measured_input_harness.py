@@ -236,9 +236,46 @@ def _family(verdict):
     return FAMILY_OF.get(verdict, verdict)
 
 
-def score(truths: list[dict], rows: dict) -> dict:
-    """The scores over the records in `rows` (`truths` indexed by the records' indices)."""
+EFFECT_ABSENT_CHI2 = 1.0
+"""A truth's effect counts as absent from its record when the noise-free record with the
+effect differs from the same world without it by a χ² (Σ d² / σ², σ the record's white
+noise) below this: no test on the record could see it (a stop the record never reaches:
+d = 0 exactly). A `none` on such a record is not false assurance; it is counted apart."""
+
+
+def effect_signal(truth: dict) -> dict | None:
+    """What a truth's effect changes in its record, in the record's white-noise σ, from the
+    truth simulator alone: the noise-free record (`step_truth.make`) with the effect minus
+    the same world with `effect` "none" (device, test sequence, conventions and start
+    unchanged): {"chi2": Σ d²/σ², "peak_sigma": max |d|/σ}. A noise effect
+    (`colored_noise`) changes no noise-free sample: its χ² is the coloured component's
+    expected energy, n (σ_GM/σ)². None for the on-stop classes, whose start is the stop
+    itself (no world without it): `held_on_stop` rests on its stop through its first
+    segment by construction, `start_on_stop` is counted apart."""
+    effect = truth["effect"]
+    if effect in ("none", step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT):
+        return None
+    n = int(round(step_truth.DURATION * truth["rate"]))
+    if effect == "colored_noise":
+        return {"chi2": n * truth["gm_over_white"] ** 2, "peak_sigma": None}
+
+    def noise_free(world):
+        _, _, y, noise = step_truth.make(world, np.random.default_rng(0))
+        return y - noise
+
+    d = noise_free(truth) - noise_free({**truth, "effect": "none"})
+    sigma = truth["noise_V"]
+    return {
+        "chi2": float(np.sum(d**2) / sigma**2),
+        "peak_sigma": float(np.max(np.abs(d)) / sigma),
+    }
+
+
+def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
+    """The scores over the records in `rows` (`truths` indexed by the records' indices).
+    `signal(truth)`: `effect_signal`, asked only of the effect truths read `none`."""
     per_class = {}
+    absent = {}
     failed_fits = rankings = 0
     indices = sorted(int(key.split("/")[1]) for key in rows if key.startswith("clean/"))
     for i in indices:
@@ -268,6 +305,17 @@ def score(truths: list[dict], rows: dict) -> dict:
         )
         entry["none_clean"] += int(clean.get("verdict") == "none")
         entry["none_measured"] += int(measured["verdict"] == "none")
+        if "none" in (clean.get("verdict"), measured["verdict"]) and truth["effect"] not in (
+            "none", step_truth.ON_STOP_EFFECT
+        ):
+            acts = signal(truth)
+            if acts is not None and acts["chi2"] < EFFECT_ABSENT_CHI2:
+                absent[f"{i:04d}"] = {
+                    "effect": truth["effect"],
+                    "none_twins": int(clean.get("verdict") == "none")
+                    + int(measured["verdict"] == "none"),
+                    **acts,
+                }
         entry["nuisance_trips"] += int(bool(clean.get("nuisance_strained")))
         entry["nuisance_trips_measured"] += int(bool(measured.get("nuisance_strained")))
         entry["verdicts"].append([clean.get("verdict"), measured["verdict"]])
@@ -277,7 +325,7 @@ def score(truths: list[dict], rows: dict) -> dict:
         e["none_clean"] + e["none_measured"]
         for c, e in per_class.items()
         if c not in ("none", step_truth.ON_STOP_EFFECT)
-    )
+    ) - sum(a["none_twins"] for a in absent.values())
     return {
         "per_class": per_class,
         "agreement": agree / max(total, 1),
@@ -291,8 +339,12 @@ def score(truths: list[dict], rows: dict) -> dict:
             "never reaches it again: no stop acts within the record, and a device without "
             "lags resting on the stop is one of the initial states (displacement, velocity) "
             "the model's free initial state covers; its none is counted apart "
-            "(start_on_stop_none)"
+            "(start_on_stop_none)",
+            "effect_absent": "a `none` on a record whose truth's effect changes its "
+            f"noise-free samples by χ² < {EFFECT_ABSENT_CHI2:g} (effect_signal: e.g. a stop "
+            "the record never reaches); listed in none_effect_absent",
         },
+        "none_effect_absent": absent,
         "start_on_stop_none": (
             per_class[step_truth.ON_STOP_EFFECT]["none_clean"]
             + per_class[step_truth.ON_STOP_EFFECT]["none_measured"]
@@ -316,7 +368,7 @@ def _shard(text: str) -> tuple[int, int]:
     return k, n
 
 
-def merge(results: list[dict]) -> dict:
+def merge(results: list[dict], signal=effect_signal) -> dict:
     """Shards' results (`--shard k/n` runs of the same draw) as one: their rows joined and
     scored together. Refused (ValueError) when the shards drew differently or overlap."""
     if not results:
@@ -340,7 +392,7 @@ def merge(results: list[dict]) -> dict:
     picked = sorted({i for r in results for i in r["prbs_picked"]})
     return {
         "assumptions": {**first, "shard": None, "merged_shards": sorted(shards)},
-        "score": score(truths, rows),
+        "score": score(truths, rows, signal),
         "prbs": score_prbs(truths, rows, picked) if picked else None,
         "prbs_picked": picked,
         "truths": truths,

@@ -31,6 +31,10 @@ def test_a_record_is_the_same_whichever_shard_writes_it(tmp_path):
     assert not (tmp_path / "a" / "clean" / "0000.csv").exists()
 
 
+def _acts(truth):
+    return None  # the stub truths here have no world to simulate: every effect acts
+
+
 def _row(verdict, strained=False):
     return {"verdict": verdict, "tied": [], "fit_failed": [], "nuisance_strained": strained}
 
@@ -41,7 +45,7 @@ def _shard_result(shard, rows, seed=7):
         "assumptions": {"truth": "t", "per_class": 2, "classes": ["none", "torquer_lag"],
                         "seed": seed, "prbs": 0, "shard": list(shard), "shard_count": 2,
                         "commit": "abc"},
-        "score": harness.score(truths, rows),
+        "score": harness.score(truths, rows, _acts),
         "prbs": None,
         "prbs_picked": [],
         "truths": truths,
@@ -58,7 +62,7 @@ def test_merged_shards_are_scored_together():
     })
     b = _shard_result((1, 2), {"clean/0001": _row("none"), "measured/0001": _row("none")})
     assert a["score"]["records"] == 2 and b["score"]["records"] == 1
-    merged = harness.merge([a, b])
+    merged = harness.merge([a, b], _acts)
     s = merged["score"]
     assert s["records"] == 3 and s["agreement"] == pytest.approx(2 / 3)
     assert s["false_assurance"] == 2  # the torquer-lag record read none in both twins
@@ -70,9 +74,9 @@ def test_merged_shards_are_scored_together():
 def test_merge_refuses_shards_of_different_draws_or_overlapping_ones():
     rows = {"clean/0000": _row("none"), "measured/0000": _row("none")}
     with pytest.raises(ValueError, match="seed"):
-        harness.merge([_shard_result((0, 2), rows), _shard_result((1, 2), {}, seed=8)])
+        harness.merge([_shard_result((0, 2), rows), _shard_result((1, 2), {}, seed=8)], _acts)
     with pytest.raises(ValueError, match="overlap"):
-        harness.merge([_shard_result((0, 2), rows), _shard_result((1, 2), rows)])
+        harness.merge([_shard_result((0, 2), rows), _shard_result((1, 2), rows)], _acts)
 
 
 def test_the_command_line_refuses_a_bad_shard_and_a_bad_merge(tmp_path, capsys):
@@ -92,5 +96,24 @@ def test_twins_that_name_the_stop_family_agree():
         "clean/0000": _row("stop_saturation"), "measured/0000": _row("stop_contact"),
         "clean/0001": _row("stop_saturation"), "measured/0001": _row("unexplained"),
     }
-    entry = harness.score(truths, rows)["per_class"]["stop_saturation"]
+    entry = harness.score(truths, rows, _acts)["per_class"]["stop_saturation"]
     assert (entry["records"], entry["agree"], entry["agree_exact"]) == (2, 1, 0)
+
+
+def test_a_none_on_a_stop_the_record_never_reaches_is_not_false_assurance():
+    """Record 367 of the 100-per-class draw (seed 2027): a stop at 1.08 of the largest small
+    level's settled output, beyond every transient; the truth simulator's noise-free record
+    with the stop equals the one without it, so its `none` is counted apart. The same world
+    with its stop at 0.8 (reached) is false assurance."""
+    truths = harness.draw(100, 2027)
+    never = truths[367]
+    assert never["effect"] == "stop_saturation" and never["stop_over_u_max"] > 1.05
+    reached = {**never, "stop_over_u_max": 0.8}
+    assert harness.effect_signal(never)["chi2"] == 0.0
+    assert harness.effect_signal(reached)["chi2"] > 100 * harness.EFFECT_ABSENT_CHI2
+    rows = {"clean/0000": _row("none"), "measured/0000": _row("none"),
+            "clean/0001": _row("none"), "measured/0001": _row("stop_saturation")}
+    s = harness.score([never, reached], rows)
+    assert s["false_assurance"] == 1  # the reached stop's clean twin
+    assert list(s["none_effect_absent"]) == ["0000"]
+    assert s["none_effect_absent"]["0000"]["none_twins"] == 2
