@@ -402,6 +402,22 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
     }
 
 
+CHANNEL_SUMMARY = ("delay_samples", "antialias_tau_samples", "noise_V", "lsb_V", "drift_V",
+                   "offset_V")
+
+
+def compact(result: dict) -> dict:
+    """A result small enough to keep in the repository: each row without its notes, each
+    input channel as its scalar draws (`CHANNEL_SUMMARY`, and the number of relay spikes),
+    without the per-change indices, phases and spike list."""
+    channels = {
+        key: {**{k: c[k] for k in CHANNEL_SUMMARY if k in c}, "spikes": len(c.get("spikes") or [])}
+        for key, c in result["channels"].items()
+    }
+    rows = {key: {k: v for k, v in r.items() if k != "notes"} for key, r in result["rows"].items()}
+    return {**result, "channels": channels, "rows": rows, "compact": True}
+
+
 def _commit() -> str | None:
     try:
         out = subprocess.run(
@@ -435,6 +451,11 @@ def main(argv=None) -> int:
         "--merge", nargs="+", type=Path, metavar="RESULT_JSON",
         help="join shards' result.json files (one draw) into --out/result.json and score them",
     )
+    parser.add_argument(
+        "--compact", action="store_true",
+        help="write the result without the diagnoses' notes and the channels' per-change "
+        "draws (the form kept under benchmarks/results)",
+    )
     args = parser.parse_args(argv)
     if args.merge:
         try:
@@ -444,6 +465,8 @@ def main(argv=None) -> int:
             return 1
     else:
         result = run(args)
+    if args.compact:
+        result = compact(result)
     args.out.mkdir(parents=True, exist_ok=True)
     target = args.out / "result.json"
     partial = target.with_suffix(".json.partial")

@@ -117,3 +117,16 @@ def test_a_none_on_a_stop_the_record_never_reaches_is_not_false_assurance():
     assert s["false_assurance"] == 1  # the reached stop's clean twin
     assert list(s["none_effect_absent"]) == ["0000"]
     assert s["none_effect_absent"]["0000"]["none_twins"] == 2
+
+
+def test_a_compact_result_keeps_the_scores_and_each_channels_draws(tmp_path):
+    truths = harness.draw(1, 5, ("none",))
+    (channel,) = harness.write_twins(truths, [0], tmp_path, 5)
+    rows = {"clean/0000": {**_row("none"), "notes": ["a"]}, "measured/0000": _row("none")}
+    result = {**_shard_result((0, 1), rows), "channels": {"0": channel}}
+    small = harness.compact(result)
+    assert small["score"] == result["score"] and small["compact"]
+    assert "notes" not in small["rows"]["clean/0000"] and "notes" in result["rows"]["clean/0000"]
+    c = small["channels"]["0"]
+    assert c["delay_samples"] == channel["delay_samples"] and "change_index" not in c
+    assert c["spikes"] == len(channel["spikes"] or [])
