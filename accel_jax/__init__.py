@@ -44,6 +44,7 @@ from ._data import parse_csv as parse_csv
 from ._data import parse_params_toml as parse_params_toml
 from ._data import read_csv as read_csv
 from ._data import read_params_toml as read_params_toml
+from ._data import with_input_delay as with_input_delay
 from ._data import write_csv as write_csv
 from ._identify import (
     AperiodicEstimate as AperiodicEstimate,

@@ -27,6 +27,7 @@ All arrays are NumPy float64: this layer runs on the host before any JAX computa
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import os
@@ -115,6 +116,12 @@ class StepData(eqx.Module):
     - `a_in`: optional acceleration along the input axis [g], shape (n,), held constant
         from each sample to the next (a tilt or a centrifuge step); None when the record
         has no such column.
+    - `input_delay`: the input channels' known delay behind `u_out`'s [s] (a multiplexed
+        ADC's skew, an anti-alias filter's group delay, a driver's dead time): the inputs
+        act that much earlier than their columns show. None (the default): unknown, and
+        for a measured input fitted as a nuisance (where it can take up a lag of the loop
+        of about its own size). Not a column: set it in code or with `accel-jax diagnose
+        --input-delay`.
     """
 
     t: np.ndarray
@@ -122,6 +129,7 @@ class StepData(eqx.Module):
     u_out: np.ndarray
     notes: tuple = eqx.field(static=True, default=())
     a_in: np.ndarray | None = None
+    input_delay: float | None = eqx.field(static=True, default=None)
     kind = "step"
 
     @property
@@ -256,6 +264,40 @@ def _check_time(t: np.ndarray, where: str) -> tuple[np.ndarray, list[str]]:
     return grid, [note]
 
 
+MAX_INPUT_DELAY_SHARE = 0.05
+"""The largest known input delay a step record takes, as a share of its length."""
+
+
+def check_input_delay(delay, span: float, where: str = "step record") -> float | None:
+    """A step record's known input delay [s] (`StepData.input_delay`) as a float, or None;
+    `DataError` unless it is finite and at most `MAX_INPUT_DELAY_SHARE` of the record's
+    length `span` [s] in size."""
+    if delay is None:
+        return None
+    try:
+        value = float(delay)
+    except (TypeError, ValueError):
+        raise DataError(f"{where}: the input delay {delay!r} is not a number (seconds).") from None
+    if not (math.isfinite(value) and abs(value) <= MAX_INPUT_DELAY_SHARE * span):
+        raise DataError(
+            f"{where}: the input delay {precise(value)} s must be a finite number of at most "
+            f"{MAX_INPUT_DELAY_SHARE:g} of the record's {precise(span)} s in size (a channel's "
+            "delay is a few samples)."
+        )
+    return value
+
+
+def with_input_delay(data: Dataset, delay: float | None, *, path=None) -> Dataset:
+    """`data` with its inputs' known delay [s] set (`StepData.input_delay`; None: unset,
+    `data` as it is); `DataError` for a record of another kind or a delay `validate`
+    refuses."""
+    if delay is None:
+        return data
+    if not isinstance(data, StepData):
+        raise DataError(f"{_where(path)}: an input delay is given only for step records.")
+    return validate(dataclasses.replace(data, input_delay=delay), path=path)
+
+
 def validate(data: Dataset, *, path=None) -> Dataset:
     """Check a dataset's values (finite, enough samples, uniform increasing time, non-negative
     vibration amplitudes and frequencies) and return it; raise `DataError` otherwise."""
@@ -310,7 +352,11 @@ def validate(data: Dataset, *, path=None) -> Dataset:
                 f"{where}: u_test and a_in are both constant; a step record needs at least one "
                 "change of the test voltage or of the acceleration."
             )
-    if kind in ("step", "noise"):
+    if kind == "step":
+        span = float(arrays["t"][-1] - arrays["t"][0])
+        delay = check_input_delay(getattr(data, "input_delay", None), span, where)
+        return _CLASSES[kind](**arrays, notes=tuple(notes), input_delay=delay)
+    if kind == "noise":
         return _CLASSES[kind](**arrays, notes=tuple(notes))
     return _CLASSES[kind](**arrays)
 

@@ -304,10 +304,11 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
 @click.argument("files", nargs=-1, required=True, type=FILE)
 @_diagnose("--kind", type=click.Choice(["step", "vibration", "noise"]), default=None)
 @_diagnose("--params", "params_file")
+@_diagnose("--input-delay", "input_delay", type=float, default=None)
 @outputs("diagnose", out="diagnosis")
-def diagnose(files, kind, params_file, json_out, plot_out, out_dir, force, device):
+def diagnose(files, kind, params_file, input_delay, json_out, plot_out, out_dir, force, device):
     paths = _start("diagnosis", out_dir, force, device, json_out, plot_out)
-    from . import DataError, StepData, read_csv
+    from . import DataError, StepData, read_csv, with_input_delay
     from .diagnose import SetDiagnosis, diagnose_step_set
     from .diagnose import diagnose as run_diagnosis
     from .report.figures.diagnosis import save_plot, set_figure
@@ -322,7 +323,7 @@ def diagnose(files, kind, params_file, json_out, plot_out, out_dir, force, devic
         raise click.ClickException("a file is named twice; give each record once.")
     with _refused():
         if len(files) > 1:
-            datasets = [read_csv(file) for file in files]
+            datasets = [with_input_delay(read_csv(f), input_delay, path=f) for f in files]
             kinds = {str(file): d.kind for file, d in zip(files, datasets, strict=True)}
             if set(kinds.values()) != {"step"}:
                 listed = ", ".join(f"{f} ({k})" for f, k in kinds.items())
@@ -332,10 +333,9 @@ def diagnose(files, kind, params_file, json_out, plot_out, out_dir, force, devic
                 )
             steps = [d for d in datasets if isinstance(d, StepData)]  # all of them, checked
             result = diagnose_step_set(steps, _nominal(params_file), names=list(kinds))
-            sources: dict = {"sources": list(kinds)}
-            unused_params = None
+            sources, unused_params = {"sources": list(kinds)}, None
         else:
-            data = read_csv(files[0], kind=kind)
+            data = with_input_delay(read_csv(files[0], kind=kind), input_delay, path=files[0])
             result = run_diagnosis(data, _nominal(params_file))
             sources = {"source": str(files[0])}
             unused_params = data.kind if params_file is not None and data.kind != "step" else None

@@ -77,7 +77,7 @@ def test_a_swept_input_is_refused_in_one_line(tmp_path):
     assert "Traceback" not in result.output
 
 
-def _prep(n_changes=5, j_padded=8, levels=False):
+def _prep(n_changes=5, j_padded=8, levels=False, known=None):
     ctx = SimpleNamespace(
         change_index=np.zeros(j_padded, int),
         level_sigma=np.full(j_padded, 1e-5) if levels else None,
@@ -86,7 +86,7 @@ def _prep(n_changes=5, j_padded=8, levels=False):
     # The fields of a `StepRecord` that the test reads (an exact or few-change input).
     return SimpleNamespace(
         change_index=np.arange(n_changes), ctx=ctx, clock=None, level_groups=None,
-        dt_sample=1e-6,
+        dt_sample=1e-6, input_delay_known=known,
     )
 
 
@@ -127,6 +127,15 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
     assert "3.0 samples (3 µs) later" in strained_sentence(late, None)
     # Half a sample late is the sampling phase's own spread: not a strain.
     assert not nuisance_test(_fit(0.0, timing=(0.0,) * 5), prep)["strained"]
+    # With the channels' delay given (2.5 samples: the changes act that much earlier than
+    # their column shows), changes fitted there are calm, and changes fitted at their
+    # column are 2.5 samples late beyond it.
+    given = _prep(known=2.5)
+    assert not nuisance_test(_fit(0.0, timing=(-3.0,) * 5), given)["strained"]
+    late = nuisance_test(_fit(0.0, timing=(0.0,) * 5), given)
+    assert late["strained"] and late["largest_sigma"] == pytest.approx(-6.0)
+    assert late["known_input_delay_samples"] == 2.5
+    assert "2.5 samples (2.5 µs) later" in strained_sentence(late, None)
 
 
 def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():

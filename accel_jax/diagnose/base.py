@@ -496,7 +496,11 @@ def _nuisance_lines(refit: dict) -> list[str]:
             f"test winding gain {gain:.4g} ({test['standardised']['test_winding_gain']:+.1f}σ"
             f", polarity {polarity})"
         )
-    parts.append(f"input delay {test['input_delay_samples']:+.2f} samples")
+    known = test.get("known_input_delay_samples")
+    parts.append(
+        f"input delay {test['input_delay_samples']:+.2f} samples"
+        + ("" if known is None else f" (given: {known:+.2f})")
+    )
     if "external_moment_V" in values:
         parts.append(f"output offset (external moment) {values['external_moment_V']:+.3g} V")
     if "initial_displacement_V" in values:

@@ -55,6 +55,10 @@ common shift of every change (an ADC's group delay, an anti-alias filter); clipp
 
 DELAY_LIMIT = 8.0
 
+KNOWN_DELAY_SIGMA = 0.5
+"""Prior σ [samples] of a measured input channel's delay about the delay the user gives
+(`StepData.input_delay`): known to about the sampling phase."""
+
 
 
 class StepContext(eqx.Module):

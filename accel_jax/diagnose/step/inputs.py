@@ -445,6 +445,7 @@ def read_inputs(data: StepData, *, max_changes: int | None = None) -> StepInputs
         u_out=data.u_out,
         notes=tuple(data.notes),
         a_in=None if a is None else a.values,
+        input_delay=data.input_delay,
     )
     sigma = float(np.sqrt(np.mean(u.level_sigma**2))) if u.measured else 0.0
     return StepInputs(

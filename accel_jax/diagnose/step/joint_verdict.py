@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from ..._data import NominalDevice, StepData
+from ..._data import DataError, NominalDevice, StepData
 from ..base import INDISTINCT, SIGNIFICANCE, require_float64, verdict_line
 from .design import next_experiments
 from .fit import REFIT_FIELDS
@@ -134,6 +134,13 @@ def diagnose_step_set(
     require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
     nominal = NominalDevice.reference() if nominal is None else nominal
     names = names or [f"#{i + 1}" for i in range(len(datasets))]
+    given = [name for name, d in zip(names, datasets, strict=True) if d.input_delay is not None]
+    if given:
+        raise DataError(
+            f"record {given[0]} gives an input delay: the joint fit of a set takes each "
+            "record's change times as its columns show them; diagnose that record alone to "
+            "use its known delay."
+        )
     prepared = prepare_set(list(datasets), nominal)
     fits = fit_set(prepared, nominal)
     scores, ranking = _rank(fits, prepared, nominal)

@@ -41,7 +41,8 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
     the output offset (external moment) and the initial state, free in every model.
     The delay between the input's column and the output (the mean change-time shift,
     `input_delay_samples`, positive when the output moves first) is judged on its late
-    side only: `input_delay` = min(0, delay − 0.5) / `LATE_OUTPUT_SIGMA`.
+    side only, beyond a delay the record gives (`StepData.input_delay`, k samples):
+    `input_delay` = min(0, delay − k − 0.5) / `LATE_OUTPUT_SIGMA`.
     The test: the largest |z| against Bonferroni over the K standardised shifts, p =
     min(1, K · 2Φ(−max|z|)); `strained` when p < `NUISANCE_ALPHA`."""
     from scipy import stats
@@ -52,9 +53,10 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
     n_t = n_timing(ctx)
     timing = change_shifts(w, ctx)[:n_changes]
     delay = float(np.mean(timing)) if n_changes else 0.0
+    known = rec.input_delay_known or 0.0  # (samples; the output's lateness is beyond it)
     shifts = [("test_winding_gain", float(fit.z_gain))]
     if n_changes:
-        shifts.append(("input_delay", min(0.0, -delay - 0.5) / LATE_OUTPUT_SIGMA))
+        shifts.append(("input_delay", min(0.0, -delay - known - 0.5) / LATE_OUTPUT_SIGMA))
     if rec.clock is not None:  # the clock's rate (its shift is the delay)
         shifts.append(("input_clock_rate", float(w[W.timing(n_t)][1])))
     elif n_changes > 1:
@@ -80,6 +82,7 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
         "alpha": NUISANCE_ALPHA,
         "strained": bool(p_value < NUISANCE_ALPHA),
         "input_delay_samples": -delay,
+        "known_input_delay_samples": rec.input_delay_known,
         "sample_period_s": float(rec.dt_sample),
         "method": "Bonferroni over the standardised nuisance shifts (gain, the output's "
         "lateness behind the input, change times about their mean, measured input levels)",
@@ -106,7 +109,7 @@ def strained_sentence(test: dict, fit) -> str:
             "a different device"
         )
     if name == "input_delay":
-        late = -test["input_delay_samples"]
+        late = -test["input_delay_samples"] + (test.get("known_input_delay_samples") or 0.0)
         micro = late * test.get("sample_period_s", float("nan")) * 1e6
         return (
             f"the output follows the test input's changes {late:.1f} samples ({micro:.3g} µs) "

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._data import DataError, NominalDevice, StepData
+from ..._data import DataError, NominalDevice, StepData, check_input_delay
 from ..._servo import closed_loop_test_gain, damping_ratio, time_constant
 from ..._simulate.sequence import accel_moment
 from .. import openworld
@@ -22,6 +22,7 @@ from .fit import (
     DELAY_LIMIT,
     DELAY_PRIOR_SIGMA,
     GAIN_SIGMA,
+    KNOWN_DELAY_SIGMA,
     REFIT_BOUND,
     REFIT_FIELDS,
     TIMING_LIMIT,
@@ -128,6 +129,7 @@ def _clocked(inputs):
         u_test=grouped.means[grouped.group][plateau],
         u_out=data.u_out,
         notes=tuple(data.notes),
+        input_delay=data.input_delay,
     )
     return rebuilt, clock, grouped
 
@@ -328,12 +330,22 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     # nuisance.
     n_levels = 0 if held_out_level is None else held_out_level.size  # (set with level_sigma)
     # The change times: one shift per change, or a clock's shift and rate (`_clock_layout`).
+    # A known delay of the input channels (`StepData.input_delay`): every change's shift
+    # from its column is centred that much earlier, and a measured input's common delay is
+    # then fitted about it within the sampling phase (`KNOWN_DELAY_SIGMA`).
+    known = check_input_delay(data.input_delay, float(t[-1] - t[0]))
+    known_samples = None if known is None else known / dt
+    early = np.zeros(j_padded)
+    early[: index.size] = 0.0 if known_samples is None else known_samples
     timing_map = timing_offset = timing_mean = timing_sigma = timing_limit = None
     timing_late = np.full(j_padded, TIMING_PRIOR[0])
     measured = level_sigma is not None
     delay = (DELAY_PRIOR_SIGMA, DELAY_LIMIT) if measured else (TIMING_PRIOR[1], TIMING_LIMIT)
+    if measured and known is not None:
+        delay = (KNOWN_DELAY_SIGMA, DELAY_LIMIT)
     if clock is not None:
         timing_map, timing_offset = _clock_layout(clock, index, j_padded)
+        timing_offset = timing_offset - early
         timing_mean = np.array([TIMING_PRIOR[0], 0.0])
         timing_sigma = np.array([delay[0], TIMING_PRIOR[1]])
         timing_limit = np.array([delay[1], TIMING_LIMIT])
@@ -342,12 +354,20 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     elif measured:  # one shift per change and the input channel's delay, common to all
         timing_map = np.concatenate([np.eye(j_padded), np.ones((j_padded, 1))], axis=1)
         timing_map[index.size :] = 0.0
-        timing_offset = np.zeros(j_padded)
+        timing_offset = -early
         timing_mean = np.append(np.full(j_padded, TIMING_PRIOR[0]), 0.0)
-        timing_sigma = np.append(np.full(j_padded, TIMING_PRIOR[1]), DELAY_PRIOR_SIGMA)
-        timing_limit = np.append(np.full(j_padded, TIMING_LIMIT), DELAY_LIMIT)
+        timing_sigma = np.append(np.full(j_padded, TIMING_PRIOR[1]), delay[0])
+        timing_limit = np.append(np.full(j_padded, TIMING_LIMIT), delay[1])
         timing_late = timing_mean.copy()
         held_out_change = np.append(held_out_change, 0.0)
+    elif known is not None:  # one shift per change, about the known delay
+        timing_map = np.eye(j_padded)
+        timing_map[index.size :] = 0.0
+        timing_offset = -early
+        timing_mean = np.full(j_padded, TIMING_PRIOR[0])
+        timing_sigma = np.full(j_padded, TIMING_PRIOR[1])
+        timing_limit = np.full(j_padded, TIMING_LIMIT)
+        timing_late = timing_mean.copy()
     train = np.zeros(n_padded)
     test = np.zeros(n_padded)
     train[:n_blocks] = ~held
@@ -438,6 +458,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
             measured=level_sigma is not None,
             clocked=clock is not None,
             n_levels=n_levels,
+            mapped_timing=timing_map is not None,
         ),
         clock=clock,
         level_groups=grouped,
@@ -445,6 +466,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         guesses_nonlinear=_guesses(common, nonlinear, host, nominal_first=False),
         host=host,
         prior_sigma=prior_sigma_of(nominal),
+        input_delay_known=known_samples,
     )
 
 

@@ -156,7 +156,9 @@ class RecordShape:
     `j_padded` change slots (a multiple of 4); `max_block` the largest block the program
     allows (a power of two, at least `record.MIN_MAX_BLOCK`); `measured` whether the test
     input's levels are fitted as errors in variables; `clocked` whether the changes run on
-    one bit clock; `n_levels` the level parameters (0 for an exact input).
+    one bit clock; `n_levels` the level parameters (0 for an exact input); `mapped_timing`
+    whether the change times go through a timing map (a measured or clocked input, or a
+    known input delay).
     """
 
     n_padded: int
@@ -165,6 +167,7 @@ class RecordShape:
     measured: bool
     clocked: bool
     n_levels: int
+    mapped_timing: bool = False
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -200,6 +203,9 @@ class StepRecord:
         of the linear and of the stop candidates' fits.
     - `host`: the scales its effects use (`RecordHost`).
     - `prior_sigma`: (4,) the relative prior σ of J, μ, c, k_dm (`fit.REFIT_FIELDS`).
+    - `input_delay_known`: the inputs' known delay behind the output [samples]
+        (`StepData.input_delay`), which the change times' priors are centred on; None:
+        unknown.
     - `on_stops`: whether the joint fit simulates it with the stops (`joint.prepare_set`;
         False elsewhere).
     """
@@ -239,6 +245,7 @@ class StepRecord:
     host: RecordHost
     prior_sigma: np.ndarray
     on_stops: bool = False
+    input_delay_known: float | None = None
 
     def with_note(self, note: str) -> StepRecord:
         """This record with `note` added to its notes."""

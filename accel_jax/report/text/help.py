@@ -105,6 +105,9 @@ OPTIONS = {
         "--params": "Nominal device (TOML: ServoParams fields, value or {value, uncertainty}); "
         "default the reference device (Raspopov's values, T_dm = T_f = 10 µs, taken as "
         "known) with J, μ, c, k_dm known to ±5 %.",
+        "--input-delay": "Step records: the input channels' known delay behind u_out's, in "
+        "seconds (an ADC's skew, an anti-alias filter's group delay). Default: unknown, and "
+        "for a measured u_test fitted, where it can take up a lag of the loop of its size.",
         "--json": "Write the diagnosis as JSON here.",
         "--plot": "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
         "--force": _RECORDS_FORCE,
