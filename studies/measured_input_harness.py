@@ -13,7 +13,7 @@ CSV files (`--params`-like nominal device: the reference with T_dm = T_f = 0, as
 validation's).
 
 Scored: the measured twin's verdict against the clean twin's (agreement: the stop models
-named as one family, `FAMILY_OF`; `agree_exact` the same name), refusals of a
+named as one family, `verdict_family`; `agree_exact` the same name), refusals of a
 measured input, fits that ended below the nominal model's penalised likelihood (flagged
 `fit_failed`; counted over every ranking), `none` on a record whose truth has an effect
 (false assurance; the held-on-stop class included; the class that leaves its stop at the
@@ -47,6 +47,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402
+from verdict_family import family  # noqa: E402
 
 CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT)
 NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
@@ -226,14 +227,6 @@ def diagnose_blind(folders: list[Path]) -> dict:
         return json.loads(out.read_text())
 
 
-FAMILY_OF = {"stop_contact": "stop_saturation"}
-"""Verdicts that name one family: the inelastic stop is the compliant stops' stiff, damped
-limit (as `sim_to_real_validation.FAMILY`), so twins that name one and the other agree
-(`agree`; `agree_exact` counts the same name)."""
-
-
-def _family(verdict):
-    return FAMILY_OF.get(verdict, verdict)
 
 
 EFFECT_ABSENT_CHI2 = 1.0
@@ -295,9 +288,9 @@ def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
             entry["refused"] += 1
             entry["verdicts"].append([clean.get("verdict"), "refused"])
             continue
-        same = _family(clean.get("verdict")) == _family(measured["verdict"]) and sorted(
-            map(_family, clean.get("tied", []))
-        ) == sorted(map(_family, measured["tied"]))
+        same = family(clean.get("verdict")) == family(measured["verdict"]) and sorted(
+            map(family, clean.get("tied", []))
+        ) == sorted(map(family, measured["tied"]))
         entry["agree"] += int(same)
         entry["agree_exact"] = entry.get("agree_exact", 0) + int(
             clean.get("verdict") == measured["verdict"]

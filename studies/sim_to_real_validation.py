@@ -60,6 +60,7 @@ from accel_jax.report import (  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402  (the independent truth simulator, beside this study)
+from verdict_family import family  # noqa: E402
 
 STUDY = "sim_to_real_validation"
 
@@ -87,9 +88,6 @@ EFFECTS = (
     "colored_noise",
 )
 VERDICTS = EFFECTS[1:] + ("stop_contact", "none", "cannot_tell", "unexplained")
-FAMILY = {"stop_saturation": ("stop_contact",)}
-"""Verdicts that name a truth's effect by another member of its family: an inelastic stop
-named as compliant stops (`stop_contact`, of which the clamp is the stiff, damped limit)."""
 
 
 def _grid():
@@ -598,8 +596,9 @@ def score(
 ) -> dict:
     """Confusion matrix and rates of the blind verdicts against the truth.
 
-    - effects of the library: named (strict; a member of the truth's `FAMILY` counts: an
-      inelastic stop named as a compliant one), or `cannot_tell` naming the truth (lenient);
+    - effects of the library: named (strict; a member of the truth's family counts,
+      `verdict_family`: an inelastic stop named as a compliant one), or `cannot_tell`
+      naming the truth (lenient);
     - no-effect datasets: false alarms (any verdict but `none`);
     - out-of-library effects (`out_of_library`): `unexplained` is right;
     - `assurance`: per dataset, the true held-out gap over the true noise floor (see
@@ -617,7 +616,7 @@ def score(
         if t in out_of_library:
             ok = tied_ok = v == "unexplained"
         else:
-            ok = v == t or v in FAMILY.get(t, ())
+            ok = v == t or family(v) == t
             tied_ok = v == "cannot_tell" and t in verdict["tied"]
         c = per_class.setdefault(t, {"n": 0, "correct": 0, "correct_or_tied": 0})
         c["n"] += 1
