@@ -75,6 +75,8 @@ def test_a_lag_hidden_behind_the_input_channels_delay_shows_once_the_delay_is_gi
     # Unknown delay: the fitted delay takes up the filter (the output on time, −0.5 sample).
     assert unknown.verdict == "none", unknown.reason
     assert unknown.refit["nuisance_test"]["known_input_delay_samples"] is None
+    # … and says what that `none` cannot rule out, and how to rule it out.
+    assert any("would hide in it" in n and "--input-delay" in n for n in unknown.notes)
     # Given: the output follows the drive ~3.5 samples later than the channel's delay
     # allows, and the filter model, fitted with the change times at their prior, recovers
     # the truth's time constant.

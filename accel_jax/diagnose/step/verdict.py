@@ -136,6 +136,8 @@ def evaluate(
         "held_out": held,
     }
     notes = list(getattr(data, "notes", ())) + list(rec.notes)
+    if verdict == "none" and rec.ctx.level_sigma is not None and rec.input_delay_known is None:
+        notes.append(_hidden_lag_note(nuisances, rec))
     return DiagnosisResult(
         kind="step",
         verdict=verdict,
@@ -160,6 +162,20 @@ def _up_to_model_form(fit: StepFit, nominal_fit: StepFit) -> StepFit:
         and fit.gap_held <= openworld.MODEL_FORM * nominal_fit.gap_held
     )
     return dataclasses.replace(fit, explains_model_form=form, explains=form)
+
+
+def _hidden_lag_note(nuisances: dict, rec: StepRecord) -> str:
+    """What a `none` on a measured input cannot rule out: a lag of the loop about the size
+    of the input channel's fitted delay, which that delay takes up."""
+    delay = nuisances["input_delay_samples"]
+    return (
+        f"the input channel's delay behind the output was fitted (the output moves "
+        f"{abs(delay):.2f} samples {'before' if delay >= 0 else 'after'} the column shows a "
+        f"change, {rec.dt_sample * 1e6:.3g} µs a sample): a lag of the loop of about the "
+        "channel's own delay would hide in it; where that delay is known, give it "
+        "(`--input-delay`, `StepData.input_delay`) and the output's lateness is judged "
+        "beyond it"
+    )
 
 
 def ranking_entry(
