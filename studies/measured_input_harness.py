@@ -158,43 +158,66 @@ bits of at least 20 µs) over `PRBS_LENGTH` times the truth's record length."""
 PRBS_LENGTH = 2.5
 
 
+def prbs_world(truths: list[dict], i: int, seed: int) -> tuple[dict, np.random.Generator]:
+    """Truth `i`'s world driven by a PRBS instead of its small steps (its own random
+    stream, `record_rng(seed, 2, i)`, whose first draws are the sequence), and that stream
+    for the rest of the record. The world's `duration_s` is `PRBS_LENGTH` times the step
+    record's."""
+    rng = record_rng(seed, 2, i)
+    truth = dict(truths[i])
+    levels, times = step_truth.prbs_levels(
+        rng,
+        n_changes=PRBS_CHANGES,
+        duration_s=step_truth.DURATION * PRBS_LENGTH,
+        low_V=-truth["u_max_V"],
+        high_V=truth["u_max_V"],
+        min_bit_s=2e-5,
+    )
+    truth["levels_V"], truth["change_times_s"] = levels, times
+    if truth["effect"] == step_truth.ON_STOP_HELD_EFFECT:
+        truth["levels_V"] = [truths[i]["levels_V"][0]] + levels[1:]
+    truth["duration_s"] = step_truth.DURATION * PRBS_LENGTH
+    return truth, rng
+
+
+def _make(truth: dict, rng: np.random.Generator):
+    """`step_truth.make` of a world whose length may differ from the module's
+    (`duration_s`; `make` reads the length from `step_truth.DURATION`)."""
+    duration = step_truth.DURATION
+    try:
+        step_truth.DURATION = truth.get("duration_s", duration)
+        return step_truth.make(truth, rng)
+    finally:
+        step_truth.DURATION = duration
+
+
 def write_prbs_twins(truths: list[dict], picked: list[int], folder: Path, seed: int) -> dict:
-    """For each picked truth, the same world driven by a PRBS instead of its small steps:
-    written clean and measured (`prbs_clean/`, `prbs_measured/`); returns the sequences."""
+    """For each picked truth, the same world driven by a PRBS instead of its small steps
+    (`prbs_world`): written clean and measured (`prbs_clean/`, `prbs_measured/`); returns
+    the sequences."""
     from accel_jax import StepData, write_csv
 
     sequences = {}
-    duration = step_truth.DURATION
     for i in picked:
-        rng = record_rng(seed, 2, i)
-        truth = dict(truths[i])
-        levels, times = step_truth.prbs_levels(
-            rng,
-            n_changes=PRBS_CHANGES,
-            duration_s=duration * PRBS_LENGTH,
-            low_V=-truth["u_max_V"],
-            high_V=truth["u_max_V"],
-            min_bit_s=2e-5,
-        )
-        truth["levels_V"], truth["change_times_s"] = levels, times
-        if truth["effect"] == step_truth.ON_STOP_HELD_EFFECT:
-            truth["levels_V"] = [truths[i]["levels_V"][0]] + levels[1:]
-        try:
-            step_truth.DURATION = duration * PRBS_LENGTH  # (`make` reads the length from it)
-            t, u, y, _ = step_truth.make(truth, rng)
-        finally:
-            step_truth.DURATION = duration
+        truth, rng = prbs_world(truths, i, seed)
+        t, u, y, _ = _make(truth, rng)
         measured, _ = step_truth.measure_input(u, truth["rate"], rng)
         write_csv(folder / "prbs_clean" / f"{i:04d}.csv", StepData(t, u, y))
         write_csv(folder / "prbs_measured" / f"{i:04d}.csv", StepData(t, measured, y))
-        sequences[i] = {"changes": PRBS_CHANGES, "duration_s": duration * PRBS_LENGTH}
+        sequences[i] = {"changes": PRBS_CHANGES, "duration_s": truth["duration_s"]}
     return sequences
 
 
-def score_prbs(truths: list[dict], rows: dict, picked: list[int]) -> dict:
-    """Each PRBS twin's verdict (clean and measured input) against the step record's."""
+def score_prbs(
+    truths: list[dict], rows: dict, picked: list[int], seed: int, signal=None
+) -> dict:
+    """Each PRBS twin's verdict (clean and measured input) against the step record's. A
+    `none` on an effect truth is false assurance unless the effect changes the PRBS
+    world's noise-free record by χ² < `EFFECT_ABSENT_CHI2` (`signal`, default
+    `effect_signal`, of `prbs_world`): those are listed in `none_effect_absent`."""
+    signal = effect_signal if signal is None else signal
     out = {"records": len(picked), "agree_clean": 0, "agree_measured": 0, "refused": 0,
-           "false_assurance": 0, "verdicts": []}
+           "false_assurance": 0, "none_effect_absent": {}, "verdicts": []}
     for i in picked:
         step = rows[f"clean/{i:04d}"]
         key = (step.get("verdict"), sorted(step.get("tied", [])))
@@ -206,10 +229,16 @@ def score_prbs(truths: list[dict], rows: dict, picked: list[int]) -> dict:
                 pair.append("refused")
                 continue
             same = (row["verdict"], sorted(row["tied"])) == key
-            out["false_assurance"] += int(
-                row["verdict"] == "none"
-                and truths[i]["effect"] not in ("none", step_truth.ON_STOP_EFFECT)
-            )
+            if row["verdict"] == "none" and truths[i]["effect"] not in (
+                "none", step_truth.ON_STOP_EFFECT
+            ):
+                acts = signal(prbs_world(truths, i, seed)[0])
+                if acts is not None and acts["chi2"] < EFFECT_ABSENT_CHI2:
+                    out["none_effect_absent"][f"{name}/{i:04d}"] = {
+                        "effect": truths[i]["effect"], **acts
+                    }
+                else:
+                    out["false_assurance"] += 1
             out["agree_clean" if name == "prbs_clean" else "agree_measured"] += int(same)
             pair.append(row["verdict"])
         out["verdicts"].append([truths[i]["effect"], step.get("verdict")] + pair)
@@ -248,12 +277,12 @@ def effect_signal(truth: dict) -> dict | None:
     effect = truth["effect"]
     if effect in ("none", step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT):
         return None
-    n = int(round(step_truth.DURATION * truth["rate"]))
+    n = int(round(truth.get("duration_s", step_truth.DURATION) * truth["rate"]))
     if effect == "colored_noise":
         return {"chi2": n * truth["gm_over_white"] ** 2, "peak_sigma": None}
 
     def noise_free(world):
-        _, _, y, noise = step_truth.make(world, np.random.default_rng(0))
+        _, _, y, noise = _make(world, np.random.default_rng(0))
         return y - noise
 
     d = noise_free(truth) - noise_free({**truth, "effect": "none"})
@@ -386,7 +415,7 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
     return {
         "assumptions": {**first, "shard": None, "merged_shards": sorted(shards)},
         "score": score(truths, rows, signal),
-        "prbs": score_prbs(truths, rows, picked) if picked else None,
+        "prbs": score_prbs(truths, rows, picked, first["seed"], signal) if picked else None,
         "prbs_picked": picked,
         "truths": truths,
         "channels": channels,
@@ -478,7 +507,9 @@ def main(argv=None) -> int:
         print(
             f"PRBS twins ({PRBS_CHANGES} changes): verdict as the step record's: clean "
             f"{p['agree_clean']}/{p['records']}, measured {p['agree_measured']}/{p['records']}; "
-            f"refused {p['refused']}; none on an effect's record {p['false_assurance']}"
+            f"refused {p['refused']}; none on an effect's record {p['false_assurance']} "
+            f"(besides {len(p.get('none_effect_absent', {}))} where the effect changes no "
+            f"sample by χ² ≥ {EFFECT_ABSENT_CHI2:g})"
         )
     print(f"written: {target} ({result['seconds']:.0f} s)")
     return 0
@@ -515,7 +546,7 @@ def run(args) -> dict:
             "precision": "float64",
         },
         "score": score(truths, rows),
-        "prbs": score_prbs(truths, rows, picked) if picked else None,
+        "prbs": score_prbs(truths, rows, picked, args.seed) if picked else None,
         "prbs_picked": picked,
         "truths": truths,
         "channels": {str(i): c for i, c in zip(indices, channels, strict=True)},

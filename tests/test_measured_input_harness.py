@@ -130,3 +130,35 @@ def test_a_compact_result_keeps_the_scores_and_each_channels_draws(tmp_path):
     c = small["channels"]["0"]
     assert c["delay_samples"] == channel["delay_samples"] and "change_index" not in c
     assert c["spikes"] == len(channel["spikes"] or [])
+
+
+def test_prbs_twins_are_scored_on_their_own_world():
+    """A PRBS twin's `none` is judged by what the effect changes in the PRBS world (its
+    drive between ±U_max, `PRBS_LENGTH` times as long), not in the step record's."""
+    truths = harness.draw(100, 2027)
+    world, _ = harness.prbs_world(truths, 367, 2027)
+    step_n = harness.step_truth.DURATION
+    assert world["duration_s"] == pytest.approx(harness.PRBS_LENGTH * step_n)
+    assert world["levels_V"] != truths[367]["levels_V"]
+    # A noise effect's χ² is its expected energy over the record: 2.5 times the step's.
+    noisy = next(i for i, t in enumerate(truths) if t["effect"] == "colored_noise")
+    step_chi2 = harness.effect_signal(truths[noisy])["chi2"]
+    prbs_chi2 = harness.effect_signal(harness.prbs_world(truths, noisy, 2027)[0])["chi2"]
+    assert prbs_chi2 == pytest.approx(harness.PRBS_LENGTH * step_chi2, rel=1e-3)
+
+    lag = next(i for i, t in enumerate(truths) if t["effect"] == "torquer_lag")
+    asked = []
+
+    def signal(w):  # the stop acts in no record, the lag in every one
+        asked.append(w)
+        return {"chi2": 0.0 if w["effect"] == "stop_saturation" else 50.0, "peak_sigma": 0.0}
+
+    rows = {}
+    for i in (367, lag):
+        rows |= {f"clean/{i:04d}": _row("none"), f"prbs_clean/{i:04d}": _row("none"),
+                 f"prbs_measured/{i:04d}": _row("stop_saturation" if i == 367 else "none")}
+    out = harness.score_prbs(truths, rows, [367, lag], 2027, signal)
+    assert out["false_assurance"] == 2  # the lag's two none twins
+    assert list(out["none_effect_absent"]) == ["prbs_clean/0367"]
+    assert all(w["duration_s"] == world["duration_s"] for w in asked) and len(asked) == 3
+    assert (out["agree_clean"], out["agree_measured"]) == (2, 1)
