@@ -79,11 +79,18 @@ def test_forward_derivatives_match_finite_differences():
 
 def test_block_means_and_a_stop_on_one_side_only():
     one_sided = _contact(STOP, -1e6, 300.0, 0.3)
-    m = 4
-    blocked = np.asarray(
-        contact_record(IDEAL, DT, N // m, _sequence(), STOP, -1e6, 300.0, 0.3, block=m)
+    # m = 1 steps sample by sample; m ≥ WHOLE_BLOCK_MIN takes free blocks whole (m traced,
+    # as the diagnosis passes it, under one `max_block`).
+    blocks = 300
+    blocked = jax.jit(
+        lambda m: contact_record(
+            IDEAL, DT, blocks, _sequence(), STOP, -1e6, 300.0, 0.3, block=m, max_block=32,
+            duration=DT * (N - 1),
+        )
     )
-    np.testing.assert_allclose(blocked, one_sided.reshape(-1, m).mean(1), rtol=0, atol=1e-12)
+    for m in (4, 20):
+        means = one_sided[: blocks * m].reshape(-1, m).mean(1)
+        np.testing.assert_allclose(np.asarray(blocked(m)), means, rtol=0, atol=1e-12)
     # The lower side is free: the −2 V level's overshoot passes −STOP as far as the linear
     # record's, while the upper stop holds the +2 V levels near STOP.
     assert np.max(one_sided) < 1.05 * STOP

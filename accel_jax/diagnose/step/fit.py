@@ -318,7 +318,7 @@ def predict(m: CandidateModel, ctx, n, mode: str):
     if mode == "contact":
         record = contact_record(
             *args, high, low, m.stiffness, m.damping_ratio, block=ctx.block,
-            duration=ctx.duration,
+            max_block=ctx.max_block, duration=ctx.duration,
         )
     else:
         record = stop_record(*args, high, low, block=ctx.block, duration=ctx.duration)
