@@ -242,6 +242,35 @@ def test_stop_record_matches_exact_inelastic_contact_events(stop_over_level):
     )
 
 
+@pytest.mark.parametrize("torquer_lag", [0.0, 2e-5])
+def test_stop_record_blocks_taken_whole_are_the_sample_records_means(torquer_lag):
+    """A free block without a change taken whole (`whole_blocks`, m ≥ 4, m traced under
+    `max_block` as the diagnosis passes it) against the sample-by-sample record (m = 1):
+    held on the stop at ±2 V and released (with a torquer lag: after the change)."""
+    params = aj.ServoParams.reference(torquer_time_constant=torquer_lag, filter_time_constant=0.0)
+    _, dt, n, sequence = _still_device()
+    stop = 1.8
+    samples = np.asarray(stop_record(params, dt, n, sequence, stop, -stop))
+    blocks = 300
+    blocked = jax.jit(
+        lambda m: stop_record(
+            params, dt, blocks, sequence, stop, -stop, block=m, max_block=32,
+            duration=dt * (n - 1),
+        )
+    )
+    for m in (4, 20):
+        means = samples[: blocks * m].reshape(-1, m).mean(1)
+        np.testing.assert_allclose(np.asarray(blocked(m)), means, rtol=0, atol=1e-12)
+    # A traced m beyond `max_block` goes sample by sample (no power past the ones made).
+    short = jax.jit(
+        lambda m: stop_record(
+            params, dt, 100, sequence, stop, -stop, block=m, max_block=8, duration=dt * (n - 1)
+        )
+    )
+    means = samples[:2000].reshape(-1, 20).mean(1)
+    np.testing.assert_allclose(np.asarray(short(20)), means, rtol=0, atol=1e-12)
+
+
 def test_change_time_derivative_matches_finite_differences():
     def first_change(d):
         shift = jnp.asarray(_shifts()).at[0].set(d)

@@ -19,9 +19,9 @@ at v = v_hi,
 system per regime (free, upper contact, lower contact), the two contacts sharing one
 matrix.
 
-**Stepping.** Block by block (`lax.scan`): a block of m ≥ `WHOLE_BLOCK_MIN` samples with
-no change in it and every sample's state free of both contacts is one product (the free
-flow's powers, `max_block` + 1 of them); any other block sample by sample. A sample step
+**Stepping.** Block by block (`lax.scan`): a block of m ≥ `sequence.WHOLE_BLOCK_MIN`
+samples with no change in it and every sample's state free of both contacts is one
+product (`sequence.whole_blocks`); any other block sample by sample. A sample step
 that starts free and whose exact free flow ends inside neither contact is taken in one
 exact step (a branch taken at run time when not vmapped: most steps are free). Otherwise the step is cut into
 `substeps` equal parts, each taken with the exact flow (`matrix.zoh`, Van Loan) of the
@@ -51,17 +51,11 @@ from .._params import ServoParams
 from .._servo import loop_stiffness, time_constant
 from .matrix import expm_minus_identity
 from .sequence import N_STATES, SequenceInputs, _change_split, _moment_jumps, _taylor_flow
+from .sequence import whole_blocks
 from .sequence import initial_state, loop_system
 
 SUBSTEPS = 8
 """Default parts of a sample step in or near a contact."""
-
-WHOLE_BLOCK_MIN = 4
-"""Blocks of at least this many samples are taken whole where no change and no contact
-falls within them (`contact_record`); shorter ones sample by sample. The whole-block step
-computes all `max_block` + 1 states whatever m is: measured on the 2-core CPU (6,000
-samples, one stop, its Jacobian in three parameters, `max_block` 32), m = 1 ran 2× slower
-that way, m = 4 2× faster, m = 20 3× faster."""
 
 SWITCH_ITERATIONS = 3
 """Regula falsi iterations for a contact's start or end within a part of a step."""
@@ -81,15 +75,6 @@ def contact_system(params: ServoParams, duration, stiffness, damping_ratio):
     column = a[:, 4]
     row = jnp.zeros(N_STATES, a.dtype).at[0].set(-spring).at[1].set(-damper)
     return a, a + jnp.outer(column, row), column * spring, b, c, spring, damper
-
-
-def _powers(matrix, count: int):
-    """[M^k for k < K], K the least power of two ≥ `count` (doubling: log₂ K products)."""
-    stack, power = jnp.eye(matrix.shape[0], dtype=matrix.dtype)[None], matrix
-    while stack.shape[0] < count:
-        stack = jnp.concatenate([stack, stack @ power])
-        power = power @ power
-    return stack
 
 
 def _flow_maps(a, b, f, time):
@@ -259,45 +244,27 @@ def contact_record(
         x_next = jax.lax.cond(near, substepped, lambda x: x_free, x)
         return x_next, total
 
-    # A whole block at once where it can be: with no change within it and every sample's
-    # state free of both contacts, its samples are the free flow's powers applied to its
-    # first state (x_k = Φ^k x_0 + Σ_{i<k} Φ^i γ u: the affine map's powers, k ≤ m), the
-    # same steps the sample loop would take (it takes a free step exactly when neither end
-    # is in contact), as one product instead of m loop iterations. Otherwise the sample loop.
+    # A free block without a change whole (`sequence.whole_blocks`): the sample loop takes
+    # a free step exactly when neither end is in contact.
     phi, gamma, _ = whole_free
-    affine = (
-        jnp.eye(N_STATES + 1, dtype=dtype)
-        .at[:N_STATES, :N_STATES]
-        .set(phi)
-        .at[:N_STATES, N_STATES]
-        .set(gamma)
-    )
-    powers = _powers(affine, max_block + 1)[: max_block + 1]  # M^k, k = 0 … max_block
-    k_index = jnp.arange(powers.shape[0])
 
-    def free_block(x, first):
-        level = first_level + jnp.sum(jnp.where(active & (interval < first), change_step, 0.0))
-        states = (powers @ jnp.concatenate([x, (gain * level)[None]]))[:, :N_STATES]
-        touching = jax.vmap(regime)(states) != 0
-        free = ~jnp.any(touching & (k_index <= m))
-        quiet = ~jnp.any(active & (interval >= first) & (interval < first + m))
-        mean = jnp.sum(jnp.where(k_index < m, states @ c, 0.0)) / m
-        return free & quiet, states[m], mean
+    def level_drive(first):  # g·U over a block from sample `first` without a change
+        before = active & (interval < first)
+        return gain * (first_level + jnp.sum(jnp.where(before, change_step, 0.0)))
+
+    try_block = whole_blocks(phi, gamma, c, level_drive, interval, active, m, max_block)
+
+    def free_of_contact(states):
+        return jax.vmap(regime)(states) == 0
 
     def block_step(x, index):
         def sample_loop(x):
             zero = jnp.zeros((), x.dtype)
-            x, total = jax.lax.fori_loop(index * m, index * m + m, sample_step, (x, zero))
-            return x, total / m
+            return jax.lax.fori_loop(index * m, index * m + m, sample_step, (x, zero))
 
-        def not_tried(x):
-            return jnp.zeros((), bool), x, jnp.zeros((), x.dtype)
-
-        # (The sample loop appears once in the program: each copy is costly to compile.)
-        ok, x_fast, mean_fast = jax.lax.cond(
-            m >= WHOLE_BLOCK_MIN, lambda x: free_block(x, index * m), not_tried, x
-        )
-        return jax.lax.cond(ok, lambda _: (x_fast, mean_fast), sample_loop, x)
+        taken, x_fast, total_fast = try_block(x, index * m, free_of_contact)
+        x, total = jax.lax.cond(taken, lambda _: (x_fast, total_fast), sample_loop, x)
+        return x, total / m
 
     _, ys = jax.lax.scan(block_step, start, jnp.arange(n))
     return ys

@@ -321,7 +321,9 @@ def predict(m: CandidateModel, ctx, n, mode: str):
             max_block=ctx.max_block, duration=ctx.duration,
         )
     else:
-        record = stop_record(*args, high, low, block=ctx.block, duration=ctx.duration)
+        record = stop_record(
+            *args, high, low, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration
+        )
     return record + m.output_offset
 
 

@@ -198,7 +198,8 @@ def _record_prediction(shared, own, candidate, base, prior_sigma, ctx, n, stop_v
     if on_stops:
         stop = stop_voltage * jnp.exp(STOP_SIGMA * shared[Shared.STOP])
         out = stop_record(
-            params, ctx.dt, n, sequence, stop, -stop, block=ctx.block, duration=ctx.duration
+            params, ctx.dt, n, sequence, stop, -stop, block=ctx.block,
+            max_block=ctx.max_block, duration=ctx.duration,
         )
     else:
         out = linear_record(
