@@ -23,9 +23,9 @@ matrix.
 samples with no change in it and every sample's state free of both contacts is one
 product (`sequence.whole_blocks`); any other block sample by sample. A sample step
 that starts free and whose exact free flow ends inside neither contact is taken in one
-exact step (a branch taken at run time when not vmapped: most steps are free). Otherwise the step is cut into
-`substeps` equal parts, each taken with the exact flow (`matrix.zoh`, Van Loan) of the
-regime in force at its start; when the regime at its end differs, the switch time within
+exact step (a branch taken at run time when not vmapped: most steps are free).
+Otherwise the step is cut into `substeps` equal parts, each taken with the exact flow
+(`matrix.zoh`, Van Loan) of the regime in force at its start; when the regime at its end differs, the switch time within
 the part is found by regula falsi on the switching function (the penetration, or the
 contact force, crossing zero) along the first regime's flow, and the two pieces are taken
 with a fourth-order Taylor expansion of each regime's flow (`sequence._taylor_flow`:
@@ -248,11 +248,9 @@ def contact_record(
     # a free step exactly when neither end is in contact.
     phi, gamma, _ = whole_free
 
-    def level_drive(first):  # g·U over a block from sample `first` without a change
-        before = active & (interval < first)
-        return gain * (first_level + jnp.sum(jnp.where(before, change_step, 0.0)))
-
-    try_block = whole_blocks(phi, gamma, c, level_drive, interval, active, m, max_block)
+    try_block = whole_blocks(
+        phi, gamma, c, gain, first_level, change_step, interval, active, m, max_block
+    )
 
     def free_of_contact(states):
         return jax.vmap(regime)(states) == 0

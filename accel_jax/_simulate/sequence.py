@@ -287,16 +287,19 @@ samples, one stop, its Jacobian in three parameters, `max_block` 32), m = 1 ran 
 that way, m = 4 2× faster, m = 20 3× faster."""
 
 
-def whole_blocks(transition, forcing, c, drive_of, interval, active, m, max_block: int):
+def whole_blocks(
+    transition, forcing, c, gain, first_level, change_step, interval, active, m, max_block: int
+):
     """`try_block(x, first, free_states)` → (taken, x_end, total) for the block of m samples
     from sample `first` at state x: with no change within it (steps k ∈ [first, first + m)
     never hit one) its states are x_k = Φ^k x + Σ_{i<k} Φ^i γ u (k ≤ m: the powers of the
     affine sample map [[Φ, γ], [0, 1]], `max_block` + 1 of them, made once), the same free
-    steps the sample loop takes, as one product; total = Σ_{k<m} c·x_k. `taken` is false
-    for a short block (m < `WHOLE_BLOCK_MIN`: the states are then not computed) or one
-    longer than `max_block`, for one
-    with a change, and where `free_states(states)` (one bool per state: no stop acts
-    there) is false for some x_k, k ≤ m. `drive_of(first)`: g·U over the block."""
+    steps the sample loop takes, as one product; total = Σ_{k<m} c·x_k; u the level the
+    changes before the block left (gain g, `first_level`, `change_step` at the steps
+    `interval` where `active`). `taken` is false for a short block (m < `WHOLE_BLOCK_MIN`:
+    the states are then not computed), one longer than `max_block`, one with a change, and
+    where `free_states(states)` (one bool per state: no stop acts there) is false for some
+    x_k, k ≤ m."""
     size = transition.shape[0]
     affine = (
         jnp.eye(size + 1, dtype=transition.dtype)
@@ -314,7 +317,9 @@ def whole_blocks(transition, forcing, c, drive_of, interval, active, m, max_bloc
 
     def try_block(x, first, free_states):
         def attempt(x):
-            states = (powers @ jnp.concatenate([x, drive_of(first)[None]]))[:, :size]
+            before = active & (interval < first)
+            drive = gain * (first_level + jnp.sum(jnp.where(before, change_step, 0.0)))
+            states = (powers @ jnp.concatenate([x, drive[None]]))[:, :size]
             free = jnp.all(free_states(states) | (k_index > m))
             quiet = ~jnp.any(active & (interval >= first) & (interval < first + m))
             total = jnp.sum(jnp.where(k_index < m, states @ c, 0.0))
@@ -457,11 +462,9 @@ def stop_record(
         )
         return x_next, new_held, total
 
-    def level_drive(first):  # g·U over a block from sample `first` without a change
-        before = active & (interval < first)
-        return gain * (first_level + jnp.sum(jnp.where(before, change_step, 0.0)))
-
-    try_block = whole_blocks(transition, forcing, c, level_drive, interval, active, m, max_block)
+    try_block = whole_blocks(
+        transition, forcing, c, gain, first_level, change_step, interval, active, m, max_block
+    )
 
     def within_stops(states):
         return (states[:, 0] <= stop_high) & (states[:, 0] >= stop_low)
