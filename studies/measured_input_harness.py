@@ -79,6 +79,7 @@ def row(result):
         "nuisance_strained": test.get("strained"),
         "nuisance_largest": [test.get("largest"), test.get("largest_sigma")],
         "input_delay_samples": test.get("input_delay_samples"),
+        "hidden_lag_samples": test.get("hidden_lag_samples"),
         "notes": list(result.notes),
     }
 
@@ -214,10 +215,13 @@ def score_prbs(
     """Each PRBS twin's verdict (clean and measured input) against the step record's. A
     `none` on an effect truth is false assurance unless the effect changes the PRBS
     world's noise-free record by χ² < `EFFECT_ABSENT_CHI2` (`signal`, default
-    `effect_signal`, of `prbs_world`): those are listed in `none_effect_absent`."""
+    `effect_signal`, of `prbs_world`): those are listed in `none_effect_absent`; or its
+    lag is within what the diagnosis says it cannot rule out (`lag_within_stated`):
+    listed in `none_lag_within_stated`."""
     signal = effect_signal if signal is None else signal
     out = {"records": len(picked), "agree_clean": 0, "agree_measured": 0, "refused": 0,
-           "false_assurance": 0, "none_effect_absent": {}, "verdicts": []}
+           "false_assurance": 0, "none_effect_absent": {}, "none_lag_within_stated": {},
+           "verdicts": []}
     for i in picked:
         step = rows[f"clean/{i:04d}"]
         key = (step.get("verdict"), sorted(step.get("tied", [])))
@@ -233,7 +237,10 @@ def score_prbs(
                 "none", step_truth.ON_STOP_EFFECT
             ):
                 acts = signal(prbs_world(truths, i, seed)[0])
-                if acts is not None and acts["chi2"] < EFFECT_ABSENT_CHI2:
+                stated = lag_within_stated(truths[i], row, name == "prbs_measured")
+                if stated is not None:
+                    out["none_lag_within_stated"][f"{name}/{i:04d}"] = stated
+                elif acts is not None and acts["chi2"] < EFFECT_ABSENT_CHI2:
                     out["none_effect_absent"][f"{name}/{i:04d}"] = {
                         "effect": truths[i]["effect"], **acts
                     }
@@ -293,11 +300,38 @@ def effect_signal(truth: dict) -> dict | None:
     }
 
 
+LAG_EFFECTS = ("torquer_lag", "output_filter")
+
+
+def hidden_lag(row: dict, measured: bool) -> float:
+    """The largest loop lag [samples] a diagnosis row says its fitted delay can take up
+    (`nuisance_test`'s `hidden_lag_samples`). Rows written before the diagnosis stated it
+    (commits before it, e.g. 64174d4) get the same formula from their fitted delay, with
+    the harness's records' input delay not given: `DELAY_LIMIT` less it on a measured
+    twin, `COLUMN_PHASE` less it on a clean one."""
+    if row.get("hidden_lag_samples") is not None:
+        return float(row["hidden_lag_samples"])
+    from accel_jax.diagnose.step.fit import DELAY_LIMIT
+    from accel_jax.diagnose.step.nuisance import COLUMN_PHASE
+
+    channel = DELAY_LIMIT if measured else COLUMN_PHASE
+    return max(0.0, channel - float(row["input_delay_samples"]))
+
+
+def lag_within_stated(truth: dict, row: dict, measured: bool) -> dict | None:
+    """For a `none` on a lag truth (`LAG_EFFECTS`) whose lag [samples] is at most the lag
+    the diagnosis says it cannot rule out (`hidden_lag`): the two figures; else None."""
+    if truth["effect"] not in LAG_EFFECTS or row.get("verdict") != "none":
+        return None
+    lag, hidden = truth["lag_s"] * truth["rate"], hidden_lag(row, measured)
+    return {"lag_samples": lag, "hidden_lag_samples": hidden} if lag <= hidden else None
+
+
 def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
     """The scores over the records in `rows` (`truths` indexed by the records' indices).
     `signal(truth)`: `effect_signal`, asked only of the effect truths read `none`."""
     per_class = {}
-    absent = {}
+    absent, within = {}, {}
     failed_fits = rankings = 0
     indices = sorted(int(key.split("/")[1]) for key in rows if key.startswith("clean/"))
     for i in indices:
@@ -327,17 +361,18 @@ def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
         )
         entry["none_clean"] += int(clean.get("verdict") == "none")
         entry["none_measured"] += int(measured["verdict"] == "none")
-        if "none" in (clean.get("verdict"), measured["verdict"]) and truth["effect"] not in (
-            "none", step_truth.ON_STOP_EFFECT
-        ):
+        stated = {}
+        for twin, row in (("clean", clean), ("measured", measured)):
+            bound = lag_within_stated(truth, row, twin == "measured")
+            if bound is not None:
+                stated[f"{twin}/{i:04d}"] = {"effect": truth["effect"], **bound}
+        nones = int(clean.get("verdict") == "none") + int(measured["verdict"] == "none")
+        if nones > len(stated) and truth["effect"] not in ("none", step_truth.ON_STOP_EFFECT):
             acts = signal(truth)
             if acts is not None and acts["chi2"] < EFFECT_ABSENT_CHI2:
-                absent[f"{i:04d}"] = {
-                    "effect": truth["effect"],
-                    "none_twins": int(clean.get("verdict") == "none")
-                    + int(measured["verdict"] == "none"),
-                    **acts,
-                }
+                absent[f"{i:04d}"] = {"effect": truth["effect"], "none_twins": nones, **acts}
+                stated = {}
+        within.update(stated)
         entry["nuisance_trips"] += int(bool(clean.get("nuisance_strained")))
         entry["nuisance_trips_measured"] += int(bool(measured.get("nuisance_strained")))
         entry["verdicts"].append([clean.get("verdict"), measured["verdict"]])
@@ -347,7 +382,7 @@ def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
         e["none_clean"] + e["none_measured"]
         for c, e in per_class.items()
         if c not in ("none", step_truth.ON_STOP_EFFECT)
-    ) - sum(a["none_twins"] for a in absent.values())
+    ) - sum(a["none_twins"] for a in absent.values()) - len(within)
     return {
         "per_class": per_class,
         "agreement": agree / max(total, 1),
@@ -365,8 +400,12 @@ def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
             "effect_absent": "a `none` on a record whose truth's effect changes its "
             f"noise-free samples by χ² < {EFFECT_ABSENT_CHI2:g} (effect_signal: e.g. a stop "
             "the record never reaches); listed in none_effect_absent",
+            "lag_within_stated": "a `none` on a lag truth whose lag is at most the loop lag "
+            "the diagnosis states it cannot rule out (nuisance_test's hidden_lag_samples: "
+            "the input channel's fitted delay takes it up); listed in none_lag_within_stated",
         },
         "none_effect_absent": absent,
+        "none_lag_within_stated": within,
         "start_on_stop_none": (
             per_class[step_truth.ON_STOP_EFFECT]["none_clean"]
             + per_class[step_truth.ON_STOP_EFFECT]["none_measured"]
@@ -424,6 +463,19 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
     }
 
 
+def rescore(result: dict, signal=effect_signal) -> dict:
+    """`result` (one run, shard or merge) scored again by this commit's `score` and
+    `score_prbs`; its rows, draw and commit unchanged, `rescored_at` added."""
+    truths, rows, picked = result["truths"], result["rows"], result.get("prbs_picked") or []
+    seed = result["assumptions"]["seed"]
+    return {
+        **result,
+        "assumptions": {**result["assumptions"], "rescored_at": _commit()},
+        "score": score(truths, rows, signal),
+        "prbs": score_prbs(truths, rows, picked, seed, signal) if picked else None,
+    }
+
+
 CHANNEL_SUMMARY = ("delay_samples", "antialias_tau_samples", "noise_V", "lsb_V", "drift_V",
                    "offset_V")
 
@@ -431,7 +483,10 @@ CHANNEL_SUMMARY = ("delay_samples", "antialias_tau_samples", "noise_V", "lsb_V",
 def compact(result: dict) -> dict:
     """A result small enough to keep in the repository: each row without its notes, each
     input channel as its scalar draws (`CHANNEL_SUMMARY`, and the number of relay spikes),
-    without the per-change indices, phases and spike list."""
+    without the per-change indices, phases and spike list. A compact result is returned
+    as it is."""
+    if result.get("compact"):
+        return result
     channels = {
         key: {**{k: c[k] for k in CHANNEL_SUMMARY if k in c}, "spikes": len(c.get("spikes") or [])}
         for key, c in result["channels"].items()
@@ -478,8 +533,19 @@ def main(argv=None) -> int:
         help="write the result without the diagnoses' notes and the channels' per-change "
         "draws (the form kept under benchmarks/results)",
     )
+    parser.add_argument(
+        "--rescore", type=Path, metavar="RESULT_JSON",
+        help="score a result.json's rows again with this commit's scoring (the rows, their "
+        "commit and draw unchanged; the scoring's commit recorded as rescored_at)",
+    )
     args = parser.parse_args(argv)
-    if args.merge:
+    if args.rescore:
+        try:
+            result = rescore(json.loads(args.rescore.read_text()))
+        except (OSError, ValueError, KeyError) as error:
+            print(f"measured_input_harness: cannot rescore: {error}", file=sys.stderr)
+            return 1
+    elif args.merge:
         try:
             result = merge([json.loads(p.read_text()) for p in args.merge])
         except (OSError, ValueError, KeyError) as error:

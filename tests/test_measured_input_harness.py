@@ -2,6 +2,7 @@
 whichever shard writes it, and the shards' results merged and scored together
 (studies/measured_input_harness.py; the diagnoses themselves are not run here)."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -35,12 +36,14 @@ def _acts(truth):
     return None  # the stub truths here have no world to simulate: every effect acts
 
 
-def _row(verdict, strained=False):
-    return {"verdict": verdict, "tied": [], "fit_failed": [], "nuisance_strained": strained}
+def _row(verdict, strained=False, hidden=0.0):
+    return {"verdict": verdict, "tied": [], "fit_failed": [], "nuisance_strained": strained,
+            "hidden_lag_samples": hidden}
 
 
 def _shard_result(shard, rows, seed=7):
-    truths = [{"effect": "none"}, {"effect": "torquer_lag"}, {"effect": "none"}]
+    truths = [{"effect": "none"}, {"effect": "torquer_lag", "lag_s": 1e-5, "rate": 1e6},
+              {"effect": "none"}]
     return {
         "assumptions": {"truth": "t", "per_class": 2, "classes": ["none", "torquer_lag"],
                         "seed": seed, "prbs": 0, "shard": list(shard), "shard_count": 2,
@@ -117,6 +120,37 @@ def test_a_none_on_a_stop_the_record_never_reaches_is_not_false_assurance():
     assert s["false_assurance"] == 1  # the reached stop's clean twin
     assert list(s["none_effect_absent"]) == ["0000"]
     assert s["none_effect_absent"]["0000"]["none_twins"] == 2
+
+
+def test_a_none_within_the_lag_the_diagnosis_cannot_rule_out_is_counted_apart(tmp_path):
+    """Record 263 of the 100-per-class draw: an output filter of 2.57 samples read `none` on
+    its measured twin, whose input channel was 2.8 samples late; the diagnosis said a loop lag
+    up to 8.13 samples hides in the fitted delay. The same `none` on a lag beyond what it
+    states is false assurance; rows from before the diagnosis stated it get the bound from
+    their fitted delay."""
+    filter_263 = {"effect": "output_filter", "lag_s": 5.135e-6, "rate": 5e5}
+    longer = {**filter_263, "lag_s": 2e-5}  # 10 samples
+    rows = {"clean/0000": _row("unexplained"), "measured/0000": _row("none", hidden=8.13),
+            "clean/0001": _row("unexplained"), "measured/0001": _row("none", hidden=8.13)}
+    s = harness.score([filter_263, longer], rows, _acts)
+    assert s["false_assurance"] == 1
+    assert list(s["none_lag_within_stated"]) == ["measured/0000"]
+    assert s["none_lag_within_stated"]["measured/0000"]["lag_samples"] == pytest.approx(2.5675)
+    old = {"verdict": "none", "input_delay_samples": -0.13}
+    assert harness.hidden_lag(old, measured=True) == pytest.approx(8.13)
+    assert harness.hidden_lag(old, measured=False) == pytest.approx(1.13)
+    assert harness.hidden_lag({**old, "input_delay_samples": 1.5}, measured=False) == 0.0
+    # --rescore: the rows scored again by this commit's scoring, written whole.
+    stale = {**_shard_result((0, 1), {}), "truths": [filter_263], "rows": {
+        "clean/0000": _row("unexplained"), "measured/0000": {**old, "tied": [], "fit_failed": []}
+    }}
+    stale["score"]["false_assurance"] = 1
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(stale))
+    assert harness.main(["--rescore", str(path), "--out", str(tmp_path / "new")]) == 0
+    new = json.loads((tmp_path / "new" / "result.json").read_text())
+    assert new["score"]["false_assurance"] == 0 and new["rows"] == stale["rows"]
+    assert new["assumptions"]["commit"] == "abc" and "rescored_at" in new["assumptions"]
 
 
 def test_a_compact_result_keeps_the_scores_and_each_channels_draws(tmp_path):

@@ -500,6 +500,11 @@ def _nuisance_lines(refit: dict) -> list[str]:
     parts.append(
         f"input delay {test['input_delay_samples']:+.2f} samples"
         + ("" if known is None else f" (given: {known:+.2f})")
+        + (
+            f", a loop lag up to {test['hidden_lag_s'] * 1e6:.3g} µs would hide in it"
+            if "hidden_lag_s" in test
+            else ""
+        )
     )
     if "external_moment_V" in values:
         parts.append(f"output offset (external moment) {values['external_moment_V']:+.3g} V")

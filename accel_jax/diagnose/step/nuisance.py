@@ -10,7 +10,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import GAIN_SIGMA, n_timing, timing_terms
+from .fit import DELAY_LIMIT, GAIN_SIGMA, n_timing, timing_terms
 from .layout import W
 from .state import StepFit, StepRecord
 
@@ -24,6 +24,10 @@ drive). An output later than that is a lag the model lacks (a torquer lag, an ou
 filter) or a delay between the column and the drive: a free delay absorbs either (seen on
 blind lag records, measured and clean: `none` with the fitted delay at −1.6 to −5
 samples), so a record needing one is not `none`. Earlier outputs are not judged."""
+
+COLUMN_PHASE = 1.0
+"""How far [samples] an exact `u_test` column can show a change after it happened (the
+sampling phase): the lag a record whose input channel adds no delay cannot tell from it."""
 
 NUISANCE_ALPHA = 0.01
 """Family-wise level of the joint test of a fit's nuisances (`nuisance_test`): on records
@@ -44,7 +48,15 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
     side only, beyond a delay the record gives (`StepData.input_delay`, k samples):
     `input_delay` = min(0, delay − k − 0.5) / `LATE_OUTPUT_SIGMA`.
     The test: the largest |z| against Bonferroni over the K standardised shifts, p =
-    min(1, K · 2Φ(−max|z|)); `strained` when p < `NUISANCE_ALPHA`."""
+    min(1, K · 2Φ(−max|z|)); `strained` when p < `NUISANCE_ALPHA`.
+
+    `hidden_lag_samples` (and `hidden_lag_s`): the largest lag of the loop (a torquer lag,
+    an output filter, a delay in the drive) the fitted delay can take up, whatever the
+    verdict. The output appears `input_delay_samples` = d − L ahead of the column, d the
+    column's own delay behind the drive and L the loop's lag, so L = d − that, at most
+    d_max − that: d_max = the given delay + `COLUMN_PHASE` where the column is exact or
+    its delay given, `DELAY_LIMIT` (the fit's bound on the channel's delay) for a measured
+    input whose delay is not given. A `none` rules out no lag below it."""
     from scipy import stats
 
     w = np.asarray(fit.w)
@@ -70,6 +82,9 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
             levels = w[W.levels(n_t)][:n_changes]
             shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
         shifts.append(("input_channel_drift", float(w[W.DRIFT])))
+    channel = DELAY_LIMIT if (ctx.level_sigma is not None and rec.input_delay_known is None) \
+        else known + COLUMN_PHASE
+    hidden = max(0.0, channel + delay)  # (delay = −input_delay_samples)
     z = np.abs(np.asarray([v for _, v in shifts]))
     worst = int(np.argmax(z))
     p_value = min(1.0, len(shifts) * 2 * float(stats.norm.sf(z[worst])))
@@ -84,6 +99,8 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
         "input_delay_samples": -delay,
         "known_input_delay_samples": rec.input_delay_known,
         "sample_period_s": float(rec.dt_sample),
+        "hidden_lag_samples": hidden,
+        "hidden_lag_s": hidden * float(rec.dt_sample),
         "method": "Bonferroni over the standardised nuisance shifts (gain, the output's "
         "lateness behind the input, change times about their mean, measured input levels)",
     }

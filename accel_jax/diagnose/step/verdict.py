@@ -15,7 +15,7 @@ from .. import openworld
 from ..base import SIGNIFICANCE, DiagnosisResult, held_out_gap
 from . import assess, nuisance
 from .assess import assess_fit
-from .fit import REFIT_FIELDS
+from .fit import DELAY_LIMIT, REFIT_FIELDS
 from .refit import _describe_where, _localise, _ranges, _refit_report
 from .state import StepFit, StepRecord
 
@@ -165,16 +165,18 @@ def _up_to_model_form(fit: StepFit, nominal_fit: StepFit) -> StepFit:
 
 
 def _hidden_lag_note(nuisances: dict, rec: StepRecord) -> str:
-    """What a `none` on a measured input cannot rule out: a lag of the loop about the size
-    of the input channel's fitted delay, which that delay takes up."""
+    """What a `none` on a measured input cannot rule out: a lag of the loop up to
+    `nuisance_test`'s `hidden_lag_samples`, which the input channel's fitted delay takes up."""
     delay = nuisances["input_delay_samples"]
+    hidden = nuisances["hidden_lag_samples"]
     return (
         f"the input channel's delay behind the output was fitted (the output moves "
         f"{abs(delay):.2f} samples {'before' if delay >= 0 else 'after'} the column shows a "
-        f"change, {rec.dt_sample * 1e6:.3g} µs a sample): a lag of the loop of about the "
-        "channel's own delay would hide in it; where that delay is known, give it "
-        "(`--input-delay`, `StepData.input_delay`) and the output's lateness is judged "
-        "beyond it"
+        f"change, {rec.dt_sample * 1e6:.3g} µs a sample): a lag of the loop (a torquer lag, "
+        f"an output filter) of up to {hidden:.1f} samples ({nuisances['hidden_lag_s'] * 1e6:.3g}"
+        f" µs, for a channel delay of at most {DELAY_LIMIT:g} samples) would hide in it and "
+        "is not ruled out; where that delay is known, give it (`--input-delay`, "
+        "`StepData.input_delay`) and the output's lateness is judged beyond it"
     )
 
 
