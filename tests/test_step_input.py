@@ -15,6 +15,7 @@ import pytest
 
 from accel_jax._data import DataError, StepData
 from accel_jax.diagnose.step.inputs import read_input, read_inputs
+from accel_jax.diagnose.step.record import quantisation_bias
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -144,3 +145,40 @@ def test_a_repeated_level_pins_the_input_channel_drift():
     drifting = read_input(_telegraph(rng, 3e-3))
     found = re.search(r"drifts by ([+-][0-9.e-]+) V", drifting.note)
     assert found and abs(float(found.group(1)) - 3e-3) < 3e-4, drifting.note
+
+
+def _exact_bias_rms(sigma, q=1.0, places=400):
+    """RMS over x of E[Q(x + σn)] − x from the normal CDF (each code's probability), the
+    grid's rounding to nearest: an independent route to the Fourier series."""
+    from scipy import stats
+
+    x = (np.arange(places) + 0.5) / places * q
+    codes = np.arange(-12, 13)[:, None] * q
+    if sigma == 0:
+        mean = np.round(x / q) * q
+    else:
+        upper = stats.norm.cdf((codes + q / 2 - x) / sigma)
+        lower = stats.norm.cdf((codes - q / 2 - x) / sigma)
+        mean = np.sum(codes * (upper - lower), axis=0)
+    return float(np.sqrt(np.mean((mean - x) ** 2)))
+
+
+@pytest.mark.parametrize("ratio", [0.0, 0.15, 0.25, 0.4])
+def test_a_coarse_output_grid_leaves_a_plateau_bias_the_levels_allow_for(ratio):
+    """A measured input's levels are known to the output only to the bias its ADC leaves in
+    a plateau's mean (harness record 91: σₐ/q = 0.25 read level 3 off by −4.3 standard errors,
+    a false alarm on a `none` truth). `quantisation_bias` against the exact mean of the
+    quantised noise, from a record of settled plateaus at random places on the grid."""
+    rng = np.random.default_rng(7)
+    q = 1e-3
+    places = rng.uniform(0, 1, 200) * q
+    y = np.round((np.repeat(places, 400) + ratio * q * rng.standard_normal(80_000)) / q) * q
+    got = quantisation_bias(y, q, np.ones(y.size, dtype=bool))
+    exact = _exact_bias_rms(ratio * q, q)
+    if ratio >= 0.25:  # σₐ read from the differences: the bias to a few per cent
+        assert got == pytest.approx(exact, rel=0.06)
+    else:  # a finer noise than the grid hides: σₐ under-read, the bias over-stated, up to
+        assert 0.97 * exact <= got <= 1.01 * q / math.sqrt(12)  # the sawtooth's q/√12
+    if ratio == 0:
+        assert got == pytest.approx(q / math.sqrt(12), rel=0.01)
+    assert quantisation_bias(y, 0.0, np.ones(y.size, dtype=bool)) == 0.0
