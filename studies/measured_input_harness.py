@@ -236,8 +236,8 @@ def score_prbs(
             if row["verdict"] == "none" and truths[i]["effect"] not in (
                 "none", step_truth.ON_STOP_EFFECT
             ):
-                acts = signal(prbs_world(truths, i, seed)[0])
                 stated = lag_within_stated(truths[i], row, name == "prbs_measured")
+                acts = None if stated is not None else signal(prbs_world(truths, i, seed)[0])
                 if stated is not None:
                     out["none_lag_within_stated"][f"{name}/{i:04d}"] = stated
                 elif acts is not None and acts["chi2"] < EFFECT_ABSENT_CHI2:
@@ -308,13 +308,13 @@ def hidden_lag(row: dict, measured: bool) -> float:
     (`nuisance_test`'s `hidden_lag_samples`). Rows written before the diagnosis stated it
     (commits before it, e.g. 64174d4) get the same formula from their fitted delay, with
     the harness's records' input delay not given: `DELAY_LIMIT` less it on a measured
-    twin, `COLUMN_PHASE` less it on a clean one."""
+    twin (plus `COLUMN_PHASE`), `COLUMN_PHASE` less it on a clean one."""
     if row.get("hidden_lag_samples") is not None:
         return float(row["hidden_lag_samples"])
     from accel_jax.diagnose.step.fit import DELAY_LIMIT
     from accel_jax.diagnose.step.nuisance import COLUMN_PHASE
 
-    channel = DELAY_LIMIT if measured else COLUMN_PHASE
+    channel = DELAY_LIMIT + COLUMN_PHASE if measured else COLUMN_PHASE
     return max(0.0, channel - float(row["input_delay_samples"]))
 
 
@@ -327,9 +327,30 @@ def lag_within_stated(truth: dict, row: dict, measured: bool) -> dict | None:
     return {"lag_samples": lag, "hidden_lag_samples": hidden} if lag <= hidden else None
 
 
-def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
+LATENESS_PASSED = 2.25
+"""Lateness [samples] of the output behind the column that the joint nuisance test passes
+(`nuisance.LATE_OUTPUT_SIGMA` 0.5 from a 0.5-sample start, at the Bonferroni threshold
+|z| ≈ 3.5 of ~15 nuisances at 1 %): a lag up to the column's own delay plus this hides
+in a record whatever the diagnosis states."""
+
+
+def channel_ambiguity(channel: dict | None) -> float:
+    """The lag [samples] a record's true input channel leaves ambiguous: its delay and
+    anti-alias lag (`step_truth.measure_input`; none for a clean twin), the sampling phase
+    and `LATENESS_PASSED`. A `none` within the stated bound but beyond this would mean the
+    stated bound is too generous for the record (`within_beyond_channel`)."""
+    from accel_jax.diagnose.step.nuisance import COLUMN_PHASE
+
+    channel = channel or {}
+    own = channel.get("delay_samples", 0.0) + channel.get("antialias_tau_samples", 0.0)
+    return own + COLUMN_PHASE + LATENESS_PASSED
+
+
+def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -> dict:
     """The scores over the records in `rows` (`truths` indexed by the records' indices).
-    `signal(truth)`: `effect_signal`, asked only of the effect truths read `none`."""
+    `signal(truth)`: `effect_signal`, asked only of the effect truths read `none`.
+    `channels`: the measured twins' input channels by index (str), to check each `none`
+    within the stated lag against what the true channel leaves ambiguous."""
     per_class = {}
     absent, within = {}, {}
     failed_fits = rankings = 0
@@ -365,6 +386,9 @@ def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
         for twin, row in (("clean", clean), ("measured", measured)):
             bound = lag_within_stated(truth, row, twin == "measured")
             if bound is not None:
+                if channels is not None:
+                    channel = channels.get(str(i)) if twin == "measured" else None
+                    bound["channel_ambiguity_samples"] = channel_ambiguity(channel)
                 stated[f"{twin}/{i:04d}"] = {"effect": truth["effect"], **bound}
         nones = int(clean.get("verdict") == "none") + int(measured["verdict"] == "none")
         if nones > len(stated) and truth["effect"] not in ("none", step_truth.ON_STOP_EFFECT):
@@ -406,6 +430,9 @@ def score(truths: list[dict], rows: dict, signal=effect_signal) -> dict:
         },
         "none_effect_absent": absent,
         "none_lag_within_stated": within,
+        "within_beyond_channel": None if channels is None else sum(
+            w["lag_samples"] > w["channel_ambiguity_samples"] for w in within.values()
+        ),
         "start_on_stop_none": (
             per_class[step_truth.ON_STOP_EFFECT]["none_clean"]
             + per_class[step_truth.ON_STOP_EFFECT]["none_measured"]
@@ -453,7 +480,7 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
     picked = sorted({i for r in results for i in r["prbs_picked"]})
     return {
         "assumptions": {**first, "shard": None, "merged_shards": sorted(shards)},
-        "score": score(truths, rows, signal),
+        "score": score(truths, rows, signal, channels),
         "prbs": score_prbs(truths, rows, picked, first["seed"], signal) if picked else None,
         "prbs_picked": picked,
         "truths": truths,
@@ -471,7 +498,7 @@ def rescore(result: dict, signal=effect_signal) -> dict:
     return {
         **result,
         "assumptions": {**result["assumptions"], "rescored_at": _commit()},
-        "score": score(truths, rows, signal),
+        "score": score(truths, rows, signal, result["channels"]),
         "prbs": score_prbs(truths, rows, picked, seed, signal) if picked else None,
     }
 
@@ -542,7 +569,7 @@ def main(argv=None) -> int:
     if args.rescore:
         try:
             result = rescore(json.loads(args.rescore.read_text()))
-        except (OSError, ValueError, KeyError) as error:
+        except (OSError, ValueError, KeyError, TypeError) as error:
             print(f"measured_input_harness: cannot rescore: {error}", file=sys.stderr)
             return 1
     elif args.merge:
@@ -595,6 +622,7 @@ def run(args) -> dict:
             write_prbs_twins(truths, picked, folder, args.seed)
             folders += [folder / "prbs_clean", folder / "prbs_measured"]
         rows = diagnose_blind(folders)
+    by_index = {str(i): c for i, c in zip(indices, channels, strict=True)}
     return {
         "assumptions": {
             "truth": "studies/step_truth.py (SciPy), classes " + ", ".join(CLASSES),
@@ -611,11 +639,11 @@ def run(args) -> dict:
             "commit": _commit(),
             "precision": "float64",
         },
-        "score": score(truths, rows),
+        "score": score(truths, rows, channels=by_index),
         "prbs": score_prbs(truths, rows, picked, args.seed) if picked else None,
         "prbs_picked": picked,
         "truths": truths,
-        "channels": {str(i): c for i, c in zip(indices, channels, strict=True)},
+        "channels": by_index,
         "rows": rows,
         "seconds": time.perf_counter() - started,
     }

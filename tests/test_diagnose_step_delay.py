@@ -21,6 +21,7 @@ from accel_jax import (
 from accel_jax.cli import main
 from accel_jax.diagnose import diagnose_many, diagnose_step_set
 from accel_jax.diagnose.step.fit import DELAY_LIMIT
+from accel_jax.diagnose.step.nuisance import COLUMN_PHASE
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -79,10 +80,11 @@ def test_a_lag_hidden_behind_the_input_channels_delay_shows_once_the_delay_is_gi
     # … and says what that `none` cannot rule out, and how to rule it out.
     assert any("would hide in it" in n and "--input-delay" in n for n in unknown.notes)
     # … with the largest lag it cannot rule out, which covers the truth's filter: the
-    # fitted delay is the channel's (≤ DELAY_LIMIT samples) less the lag.
+    # fitted delay is the channel's (≤ DELAY_LIMIT samples, and the sampling phase) less
+    # the lag.
     hidden = unknown.refit["nuisance_test"]
     assert hidden["hidden_lag_s"] == pytest.approx(
-        (DELAY_LIMIT - hidden["input_delay_samples"]) / TRUTH_227["rate"]
+        (DELAY_LIMIT + COLUMN_PHASE - hidden["input_delay_samples"]) / TRUTH_227["rate"]
     )
     assert hidden["hidden_lag_s"] > TRUTH_227["lag_s"]
     assert f"{hidden['hidden_lag_s'] * 1e6:.3g} µs" in unknown.summary()

@@ -130,14 +130,26 @@ def test_a_none_within_the_lag_the_diagnosis_cannot_rule_out_is_counted_apart(tm
     their fitted delay."""
     filter_263 = {"effect": "output_filter", "lag_s": 5.135e-6, "rate": 5e5}
     longer = {**filter_263, "lag_s": 2e-5}  # 10 samples
-    rows = {"clean/0000": _row("unexplained"), "measured/0000": _row("none", hidden=8.13),
-            "clean/0001": _row("unexplained"), "measured/0001": _row("none", hidden=8.13)}
+    rows = {"clean/0000": _row("unexplained"), "measured/0000": _row("none", hidden=9.13),
+            "clean/0001": _row("unexplained"), "measured/0001": _row("none", hidden=9.13)}
     s = harness.score([filter_263, longer], rows, _acts)
-    assert s["false_assurance"] == 1
+    assert s["false_assurance"] == 1 and s["within_beyond_channel"] is None
     assert list(s["none_lag_within_stated"]) == ["measured/0000"]
     assert s["none_lag_within_stated"]["measured/0000"]["lag_samples"] == pytest.approx(2.5675)
+    # Against the true channel: 263's (2.06 samples late, 0.77 of anti-alias lag) leaves its
+    # filter ambiguous; a channel without delay would not have hidden it.
+    channel = {"delay_samples": 2.06, "antialias_tau_samples": 0.77}
+    s = harness.score([filter_263], {k: rows[k] for k in ("clean/0000", "measured/0000")},
+                      _acts, channels={"0": channel})
+    within = s["none_lag_within_stated"]["measured/0000"]
+    assert within["channel_ambiguity_samples"] == pytest.approx(2.83 + 1 + 2.25)
+    assert s["within_beyond_channel"] == 0
+    s = harness.score([{**filter_263, "lag_s": 1.4e-5}], {  # 7 samples
+        "clean/0000": _row("unexplained"), "measured/0000": _row("none", hidden=9.13)
+    }, _acts, channels={"0": {"delay_samples": 0.0, "antialias_tau_samples": 0.0}})
+    assert s["false_assurance"] == 0 and s["within_beyond_channel"] == 1
     old = {"verdict": "none", "input_delay_samples": -0.13}
-    assert harness.hidden_lag(old, measured=True) == pytest.approx(8.13)
+    assert harness.hidden_lag(old, measured=True) == pytest.approx(9.13)
     assert harness.hidden_lag(old, measured=False) == pytest.approx(1.13)
     assert harness.hidden_lag({**old, "input_delay_samples": 1.5}, measured=False) == 0.0
     # --rescore: the rows scored again by this commit's scoring, written whole.

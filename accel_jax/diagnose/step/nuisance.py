@@ -54,9 +54,11 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
     an output filter, a delay in the drive) the fitted delay can take up, whatever the
     verdict. The output appears `input_delay_samples` = d − L ahead of the column, d the
     column's own delay behind the drive and L the loop's lag, so L = d − that, at most
-    d_max − that: d_max = the given delay + `COLUMN_PHASE` where the column is exact or
-    its delay given, `DELAY_LIMIT` (the fit's bound on the channel's delay) for a measured
-    input whose delay is not given. A `none` rules out no lag below it."""
+    d_max − that: d_max = `COLUMN_PHASE` beyond the given delay where the column is exact
+    or its delay given, beyond `DELAY_LIMIT` (the fit's bound on the channel's delay) for a
+    measured input whose delay is not given. A `none` rules out no lag below it; it is not
+    an upper bound on what the record hides (a lag the device parameters or the initial
+    state take up is not counted), and it is the fitted delay's value, without its error."""
     from scipy import stats
 
     w = np.asarray(fit.w)
@@ -82,8 +84,9 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
             levels = w[W.levels(n_t)][:n_changes]
             shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
         shifts.append(("input_channel_drift", float(w[W.DRIFT])))
-    channel = DELAY_LIMIT if (ctx.level_sigma is not None and rec.input_delay_known is None) \
-        else known + COLUMN_PHASE
+    channel = known + COLUMN_PHASE  # (a measured channel of unknown delay: up to the fit's bound)
+    if rec.input_measured and rec.input_delay_known is None:
+        channel = DELAY_LIMIT + COLUMN_PHASE
     hidden = max(0.0, channel + delay)  # (delay = −input_delay_samples)
     z = np.abs(np.asarray([v for _, v in shifts]))
     worst = int(np.argmax(z))
@@ -162,6 +165,7 @@ def strained_sentence(test: dict, fit) -> str:
         )
     return (
         f"level {name.rsplit('_', 1)[1]} of the test input differs from what its channel "
-        f"recorded by {value:+.1f} standard errors {where}: a gain or offset error of the "
+        f"recorded by {value:+.1f}σ (its standard error and the output ADC's plateau bias, "
+        f"`quantisation_bias`) {where}: a gain or offset error of the "
         "input channel, or an output that is not linear in the input at that level"
     )

@@ -315,11 +315,15 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     level_sigma = held_out_level = drift_step = level_map = None
     # The output's plateaus seen through its ADC keep a bias the record's noise does not
     # average out (`quantisation_bias`): as the fit sees it, each level is known only to
-    # that bias, referred to the input, beside its own standard error.
+    # that bias, referred to the input, beside its own standard error. Not for a clocked
+    # sequence, whose bits are shorter than the response: its output never sits on one
+    # place of the grid (`level_bias` 0).
     settled = np.zeros(n, dtype=bool)  # (the last half of each constant-input segment)
     for start, stop in zip(edges[:-1], edges[1:], strict=True):
         settled[(start + stop) // 2 : stop] = True
-    level_bias = quantisation_bias(y, q, settled) / max(abs(k_test), 1e-300)
+    level_bias = 0.0
+    if clock is None:
+        level_bias = quantisation_bias(y, q, settled) / max(abs(k_test), 1e-300)
     if rms_sigma > 0 and a is None:
         # (rms_sigma > 0: a measured input, which has level errors and a drift shape)
         assert plateau_sigmas is not None and inputs.level_drift is not None
@@ -474,6 +478,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         host=host,
         prior_sigma=prior_sigma_of(nominal),
         input_delay_known=known_samples,
+        input_measured=rms_sigma > 0,
     )
 
 

@@ -206,6 +206,8 @@ class StepRecord:
     - `input_delay_known`: the inputs' known delay behind the output [samples]
         (`StepData.input_delay`), which the change times' priors are centred on; None:
         unknown.
+    - `input_measured`: whether `u_test` was read as a measurement (`inputs.read_input`;
+        with an acceleration column too, where its levels carry no fitted errors).
     - `on_stops`: whether the joint fit simulates it with the stops (`joint.prepare_set`;
         False elsewhere).
     """
@@ -246,6 +248,7 @@ class StepRecord:
     prior_sigma: np.ndarray
     on_stops: bool = False
     input_delay_known: float | None = None
+    input_measured: bool = False
 
     def with_note(self, note: str) -> StepRecord:
         """This record with `note` added to its notes."""

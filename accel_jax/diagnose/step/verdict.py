@@ -136,7 +136,7 @@ def evaluate(
         "held_out": held,
     }
     notes = list(getattr(data, "notes", ())) + list(rec.notes)
-    if verdict == "none" and rec.ctx.level_sigma is not None and rec.input_delay_known is None:
+    if verdict == "none" and rec.input_measured and rec.input_delay_known is None:
         notes.append(_hidden_lag_note(nuisances, rec))
     return DiagnosisResult(
         kind="step",
@@ -174,7 +174,8 @@ def _hidden_lag_note(nuisances: dict, rec: StepRecord) -> str:
         f"{abs(delay):.2f} samples {'before' if delay >= 0 else 'after'} the column shows a "
         f"change, {rec.dt_sample * 1e6:.3g} µs a sample): a lag of the loop (a torquer lag, "
         f"an output filter) of up to {hidden:.1f} samples ({nuisances['hidden_lag_s'] * 1e6:.3g}"
-        f" µs, for a channel delay of at most {DELAY_LIMIT:g} samples) would hide in it and "
+        f" µs, for a channel delay of at most {DELAY_LIMIT:g} samples and the sampling phase) "
+        "would hide in it and "
         "is not ruled out; where that delay is known, give it (`--input-delay`, "
         "`StepData.input_delay`) and the output's lateness is judged beyond it"
     )
