@@ -124,8 +124,8 @@ def test_a_none_on_a_stop_the_record_never_reaches_is_not_false_assurance():
 
 def test_a_none_within_the_lag_the_diagnosis_cannot_rule_out_is_counted_apart(tmp_path):
     """Record 263 of the 100-per-class draw: an output filter of 2.57 samples read `none` on
-    its measured twin, whose input channel was 2.8 samples late; the diagnosis said a loop lag
-    up to 8.13 samples hides in the fitted delay. The same `none` on a lag beyond what it
+    its measured twin, whose input channel was 1.83 samples late (delay and anti-alias lag);
+    the diagnosis said a loop lag up to 9.13 samples hides in the fitted delay. The same `none` on a lag beyond what it
     states is false assurance; rows from before the diagnosis stated it get the bound from
     their fitted delay."""
     filter_263 = {"effect": "output_filter", "lag_s": 5.135e-6, "rate": 5e5}
@@ -136,13 +136,13 @@ def test_a_none_within_the_lag_the_diagnosis_cannot_rule_out_is_counted_apart(tm
     assert s["false_assurance"] == 1 and s["within_beyond_channel"] is None
     assert list(s["none_lag_within_stated"]) == ["measured/0000"]
     assert s["none_lag_within_stated"]["measured/0000"]["lag_samples"] == pytest.approx(2.5675)
-    # Against the true channel: 263's (2.06 samples late, 0.77 of anti-alias lag) leaves its
+    # Against the true channel: 263's (1.30 samples late, 0.53 of anti-alias lag) leaves its
     # filter ambiguous; a channel without delay would not have hidden it.
-    channel = {"delay_samples": 2.06, "antialias_tau_samples": 0.77}
+    channel = {"delay_samples": 1.30, "antialias_tau_samples": 0.53}
     s = harness.score([filter_263], {k: rows[k] for k in ("clean/0000", "measured/0000")},
                       _acts, channels={"0": channel})
     within = s["none_lag_within_stated"]["measured/0000"]
-    assert within["channel_ambiguity_samples"] == pytest.approx(2.83 + 1 + 2.25)
+    assert within["channel_ambiguity_samples"] == pytest.approx(1.83 + 1 + 2.25)
     assert s["within_beyond_channel"] == 0
     s = harness.score([{**filter_263, "lag_s": 1.4e-5}], {  # 7 samples
         "clean/0000": _row("unexplained"), "measured/0000": _row("none", hidden=9.13)
