@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from accel_jax._data import StepData, write_csv
 from accel_jax.cli import main
 from accel_jax.diagnose import diagnose_many
-from accel_jax.diagnose.step.fit import GAIN_SIGMA
+from accel_jax.diagnose.step.fit import DELAY_LIMIT, GAIN_SIGMA
 from accel_jax.diagnose.step.layout import W
 from accel_jax.diagnose.step.assess import nested_failed, nested_losers, nested_shortfall
 from accel_jax.diagnose.step.nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
@@ -86,7 +86,7 @@ def _prep(n_changes=5, j_padded=8, levels=False, known=None):
     # The fields of a `StepRecord` that the test reads (an exact or few-change input).
     return SimpleNamespace(
         change_index=np.arange(n_changes), ctx=ctx, clock=None, level_groups=None,
-        dt_sample=1e-6, input_delay_known=known,
+        dt_sample=1e-6, input_delay_known=known, input_measured=levels,
     )
 
 
@@ -107,6 +107,10 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
     delayed = nuisance_test(_fit(0.4, timing=(-2.4, -2.6, -2.5, -2.3, -2.5)), prep)
     assert not delayed["strained"]
     assert delayed["input_delay_samples"] == pytest.approx(2.46)
+    # The loop lag the fitted delay can take up: the column's phase (1 sample) less the
+    # output's lead, none here; on a measured input of unknown delay, DELAY_LIMIT more.
+    assert calm["hidden_lag_samples"] == pytest.approx(1.0 - 0.4) and delayed[
+        "hidden_lag_samples"] == 0.0
     # The −3.2σ test winding gain of a device resting on its stop at the start.
     strained = nuisance_test(_fit(-3.2, timing=(-0.5,) * 5), prep)
     assert strained["strained"] and strained["largest"] == "test_winding_gain"
@@ -117,6 +121,7 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
     # A measured input's levels are judged with them; Bonferroni keeps the family's level.
     measured = nuisance_test(_fit(0.0, timing=(-0.5,) * 5, levels=(0.5, -4.0)), _prep(levels=True))
     assert measured["count"] == 13 and measured["largest"] == "input_level_3"
+    assert measured["hidden_lag_samples"] == pytest.approx(DELAY_LIMIT + 1.0 - 0.5)
     assert measured["strained"] == (measured["family_p_value"] < NUISANCE_ALPHA)
     assert "level 3 of the test input" in strained_sentence(measured, None)
     # An output that follows the input 3 samples later than its column shows: a lag the
