@@ -311,11 +311,9 @@ def hidden_lag(row: dict, measured: bool) -> float:
     twin (plus `COLUMN_PHASE`), `COLUMN_PHASE` less it on a clean one."""
     if row.get("hidden_lag_samples") is not None:
         return float(row["hidden_lag_samples"])
-    from accel_jax.diagnose.step.fit import DELAY_LIMIT
-    from accel_jax.diagnose.step.nuisance import COLUMN_PHASE
+    from accel_jax.diagnose.step.nuisance import hidden_lag_samples
 
-    channel = DELAY_LIMIT + COLUMN_PHASE if measured else COLUMN_PHASE
-    return max(0.0, channel - float(row["input_delay_samples"]))
+    return hidden_lag_samples(float(row["input_delay_samples"]), measured=measured)
 
 
 def lag_within_stated(truth: dict, row: dict, measured: bool) -> dict | None:

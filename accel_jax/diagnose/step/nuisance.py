@@ -84,10 +84,7 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
             levels = w[W.levels(n_t)][:n_changes]
             shifts += [(f"input_level_{j + 2}", float(e)) for j, e in enumerate(levels)]
         shifts.append(("input_channel_drift", float(w[W.DRIFT])))
-    channel = known + COLUMN_PHASE  # (a measured channel of unknown delay: up to the fit's bound)
-    if rec.input_measured and rec.input_delay_known is None:
-        channel = DELAY_LIMIT + COLUMN_PHASE
-    hidden = max(0.0, channel + delay)  # (delay = −input_delay_samples)
+    hidden = hidden_lag_samples(-delay, measured=rec.input_measured, known=rec.input_delay_known)
     z = np.abs(np.asarray([v for _, v in shifts]))
     worst = int(np.argmax(z))
     p_value = min(1.0, len(shifts) * 2 * float(stats.norm.sf(z[worst])))
@@ -107,6 +104,19 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
         "method": "Bonferroni over the standardised nuisance shifts (gain, the output's "
         "lateness behind the input, change times about their mean, measured input levels)",
     }
+
+
+def hidden_lag_samples(
+    input_delay_samples: float, *, measured: bool, known: float | None = None
+) -> float:
+    """The largest loop lag [samples] a fitted delay (`input_delay_samples`, positive when
+    the output moves first) can take up (`nuisance_test`'s `hidden_lag_samples`): the
+    column's largest own delay — `COLUMN_PHASE` beyond `known` (or zero), or beyond
+    `DELAY_LIMIT` for a `measured` input whose delay is not given — less that lead."""
+    channel = (known or 0.0) + COLUMN_PHASE
+    if measured and known is None:
+        channel = DELAY_LIMIT + COLUMN_PHASE
+    return max(0.0, channel - input_delay_samples)
 
 
 def change_shifts(w, ctx) -> np.ndarray:
