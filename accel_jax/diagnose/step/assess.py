@@ -119,11 +119,15 @@ def fit_entries(rec: StepRecord, effects_all, candidates, outputs, u_out) -> lis
     ]
 
 
-NESTED_TOLERANCE = 1e-6
+NESTED_TOLERANCE = 1e-10
 """An effect's maximised penalised log-likelihood may fall below the nominal's by this share
 of the nominal's objective (and at least `NESTED_ABSOLUTE`) before its fit counts as failed:
 the nominal model is the effect at z = 0, so a fit that ends lower stopped in the wrong
-basin (round-off and the solver's tolerance aside)."""
+basin. The share is float64 round-off of a sum of up to ~10⁵ squared residuals (N·ε ≈
+2e-11), not the solver's tolerance: on a record the nominal misfits by thousands of σ
+(objective ~1e10), the Levenberg–Marquardt fits' relative tolerance (`FIT_TOLERANCE`,
+1e-6) leaves two fits from different starts thousands apart, which is a shortfall to
+restart (`entry.NESTED_RESTARTS`), not round-off."""
 
 
 NESTED_ABSOLUTE = 1e-3

@@ -107,11 +107,7 @@ def diagnose_step(
     # candidate whose best fit ends below the nominal's log-likelihood started in the wrong
     # basin. Its record is fitted again with every candidate's second start at the nominal
     # optimum (same program; only where a candidate lost).
-    for _ in range(NESTED_RESTARTS):
-        losing = [i for i in range(len(records)) if nested_losers(fits[i])]
-        if not losing:
-            break
-        _restart_from_nominal(fits, records, losing, effects, linear, nominal)
+    _restart_losers(fits, records, effects, linear, nominal)
     # The stop candidate, for the records that no linear model explains.
     stop_starts = {}
     for i, rec in enumerate(records):
@@ -199,17 +195,37 @@ def diagnose_step(
 
 
 NESTED_RESTARTS = 2
-"""Rounds of restarts from the nominal optimum for candidates that lost to it (a second
-round when the restart also moved the nominal fit on, e.g. one that had stopped at its
-step limit)."""
+"""Rounds of restarts from the nominal optimum for candidates that lost to it, each taking
+the nominal's own refit too where it ends lower (one that had stopped at its step limit,
+or on a record the nominal misfits by thousands of σ, where the solver's relative
+tolerance leaves the objective ~1e-6 of itself short). Where a candidate still loses after
+them, one more round holds the nominal fit as it is, so that a candidate started at its
+optimum (the effect at 0: the nominal model) can only end at or above its likelihood
+(Levenberg–Marquardt accepts only steps that lower the objective)."""
+
+
+def _restart_losers(fits, records: list[StepRecord], effects, linear, nominal) -> None:
+    """Restart the records whose linear candidates lost to the nominal fit
+    (`NESTED_RESTARTS` rounds, then one holding the nominal); `fits` and `records` are
+    updated in place."""
+    for round_ in range(NESTED_RESTARTS + 1):
+        losing = [i for i in range(len(records)) if nested_losers(fits[i])]
+        if not losing:
+            return
+        _restart_from_nominal(
+            fits, records, losing, effects, linear, nominal,
+            keep_nominal=round_ == NESTED_RESTARTS,
+        )
 
 
 def _restart_from_nominal(
-    fits, records: list[StepRecord], losing, effects, linear, nominal
+    fits, records: list[StepRecord], losing, effects, linear, nominal, *, keep_nominal: bool
 ) -> None:
     """Fit the records `losing` again, every candidate's second start at the nominal
     optimum with the effect at 0 (the same compiled program); keep each candidate's better
-    fit (lower objective), and note it on the record (`records[i]` replaced)."""
+    fit (lower objective), and note it on the record (`records[i]` replaced). With
+    `keep_nominal`, the nominal fit (`fits[i][0]`) stays as it was, the reference the
+    others started from."""
     again_starts = {}
     for i in losing:
         guesses = np.array(records[i].guesses_linear)
@@ -221,8 +237,8 @@ def _restart_from_nominal(
     )
     for i, again in entries.items():
         fits[i] = [
-            new if new.objective < old.objective else old
-            for old, new in zip(fits[i], again, strict=True)
+            new if new.objective < old.objective and not (keep_nominal and k == 0) else old
+            for k, (old, new) in enumerate(zip(fits[i], again, strict=True))
         ]
         note = (
             "a candidate's fit ended below the nominal model's likelihood; refitted from "
