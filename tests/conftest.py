@@ -97,7 +97,12 @@ def pytest_collection_modifyitems(config, items):
         ]
         if shared:
             module = getattr(item.module, "__name__", "?")
-            groups[item.nodeid] = "quick_report" if "quick_report" in shared else module
+            # A session fixture's users share one worker, whatever their module (the
+            # fixture is then made once: `quick_report`, `step_cases`).
+            session = [
+                name for name in shared if info.name2fixturedefs[name][-1].scope == "session"
+            ]
+            groups[item.nodeid] = session[0] if session else module
     items.sort(key=lambda item: groups.get(item.nodeid) != "quick_report")  # stable
     target = os.environ.get(_GROUPS)
     if target and "PYTEST_XDIST_WORKER" in os.environ:
@@ -223,6 +228,23 @@ def _user_environment() -> dict:
         [str(REJECTS_AN_OPTION), *filter(None, [os.environ.get("PYTHONPATH")])]
     )
     return env
+
+
+@pytest.fixture(scope="session")
+def step_cases():
+    """The step records of `test_diagnose_step.CASES` (the independent simulator: one
+    device, one test sequence, one effect each), diagnosed once per session in one call
+    (`recommend=False`): {case: (record, result)}. test_diagnose_step.py reads every case,
+    test_diagnose_step_measured.py the clean twins of its measured inputs; both modules'
+    users of it run on one worker (`pytest_collection_modifyitems`), so it is made once
+    (~5 min on the 2-core CPU; each module made its own before)."""
+    from accel_jax.diagnose import diagnose_many
+    from test_diagnose_step import CASES, _record
+
+    names = list(CASES)
+    records = [_record(10 + i, **CASES[name]) for i, name in enumerate(names)]
+    results = diagnose_many(records, recommend=False)
+    return {name: (data, result) for name, data, result in zip(names, records, results, strict=True)}
 
 
 @pytest.fixture(scope="session")

@@ -96,15 +96,11 @@ CASES = {
 
 
 @pytest.fixture(scope="module")
-def diagnosed():
-    # Records of one length and test sequence: one compiled fit for all of them.
-    names = list(CASES)
-    records = [_record(10 + i, **CASES[name]) for i, name in enumerate(names)]
-    # The next experiment of a lag tie is tested in test_diagnose_step_set.py and below.
-    results = diagnose_many(records, recommend=False)
-    return {
-        name: (data, result) for name, data, result in zip(names, records, results, strict=True)
-    }
+def diagnosed(step_cases):
+    # Records of one length and test sequence: one compiled fit for all of them (made once
+    # per session, tests/conftest.py, and shared with test_diagnose_step_measured.py). The
+    # next experiment of a lag tie is tested in test_diagnose_step_set.py and below.
+    return step_cases
 
 
 def _entry(result, effect):

@@ -23,21 +23,22 @@ from accel_jax.diagnose.step.nuisance import NUISANCE_ALPHA, nuisance_test, stra
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
-from test_diagnose_step import CASES, RATE, _record  # noqa: E402
+from test_diagnose_step import RATE  # noqa: E402
 
 TWINS = ("clean", "clean_conventions", "torquer_lag", "disturbance_drift", "colored_noise")
 
 
 @pytest.fixture(scope="module")
-def twins():
+def twins(step_cases):
+    # The clean twins' diagnoses are test_diagnose_step.py's (`step_cases`, made once).
     rng = np.random.default_rng(42)
-    clean = [_record(10 + list(CASES).index(name), **CASES[name]) for name in TWINS]
+    clean = [step_cases[name][0] for name in TWINS]
     measured = []
     for data in clean:
         column, _ = step_truth.measure_input(np.asarray(data.u_test), RATE, rng)
         measured.append(StepData(data.t, column, data.u_out))
-    results = diagnose_many(clean + measured, recommend=False)
-    return clean, measured, results[: len(TWINS)], results[len(TWINS) :]
+    results = diagnose_many(measured, recommend=False)
+    return clean, measured, [step_cases[name][1] for name in TWINS], results
 
 
 @pytest.mark.slow
@@ -153,6 +154,60 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
     assert nested_shortfall(lost, nominal) == pytest.approx(5.0)  # ½ of the objective
     assert nested_failed(lost, nominal)
     assert nested_losers([nominal, better, roundoff, lost]) == ["stop_saturation"]
+    # A record the nominal misfits by thousands of σ (objective ~1e10): a shortfall of
+    # thousands is the solver's relative tolerance, not round-off, and is restarted.
+    huge = SimpleNamespace(effect="nominal", objective=2e10)
+    short = SimpleNamespace(effect="torquer_lag", objective=2e10 + 1e4)
+    assert nested_failed(short, huge) and not nested_failed(
+        SimpleNamespace(effect="torquer_lag", objective=2e10 + 1.0), huge
+    )  # (½·1 ≤ 1e-10 of ½·2e10: round-off of the sum)
+
+
+def test_the_last_restart_keeps_the_nominal_so_a_candidate_started_there_cannot_lose(
+    monkeypatch,
+):
+    from accel_jax.diagnose.step import entry
+
+    def fit(effect, objective):
+        return SimpleNamespace(effect=effect, objective=objective, w_trained=np.ones(W.FIXED + 3))
+
+    record = SimpleNamespace(
+        guesses_linear=np.ones((3, 2, W.FIXED + 3)), notes=[],
+        with_note=lambda note: SimpleNamespace(**{**vars(record), "notes": [note]}),
+    )
+    seen = {}
+
+    def refit(fn, nominal, records, starts, candidates, effects, desc):
+        seen["starts"] = starts[0]
+        # The restart moves the nominal on (100 → 90) and the candidate to 95: below the
+        # new nominal, above the old one it started from.
+        return {0: [fit("nominal", 90.0), fit("torquer_lag", 95.0), fit("output_filter", 99.0)]}
+
+    monkeypatch.setattr(entry, "_fit_grouped", refit)
+    for keep, nominal_after in ((False, 90.0), (True, 100.0)):
+        fits = [[fit("nominal", 100.0), fit("torquer_lag", 120.0), fit("output_filter", 98.0)]]
+        records = [record]
+        entry._restart_from_nominal(fits, records, [0], [], [0, 1, 2], None, keep_nominal=keep)
+        assert [f.objective for f in fits[0]] == [nominal_after, 95.0, 98.0]
+        assert nested_losers(fits[0]) == ([] if keep else ["torquer_lag", "output_filter"])
+        assert np.all(seen["starts"][:, 1, W.EFFECT] == 0.0)  # the second start: z = 0
+        assert records[0].notes and "nominal optimum" in records[0].notes[0]
+    # The rounds: the nominal's refit taken while it keeps moving on (100 → 90 → 80), then
+    # held (the third round), where the candidate started at its optimum cannot lose.
+    nominals = iter([90.0, 80.0, 75.0])
+    rounds = []
+
+    def moving(fn, nominal, records, starts, candidates, effects, desc):
+        rounds.append(desc)
+        at = next(nominals)
+        return {0: [fit("nominal", at), fit("torquer_lag", at + 5), fit("output_filter", 1.0)]}
+
+    monkeypatch.setattr(entry, "_fit_grouped", moving)
+    fits = [[fit("nominal", 100.0), fit("torquer_lag", 120.0), fit("output_filter", 1.0)]]
+    entry._restart_losers(fits, [record], [], [0, 1, 2], None)
+    assert len(rounds) == entry.NESTED_RESTARTS + 1
+    assert [f.objective for f in fits[0]] == [80.0, 80.0, 1.0]  # (75 in the held round)
+    assert nested_losers(fits[0]) == []
 
 
 # Record 306 of the measured-input harness's draw (studies/measured_input_harness.py,
