@@ -252,8 +252,8 @@ def _restart_from_nominal(
             records[i] = records[i].with_note(note)
         if keep_nominal and held_short > NESTED_ABSOLUTE:
             records[i] = records[i].with_note(
-                "the nominal fit kept moving on over two restarts and was held for the last "
-                f"(its refit from there ended {held_short:.3g} higher in ln L): the "
+                f"the nominal fit kept moving on over {NESTED_RESTARTS} restarts and was held "
+                f"for the last (its refit from there ended {held_short:.3g} higher in ln L): the "
                 "evidence of every effect is uncertain by about that much (the solver's "
                 "tolerance on this record)"
             )
