@@ -95,3 +95,23 @@ def test_block_means_and_a_stop_on_one_side_only():
     # record's, while the upper stop holds the +2 V levels near STOP.
     assert np.max(one_sided) < 1.05 * STOP
     assert np.min(one_sided) < -1.1 * STOP
+
+
+@pytest.mark.parametrize("block", [1, 20])
+def test_a_step_or_block_held_on_a_stop_is_the_part_by_part_flow(block):
+    # A sample step (and a block of 20) that starts in a contact and stays in it is one
+    # exact step of that contact's flow (`whole_holds`): the record that takes every such
+    # step part by part, the switches looked for in each part, is the same to round-off —
+    # on a soft contact, a chattering one, and a stop on one side only.
+    for stiffness, damping, low in ((10.0, 0.5, -STOP), (3000.0, 0.05, -STOP), (300.0, 0.3, -1e6)):
+        records = [
+            np.asarray(
+                contact_record(
+                    IDEAL, DT, N // block, _sequence(), STOP, low, stiffness, damping,
+                    block=block, max_block=32, whole_holds=whole,
+                )
+            )
+            for whole in (True, False)
+        ]
+        assert np.max(records[0]) > STOP  # pressed into the stop
+        np.testing.assert_allclose(records[0], records[1], rtol=0, atol=1e-11)

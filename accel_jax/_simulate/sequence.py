@@ -288,7 +288,17 @@ that way, m = 4 2× faster, m = 20 3× faster."""
 
 
 def whole_blocks(
-    transition, forcing, c, gain, first_level, change_step, interval, active, m, max_block: int
+    transition,
+    forcing,
+    c,
+    gain,
+    first_level,
+    change_step,
+    interval,
+    active,
+    m,
+    max_block: int,
+    held_forcing=None,
 ):
     """`try_block(x, first, free_states)` → (taken, x_end, total) for the block of m samples
     from sample `first` at state x: with no change within it (steps k ∈ [first, first + m)
@@ -299,27 +309,30 @@ def whole_blocks(
     `interval` where `active`). `taken` is false for a short block (m < `WHOLE_BLOCK_MIN`:
     the states are then not computed), one longer than `max_block`, one with a change, and
     where `free_states(states)` (one bool per state: no stop acts there) is false for some
-    x_k, k ≤ m."""
+    x_k, k ≤ m.
+
+    `held_forcing`: the sample map's column of a second constant input v (the stop a
+    compliant contact presses on, `contact.contact_record`), given to `try_block` as
+    `held`; the states are then x_k = Φ^k x + Σ_{i<k} Φ^i (γ u + γ_v v)."""
     size = transition.shape[0]
-    affine = (
-        jnp.eye(size + 1, dtype=transition.dtype)
-        .at[:size, :size]
-        .set(transition)
-        .at[:size, size]
-        .set(forcing)
-    )
-    stack, power = jnp.eye(size + 1, dtype=affine.dtype)[None], affine
+    columns = [forcing] if held_forcing is None else [forcing, held_forcing]
+    inputs = len(columns)
+    affine = jnp.eye(size + inputs, dtype=transition.dtype).at[:size, :size].set(transition)
+    for i, column in enumerate(columns):
+        affine = affine.at[:size, size + i].set(column)
+    stack, power = jnp.eye(size + inputs, dtype=affine.dtype)[None], affine
     while stack.shape[0] < max_block + 1:  # M^k by doubling
         stack = jnp.concatenate([stack, stack @ power])
         power = power @ power
     powers = stack[: max_block + 1]
     k_index = jnp.arange(max_block + 1)
 
-    def try_block(x, first, free_states):
+    def try_block(x, first, free_states, held=0.0):
         def attempt(x):
             before = active & (interval < first)
             drive = gain * (first_level + jnp.sum(jnp.where(before, change_step, 0.0)))
-            states = (powers @ jnp.concatenate([x, drive[None]]))[:, :size]
+            given = [drive] if held_forcing is None else [drive, jnp.asarray(held, x.dtype)]
+            states = (powers @ jnp.concatenate([x, jnp.stack(given)]))[:, :size]
             free = jnp.all(free_states(states) | (k_index > m))
             quiet = ~jnp.any(active & (interval >= first) & (interval < first + m))
             total = jnp.sum(jnp.where(k_index < m, states @ c, 0.0))
