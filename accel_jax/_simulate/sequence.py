@@ -327,7 +327,7 @@ def whole_blocks(
     powers = stack[: max_block + 1]
     k_index = jnp.arange(max_block + 1)
 
-    def try_block(x, first, free_states, held=0.0):
+    def try_block(x, first, free_states, held: float | jax.Array = 0.0):
         def attempt(x):
             before = active & (interval < first)
             drive = gain * (first_level + jnp.sum(jnp.where(before, change_step, 0.0)))
