@@ -26,8 +26,9 @@ starts in (the powers of that contact's affine sample map: a pendulum resting on
 stop); any other block sample by sample. A sample step that starts free and whose exact
 free flow ends inside neither contact is taken in one exact step (a branch taken at run
 time when not vmapped: most steps are free), and so is one without a change that starts
-in a contact and whose exact flow of that contact ends in it. Otherwise the step is cut into `substeps` equal parts, each taken with the exact flow
-(`matrix.zoh`, Van Loan) of the regime in force at its start; when the regime at its end differs, the switch time within
+in a contact and whose exact flow of that contact ends in it. Otherwise the step is cut
+into `substeps` equal parts, each taken with the exact flow (`matrix.zoh`, Van Loan) of
+the regime in force at its start; when the regime at its end differs, the switch time within
 the part is found by regula falsi on the switching function (the penetration, or the
 contact force, crossing zero) along the first regime's flow, and the two pieces are taken
 with a fourth-order Taylor expansion of each regime's flow (`sequence._taylor_flow`:
@@ -124,7 +125,7 @@ def contact_record(
     sample step in or near a contact; `whole_holds` (static): a sample step, or a block,
     that starts in a contact and stays in it is taken as one exact step of that contact's
     flow (False: part by part, as any step near a contact; the same record to round-off,
-    ~3× slower in a fit that presses on its stops). jit/vmap/grad-safe; float64."""
+    a fit that presses on its stops ~4× slower). jit/vmap/grad-safe; float64."""
     (first_level, gain, moment, rate, dv, dw, change_index, change_step, change_shift) = sequence[
         :9
     ]
@@ -152,7 +153,7 @@ def contact_record(
         return _flow_maps(a, b, zero_f, time), _flow_maps(a_contact, b, f, time)
 
     whole_free = _flow_maps(a, b, zero_f, dt)
-    whole_contact = _flow_maps(a_contact, b, f, dt)
+    phi_c, gamma_c, gamma_fc = _flow_maps(a_contact, b, f, dt)  # a whole step in contact
     partial_free = jax.vmap(lambda s: _flow_maps(a, b, zero_f, s))(fraction * dt)
     part_maps = both(h)
     before_maps = jax.vmap(both)(h - rest)
@@ -203,13 +204,6 @@ def contact_record(
         )
         r_start = regime(x)
         near = (r_start != 0) | (regime(x_free) != 0)
-        # A step that starts in contact, holds no change and whose exact flow of that
-        # contact ends in the same contact: one exact step too (a pendulum resting on its
-        # stop through a plateau).
-        phi_c, gamma_c, gamma_fc = whole_contact
-        stop_start = jnp.where(r_start > 0, stop_high, stop_low)
-        x_held = phi_c @ x + gamma_c * drive_old + gamma_fc * stop_start
-        held = whole_holds & (r_start != 0) & ~change & (regime(x_held) == r_start)
 
         def advance(x, drive, span, maps):
             # Over `span` [s] under a constant drive: the exact flow of the regime in force
@@ -257,6 +251,11 @@ def contact_record(
             return jax.lax.fori_loop(0, substeps, part_step, x)
 
         def in_contact(x):
+            # A step that starts in a contact, holds no change and whose exact flow of that
+            # contact ends in it: one exact step too (a pendulum resting on its stop).
+            stop_start = jnp.where(r_start > 0, stop_high, stop_low)
+            x_held = phi_c @ x + gamma_c * drive_old + gamma_fc * stop_start
+            held = whole_holds & (r_start != 0) & ~change & (regime(x_held) == r_start)
             return jax.lax.cond(held, lambda x: x_held, substepped, x)
 
         x_next = jax.lax.cond(near, in_contact, lambda x: x_free, x)
@@ -275,7 +274,6 @@ def contact_record(
 
     # A block without a change that starts in contact and stays in that contact at every
     # sample: one product of the contact flow's powers (a pendulum resting on its stop).
-    phi_c, gamma_c, gamma_fc = whole_contact
     try_held = whole_blocks(
         phi_c, gamma_c, c, gain, first_level, change_step, interval, active, m, max_block,
         held_forcing=gamma_fc,
@@ -286,17 +284,18 @@ def contact_record(
             zero = jnp.zeros((), x.dtype)
             return jax.lax.fori_loop(index * m, index * m + m, sample_step, (x, zero))
 
-        def not_free(x):
-            side = regime(x)
+        side = regime(x)
 
+        def held_block(x):
             def in_contact(states):
                 return jax.vmap(regime)(states) == side
 
             stop = jnp.where(side > 0, stop_high, stop_low)
             taken, x_held, total_held = try_held(x, index * m, in_contact, stop)
-            return jax.lax.cond(
-                whole_holds & taken & (side != 0), lambda _: (x_held, total_held), sample_loop, x
-            )
+            return jax.lax.cond(taken, lambda _: (x_held, total_held), sample_loop, x)
+
+        def not_free(x):  # a block that starts in a contact may stay in it throughout
+            return jax.lax.cond(whole_holds & (side != 0), held_block, sample_loop, x)
 
         taken, x_fast, total_fast = try_block(x, index * m, free_of_contact)
         x, total = jax.lax.cond(taken, lambda _: (x_fast, total_fast), not_free, x)
