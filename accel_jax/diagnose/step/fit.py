@@ -512,9 +512,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
                 )
 
             zero = jnp.zeros_like(base[W.FROM_EFFECT])
-            shapes = jax.eval_shape(lambda: held_out(zero, base)[1][2])  # traced, not run
-            nothing = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-            carry = (zero, zero, jnp.inf, jnp.inf, nothing, nothing[0])
+            trace = jnp.zeros(n, base.dtype)  # a prediction's or the innovations' shape
+            nothing = (trace, trace, jnp.zeros((), base.dtype))  # (prediction, a, ln V)
+            carry = (zero, zero, jnp.inf, jnp.inf, nothing, trace)
             _, best_delta, _, train_at_base, terms, at_prior = jax.lax.fori_loop(
                 0, passes + 1, iterate, carry
             )
