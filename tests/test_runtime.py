@@ -9,7 +9,12 @@ import sys
 
 import pytest
 
-from accel_jax._runtime import CPU_SCHEDULER_FLAG, OPT_OUT_ENV, compilation_cache_dir
+from accel_jax._runtime import (
+    CPU_SCHEDULER_FLAG,
+    FAST_COMPILE_FLAGS,
+    OPT_OUT_ENV,
+    compilation_cache_dir,
+)
 
 _PROGRAM = """
 import sys
@@ -125,14 +130,22 @@ def test_fast_compile_flags_added_once_respecting_the_user(monkeypatch):
     import accel_jax._runtime as xla
 
     monkeypatch.setattr(xla, "_backend_started", lambda: False)
+    monkeypatch.setattr(xla, "_gpu_plugin_installed", lambda: False)
+    both = ["--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=2"]
     monkeypatch.setenv("XLA_FLAGS", "--other=1")
-    assert xla.apply_fast_compile() == ["--xla_cpu_use_fusion_emitters=false"]
+    assert xla.apply_fast_compile() == both
     assert xla.apply_fast_compile() == []
-    assert os.environ["XLA_FLAGS"].split() == ["--other=1", "--xla_cpu_use_fusion_emitters=false"]
-    # The user's own setting of the option wins.
+    assert os.environ["XLA_FLAGS"].split() == ["--other=1", *both]
+    # The user's own setting of an option wins.
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-    assert xla.apply_fast_compile() == []
-    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    assert xla.apply_fast_compile() == both[1:]
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_use_fusion_emitters=true", both[1]]
+    # Where a GPU backend plugin is installed, the optimisation level (CPU-measured only)
+    # is left at XLA's default.
+    monkeypatch.setattr(xla, "_gpu_plugin_installed", lambda: True)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert xla.apply_fast_compile() == both[:1]
+    monkeypatch.setattr(xla, "_gpu_plugin_installed", lambda: False)
     # Once the backend has started, the flags could not apply: nothing is added.
     monkeypatch.setattr(xla, "_backend_started", lambda: True)
     monkeypatch.setenv("XLA_FLAGS", "")
@@ -154,7 +167,8 @@ with fast_compile(sys.argv[1] == "fast"):
     value = float(jax.jit(f)(x).sum())
     block = provenance(precision="float64")
 after = provenance(precision="float64")["xla_most_optimizations_off"]
-print(repr(value), block["xla_most_optimizations_off"], after, block["xla_flags"] or "-")
+flags = ",".join(block["xla_flags"].split()) or "-"
+print(repr(value), block["xla_most_optimizations_off"], after, flags)
 """
 
 
@@ -176,7 +190,7 @@ def test_fast_compile_gives_the_same_results_and_is_recorded():
     fast = run("fast")
     assert default[1:] == ("False", "False", "-")
     # Recorded in the provenance while on, and switched back off after the block.
-    assert fast[1:] == ("True", "False", "--xla_cpu_use_fusion_emitters=false")
+    assert fast[1:] == ("True", "False", ",".join(FAST_COMPILE_FLAGS))
     assert fast[0] == pytest.approx(default[0], rel=1e-12)
 
 
