@@ -18,8 +18,10 @@ $(STAMP): requirements.lock pyproject.toml
 report: $(STAMP)
 	$(VENV)/bin/accel-jax report --out out/report
 
+# --durations: the slowest tests' times at the end of every run (CI's log), so that where the
+# suite's time goes is seen without a separate profiling run.
 test: $(STAMP)
-	$(PY) -m pytest -n 2 --dist loadgroup -q
+	$(PY) -m pytest -n 2 --dist loadgroup -q --durations=25
 
 # The project's own checks (not needed to use the package), their tools pinned in
 # requirements-dev.lock; CI runs both after the tests. `docs`: the documentation site
