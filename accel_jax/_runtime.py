@@ -126,46 +126,35 @@ FAST_COMPILE_FLAGS = (
     "--xla_cpu_use_fusion_emitters=false",
     "--xla_backend_optimization_level=2",
 )
-"""XLA options for compile-bound runs on the CPU.
+"""XLA options for compile-bound runs on the CPU (figures: docs/report.md).
 
-- `--xla_cpu_use_fusion_emitters=false`: XLA:CPU's older loop emitters instead of the MLIR
-  fusion emitters. On the 2-core CPU it cut the quick studies' compile time by a quarter to
-  a third (scale-factor study 44 → 31 s, noise 30 → 20 s) at an unchanged run time (one
-  vmapped scale-factor identification: 13.3 ms either way). An XLA:CPU option: it does not
-  change what a GPU computes, but XLA parses it whatever the backend, and jaxlib 0.11 no
-  longer knows it — so it is added only where `accepted_xla_flags` says the running XLA
-  accepts it.
+- `--xla_cpu_use_fusion_emitters=false`: XLA:CPU's older loop emitters. On the 2-core CPU
+  a quarter to a third less compile time for the quick studies, the same run time. It does
+  not change what a GPU computes, but XLA parses it whatever the backend, and jaxlib 0.11
+  no longer knows it: added only where `accepted_xla_flags` says the running XLA accepts it.
 - `--xla_backend_optimization_level=2` (XLA's default is 3): LLVM's -O2 pipeline instead of
-  -O3 for the generated code. Measured on the 2-core CPU at 2026-11-28 (one core each, with
-  the option above): the step diagnosis's compliant-contact fit of a 24,000-sample record
-  compiled in 55.5 s (twice) instead of 63.3–65.0 s and ran in 31.4–32.3 s instead of
-  30.5–32.1 s, its prediction within 7e-15 V; two run-bound noise-selection tests
-  (`tests/test_noise_sensor.py`, a level shift and a small step) 137.9 s against 138.9 s.
-  Level 1 compiled no faster (55.5 s); level 0 compiled in 27.7 s but ran four times
-  slower (130 s). The level also steers a GPU backend's code generation, where it is not
-  measured: it is added only where no JAX backend plugin (a GPU's) is installed
-  (`_gpu_plugin_installed`)."""
+  -O3. The step diagnosis's largest program (a compliant-contact fit) compiled in 55.5 s
+  instead of 63–65 s at the same run time on the 2-core CPU. It
+  also steers a GPU backend's code generation, not measured there: so it is added only
+  where no JAX backend plugin is installed (`_gpu_plugin_installed`)."""
 
 CPU_ONLY_FAST_COMPILE = frozenset({"xla_backend_optimization_level"})
 """The `FAST_COMPILE_FLAGS` options left out where a GPU backend may be present."""
 
 
 def _gpu_plugin_installed() -> bool:
-    """Whether a JAX backend plugin (jax-cuda12-plugin, a ROCm plugin, …) is installed: JAX
-    finds them as `jax_plugins` entry points or modules of the `jax_plugins` package."""
+    """Whether a JAX backend plugin (a GPU's) is installed: JAX finds them as `jax_plugins`
+    entry points or modules of the `jax_plugins` namespace package."""
+    import pkgutil
     from importlib import metadata, util
 
     try:
-        if list(metadata.entry_points(group="jax_plugins")):
-            return True
         spec = util.find_spec("jax_plugins")
+        places = (spec.submodule_search_locations or []) if spec is not None else []
+        found = any(pkgutil.iter_modules(places))
+        return found or bool(list(metadata.entry_points(group="jax_plugins")))
     except (ImportError, ValueError):
         return False
-    if spec is None or not spec.submodule_search_locations:
-        return False
-    import pkgutil
-
-    return any(True for _ in pkgutil.iter_modules(spec.submodule_search_locations))
 
 
 def _backend_started() -> bool:
