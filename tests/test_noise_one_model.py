@@ -305,3 +305,57 @@ def test_diagnosis_figure_psd_is_the_models(candidate):
         assert figure is not None
         expected = sum(np.asarray(m.one_sided_psd(frequency, DT)) for m in models)
         np.testing.assert_allclose(figure, expected, rtol=1e-11)
+
+
+# --------------------------------------------------------------------------------------
+# The spectra from precomputed sines (`Frequencies`) against their textbook forms
+# --------------------------------------------------------------------------------------
+
+
+def test_spectra_from_half_angle_sines_equal_the_cosine_forms_and_are_exact_near_zero():
+    """Every `discrete_spectrum` is written with sin(ω/2) and cos(ω/2) (`Frequencies`, built
+    once per fit): at random parameters it equals the textbook form with cos ω, cos(ω ∓ θ)
+    and tan(ω/2) to round-off, given ω or its `Frequencies`. Where the textbook
+    denominator 1 − 2ρ cos ω + ρ² cancels (ρ → 1, ω → 0) the half-angle form keeps full
+    precision: checked against the value in 40-digit decimal arithmetic, where the cosine
+    form is off by more than 10⁻⁵."""
+    from decimal import Decimal, getcontext
+
+    from accel_jax._noise.models import Frequencies
+
+    rng = np.random.default_rng(7)
+    omega = np.concatenate([np.linspace(-math.pi, math.pi, 401), rng.uniform(-3, 3, 100)])
+    trig = Frequencies.of(jnp.asarray(omega))
+    for _ in range(DRAWS):
+        variance, rho, theta = math.exp(rng.normal()), rng.uniform(0.0, 0.999), rng.uniform(0, 3)
+        corner = rng.uniform(0.05, math.pi / 2)
+
+        def poisson(u, rho=rho):
+            return (1 - rho**2) / (1 - 2 * rho * np.cos(u) + rho**2)
+
+        size = np.minimum(np.abs(omega), math.pi * (1 - 1e-12))
+        textbook = {
+            "gm": variance * poisson(omega),
+            "ec": variance / 2 * (poisson(omega - theta) + poisson(omega + theta)),
+            "lowpass": 1 / (1 + (np.tan(size / 2) / math.tan(corner)) ** 4),
+            "difference": 2 - 2 * np.cos(omega),
+        }
+        for given in (jnp.asarray(omega), trig):
+            _close(GaussMarkov.discrete_spectrum(given, variance, rho), textbook["gm"])
+            _close(
+                ExponentialCosine.discrete_spectrum(given, variance, rho, theta), textbook["ec"]
+            )
+            _close(ButterworthLowPass.discrete_gain(given, corner), textbook["lowpass"])
+            np.testing.assert_allclose(
+                np.asarray(differencing_gain(given)), textbook["difference"], rtol=1e-12,
+                atol=1e-15,
+            )
+    # Near the cancellation: ρ = 1 − 10⁻⁶, ω = 10⁻⁷.
+    getcontext().prec = 40
+    rho, w = 1 - 1e-6, 1e-7
+    d_rho, d_w = Decimal(rho), Decimal(w) / 2
+    half = d_w - d_w**3 / 6 + d_w**5 / 120  # sin(ω/2), error < 10⁻⁴⁷
+    exact = (1 - d_rho**2) / ((1 - d_rho) ** 2 + 4 * d_rho * half**2)
+    got = float(GaussMarkov.discrete_spectrum(jnp.asarray(w), 1.0, rho))
+    assert got == pytest.approx(float(exact), rel=1e-13)
+    assert abs(poisson(w, rho) / float(exact) - 1) > 1e-5

@@ -53,6 +53,7 @@ from .models import (
     ButterworthLowPass,
     ExponentialCosine,
     Flicker,
+    Frequencies,
     GaussMarkov,
     NoiseSum,
     RandomWalk,
@@ -108,8 +109,10 @@ def _mask(names) -> np.ndarray:
 
 def _parts(z, mask, omega, floor):
     """(stationary part λ(H·coloured + p), random-walk part H·qΔ) of f_y at |ω| ≤ π, each
-    component's spectrum and the low-pass's gain from `models` (the one definition)."""
+    component's spectrum and the low-pass's gain from `models` (the one definition);
+    `omega` ω or its `Frequencies`."""
     on = mask > 0
+    omega = omega if isinstance(omega, Frequencies) else Frequencies.of(omega)
     gm = GaussMarkov.discrete_spectrum(omega, jnp.exp(z[1]), jnp.exp(-jnp.exp(-z[2])))
     theta = jnp.exp(z[5])
     rho_e = jnp.exp(-(jnp.exp(z[4]) + theta / MAX_QUALITY))
@@ -169,17 +172,17 @@ def expected_periodogram(z, mask, gram, floor):
     frequencies) for records up to 2^14 differences, else at most 2^15 (`_grid`: the
     correction's lags truncated where the taper leaves them little weight).
     The random walk's part of y is white and needs none."""
-    stationary, walk = _parts(z, mask, gram.bins, floor)
+    stationary, walk = _parts(z, mask, gram.bin_frequencies, floor)
     size = gram.grid
-    # f_y is even in ω, so its values at ω_k = 2πk/size, k ≤ size/2, define it on the whole
-    # circular grid: γ_y is their inverse real FFT, and the correction (a real, even
-    # sequence's transform) the real part of a real FFT (half the spectrum evaluations and
-    # half the transform work of full complex FFTs; equal to round-off).
-    w = 2 * jnp.pi * jnp.arange(size // 2 + 1) / size
-    on_grid, _ = _parts(z, mask, w, floor)
+    # f_y is even in ω, so its values at ω_k = 2πk/size, k ≤ size/2 (`gram.grid_frequencies`),
+    # define it on the whole circular grid: γ_y is their inverse real FFT, and the
+    # correction (a real, even sequence's transform) the real part of a real FFT (half the
+    # spectrum evaluations and half the transform work of full complex FFTs; equal to
+    # round-off).
+    on_grid, _ = _parts(z, mask, gram.grid_frequencies, floor)
     gamma = jnp.fft.irfft(on_grid, size)
     correction = -jnp.real(jnp.fft.rfft(gram.lag_weight * gamma))
-    d = jnp.interp(gram.bins, w, correction)
+    d = jnp.interp(gram.bins, gram.grid_frequencies.omega, correction)
     per_bin = stationary + walk + d
     if gram.bins.shape == gram.omega.shape:  # full resolution
         return per_bin
@@ -188,7 +191,9 @@ def expected_periodogram(z, mask, gram, floor):
 
 class Periodogram(eqx.Module):
     """The periodogram of a differenced record, possibly on bands: mean ω, mean I and the
-    number of bins per entry."""
+    number of bins per entry; the Fourier frequencies of its bins (`bins`, `band` the entry
+    of each) and of the debiasing correction's grid, each with the sines and cosines the
+    spectra need (`Frequencies`, computed once here rather than at every evaluation)."""
 
     omega: jax.Array
     power: jax.Array
@@ -197,6 +202,15 @@ class Periodogram(eqx.Module):
     bins: jax.Array
     band: jax.Array
     length: int = eqx.field(static=True)
+    bin_frequencies: Frequencies
+    grid_frequencies: Frequencies
+
+    def __init__(self, omega, power, count, lag_weight, bins, band, length):
+        self.omega, self.power, self.count = omega, power, count
+        self.lag_weight, self.bins, self.band, self.length = lag_weight, bins, band, length
+        size = lag_weight.shape[0]
+        self.bin_frequencies = _trig_table(bins)
+        self.grid_frequencies = _trig_table(2 * np.pi * np.arange(size // 2 + 1) / size)
 
     @property
     def grid(self) -> int:
@@ -205,6 +219,13 @@ class Periodogram(eqx.Module):
     @property
     def n_bins(self) -> float:
         return float(jnp.sum(self.count))
+
+
+def _trig_table(omega) -> Frequencies:
+    """`Frequencies` of ω computed in NumPy (float64) when ω is concrete."""
+    omega = np.asarray(omega, np.float64)
+    half_sin, half_cos = np.sin(omega / 2), np.cos(omega / 2)
+    return Frequencies(jnp.asarray(omega), jnp.asarray(half_sin), jnp.asarray(half_cos))
 
 
 TAPER = 0.2
