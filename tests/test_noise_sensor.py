@@ -440,7 +440,7 @@ def test_haar_variance_of_the_model_matches_monte_carlo():
         assert np.var(d) == pytest.approx(sensor_screens._haar_variance(v, w), rel=0.1), w
 
 
-def test_a_level_shift_is_unexplained_not_a_random_walk():
+def test_a_level_shift_is_unexplained_not_a_random_walk(monkeypatch):
     """A record with a step in its level (a bias jump; outside the library, and made here,
     not by the library's simulators): in the periodogram a step looks like a random walk
     (both ∝ 1/f²), in time it is one instant. The level-shift test finds it (time and
@@ -451,7 +451,21 @@ def test_a_level_shift_is_unexplained_not_a_random_walk():
     n, dt = 8000, 0.01
     k = np.arange(n)
     white = 2e-3 * rng.normal(size=n)
+    # Every fit of the call's passes (the selection, the step taken out, the selection
+    # again) recorded: the passes share their fits, so no structure is fitted twice on the
+    # same periodogram from the same start (before they did, 10 of 47 fits were repeats).
+    fits, fit_structure = [], spectral.fit_structure
+
+    def recorded(names, gram, floor, variance, parent=None, parent_names=()):
+        start = None if parent is None else np.asarray(parent).tobytes()
+        key = (tuple(names), np.asarray(gram.power).tobytes(), floor, start, tuple(parent_names))
+        fits.append(key)
+        return fit_structure(names, gram, floor, variance, parent, parent_names)
+
+    monkeypatch.setattr(spectral, "fit_structure", recorded)
     stepped = aj.noise.select_sensor_noise(-(0.3 + white + 4e-3 * (k >= n // 4)), dt)
+    monkeypatch.undo()
+    assert len(fits) > 20 and len(set(fits)) == len(fits)
     assert stepped.unexplained and "random_walk" not in stepped.effects, stepped.verdict
     (shift,) = stepped.held_out.level_shifts
     assert shift["time_s"] == pytest.approx(n // 4 * dt, abs=0.1)
@@ -752,3 +766,29 @@ def test_spectral_change_is_calibrated_on_stationary_records_and_finds_a_moving_
     # A half without noise has no spectrum to compare (a bare step: no division by zero).
     bare = np.where(np.arange(n) < n // 2, 0.0, rng.normal(size=n))
     assert not _spectral_change(bare, dt)["tested"]
+
+
+def test_innovations_give_the_exact_gaussian_inner_products():
+    """The transient test's Durbin–Levinson innovations (`_innovations`, predictors of
+    `block` samples applied as one matrix product) give Σ e e'/D = Vᵀ C⁻¹ V with C the
+    Toeplitz matrix of γ, against a dense solve, across block edges; where γ stops being
+    positive definite, the samples before are returned."""
+    from scipy.linalg import toeplitz
+
+    from accel_jax._noise.sensor_model import _innovations
+
+    rng = np.random.default_rng(3)
+    n = 700
+    gamma = 2.0 * 0.9 ** np.arange(n) + (np.arange(n) == 0)
+    vectors = rng.normal(size=(n, 5))
+    for block in (1, 64, 256, 1024):
+        e, d = _innovations(gamma, vectors, block=block)
+        assert e.shape == (n, 5) and d.shape == (n,)
+        dense = vectors.T @ np.linalg.solve(toeplitz(gamma), vectors)
+        np.testing.assert_allclose((e / d[:, None]).T @ e, dense, rtol=1e-9)
+    # cos(h π/3): one line (power at ±π/3 only), positive definite over 2 samples
+    lines = np.cos(np.arange(n) * math.pi / 3)
+    e, d = _innovations(lines, vectors, block=2)
+    assert d.size == 2 and np.all(d > 0)
+    dense = vectors[:2].T @ np.linalg.solve(toeplitz(lines[:2]), vectors[:2])
+    np.testing.assert_allclose((e / d[:, None]).T @ e, dense, rtol=1e-9)

@@ -148,7 +148,8 @@ def select_sensor_noise(
         shifts = []
         grid = detect_quantization(x)
         record_values = x  # as given: steps taken out below would move its extremes
-        selection, model, floor, residual = _select(x, dt, evidence, max_lines, grid)
+        fits: dict = {}  # every fit of this call's passes, by record and model (`_evaluate`)
+        selection, model, floor, residual = _select(x, dt, evidence, max_lines, grid, fits)
         for attempt in range(MAX_LEVEL_SHIFTS + 1):
             found = _level_shift(residual, dt, model, floor)
             selection = _with_held_out(selection, level_shift_test=found)
@@ -194,14 +195,14 @@ def select_sensor_noise(
                 break
             corrected = x - size * (np.arange(x.size) >= found["index"])
             try:
-                rerun = _select(corrected, dt, evidence, max_lines, grid)
+                rerun = _select(corrected, dt, evidence, max_lines, grid, fits)
             except ValueError:  # nothing left but the steps (a record without noise)
                 break
             x = corrected
             selection, model, floor, residual = rerun
         if not shifts and "random_walk" in model.names:
             test, swapped = _shift_in_place_of_walk(
-                x, dt, evidence, max_lines, grid, model, floor, selection
+                x, dt, evidence, max_lines, grid, model, floor, selection, fits
             )
             if swapped is not None:
                 shift, rerun = swapped
@@ -233,6 +234,7 @@ def _select(
     evidence: float,
     max_lines: int,
     grid: dict | None,
+    fits: dict | None = None,
     transient_first: bool = True,
 ):
     """The forward selection on x, whose output grid is `grid` (`detect_quantization`;
@@ -245,7 +247,7 @@ def _select(
     fitted after a false transient is not the one fitted first: harness record
     128256395, a walk, was named Gauss–Markov), the selection is run again in the
     order of the evidence alone."""
-    rec = _Record(x, dt)
+    rec = _Record(x, dt, fits)
     if not rec.variance > (1e-10 * float(np.max(np.abs(x)))) ** 2:
         raise ValueError(
             "select_sensor_noise: the record's first differences are constant over its "
@@ -344,7 +346,7 @@ def _select(
         model = new
     model, removed = _backward(rec, floor, model, log_j, evidence)
     if promoted and model.transient is None:
-        return _select(x, dt, evidence, max_lines, grid, transient_first=False)
+        return _select(x, dt, evidence, max_lines, grid, fits, transient_first=False)
     kept_before = set(_named(model))
     model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
     if exchanged:  # the substitute may leave another effect without evidence
@@ -486,7 +488,7 @@ def _at_burst(found: dict, selection) -> bool:
 
 
 def _shift_in_place_of_walk(
-    x, dt, evidence, max_lines, grid, model: _Model, floor: float, selection
+    x, dt, evidence, max_lines, grid, model: _Model, floor: float, selection, fits=None
 ):
     """A random walk named where the record holds a step of its level instead: the two have
     the same 1/f² spectrum, and once the walk is in the model its wander covers the step,
@@ -499,7 +501,7 @@ def _shift_in_place_of_walk(
     keeps its wander after one step is taken out: the new selection names it again and
     gains little. Returns (the test: the step sought, its score and bar, or None where no
     step stands against the reduced model; (shift, the new `_select` result) or None)."""
-    rec = _Record(x, dt)
+    rec = _Record(x, dt, fits)
     names = tuple(n for n in model.names if n != "random_walk")
     reduced = _evaluate(rec, floor, names, model.lines, model.transient)
     residual = rec.residual(model.lines, model.transient)
@@ -513,7 +515,7 @@ def _shift_in_place_of_walk(
         return None, None
     corrected = x - size * (np.arange(x.size) >= found["index"])
     try:
-        rerun = _select(corrected, dt, evidence, max_lines, grid)
+        rerun = _select(corrected, dt, evidence, max_lines, grid, fits)
     except ValueError:
         return None, None
     new = rerun[1]

@@ -18,6 +18,7 @@ Float64, NumPy on the host; one jitted, vmapped Whittle fit per record length.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -125,9 +126,18 @@ class _Model:
 
 
 class _Record:
-    def __init__(self, x, dt):
+    """A record under selection: its training and held-out parts, the periodograms of its
+    residuals (by lines and transient) and `fits`, the fitted models by content (the
+    record's samples and Δ, the model's structure, lines, transient and start), which the
+    passes of one `select_sensor_noise` call share: a second forward selection of the
+    same record (in the order of the evidence alone, or after a step is taken out and put
+    back) refits nothing it fitted before."""
+
+    def __init__(self, x, dt, fits: dict | None = None):
         self.x = x
         self.dt = dt
+        self.fits = {} if fits is None else fits
+        self.key = (hashlib.sha1(np.ascontiguousarray(x, np.float64).tobytes()).digest(), dt)
         self.n = x.size
         self.split = int(round((1 - HELD_OUT_FRACTION) * self.n))
         self.t = np.arange(self.n) * dt
@@ -154,8 +164,16 @@ class _Record:
 
 
 def _evaluate(record, floor, names, lines, transient, parent=None) -> _Model:
-    train, held = record.grams(lines, transient)
     parent_z, parent_names = (parent.z, parent.names) if parent is not None else (None, ())
+    start = None if parent_z is None else (np.asarray(parent_z).tobytes(), tuple(parent_names))
+    key = (record.key, floor, tuple(names), repr(lines), repr(transient), start)
+    if key not in record.fits:  # the same fit again (a deterministic XLA call): reused
+        record.fits[key] = _fit(record, floor, names, lines, transient, parent_z, parent_names)
+    return record.fits[key]
+
+
+def _fit(record, floor, names, lines, transient, parent_z, parent_names) -> _Model:
+    train, held = record.grams(lines, transient)
     z, log_lik, ok = spectral.fit_structure(
         list(names), train, floor, record.variance, parent_z, parent_names
     )
@@ -231,26 +249,47 @@ def _differenced_autocovariance(model: _Model, floor: float, size: int) -> np.nd
     return np.real(np.fft.ifft(f))[:size]
 
 
-def _innovations(gamma: np.ndarray, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _innovations(
+    gamma: np.ndarray, vectors: np.ndarray, block: int = 256
+) -> tuple[np.ndarray, np.ndarray]:
     """The one-step prediction errors of the columns of `vectors` under the stationary
     autocovariance γ (the Durbin–Levinson recursion: each sample predicted from all the
     earlier ones of the window) and their variances D_k; Σ_k e_k e'_k/D_k is then the exact
-    Gaussian inner product uᵀ C⁻¹ v."""
+    Gaussian inner product uᵀ C⁻¹ v. Where D_k reaches 0 (γ not positive definite beyond
+    k samples) the first k are returned.
+
+    The recursion gives the predictor of each sample; the errors of `block` samples at a
+    time are then one matrix product (their predictors as rows) instead of a product per
+    sample: the transient test's window of 4,096 samples and 26 columns in 0.13 s instead
+    of 0.40 s on the 2-core CPU, equal to round-off."""
     size = gamma.size
     out = np.empty_like(vectors)
     variance = np.empty(size)
+    rows = np.zeros((block, size))  # row k − start: e_k = rows[k − start] · vectors
+    start = 0
+
+    def flush(stop):  # the errors of samples start..stop−1
+        out[start:stop] = rows[: stop - start, :stop] @ vectors[:stop]
+        rows[:] = 0.0
+
     phi = np.zeros(0)
     d = float(gamma[0])
-    out[0] = vectors[0]
+    rows[0, 0] = 1.0
     variance[0] = d
     for k in range(1, size):
+        if k - start == block:
+            flush(k)
+            start = k
         kappa = (gamma[k] - phi @ gamma[k - 1 : 0 : -1]) / d if k > 1 else gamma[1] / d
         phi = np.concatenate([phi - kappa * phi[::-1], [kappa]])
         d = d * (1 - kappa * kappa)
         if not d > 0:
+            flush(k)
             return out[:k], variance[:k]
-        out[k] = vectors[k] - phi[::-1] @ vectors[:k]
+        rows[k - start, :k] = -phi[::-1]
+        rows[k - start, k] = 1.0
         variance[k] = d
+    flush(size)
     return out, variance
 
 
