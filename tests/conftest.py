@@ -78,7 +78,7 @@ def pytest_collection_modifyitems(config, items):
     Every other test is dealt on its own. The quick report's tests come first (the longest
     fixture, about seven minutes, made by two study processes while the other worker runs
     the rest: made late, the other worker reaching a study's test waited idle for it, 84 s
-    in one fresh-clone run).
+    in one fresh-clone run); the rest follow in the files' order (`pytest_xdist_make_scheduler`).
 
     pytest-xdist's own `xdist_group` mark does not group under pytest 9 (it renames the
     node id through an attribute pytest 9 no longer reads), so the workers write the groups
@@ -116,6 +116,19 @@ def pytest_xdist_make_scheduler(config, log):
     if config.getoption("dist") != "loadgroup":
         return None
     from xdist.scheduler import LoadScopeScheduling
+
+    # The work units in the files' order, not pytest-xdist's default of the largest group
+    # first: that put the `step_cases` group (test_diagnose_step*.py, ~7 min) first on the
+    # worker beside the quick report, compiling the step fit's programs at the same moment
+    # as the quick report's blind diagnosis compiles the same ones (same record layout)
+    # in its own process. The persistent compilation cache of the session shares them
+    # across processes when one finishes first (checked: a step record diagnosed in this
+    # suite's environment, then one of the same layout by the blind diagnosis's child in
+    # the quick report's environment, `tests/xla_rejects` included: 31 cached programs, none
+    # added by the second, which took 14.1 s against 23.5 s). In the files' order the
+    # worker first runs the CLI, contact-truth and noise-diagnosis tests (~5 min), and the
+    # step records then find the programs compiled.
+    config.option.loadscopereorder = False
 
     class SharedFixtureScheduling(LoadScopeScheduling):
         """A test's work unit: its group (the tests sharing a fixture), else itself."""
