@@ -163,6 +163,35 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
     )  # (½·1 ≤ 1e-10 of ½·2e10: round-off of the sum)
 
 
+def test_a_measured_inputs_level_errors_count_in_the_log_likelihood():
+    # Errors in variables: a measured input's plateau means are data too. A model that
+    # misses the output cannot buy its training ln L back by moving the levels thousands
+    # of standard errors (the nominal of a blind stop record took up the clamp that way and
+    # the stop effects' evidence came out at −421 while they closed 99.7 % of the gap).
+    from accel_jax.diagnose.step.assess import _fit_entry
+
+    n, n_changes = 40, 3
+    host = SimpleNamespace(candidate=lambda **kw: None)
+    rec = SimpleNamespace(
+        held=np.zeros(n, bool), polarity=1.0, k_test=1.0, host=host,
+        ctx=SimpleNamespace(timing_map=None, change_index=np.zeros(n_changes)),
+    )
+    innovations = np.random.default_rng(0).normal(size=n)
+
+    def log_likelihood(levels):
+        w = np.concatenate([np.zeros(W.FIXED + n_changes), levels])
+        fit = _fit_entry(
+            rec, [], 0, w, np.zeros(n), innovations, 0.0, True, np.zeros(n), np.zeros(n),
+            steps=1, decrement=0.0, objective=0.0, trained=w,
+        )
+        return fit.log_likelihood
+
+    exact = log_likelihood(np.zeros(0))  # an exact input: no level parameters
+    assert log_likelihood(np.zeros(n_changes + 1)) == pytest.approx(exact, abs=1e-12)
+    levels = np.array([0.0, -300.0, 4.0, 2.0])  # three level errors and the drift, in σ
+    assert log_likelihood(levels) == pytest.approx(exact - 0.5 * np.sum(levels**2), rel=1e-12)
+
+
 def test_the_last_restart_keeps_the_nominal_so_a_candidate_started_there_cannot_lose(
     monkeypatch,
 ):
@@ -265,6 +294,8 @@ def test_a_stop_record_with_a_measured_input_names_the_stop():
     assert result.verdict in ("stop_saturation", "stop_contact"), result.reason
     entry = next(e for e in result.ranking if e["effect"] == result.verdict)
     assert entry["explains"] and not entry["fit_failed"], entry
+    # The nominal's strained levels count against it: the stop's evidence is positive.
+    assert entry["evidence"] > 0 and entry["significant"], entry
 
 
 def test_the_summary_shows_the_named_effects_fitted_values():

@@ -270,7 +270,8 @@ class StepFit:
         `z_gain` the test winding's gain z; `gain` [V/V] the test winding's gain with its
         polarity.
     - `log_likelihood`: the profiled ln L of the training part (with the refit's and the
-        gain's priors); `innovation_variance` [V²] the one-step prediction variance there.
+        gain's priors, and for a measured input its level errors' and drift's terms: errors
+        in variables); `innovation_variance` [V²] the one-step prediction variance there.
     - `prediction`, `prior_prediction` (n,) [V]: the fitted model's block means and the
         same model with the device at its prior values; `error` (n,) [V] the measured
         block means less `prediction`; `innovations` (n,) [V] the one-step errors.
