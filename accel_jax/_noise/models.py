@@ -72,6 +72,15 @@ class Frequencies(eqx.Module):
         omega = jnp.asarray(omega)
         return cls(omega, jnp.sin(omega / 2), jnp.cos(omega / 2))
 
+    @classmethod
+    def table(cls, omega) -> Frequencies:
+        """The same from concrete ω, computed on the host in NumPy float64 (a fit's fixed
+        frequencies, e.g. a periodogram's bins and its correction grid)."""
+        omega = np.asarray(omega, np.float64)
+        return cls(
+            jnp.asarray(omega), jnp.asarray(np.sin(omega / 2)), jnp.asarray(np.cos(omega / 2))
+        )
+
 
 def _frequencies(omega) -> Frequencies:
     return omega if isinstance(omega, Frequencies) else Frequencies.of(omega)

@@ -209,8 +209,8 @@ class Periodogram(eqx.Module):
         self.omega, self.power, self.count = omega, power, count
         self.lag_weight, self.bins, self.band, self.length = lag_weight, bins, band, length
         size = lag_weight.shape[0]
-        self.bin_frequencies = _trig_table(bins)
-        self.grid_frequencies = _trig_table(2 * np.pi * np.arange(size // 2 + 1) / size)
+        self.bin_frequencies = Frequencies.table(bins)
+        self.grid_frequencies = Frequencies.table(2 * np.pi * np.arange(size // 2 + 1) / size)
 
     @property
     def grid(self) -> int:
@@ -219,13 +219,6 @@ class Periodogram(eqx.Module):
     @property
     def n_bins(self) -> float:
         return float(jnp.sum(self.count))
-
-
-def _trig_table(omega) -> Frequencies:
-    """`Frequencies` of ω computed in NumPy (float64) when ω is concrete."""
-    omega = np.asarray(omega, np.float64)
-    half_sin, half_cos = np.sin(omega / 2), np.cos(omega / 2)
-    return Frequencies(jnp.asarray(omega), jnp.asarray(half_sin), jnp.asarray(half_cos))
 
 
 TAPER = 0.2
