@@ -83,6 +83,7 @@ class Frequencies(eqx.Module):
 
 
 def _frequencies(omega) -> Frequencies:
+    """`omega` as `Frequencies` (built with `Frequencies.of` unless it already is)."""
     return omega if isinstance(omega, Frequencies) else Frequencies.of(omega)
 
 

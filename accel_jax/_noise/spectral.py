@@ -58,6 +58,7 @@ from .models import (
     NoiseSum,
     RandomWalk,
     WhiteNoise,
+    _frequencies,
     difference_parts,
 )
 
@@ -112,7 +113,7 @@ def _parts(z, mask, omega, floor):
     component's spectrum and the low-pass's gain from `models` (the one definition);
     `omega` ω or its `Frequencies`."""
     on = mask > 0
-    omega = omega if isinstance(omega, Frequencies) else Frequencies.of(omega)
+    omega = _frequencies(omega)
     gm = GaussMarkov.discrete_spectrum(omega, jnp.exp(z[1]), jnp.exp(-jnp.exp(-z[2])))
     theta = jnp.exp(z[5])
     rho_e = jnp.exp(-(jnp.exp(z[4]) + theta / MAX_QUALITY))
