@@ -341,9 +341,17 @@ took 39.7 s one at a time against 52.3 s in batches of 8 (`benchmarks/bench.py
 own records."""
 
 
-STOP_FIT_MAX_STEPS = 20
-"""The same for the stop candidate: started from the nominal fit, it needs fewer, and each
-costs a sample-by-sample simulation."""
+STOP_FIT_MAX_STEPS = 100
+"""The same for the inelastic-stop candidate (`mode` "clamp"). Each step costs a
+sample-by-sample simulation, but a start far from the optimum needs many: on a measured
+input, the nominal refit can take up the clipping in the input's level errors (thousands
+of their standard errors), and the stop fit must walk them back. Harness record 319
+(a stop at 0.97 of the largest level, measured twin): with 20 steps no start converged and
+the best left 0.0055 V (25× the noise floor), read `unexplained`; the start from the
+nominal's device with the levels as read, continued in rounds of 20, reached the floor in
+four (objective 5.4e6 → 1.1e5 → 835 → 827), and with 100 steps the record reads
+`stop_saturation` (gap 0, shrink 1.0). A fit that converges stops at its own step count
+(the starts are mapped, not vmapped), so the limit costs only where a start does not."""
 
 FIT_MAX_STEPS = 30
 """Levenberg–Marquardt steps per start. A batch runs until its slowest fit stops, and the
