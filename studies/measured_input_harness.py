@@ -25,11 +25,14 @@ records whose truth is `none`. Float64.
     python studies/measured_input_harness.py --per-class 4 --prbs 1   # with PRBS twins
     python studies/measured_input_harness.py --per-class 100 --shard 0/4 --out out/s0  # …
     python studies/measured_input_harness.py --merge out/s*/result.json --out out/all
+    python studies/measured_input_harness.py --per-class 100 --records 319 1016 --out out/r
 
 A run can be spread over machines (or sessions): `--shard k/n` diagnoses records k, k+n, …
 of the same draw (each record's simulation and input channel come from its own generator,
 seeded by (seed, index), so a record is the same in every shard), and `--merge` joins the
-shards' results and scores them together. Results are written whole (a partial file
+shards' results and scores them together. `--records I …` diagnoses only the records named
+(by index in the draw: e.g. those two commits disagree on); such a run is not a shard and
+is not merged. Results are written whole (a partial file
 renamed into place).
 """
 
@@ -150,6 +153,15 @@ def shard_indices(count: int, shard: tuple[int, int]) -> list[int]:
     if not (n >= 1 and 0 <= k < n):
         raise ValueError(f"--shard {k}/{n}: it must be k/n with 0 ≤ k < n")
     return list(range(k, count, n))
+
+
+def record_indices(count: int, records: list[int]) -> list[int]:
+    """The record indices `--records` names, sorted, each once; refused (ValueError) when
+    one lies outside the draw of `count` records."""
+    outside = [i for i in records if not 0 <= i < count]
+    if outside:
+        raise ValueError(f"--records {outside[0]}: the draw has records 0 to {count - 1}")
+    return sorted(set(records))
 
 
 PRBS_CHANGES = 220
@@ -459,6 +471,9 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
     scored together. Refused (ValueError) when the shards drew differently or overlap."""
     if not results:
         raise ValueError("nothing to merge")
+    picked = [r["assumptions"]["records"] for r in results if r["assumptions"].get("records")]
+    if picked:
+        raise ValueError(f"a --records run (records {picked[0][:5]}…) is not a shard of the draw")
     first = results[0]["assumptions"]
     keys = ("truth", "per_class", "classes", "seed", "prbs", "shard_count", "commit")
     for other in results[1:]:
@@ -550,6 +565,11 @@ def main(argv=None) -> int:
         "join the shards' result.json files with --merge)",
     )
     parser.add_argument(
+        "--records", nargs="+", type=int, metavar="I",
+        help="diagnose only these records of the draw, by index (e.g. the records two "
+        "commits disagree on); not with --shard, and not to be merged",
+    )
+    parser.add_argument(
         "--merge", nargs="+", type=Path, metavar="RESULT_JSON",
         help="join shards' result.json files (one draw) into --out/result.json and score them",
     )
@@ -564,6 +584,8 @@ def main(argv=None) -> int:
         "commit and draw unchanged; the scoring's commit recorded as rescored_at)",
     )
     args = parser.parse_args(argv)
+    if args.records and args.shard != (0, 1):
+        parser.error("--records and --shard: give one or the other")
     if args.rescore:
         try:
             result = rescore(json.loads(args.rescore.read_text()))
@@ -577,6 +599,12 @@ def main(argv=None) -> int:
             print(f"measured_input_harness: cannot merge: {error}", file=sys.stderr)
             return 1
     else:
+        if args.records:
+            try:
+                record_indices(args.per_class * len(args.classes), args.records)
+            except ValueError as error:
+                print(f"measured_input_harness: {error}", file=sys.stderr)
+                return 1
         result = run(args)
     if args.compact:
         result = compact(result)
@@ -610,7 +638,10 @@ def run(args) -> dict:
     """One run (or one shard) of the harness: draw, simulate, diagnose blind, score."""
     started = time.perf_counter()
     truths = draw(args.per_class, args.seed, tuple(args.classes))
-    indices = shard_indices(len(truths), args.shard)
+    records = getattr(args, "records", None)
+    indices = record_indices(len(truths), records) if records else shard_indices(
+        len(truths), args.shard
+    )
     picked = [i for i in indices if i % args.per_class < args.prbs]
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -633,6 +664,7 @@ def run(args) -> dict:
             "random_streams": "per record: numpy default_rng([seed, 1, index]) for the step "
             "twins, [seed, 2, index] for the PRBS twin",
             "shard": list(args.shard),
+            "records": list(indices) if records else None,
             "shard_count": args.shard[1],
             "commit": _commit(),
             "precision": "float64",

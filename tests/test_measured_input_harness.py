@@ -93,6 +93,24 @@ def test_the_command_line_refuses_a_bad_shard_and_a_bad_merge(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_records_picked_by_index_are_checked_and_never_merged_as_a_shard(tmp_path, capsys):
+    assert harness.record_indices(30, [7, 3, 7]) == [3, 7]
+    with pytest.raises(ValueError, match="records 0 to 29"):
+        harness.record_indices(30, [30])
+    out = tmp_path / "o"
+    # 2 per class: records 0 … 2·11 − 1; one outside is refused before anything runs.
+    assert harness.main(["--per-class", "2", "--records", "3", "22", "--out", str(out)]) == 1
+    assert "--records 22: the draw has records 0 to 21" in capsys.readouterr().err
+    assert not out.exists()
+    with pytest.raises(SystemExit):
+        harness.main(["--records", "3", "--shard", "1/2"])
+    assert "one or the other" in capsys.readouterr().err
+    picked = _shard_result((0, 1), {})
+    picked["assumptions"]["records"] = [3, 7]
+    with pytest.raises(ValueError, match="not a shard"):
+        harness.merge([picked], _acts)
+
+
 def test_twins_that_name_the_stop_family_agree():
     truths = [{"effect": "stop_saturation"}] * 2
     rows = {
