@@ -51,8 +51,9 @@ def exp_cosine(rng, n, dt, sigma, alpha, beta):
 
 def record(rng: np.random.Generator, n: int, dt: float, truth: dict) -> np.ndarray:
     """One record of the composite `truth` (keys: white, gauss_markov=(σ, τ),
-    exp_cosine=(σ, α, β), random_walk=q, flicker=B, bandlimit=f_c, lines=[(f, A)],
-    transient=(a, τ), quantization=q, level)."""
+    exp_cosine=(σ, α, β), random_walk=q, flicker=B, bandlimit=f_c, white_after_filter=σ_a
+    (white noise added after the low-pass), lines=[(f, A)], transient=(a, τ),
+    quantization=q, level)."""
     x = truth["white"] * rng.normal(size=n)
     if "gauss_markov" in truth:
         x += gauss_markov(rng, n, dt, *truth["gauss_markov"])
@@ -65,6 +66,8 @@ def record(rng: np.random.Generator, n: int, dt: float, truth: dict) -> np.ndarr
     if "bandlimit" in truth:
         sos = signal.butter(2, truth["bandlimit"], fs=1 / dt, output="sos")
         x = signal.sosfilt(sos, np.concatenate([np.zeros(0), x]))
+    if "white_after_filter" in truth:  # a signal chain's own white noise (its ADC's)
+        x += truth["white_after_filter"] * rng.normal(size=n)
     t = np.arange(n) * dt
     for f, amp in truth.get("lines", ()):
         x += amp * np.cos(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))

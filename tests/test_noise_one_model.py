@@ -124,6 +124,7 @@ def _spectral_draw(rng):
             rng.uniform(-9, -2),  # ln qΔ
             rng.uniform(-5, 0),  # ln B²
             rng.uniform(-3, 3),  # logit(f_b/f_N)
+            rng.uniform(-6, 0),  # ln p_f (the white noise after the filter)
         ]
     )
 
@@ -142,6 +143,7 @@ def _expected_parameters(z):
         "random_walk": math.exp(z[6]) / DT,
         "flicker": math.exp(z[7]),
         "bandlimit": 1 / (1 + math.exp(-z[8])) / (2 * DT),
+        "filter_floor": math.exp(z[9]),
     }
 
 
@@ -164,7 +166,7 @@ def test_spectral_whittle_spectrum_is_the_models(names):
     for _ in range(DRAWS):
         z = _spectral_draw(rng)
         floor = rng.uniform(0, 0.1)
-        noise, low_pass = spectral.component_models(z, mask, DT)
+        noise, low_pass, after = spectral.component_models(z, mask, DT)
         expected = _expected_parameters(z)
         components = noise.components if isinstance(noise, NoiseSum) else (noise,)
         for c in components:
@@ -182,12 +184,17 @@ def test_spectral_whittle_spectrum_is_the_models(names):
                 assert isinstance(c, Flicker)
                 _close(c.coefficient**2, expected["flicker"])
         names_on = {c.name for c in components} - {"white"}
-        assert names_on == set(names) - {"bandlimit"}
+        assert names_on == set(names) - {"bandlimit", "filter_floor"}
         assert (low_pass is not None) == ("bandlimit" in names)
         if low_pass is not None:
             _close(low_pass.corner_frequency, expected["bandlimit"])
+        assert (after is not None) == ("filter_floor" in names)
+        after_variance = 0.0
+        if after is not None:
+            _close(after.sigma**2, expected["filter_floor"])
+            after_variance = after.sigma**2
         path = spectral.spectrum(jnp.asarray(z), jnp.asarray(mask), OMEGA, floor)
-        _close(path, _model_difference_spectrum(noise, low_pass, floor))
+        _close(path, _model_difference_spectrum(noise, low_pass, floor + after_variance))
 
 
 # --------------------------------------------------------------------------------------

@@ -354,27 +354,32 @@ _HALF_COS_AT_NYQUIST = math.cos(math.pi * (1 - 1e-12) / 2)
 
 
 class ButterworthLowPass(eqx.Module):
-    """The sensor's output low-pass: a second-order Butterworth filter (bilinear transform)
-    of corner f_b, power gain H(ω) = 1/(1 + (tan(|ω|/2)/tan(π f_b Δ))⁴) — exactly 1 at f_b
-    = the Nyquist frequency. A gain on the spectrum of the noise it filters (its state-space
-    form, a second-order ARMA filter, is not written out: no path filters through it).
-    **Fields:** `corner_frequency`: f_b [Hz]."""
+    """The sensor's output low-pass: a Butterworth filter of order N (1–4; bilinear
+    transform) and corner f_b, power gain H(ω) = 1/(1 + (tan(|ω|/2)/tan(π f_b Δ))^{2N}) —
+    exactly 1 at f_b = the Nyquist frequency. A gain on the spectrum of the noise it
+    filters (its state-space form, an ARMA filter of order N, is not written out: no path
+    filters through it). **Fields:** `corner_frequency`: f_b [Hz]; `order`: N (default 2)."""
 
     corner_frequency: Scalar = eqx.field(converter=_as_float)
+    order: int = eqx.field(static=True, default=2)
 
     def __check_init__(self):
         _positive_fields(self, {"corner_frequency": "Hz"})
+        if self.order not in (1, 2, 3, 4):
+            raise ValueError(f"ButterworthLowPass order must be 1, 2, 3 or 4, got {self.order!r}.")
 
     @staticmethod
-    def discrete_gain(omega, corner) -> Array:
-        """H(ω) at `corner` = π f_b Δ ∈ (0, π/2] for |ω| ≤ π (tan(|ω|/2) = |sin(ω/2)|/cos(ω/2)
-        held finite at ω = π: the cosine at least that of |ω| = π(1 − 10⁻¹²))."""
+    def discrete_gain(omega, corner, order=2) -> Array:
+        """H(ω) at `corner` = π f_b Δ ∈ (0, π/2] for |ω| ≤ π and order N (a number, traced
+        or not) (tan(|ω|/2) = |sin(ω/2)|/cos(ω/2) held finite at ω = π: the cosine at least
+        that of |ω| = π(1 − 10⁻¹²))."""
         f = _frequencies(omega)
         tangent = jnp.abs(f.half_sin) / jnp.maximum(f.half_cos, _HALF_COS_AT_NYQUIST)
-        return 1 / (1 + (tangent / jnp.tan(corner)) ** 4)
+        return 1 / (1 + (tangent / jnp.tan(corner)) ** (2 * order))
 
     def gain(self, omega, sample_interval) -> Array:
-        return self.discrete_gain(omega, math.pi * self.corner_frequency * sample_interval)
+        corner = math.pi * self.corner_frequency * sample_interval
+        return self.discrete_gain(omega, corner, self.order)
 
 
 class NoiseSum(AbstractNoiseModel):

@@ -270,21 +270,34 @@ def _select(
     log_j = math.log(train_gram.n_bins + held_gram.n_bins)
     promoted = False  # a transient added before a noise component that scored higher
     for _ in range(MAX_STEPS):
-        labels, specs = [], []
+        labels, specs, counts = [], [], []
+        filtered = spectral.low_pass(model.names) is not None
         for name in spectral.COMPONENTS:
-            if name not in model.names:
-                labels.append(name)
-                specs.append(((*model.names, name), model.lines, model.transient, model))
+            if name in model.names or (name == "filter_floor" and not filtered):
+                continue
+            if name == "bandlimit":
+                if filtered:
+                    continue
+                # a low-pass of each order, alone and with the white noise after it
+                for order_name in spectral.LOW_PASS_ORDERS:
+                    for extra in ((), ("filter_floor",)):
+                        labels.append(name)
+                        names = (*model.names, order_name, *extra)
+                        specs.append((names, model.lines, model.transient, model))
+                        counts.append(sum(PARAMETER_COUNT[n] for n in (name, *extra)))
+                continue
+            labels.append(name)
+            specs.append(((*model.names, name), model.lines, model.transient, model))
+            counts.append(PARAMETER_COUNT[name])
         if len(model.lines) < max_lines:
             f0, width = _standardised_peak(rec, floor, model)
             r = rec.residual(model.lines, model.transient)
             line = _fit_line(r[: rec.split], rec.t[: rec.split], f0, width)
             labels.append("sinusoid")
             specs.append((model.names, (*model.lines, line), model.transient, model))
-        trials = list(zip(labels, _evaluate_many(rec, floor, specs), strict=True))
-        scored = [
-            (_evidence(m, model, PARAMETER_COUNT[name], log_j), name, m) for name, m in trials
-        ]
+            counts.append(PARAMETER_COUNT["sinusoid"])
+        trials = list(zip(labels, counts, _evaluate_many(rec, floor, specs), strict=True))
+        scored = [(_evidence(m, model, k, log_j), name, m) for name, k, m in trials]
         if model.transient is None:
             r = rec.residual(model.lines, None)
             found = _transient_test(r[: rec.split], dt, model, floor)
@@ -380,7 +393,7 @@ def _select(
             "held_out_z": dev["z"],
         }
     final = _held_out_deviance(rec, floor, model)
-    effects = _named(model)
+    effects = [e for e in _named(model) if e != "filter_floor"]  # a part of `bandlimit`'s
     params = _physical(model, dt, floor)
     quantization = None
     share = grid["step"] ** 2 / 12 / rec.variance if grid is not None else 0.0

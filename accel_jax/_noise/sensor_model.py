@@ -50,6 +50,10 @@ PARAMETER_COUNT = {
     "random_walk": 1,
     "flicker": 1,
     "bandlimit": 1,
+    "bandlimit_order1": 1,
+    "bandlimit_order3": 1,
+    "bandlimit_order4": 1,
+    "filter_floor": 1,
     "sinusoid": 3,
     "startup_transient": 2,
 }
@@ -379,9 +383,15 @@ def _physical(model: _Model, dt: float, floor: float) -> dict:
             "bias_instability_B": b,
             "allan_floor": b * math.sqrt(2 * math.log(2) / math.pi),
         }
-    if "bandlimit" in model.names:
+    order_name = spectral.low_pass(model.names)
+    if order_name is not None:
         corner = float(jax.nn.sigmoid(z[8])) * math.pi / 2
-        out["bandlimit"] = {"corner_Hz": corner / (math.pi * dt)}
+        out["bandlimit"] = {
+            "corner_Hz": corner / (math.pi * dt),
+            "order": spectral.LOW_PASS_ORDERS[order_name],
+        }
+        if "filter_floor" in model.names:  # the white noise after the filter, fitted
+            out["bandlimit"]["white_after_filter_sigma"] = math.sqrt(math.exp(z[9]))
     if model.lines:
         out["sinusoid"] = [
             {
@@ -392,7 +402,11 @@ def _physical(model: _Model, dt: float, floor: float) -> dict:
         ]
     if model.transient is not None:
         out["startup_transient"] = dict(model.transient)
-    out["post_filter_floor_variance"] = floor
+    # the white variance after the filter: the output grid's (or a negligible floor) and
+    # the fitted `filter_floor`
+    out["post_filter_floor_variance"] = floor + (
+        math.exp(z[9]) if "filter_floor" in model.names else 0.0
+    )
     return out
 
 
@@ -421,7 +435,8 @@ def _parameters(model: _Model) -> int:
 
 
 def _named(model: _Model) -> list:
-    names = list(model.names)
+    """The model's effects by name (a low-pass of any order as `bandlimit`)."""
+    names = ["bandlimit" if n in spectral.LOW_PASS_ORDERS else n for n in model.names]
     if model.lines:
         names.append("sinusoid")
     if model.transient is not None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from . import spectral
 from .sensor_model import (
     HELD_OUT_Z,
     PARAMETER_COUNT,
@@ -38,12 +39,17 @@ def _backward(rec, floor, model: _Model, log_j: float, evidence: float):
     while True:
         weakest = None
         specs = []
+        counts = []
         for name in model.names:
-            names = tuple(n for n in model.names if n != name)
+            # the low-pass goes with the white noise after it (alone that is white noise)
+            gone = {name, "filter_floor"} if name in spectral.LOW_PASS_ORDERS else {name}
+            names = tuple(n for n in model.names if n not in gone)
             parent = dataclasses.replace(model, names=names)
             specs.append((names, model.lines, model.transient, parent))
-        for name, reduced in zip(model.names, _evaluate_many(rec, floor, specs), strict=True):
-            score = _evidence(model, reduced, PARAMETER_COUNT[name], log_j)
+            counts.append(sum(PARAMETER_COUNT[n] for n in gone if n in model.names))
+        reduced_fits = _evaluate_many(rec, floor, specs)
+        for name, k, reduced in zip(model.names, counts, reduced_fits, strict=True):
+            score = _evidence(model, reduced, k, log_j)
             if weakest is None or score < weakest[0]:
                 weakest = (score, name, reduced)
         if model.transient is not None:
@@ -72,6 +78,40 @@ with a line, took it first, before the line was in and while the line's power fa
 peaked spectrum, and kept it)."""
 
 
+LOW_PASS = ("bandlimit", "filter_floor")
+"""A low-pass with the white noise after it: one effect in the exchange. Its spectrum (a
+level that falls at the corner onto a lower white floor) is what a Gauss–Markov or an
+exponential-cosine process over white noise makes too; only the roll-off's shape tells
+them apart, so each is tried in the other's place (a low-pass of any order named; the
+second-order one tried)."""
+
+
+def _units(model: _Model) -> list:
+    """The named effects the exchange replaces: each of `EXCHANGED`, and a low-pass with
+    the white noise after it."""
+    units = [(n,) for n in model.names if n in EXCHANGED]
+    order_name = spectral.low_pass(model.names)
+    if order_name is not None and "filter_floor" in model.names:
+        units.append((order_name, "filter_floor"))
+    return units
+
+
+def _substitutes(unit: tuple, model: _Model) -> list:
+    """What the exchange tries in the place of `unit`: the unnamed `LOW_FREQUENCY` effects;
+    for a low-pass the exponential-cosine process too, and `LOW_PASS` for the others."""
+    subs = [(o,) for o in LOW_FREQUENCY if o not in model.names]
+    if unit[0] in spectral.LOW_PASS_ORDERS:
+        subs += [("exp_cosine",)] if "exp_cosine" not in model.names else []
+    elif spectral.low_pass(model.names) is None:
+        subs.append(LOW_PASS)
+    return subs
+
+
+def _label(name: str) -> str:
+    """An effect's name as the selection reports it (a low-pass of any order: `bandlimit`)."""
+    return "bandlimit" if name in spectral.LOW_PASS_ORDERS else name
+
+
 def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     """Each named effect of `EXCHANGED` against each unnamed `LOW_FREQUENCY` one in its
     place (the rest of the model kept, the substitute's fit started from the model's
@@ -85,35 +125,38 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     Returns (model, exchanged: [{"effect", "by", "evidence"}], ties: [{"effect",
     "alternative", "evidence"}])."""
     exchanged, ties = [], []  # (ties: rebound by every pass)
-    for _ in range(len(EXCHANGED) + 1):
+    for _ in range(len(EXCHANGED) + 2):
         ties, best = [], None
         pairs, specs = [], []
-        for name in model.names:
-            if name not in EXCHANGED:
-                continue
-            rest = tuple(n for n in model.names if n != name)
-            for other in LOW_FREQUENCY:
-                if other in model.names:
-                    continue
-                names = tuple(other if n == name else n for n in model.names)
+        for unit in _units(model):
+            rest = tuple(n for n in model.names if n not in unit)
+            for other in _substitutes(unit, model):
+                if len(unit) == len(other) == 1:  # in its place
+                    names = tuple(other[0] if n == unit[0] else n for n in model.names)
+                else:
+                    names = (*rest, *other)
                 parent = dataclasses.replace(model, names=rest)
-                pairs.append((name, other, parent))
+                pairs.append((unit, other, parent))
                 specs.append((names, model.lines, model.transient, parent))
-        for (name, other, parent), alt in zip(
+        for (unit, other, parent), alt in zip(
             pairs, _evaluate_many(rec, floor, specs), strict=True
         ):
-            score = (
-                2 * ((model.train + model.held) - (alt.train + alt.held))
-                - (PARAMETER_COUNT[name] - PARAMETER_COUNT[other]) * log_j
-            )
-            if score <= -evidence and _held_out_z(alt, parent) >= -HELD_OUT_Z:
+            name, other_name = _label(unit[0]), _label(other[0])  # (a low-pass: with its floor)
+            k = sum(PARAMETER_COUNT[n] for n in unit) - sum(PARAMETER_COUNT[n] for n in other)
+            score = 2 * ((model.train + model.held) - (alt.train + alt.held)) - k * log_j
+            # A first-order low-pass with white noise after it is a Gauss–Markov process
+            # over white noise but for its bilinear zero at the Nyquist frequency: it stays
+            # only where it beats that process by the bar (then the two are told apart).
+            first_order = unit[0] == "bandlimit_order1" and other == ("gauss_markov",)
+            better = score < evidence if first_order else score <= -evidence
+            if better and _held_out_z(alt, parent) >= -HELD_OUT_Z:
                 if best is None or score < best[0]:
-                    best = (score, alt, name, other)
+                    best = (score, alt, name, other_name)
             elif score < evidence:
                 ties.append(
                     {
                         "effect": name,
-                        "alternative": other,
+                        "alternative": other_name,
                         "evidence": float(score),
                         "bar": float(evidence),
                     }
@@ -122,5 +165,6 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
             return model, exchanged, ties
         score, model, name, other = best
         exchanged.append({"effect": name, "by": other, "evidence": float(-score)})
-    ties = [t for t in ties if t["effect"] in model.names and t["alternative"] not in model.names]
+    named = {_label(n) for n in model.names}
+    ties = [t for t in ties if t["effect"] in named and t["alternative"] not in named]
     return model, exchanged, ties

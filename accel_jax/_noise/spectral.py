@@ -7,9 +7,11 @@ A static record x_k (k = 0..n−1, every Δ seconds) of a real sensor is modelle
 with a level ℓ that may walk (random walk of increment variance qΔ per sample), periodic
 lines, a start-up transient, and the sensor's output low-pass h (the bandlimit) applied to
 the white noise w, a Gauss–Markov noise g, an exponential-cosine noise e and a flicker
-(1/f, bias-instability) noise c, plus a white floor p after the filter (the quantisation
-noise q²/12 of the output's ADC grid, when one is found). Each extension is exactly the
-nominal model (white noise about a constant level) at zero.
+(1/f, bias-instability) noise c, plus a white floor p after the filter: the quantisation
+noise q²/12 of the output's ADC grid, when one is found, plus (`filter_floor`) a fitted
+white variance p_f, the noise a signal chain adds after its low-pass (an ADC's or an
+amplifier's own), found whether or not the record lies on a grid. Each extension is
+exactly the nominal model (white noise about a constant level) at zero.
 
 The stochastic part is fitted by the Whittle likelihood of the first difference
 y_k = x_k − x_{k−1} (the difference removes the level and makes the random walk white),
@@ -24,8 +26,9 @@ whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 
   needed in the frequency domain). B is the IEEE Std 952 bias-instability coefficient: the
   two-sided rate PSD is S(f) = B²/(2π|f|), so f_c(ω) = S(ω/2πΔ)/Δ = B²/|ω|, and the Allan
   deviation's floor is √(2 ln 2/π)·B = 0.664 B;
-- bandlimit: a second-order Butterworth low-pass (bilinear transform) of corner f_b,
-  H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))⁴) — exactly 1 at f_b = the Nyquist frequency.
+- bandlimit: a Butterworth low-pass (bilinear transform) of order N = 2 (`bandlimit`), 3 or
+  4 (`LOW_PASS_ORDERS`) and corner f_b, H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))^{2N}) —
+  exactly 1 at f_b = the Nyquist frequency.
 
 Each of these spectra (and λ, H and the assembly of f_y) is defined once, in `models`
 (`WhiteNoise`, `GaussMarkov`, `ExponentialCosine`, `RandomWalk`, `Flicker`,
@@ -62,11 +65,30 @@ from .models import (
     difference_parts,
 )
 
-COMPONENTS = ("gauss_markov", "exp_cosine", "random_walk", "flicker", "bandlimit")
-"""The stochastic extensions, in the order of their slots in the parameter vector."""
+COMPONENTS = ("gauss_markov", "exp_cosine", "random_walk", "flicker", "bandlimit", "filter_floor")
+"""The stochastic extensions, in the order of their slots in the parameter vector.
+`filter_floor` (the fitted white variance after the low-pass) is part of the bandlimit's
+signal chain: the selection adds it only with a low-pass (without one it is white noise,
+the nominal's own)."""
 
-N_PARAMS = 9
-"""z = [ln σ_w², ln σ_g², ln τ_c/Δ, ln σ_e², ln αΔ, ln θ, ln qΔ, ln B², logit(f_b/f_N)]."""
+LOW_PASS_ORDERS = {
+    "bandlimit": 2,
+    "bandlimit_order1": 1,
+    "bandlimit_order3": 3,
+    "bandlimit_order4": 4,
+}
+"""The low-pass of each order the selection tries (slot 8 each; the mask carries N): a
+Butterworth filter of order 2 (`bandlimit`), 1, 3 or 4. A first-order one differs from a
+Gauss–Markov process over white noise only near the Nyquist frequency (its bilinear zero
+there), so the record may not tell the two apart (the exchange says so)."""
+
+
+def low_pass(names) -> str | None:
+    """The low-pass of `names` (a key of `LOW_PASS_ORDERS`), or None."""
+    return next((n for n in names if n in LOW_PASS_ORDERS), None)
+
+N_PARAMS = 10
+"""z = [ln σ_w², ln σ_g², ln τ_c/Δ, ln σ_e², ln αΔ, ln θ, ln qΔ, ln B², logit(f_b/f_N), ln p_f]."""
 
 SLOTS = {
     "gauss_markov": (1, 2),
@@ -74,6 +96,10 @@ SLOTS = {
     "random_walk": (6,),
     "flicker": (7,),
     "bandlimit": (8,),
+    "filter_floor": (9,),
+    "bandlimit_order1": (8,),
+    "bandlimit_order3": (8,),
+    "bandlimit_order4": (8,),
 }
 
 FULL_RESOLUTION = 1 << 11
@@ -104,15 +130,17 @@ def _mask(names) -> np.ndarray:
     mask[0] = 1.0
     for name in names:
         for i in SLOTS[name]:
-            mask[i] = 1.0
+            mask[i] = LOW_PASS_ORDERS.get(name, 1.0)  # a low-pass's slot: its order
     return mask
 
 
 def _parts(z, mask, omega, floor):
     """(stationary part λ(H·coloured + p), random-walk part H·qΔ) of f_y at |ω| ≤ π, each
     component's spectrum and the low-pass's gain from `models` (the one definition);
-    `omega` ω or its `Frequencies`."""
+    `omega` ω or its `Frequencies`; p = `floor` + the fitted p_f where `filter_floor` is
+    on."""
     on = mask > 0
+    floor = floor + jnp.where(on[9], jnp.exp(z[9]), 0.0)
     omega = _frequencies(omega)
     gm = GaussMarkov.discrete_spectrum(omega, jnp.exp(z[1]), jnp.exp(-jnp.exp(-z[2])))
     theta = jnp.exp(z[5])
@@ -120,7 +148,8 @@ def _parts(z, mask, omega, floor):
     ec = ExponentialCosine.discrete_spectrum(omega, jnp.exp(z[3]), rho_e, theta)
     flicker = Flicker.discrete_spectrum(omega, jnp.exp(z[7]))
     corner = jax.nn.sigmoid(z[8]) * (math.pi / 2)  # π f_b Δ ∈ (0, π/2)
-    gain = jnp.where(on[8], ButterworthLowPass.discrete_gain(omega, corner), 1.0)
+    order = jnp.where(on[8], mask[8], 2.0)  # (off: a finite gain and gradient, unused)
+    gain = jnp.where(on[8], ButterworthLowPass.discrete_gain(omega, corner, order), 1.0)
     coloured = WhiteNoise.discrete_spectrum(omega, jnp.exp(z[0]))
     coloured = coloured + jnp.where(on[1], gm, 0.0) + jnp.where(on[3], ec, 0.0)
     coloured = coloured + jnp.where(on[7], flicker, 0.0)
@@ -130,9 +159,10 @@ def _parts(z, mask, omega, floor):
 
 def component_models(z, mask, sample_interval):
     """The noise of parameters z (the slots `mask` switches on) as `models`' modules: a
-    `NoiseSum` of white noise and the stochastic components (Δ = `sample_interval`), and the
-    `ButterworthLowPass` (None when off). Its difference spectrum, low-passed, plus the
-    floor is `spectrum`."""
+    `NoiseSum` of white noise and the stochastic components (Δ = `sample_interval`), the
+    `ButterworthLowPass` (None when off) and the fitted white noise after it (`WhiteNoise`,
+    None when `filter_floor` is off). Its difference spectrum, low-passed, plus the white
+    noise after the filter and the floor is `spectrum`."""
     on = np.asarray(mask) > 0
     z = np.asarray(z, np.float64)
     parts: list = [WhiteNoise(math.exp(0.5 * z[0]))]
@@ -150,8 +180,9 @@ def component_models(z, mask, sample_interval):
     low_pass = None
     if on[8]:
         corner = 1 / (1 + math.exp(-z[8])) / 2  # f_b Δ
-        low_pass = ButterworthLowPass(corner / sample_interval)
-    return noise, low_pass
+        low_pass = ButterworthLowPass(corner / sample_interval, order=int(np.asarray(mask)[8]))
+    after = WhiteNoise(math.exp(0.5 * z[9])) if on[9] else None
+    return noise, low_pass, after
 
 
 def spectrum(z, mask, omega, floor):
@@ -415,6 +446,7 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
     base[6] = math.log(1e-3 * variance)
     base[7] = math.log(0.1 * variance)
     base[8] = 1.0
+    base[9] = math.log(0.1 * variance)
     out = [base]
     grids = {
         "gauss_markov": [(2, math.log(t)) for t in (2.0, 50.0, 500.0)],
@@ -424,6 +456,7 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
             for slot, value in ((5, math.log(theta)), (4, math.log(theta / 6)))
         ],
         "bandlimit": [(8, v) for v in (-2.0, 0.0, 3.0)],
+        "filter_floor": [(9, math.log(v * variance)) for v in (0.01, 0.5)],
         "random_walk": [(6, math.log(v * variance)) for v in (1e-5, 1e-1)],
         "flicker": [(7, math.log(v * variance)) for v in (1e-3, 1.0)],
     }
@@ -436,7 +469,7 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
                     z[slot] = value
                 out.append(z)
             continue
-        for slot, value in grids[name]:
+        for slot, value in grids["bandlimit" if name in LOW_PASS_ORDERS else name]:
             z = base.copy()
             z[slot] = value
             out.append(z)

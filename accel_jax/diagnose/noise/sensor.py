@@ -120,8 +120,10 @@ def _describe(sel: SensorNoiseSelection) -> str:
         name = step["added"]
         detail = ""
         p = sel.parameters
-        if name == "bandlimit":
-            detail = f" (corner {p['bandlimit']['corner_Hz']:.3g} Hz)"
+        if name in ("bandlimit", "filter_floor"):
+            after = p["bandlimit"].get("white_after_filter_sigma")
+            after = "" if after is None else f", white noise after it σ {after:.3g} g"
+            detail = f" (corner {p['bandlimit']['corner_Hz']:.3g} Hz{after})"
         elif name == "flicker":
             detail = f" (B = {p['flicker']['bias_instability_B']:.3g} g)"
         elif name == "gauss_markov":

@@ -102,6 +102,9 @@ def _selection_lines(selection: SensorNoiseSelection) -> list[str]:
             f"({held.drift['t']:.0f} standard errors), which no named effect makes"
         )
     lines += [f"  unexplained: {sentence}" for sentence in unexplained]
+    after = selection.parameters.get("bandlimit", {}).get("white_after_filter_sigma")
+    if after is not None:
+        lines.append(f"  white noise after the low-pass (the signal chain's own): σ {after:.4g} g")
     if selection.quantization is not None:
         lines.append(f"  output grid: step {selection.quantization['step']:.4g} g")
     return lines

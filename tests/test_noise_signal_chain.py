@@ -1,0 +1,114 @@
+"""A sensor's signal chain in a static record: the white noise its ADC or amplifier adds
+after the output low-pass (`filter_floor`, a part of `bandlimit`), fitted whether or not
+the record lies on a grid. Records from the independent truth generator
+(studies/noise_truth.py: `scipy.signal.butter` order 2 on the sensor's noise, white noise
+added after it); the fitted levels checked against model-free estimates from the record's
+own periodogram (Welch), below the corner and near the Nyquist frequency."""
+
+import math
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from scipy import signal
+
+import accel_jax as aj
+from accel_jax._noise.models import ButterworthLowPass
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import noise_truth  # noqa: E402
+
+DT = 0.01  # 100 Hz
+CORNER = 18.0  # Hz
+WHITE = 1e-3  # the sensor's white noise, ahead of the filter
+AFTER = 3e-4  # the chain's white noise after it
+
+
+@pytest.fixture(autouse=True)
+def _x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def _band_density(x, lo, hi):
+    """The record's two-sided density per sample (variance units) over [lo, hi] Hz, from
+    Welch's averaged periodogram: model-free."""
+    f, p = signal.welch(x, 1 / DT, nperseg=1024)
+    band = (f >= lo) & (f <= hi)
+    return float(np.mean(p[band])) / (2 * DT)
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4])
+def test_butterworth_gain_is_scipys(order):
+    """`ButterworthLowPass`'s power gain of order N is |H|² of `scipy.signal.butter(N)`
+    (the bilinear design), to 1e-9 over the whole band."""
+    corner = 18.0
+    f = np.linspace(0.0, 0.5 / DT, 2001)
+    sos = signal.butter(order, corner, fs=1 / DT, output="sos")
+    _, h = signal.sosfreqz(sos, worN=f, fs=1 / DT)
+    ours = ButterworthLowPass(corner, order=order).gain(2 * np.pi * f * DT, DT)
+    np.testing.assert_allclose(np.asarray(ours), np.abs(h) ** 2, rtol=1e-9, atol=1e-14)
+
+
+def test_butterworth_order_is_checked():
+    with pytest.raises(ValueError, match="order must be 1, 2, 3 or 4"):
+        ButterworthLowPass(18.0, order=5)
+
+
+@pytest.mark.parametrize("order", [1, 3, 4])
+def test_the_low_pass_order_is_found(order):
+    """A low-pass of order 1, 3 or 4 (`scipy.signal.butter`) with white noise after it:
+    `bandlimit` alone, of that order, its corner within 10 % (a second-order low-pass
+    fitted to them left companions: exp_cosine beside order 1 and 4, the white noise
+    collapsed to 1e-11)."""
+    rng = np.random.default_rng(30 + order)
+    n = 20000
+    sos = signal.butter(order, CORNER, fs=1 / DT, output="sos")
+    x = signal.sosfilt(sos, WHITE * rng.normal(size=n + 2000))[2000:]
+    x = x + AFTER * rng.normal(size=n)
+    found = aj.noise.select_sensor_noise(x, DT)
+    assert found.effects == ("bandlimit",), found.steps
+    p = found.parameters["bandlimit"]
+    assert p["order"] == order
+    assert p["corner_Hz"] == pytest.approx(CORNER, rel=0.1)
+    assert p["white_after_filter_sigma"] == pytest.approx(AFTER, rel=0.1)
+    assert found.parameters["white_sigma"] == pytest.approx(WHITE, rel=0.1)
+
+
+@pytest.mark.parametrize("step", [None, 2e-4], ids=["off-grid", "on-a-grid"])
+def test_white_noise_after_the_low_pass_is_found(step):
+    """Without the fitted floor this record (no grid) was named
+    exp_cosine+gauss_markov with σ_w = 2e-10 (the white noise collapsed: an oscillating
+    and a short Gauss–Markov process drew the spectrum's shape)."""
+    truth = {"white": WHITE, "bandlimit": CORNER, "white_after_filter": AFTER}
+    if step is not None:
+        truth["quantization"] = step
+    x = noise_truth.record(np.random.default_rng(11), 20000, DT, truth)
+    found = aj.noise.select_sensor_noise(x, DT)
+    assert set(found.effects) - {"quantization"} == {"bandlimit"}, found.steps
+    p = found.parameters
+    assert p["bandlimit"]["corner_Hz"] == pytest.approx(CORNER, rel=0.1)
+    assert p["white_sigma"] == pytest.approx(WHITE, rel=0.1)
+    grid = 0.0 if step is None else step**2 / 12
+    after = math.sqrt(p["post_filter_floor_variance"])
+    assert after == pytest.approx(math.sqrt(AFTER**2 + grid), rel=0.1)
+    # against the record alone: the flat band below the corner (σ_w² + p) and the band
+    # near Nyquist, where the filter leaves 1e-3 of σ_w² (p alone)
+    low = _band_density(x, 0.5, 6.0)
+    assert math.sqrt(p["white_sigma"] ** 2 + after**2) == pytest.approx(math.sqrt(low), rel=0.1)
+    high = _band_density(x, 45.0, 50.0)
+    assert after == pytest.approx(math.sqrt(high), rel=0.15)
+
+
+def test_no_white_noise_after_the_filter_adds_none():
+    """The same low-pass without white noise after it: `bandlimit` alone, no fitted floor
+    (its one parameter does not pay its price)."""
+    truth = {"white": WHITE, "bandlimit": CORNER}
+    x = noise_truth.record(np.random.default_rng(11), 20000, DT, truth)
+    found = aj.noise.select_sensor_noise(x, DT)
+    assert found.effects == ("bandlimit",), found.steps
+    assert "white_after_filter_sigma" not in found.parameters["bandlimit"]
+    assert found.parameters["bandlimit"]["order"] == 2
+    assert found.parameters["bandlimit"]["corner_Hz"] == pytest.approx(CORNER, rel=0.1)
