@@ -37,7 +37,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jaxtyping import Array, ArrayLike
 
 from .._params import _as_float, _concrete
 from .record import Scalar, Series, _sample_interval
@@ -369,7 +369,7 @@ class ButterworthLowPass(eqx.Module):
             raise ValueError(f"ButterworthLowPass order must be 1, 2, 3 or 4, got {self.order!r}.")
 
     @staticmethod
-    def discrete_gain(omega, corner, order=2) -> Array:
+    def discrete_gain(omega, corner, order: ArrayLike = 2) -> Array:
         """H(ω) at `corner` = π f_b Δ ∈ (0, π/2] for |ω| ≤ π and order N (a number, traced
         or not) (tan(|ω|/2) = |sin(ω/2)|/cos(ω/2) held finite at ω = π: the cosine at least
         that of |ω| = π(1 − 10⁻¹²))."""

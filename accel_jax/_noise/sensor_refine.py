@@ -89,7 +89,7 @@ second-order one tried)."""
 def _units(model: _Model) -> list:
     """The named effects the exchange replaces: each of `EXCHANGED`, and a low-pass with
     the white noise after it."""
-    units = [(n,) for n in model.names if n in EXCHANGED]
+    units: list[tuple[str, ...]] = [(n,) for n in model.names if n in EXCHANGED]
     order_name = spectral.low_pass(model.names)
     if order_name is not None and "filter_floor" in model.names:
         units.append((order_name, "filter_floor"))
@@ -99,7 +99,7 @@ def _units(model: _Model) -> list:
 def _substitutes(unit: tuple, model: _Model) -> list:
     """What the exchange tries in the place of `unit`: the unnamed `LOW_FREQUENCY` effects;
     for a low-pass the exponential-cosine process too, and `LOW_PASS` for the others."""
-    subs = [(o,) for o in LOW_FREQUENCY if o not in model.names]
+    subs: list[tuple[str, ...]] = [(o,) for o in LOW_FREQUENCY if o not in model.names]
     if unit[0] in spectral.LOW_PASS_ORDERS:
         subs += [("exp_cosine",)] if "exp_cosine" not in model.names else []
     elif spectral.low_pass(model.names) is None:
