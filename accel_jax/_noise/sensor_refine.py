@@ -3,9 +3,10 @@
 `_backward`: each effect of the final model judged again against the model without it,
 the weakest below the evidence bar removed until every one stands (an effect added early
 can lose its evidence once a later one is in). `_exchanges`: each named low-frequency or
-exponential-cosine process tried against the other `LOW_FREQUENCY` ones in its place; a
-better one by the bar replaces it, one within the bar either way is a tie. Both judge by
-`sensor_model`'s evidence and held-out check.
+exponential-cosine process tried against the other `LOW_FREQUENCY` ones in its place, and
+a low-pass with the white noise after it against a Gauss–Markov or exponential-cosine
+process (either way); a better one by the bar replaces it, one within the bar either way
+is a tie. Both judge by `sensor_model`'s evidence and held-out check.
 """
 
 from __future__ import annotations
@@ -96,13 +97,21 @@ def _units(model: _Model) -> list:
     return units
 
 
+LEVEL_AND_ROLL_OFF = ("gauss_markov", "exp_cosine")
+"""The processes whose spectrum over white noise is a level that rolls off onto a lower
+one, as a low-pass with the white noise after it makes: exchanged with `LOW_PASS` (a random
+walk or flicker, whose power keeps rising to the lowest frequency, is not)."""
+
+
 def _substitutes(unit: tuple, model: _Model) -> list:
-    """What the exchange tries in the place of `unit`: the unnamed `LOW_FREQUENCY` effects;
-    for a low-pass the exponential-cosine process too, and `LOW_PASS` for the others."""
-    subs: list[tuple[str, ...]] = [(o,) for o in LOW_FREQUENCY if o not in model.names]
+    """What the exchange tries in the place of `unit`: the unnamed `LOW_FREQUENCY` effects
+    in the place of one of `EXCHANGED`, and `LOW_PASS` in the place of one of
+    `LEVEL_AND_ROLL_OFF`; the unnamed `LEVEL_AND_ROLL_OFF` processes in the place of a
+    low-pass."""
     if unit[0] in spectral.LOW_PASS_ORDERS:
-        subs += [("exp_cosine",)] if "exp_cosine" not in model.names else []
-    elif spectral.low_pass(model.names) is None:
+        return [(o,) for o in LEVEL_AND_ROLL_OFF if o not in model.names]
+    subs: list[tuple[str, ...]] = [(o,) for o in LOW_FREQUENCY if o not in model.names]
+    if unit[0] in LEVEL_AND_ROLL_OFF and spectral.low_pass(model.names) is None:
         subs.append(LOW_PASS)
     return subs
 
