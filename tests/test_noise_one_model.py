@@ -31,6 +31,7 @@ from accel_jax._noise.models import (
     ExponentialCosine,
     Flicker,
     GaussMarkov,
+    HighFrequencyNoise,
     NoiseSum,
     RandomWalk,
     WhiteNoise,
@@ -125,6 +126,8 @@ def _spectral_draw(rng):
             rng.uniform(-5, 0),  # ln B²
             rng.uniform(-3, 3),  # logit(f_b/f_N)
             rng.uniform(-6, 0),  # ln p_f (the white noise after the filter)
+            rng.uniform(-2, 2),  # ln σ_h² (the high-frequency noise)
+            rng.uniform(-3, 3),  # logit(f_h/f_N)
         ]
     )
 
@@ -144,6 +147,7 @@ def _expected_parameters(z):
         "flicker": math.exp(z[7]),
         "bandlimit": 1 / (1 + math.exp(-z[8])) / (2 * DT),
         "filter_floor": math.exp(z[9]),
+        "high_frequency_noise": (math.exp(z[10]), 1 / (1 + math.exp(-z[11])) / (2 * DT)),
     }
 
 
@@ -180,6 +184,9 @@ def test_spectral_whittle_spectrum_is_the_models(names):
                 _close(jnp.stack([c.sigma**2, c.decay_rate, c.angular_frequency]), e)
             elif isinstance(c, RandomWalk):
                 _close(c.intensity, expected["random_walk"])
+            elif isinstance(c, HighFrequencyNoise):
+                _close(c.sigma**2, expected["high_frequency_noise"][0])
+                _close(c.corner_frequency, expected["high_frequency_noise"][1])
             else:
                 assert isinstance(c, Flicker)
                 _close(c.coefficient**2, expected["flicker"])

@@ -353,6 +353,41 @@ class Flicker(AbstractNoiseModel):
 _HALF_COS_AT_NYQUIST = math.cos(math.pi * (1 - 1e-12) / 2)
 
 
+class HighFrequencyNoise(AbstractNoiseModel):
+    """Noise whose spectrum rises above a corner f_h to a plateau σ_h² at the Nyquist
+    frequency: white noise through a second-order Butterworth high-pass (bilinear
+    transform), f(ω) = σ_h² (1 − H(ω)) with H the `ButterworthLowPass` gain of corner f_h —
+    a servo loop's noise gain beyond its bandwidth, or a converter's shaped quantisation
+    noise. A spectrum only: its state-space form (second order) and autocovariance are not
+    written out (no path filters through it; both raise). **Fields:** `sigma`: σ_h [record
+    unit]; `corner_frequency`: f_h [Hz]."""
+
+    sigma: Scalar = eqx.field(converter=_as_float)
+    corner_frequency: Scalar = eqx.field(converter=_as_float)
+
+    def __check_init__(self):
+        _positive_fields(self, {"sigma": "(record unit)", "corner_frequency": "Hz"})
+
+    @property
+    def name(self) -> str:
+        return "high_frequency_noise"
+
+    def state_space(self, sample_interval):
+        raise ValueError("HighFrequencyNoise is a spectrum only: no state-space form is written.")
+
+    def autocovariance(self, lag_times):
+        raise ValueError("HighFrequencyNoise is a spectrum only: no autocovariance is written.")
+
+    @staticmethod
+    def discrete_spectrum(omega, variance, corner) -> Array:
+        """f(ω) = σ_h² (1 − H(ω)) at `corner` = π f_h Δ (`variance` σ_h²)."""
+        return variance * (1 - ButterworthLowPass.discrete_gain(omega, corner, 2))
+
+    def spectrum(self, omega, sample_interval):
+        corner = math.pi * self.corner_frequency * sample_interval
+        return self.discrete_spectrum(omega, self.sigma**2, corner)
+
+
 class ButterworthLowPass(eqx.Module):
     """The sensor's output low-pass: a Butterworth filter of order N (1–4; bilinear
     transform) and corner f_b, power gain H(ω) = 1/(1 + (tan(|ω|/2)/tan(π f_b Δ))^{2N}) —

@@ -5,7 +5,11 @@ and adds, one at a time, the effect whose evidence is largest, while it is signi
 
 - stochastic (fitted by the Whittle likelihood of `accel_jax._noise.spectral`):
   `gauss_markov`, `exp_cosine`, `random_walk`, `flicker` (bias instability, exact 1/f
-  spectrum), `bandlimit` (the sensor's output low-pass, 2nd-order Butterworth);
+  spectrum), `high_frequency_noise` (a spectrum rising above a corner towards the Nyquist
+  frequency), `bandlimit` (the sensor's output low-pass: a Butterworth filter, tried as
+  second-order, alone and with the white noise its signal chain adds after it
+  (`filter_floor`, reported as `bandlimit`'s `white_after_filter_sigma`); where that
+  stands, orders 1, 3 and 4 are tried too, `_other_orders`);
 - deterministic: `sinusoid` (a periodic line; added again for each further line, up to
   `MAX_LINES`) and `startup_transient` (a warm-up a e^{−t/τ} at the start of the record);
 - `quantization`: the output lies on an ADC grid of step q (found from the values, not
@@ -221,6 +225,29 @@ def select_sensor_noise(
         return selection
 
 
+def _other_orders(rec, floor, model, scored: list, evidence: float, log_j: float) -> list:
+    """Where the second-order low-pass (alone or with the white noise after it) clears the
+    bar in a forward step, the low-pass of each other order (`spectral.LOW_PASS_ORDERS`) in
+    its variant that scored higher, scored the same way (a second-order low-pass fitted to
+    a steeper or a gentler roll-off leaves a misfit that a later step would take for another
+    process). Fitted only then: a low-pass of any order that stands shows as a second-order
+    one clearing the bar, and the other orders' fits would double a step's fits."""
+    low_passes = [(score, m) for score, name, m in scored if name == "bandlimit"]
+    if not low_passes:
+        return []
+    score, best = max(low_passes, key=lambda sm: sm[0])
+    if score < evidence:
+        return []
+    k = sum(PARAMETER_COUNT[n] for n in ("bandlimit", "filter_floor") if n in best.names)
+    specs = [
+        (tuple(o if n == "bandlimit" else n for n in best.names), model.lines, model.transient, model)
+        for o in spectral.LOW_PASS_ORDERS
+        if o != "bandlimit"
+    ]
+    fits = _evaluate_many(rec, floor, specs)
+    return [(_evidence(m, model, k, log_j), "bandlimit", m) for m in fits]
+
+
 def _with_held_out(selection: SensorNoiseSelection, **changes) -> SensorNoiseSelection:
     """`selection` with the fields `changes` of its `held_out` replaced."""
     return dataclasses.replace(
@@ -278,13 +305,13 @@ def _select(
             if name == "bandlimit":
                 if filtered:
                     continue
-                # a low-pass of each order, alone and with the white noise after it
-                for order_name in spectral.LOW_PASS_ORDERS:
-                    for extra in ((), ("filter_floor",)):
-                        labels.append(name)
-                        names = (*model.names, order_name, *extra)
-                        specs.append((names, model.lines, model.transient, model))
-                        counts.append(sum(PARAMETER_COUNT[n] for n in (name, *extra)))
+                # the second-order low-pass, alone and with the white noise after it (the
+                # other orders where it stands: `_other_orders`)
+                for extra in ((), ("filter_floor",)):
+                    labels.append(name)
+                    names = (*model.names, name, *extra)
+                    specs.append((names, model.lines, model.transient, model))
+                    counts.append(sum(PARAMETER_COUNT[n] for n in (name, *extra)))
                 continue
             labels.append(name)
             specs.append(((*model.names, name), model.lines, model.transient, model))
@@ -298,6 +325,7 @@ def _select(
             counts.append(PARAMETER_COUNT["sinusoid"])
         trials = list(zip(labels, counts, _evaluate_many(rec, floor, specs), strict=True))
         scored = [(_evidence(m, model, k, log_j), name, m) for name, k, m in trials]
+        scored += _other_orders(rec, floor, model, scored, evidence, log_j)
         if model.transient is None:
             r = rec.residual(model.lines, None)
             found = _transient_test(r[: rec.split], dt, model, floor)

@@ -54,6 +54,7 @@ PARAMETER_COUNT = {
     "bandlimit_order3": 1,
     "bandlimit_order4": 1,
     "filter_floor": 1,
+    "high_frequency_noise": 2,
     "sinusoid": 3,
     "startup_transient": 2,
 }
@@ -382,6 +383,12 @@ def _physical(model: _Model, dt: float, floor: float) -> dict:
         out["flicker"] = {
             "bias_instability_B": b,
             "allan_floor": b * math.sqrt(2 * math.log(2) / math.pi),
+        }
+    if "high_frequency_noise" in model.names:
+        rise = float(jax.nn.sigmoid(z[11])) * math.pi / 2
+        out["high_frequency_noise"] = {
+            "sigma": math.sqrt(math.exp(z[10])),
+            "corner_Hz": rise / (math.pi * dt),
         }
     order_name = spectral.low_pass(model.names)
     if order_name is not None:

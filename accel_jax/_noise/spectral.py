@@ -2,12 +2,14 @@
 
 A static record x_k (k = 0..n−1, every Δ seconds) of a real sensor is modelled as
 
-    x_k = ℓ_k + Σ_lines A cos(2π f k Δ + φ) + a e^{−kΔ/τ_s} + h * (w + g + e + c)_k + p_k
+    x_k = ℓ_k + Σ_lines A cos(2π f k Δ + φ) + a e^{−kΔ/τ_s} + h * (w + g + e + c + u)_k + p_k
 
 with a level ℓ that may walk (random walk of increment variance qΔ per sample), periodic
 lines, a start-up transient, and the sensor's output low-pass h (the bandlimit) applied to
-the white noise w, a Gauss–Markov noise g, an exponential-cosine noise e and a flicker
-(1/f, bias-instability) noise c, plus a white floor p after the filter: the quantisation
+the white noise w, a Gauss–Markov noise g, an exponential-cosine noise e, a flicker
+(1/f, bias-instability) noise c and a high-frequency noise u (a spectrum that rises above a
+corner towards the Nyquist frequency: a servo loop's noise gain, a converter's shaped
+noise), plus a white floor p after the filter: the quantisation
 noise q²/12 of the output's ADC grid, when one is found, plus (`filter_floor`) a fitted
 white variance p_f, the noise a signal chain adds after its low-pass (an ADC's or an
 amplifier's own), found whether or not the record lies on a grid. Each extension is
@@ -17,7 +19,7 @@ The stochastic part is fitted by the Whittle likelihood of the first difference
 y_k = x_k − x_{k−1} (the difference removes the level and makes the random walk white),
 whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 cos ω, is
 
-    f_y(ω) = λ(ω) [H(ω) (σ_w² + f_g(ω) + f_e(ω) + f_c(ω)) + p] + H(ω) qΔ,
+    f_y(ω) = λ(ω) [H(ω) (σ_w² + f_g(ω) + f_e(ω) + f_c(ω) + f_u(ω)) + p] + H(ω) qΔ,
 
 - Gauss–Markov (σ_g, ρ = e^{−Δ/τ_c}): f_g = σ_g² (1 − ρ²) / |1 − ρ e^{−iω}|²;
 - exponential-cosine (σ_e, ρ = e^{−αΔ}, θ = βΔ): f_e = σ_e²/2 [P(ω − θ) + P(ω + θ)],
@@ -26,6 +28,8 @@ whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 
   needed in the frequency domain). B is the IEEE Std 952 bias-instability coefficient: the
   two-sided rate PSD is S(f) = B²/(2π|f|), so f_c(ω) = S(ω/2πΔ)/Δ = B²/|ω|, and the Allan
   deviation's floor is √(2 ln 2/π)·B = 0.664 B;
+- high-frequency noise (σ_h, corner f_h): f_u = σ_h² (1 − H₂(ω; f_h)), white noise through
+  a second-order Butterworth high-pass, H₂ the low-pass gain below;
 - bandlimit: a Butterworth low-pass (bilinear transform) of order N = 2 (`bandlimit`), 3 or
   4 (`LOW_PASS_ORDERS`) and corner f_b, H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))^{2N}) —
   exactly 1 at f_b = the Nyquist frequency.
@@ -58,6 +62,7 @@ from .models import (
     Flicker,
     Frequencies,
     GaussMarkov,
+    HighFrequencyNoise,
     NoiseSum,
     RandomWalk,
     WhiteNoise,
@@ -65,7 +70,15 @@ from .models import (
     difference_parts,
 )
 
-COMPONENTS = ("gauss_markov", "exp_cosine", "random_walk", "flicker", "bandlimit", "filter_floor")
+COMPONENTS = (
+    "gauss_markov",
+    "exp_cosine",
+    "random_walk",
+    "flicker",
+    "bandlimit",
+    "filter_floor",
+    "high_frequency_noise",
+)
 """The stochastic extensions, in the order of their slots in the parameter vector.
 `filter_floor` (the fitted white variance after the low-pass) is part of the bandlimit's
 signal chain: the selection adds it only with a low-pass (without one it is white noise,
@@ -87,8 +100,9 @@ def low_pass(names) -> str | None:
     """The low-pass of `names` (a key of `LOW_PASS_ORDERS`), or None."""
     return next((n for n in names if n in LOW_PASS_ORDERS), None)
 
-N_PARAMS = 10
-"""z = [ln σ_w², ln σ_g², ln τ_c/Δ, ln σ_e², ln αΔ, ln θ, ln qΔ, ln B², logit(f_b/f_N), ln p_f]."""
+N_PARAMS = 12
+"""z = [ln σ_w², ln σ_g², ln τ_c/Δ, ln σ_e², ln αΔ, ln θ, ln qΔ, ln B², logit(f_b/f_N), ln p_f,
+ln σ_h², logit(f_h/f_N)]."""
 
 SLOTS = {
     "gauss_markov": (1, 2),
@@ -97,6 +111,7 @@ SLOTS = {
     "flicker": (7,),
     "bandlimit": (8,),
     "filter_floor": (9,),
+    "high_frequency_noise": (10, 11),
     "bandlimit_order1": (8,),
     "bandlimit_order3": (8,),
     "bandlimit_order4": (8,),
@@ -153,6 +168,9 @@ def _parts(z, mask, omega, floor):
     coloured = WhiteNoise.discrete_spectrum(omega, jnp.exp(z[0]))
     coloured = coloured + jnp.where(on[1], gm, 0.0) + jnp.where(on[3], ec, 0.0)
     coloured = coloured + jnp.where(on[7], flicker, 0.0)
+    rise = jax.nn.sigmoid(z[11]) * (math.pi / 2)  # π f_h Δ ∈ (0, π/2)
+    high = HighFrequencyNoise.discrete_spectrum(omega, jnp.exp(z[10]), rise)
+    coloured = coloured + jnp.where(on[10], high, 0.0)
     walk = jnp.where(on[6], RandomWalk.discrete_difference_spectrum(omega, jnp.exp(z[6])), 0.0)
     return difference_parts(omega, coloured, walk, gain, floor)
 
@@ -176,6 +194,9 @@ def component_models(z, mask, sample_interval):
         parts.append(RandomWalk(math.exp(z[6]) / sample_interval))
     if on[7]:
         parts.append(Flicker(math.exp(0.5 * z[7])))
+    if on[10]:
+        rise = 1 / (1 + math.exp(-z[11])) / 2  # f_h Δ
+        parts.append(HighFrequencyNoise(math.exp(0.5 * z[10]), rise / sample_interval))
     noise = parts[0] if len(parts) == 1 else NoiseSum(tuple(parts))
     low_pass = None
     if on[8]:
@@ -447,6 +468,8 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
     base[7] = math.log(0.1 * variance)
     base[8] = 1.0
     base[9] = math.log(0.1 * variance)
+    base[10] = math.log(variance)
+    base[11] = 0.0
     out = [base]
     grids = {
         "gauss_markov": [(2, math.log(t)) for t in (2.0, 50.0, 500.0)],
@@ -457,6 +480,7 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
         ],
         "bandlimit": [(8, v) for v in (-2.0, 0.0, 3.0)],
         "filter_floor": [(9, math.log(v * variance)) for v in (0.01, 0.5)],
+        "high_frequency_noise": [(11, v) for v in (-1.0, 1.0, 3.0)],
         "random_walk": [(6, math.log(v * variance)) for v in (1e-5, 1e-1)],
         "flicker": [(7, math.log(v * variance)) for v in (1e-3, 1.0)],
     }
