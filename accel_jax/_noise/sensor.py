@@ -8,8 +8,8 @@ and adds, one at a time, the effect whose evidence is largest, while it is signi
   spectrum), `high_frequency_noise` (a spectrum rising above a corner towards the Nyquist
   frequency), `bandlimit` (the sensor's output low-pass: a Butterworth filter, tried as
   second-order, alone and with the white noise its signal chain adds after it
-  (`filter_floor`, reported as `bandlimit`'s `white_after_filter_sigma`); where that
-  stands, orders 1, 3 and 4 are tried too, `_other_orders`);
+  (`filter_floor`, reported as `bandlimit`'s `white_after_filter_sigma`); orders 1, 3 and
+  4 tried in its place once the selection is done, `_low_pass_order`);
 - deterministic: `sinusoid` (a periodic line; added again for each further line, up to
   `MAX_LINES`) and `startup_transient` (a warm-up a e^{−t/τ} at the start of the record);
 - `quantization`: the output lies on an ADC grid of step q (found from the values, not
@@ -225,27 +225,34 @@ def select_sensor_noise(
         return selection
 
 
-def _other_orders(rec, floor, model, scored: list, evidence: float, log_j: float) -> list:
-    """Where the second-order low-pass (alone or with the white noise after it) clears the
-    bar in a forward step, the low-pass of each other order (`spectral.LOW_PASS_ORDERS`) in
-    its variant that scored higher, scored the same way (a second-order low-pass fitted to
-    a steeper or a gentler roll-off leaves a misfit that a later step would take for another
-    process). Fitted only then: a low-pass of any order that stands shows as a second-order
-    one clearing the bar, and the other orders' fits would double a step's fits."""
-    low_passes = [(score, m) for score, name, m in scored if name == "bandlimit"]
-    if not low_passes:
-        return []
-    score, best = max(low_passes, key=lambda sm: sm[0])
-    if score < evidence:
-        return []
-    k = sum(PARAMETER_COUNT[n] for n in ("bandlimit", "filter_floor") if n in best.names)
-    specs = [
-        (tuple(o if n == "bandlimit" else n for n in best.names), model.lines, model.transient, model)
-        for o in spectral.LOW_PASS_ORDERS
-        if o != "bandlimit"
-    ]
-    fits = _evaluate_many(rec, floor, specs)
-    return [(_evidence(m, model, k, log_j), "bandlimit", m) for m in fits]
+def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
+    """The final model with its low-pass of another order (1, 3 or 4 of
+    `spectral.LOW_PASS_ORDERS`), where that fits the whole record better by `evidence` in 2
+    ln B: in its place, the rest of the model refitted from its optimum, and also without
+    each process beside it (a second-order low-pass on a steeper or gentler roll-off leaves
+    a misfit that such a companion takes up in the forward steps). Tried once the selection
+    is done: in the forward steps a gentler roll-off takes up a Gauss–Markov process beside
+    the low-pass instead (harness records). Returns (model, the order's name or None)."""
+    if "bandlimit" not in model.names:
+        return model, None
+    companions = [n for n in model.names if n in ("gauss_markov", "exp_cosine")]
+    orders = [o for o in spectral.LOW_PASS_ORDERS if o != "bandlimit"]
+    trials = []  # (order, the names dropped beside the low-pass)
+    for o in orders:
+        for dropped in ((), *((c,) for c in companions)):
+            trials.append((o, dropped))
+    specs = []
+    for o, dropped in trials:
+        names = tuple(o if n == "bandlimit" else n for n in model.names if n not in dropped)
+        rest = tuple(n for n in names if n != o)
+        specs.append((names, model.lines, model.transient, dataclasses.replace(model, names=rest)))
+    best, name, top = model, None, evidence
+    for (o, dropped), alt in zip(trials, _evaluate_many(rec, floor, specs), strict=True):
+        k = sum(PARAMETER_COUNT[n] for n in dropped)  # the parameters it saves
+        score = 2 * ((alt.train + alt.held) - (model.train + model.held)) + k * log_j
+        if score >= top:
+            best, name, top = alt, o, score
+    return best, name
 
 
 def _with_held_out(selection: SensorNoiseSelection, **changes) -> SensorNoiseSelection:
@@ -306,7 +313,7 @@ def _select(
                 if filtered:
                     continue
                 # the second-order low-pass, alone and with the white noise after it (the
-                # other orders where it stands: `_other_orders`)
+                # other orders once the selection is done: `_low_pass_order`)
                 for extra in ((), ("filter_floor",)):
                     labels.append(name)
                     names = (*model.names, name, *extra)
@@ -325,7 +332,6 @@ def _select(
             counts.append(PARAMETER_COUNT["sinusoid"])
         trials = list(zip(labels, counts, _evaluate_many(rec, floor, specs), strict=True))
         scored = [(_evidence(m, model, k, log_j), name, m) for name, k, m in trials]
-        scored += _other_orders(rec, floor, model, scored, evidence, log_j)
         if model.transient is None:
             r = rec.residual(model.lines, None)
             found = _transient_test(r[: rec.split], dt, model, floor)
@@ -391,6 +397,10 @@ def _select(
     kept_before = set(_named(model))
     model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
     if exchanged:  # the substitute may leave another effect without evidence
+        model, again = _backward(rec, floor, model, log_j, evidence)
+        removed += again
+    model, order = _low_pass_order(rec, floor, model, log_j, evidence)
+    if order is not None:  # a companion that took up the roll-off's misfit may go
         model, again = _backward(rec, floor, model, log_j, evidence)
         removed += again
     if removed or exchanged:

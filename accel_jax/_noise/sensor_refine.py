@@ -4,8 +4,8 @@
 the weakest below the evidence bar removed until every one stands (an effect added early
 can lose its evidence once a later one is in). `_exchanges`: each named low-frequency or
 exponential-cosine process tried against the other `LOW_FREQUENCY` ones in its place, and
-a low-pass with the white noise after it against a Gauss–Markov or exponential-cosine
-process (either way); a better one by the bar replaces it, one within the bar either way
+a low-pass with the white noise after it against a Gauss–Markov process (either way; the
+low-pass stays only where it is better by the bar); a better one by the bar replaces it, one within the bar either way
 is a tie. Both judge by `sensor_model`'s evidence and held-out check.
 """
 
@@ -97,10 +97,12 @@ def _units(model: _Model) -> list:
     return units
 
 
-LEVEL_AND_ROLL_OFF = ("gauss_markov", "exp_cosine")
-"""The processes whose spectrum over white noise is a level that rolls off onto a lower
-one, as a low-pass with the white noise after it makes: exchanged with `LOW_PASS` (a random
-walk or flicker, whose power keeps rising to the lowest frequency, is not)."""
+LEVEL_AND_ROLL_OFF = ("gauss_markov",)
+"""The process whose spectrum over white noise is a level that rolls off onto a lower one,
+as a low-pass with the white noise after it makes, with as many parameters: exchanged with
+`LOW_PASS` (a random walk or flicker, whose power keeps rising to the lowest frequency, is
+not; an exponential-cosine process, one parameter more, is exchanged with the Gauss–Markov
+process)."""
 
 
 def _substitutes(unit: tuple, model: _Model) -> list:
@@ -153,12 +155,15 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
             name, other_name = _label(unit[0]), _label(other[0])  # (a low-pass: with its floor)
             k = sum(PARAMETER_COUNT[n] for n in unit) - sum(PARAMETER_COUNT[n] for n in other)
             score = 2 * ((model.train + model.held) - (alt.train + alt.held)) - k * log_j
-            # A first-order low-pass with white noise after it is a Gauss–Markov process
-            # over white noise but for its bilinear zero at the Nyquist frequency: it stays
-            # only where it beats that process by the bar (then the two are told apart).
-            first_order = unit[0] == "bandlimit_order1" and other == ("gauss_markov",)
-            better = score < evidence if first_order else score <= -evidence
-            if better and _held_out_z(alt, parent) >= -HELD_OUT_Z:
+            # A low-pass with white noise after it stays only where it beats a Gauss–Markov
+            # process over white noise in its place by the bar: the
+            # two differ only in the roll-off (a first-order low-pass only by its bilinear
+            # zero at the Nyquist frequency), and where the record cannot tell them apart
+            # the process is named, with the tie reported.
+            chain = unit[0] in spectral.LOW_PASS_ORDERS
+            better = score < evidence if chain else score <= -evidence
+            # (the preference for the process where the two tie needs no held-out check)
+            if better and (chain or _held_out_z(alt, parent) >= -HELD_OUT_Z):
                 if best is None or score < best[0]:
                     best = (score, alt, name, other_name)
             elif score < evidence:
