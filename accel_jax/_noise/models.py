@@ -412,6 +412,7 @@ class ButterworthLowPass(eqx.Module):
         tangent = jnp.abs(f.half_sin) / jnp.maximum(f.half_cos, _HALF_COS_AT_NYQUIST)
         r2 = (tangent / jnp.tan(corner)) ** 2
         r4 = r2 * r2
+        order = jnp.asarray(order)
         # r^{2N} by products (a traced N through `power` costs a log and an exp per bin)
         steep = jnp.where(order <= 3, r4 * r2, r4 * r4)
         ratio = jnp.where(order <= 1, r2, jnp.where(order <= 2, r4, steep))
