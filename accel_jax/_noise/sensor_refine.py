@@ -107,12 +107,11 @@ process)."""
 
 def _substitutes(unit: tuple, model: _Model) -> list:
     """What the exchange tries in the place of `unit`: the unnamed `LOW_FREQUENCY` effects
-    in the place of one of `EXCHANGED`, and `LOW_PASS` in the place of one of
-    `LEVEL_AND_ROLL_OFF`; the unnamed `LEVEL_AND_ROLL_OFF` processes in the place of a
-    low-pass."""
-    if unit[0] in spectral.LOW_PASS_ORDERS:
-        return [(o,) for o in LEVEL_AND_ROLL_OFF if o not in model.names]
+    in the place of one of `EXCHANGED` or of a low-pass with its floor, and `LOW_PASS` in
+    the place of one of `LEVEL_AND_ROLL_OFF`."""
     subs: list[tuple[str, ...]] = [(o,) for o in LOW_FREQUENCY if o not in model.names]
+    if unit[0] in spectral.LOW_PASS_ORDERS:  # (a very low corner stands in for a walk too)
+        return subs
     if unit[0] in LEVEL_AND_ROLL_OFF and spectral.low_pass(model.names) is None:
         subs.append(LOW_PASS)
     return subs
@@ -155,8 +154,8 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
             name, other_name = _label(unit[0]), _label(other[0])  # (a low-pass: with its floor)
             k = sum(PARAMETER_COUNT[n] for n in unit) - sum(PARAMETER_COUNT[n] for n in other)
             score = 2 * ((model.train + model.held) - (alt.train + alt.held)) - k * log_j
-            # A low-pass with white noise after it stays only where it beats a Gauss–Markov
-            # process over white noise in its place by the bar: the
+            # A low-pass with white noise after it stays only where it beats the best of a
+            # Gauss–Markov process, a random walk or flicker in its place by the bar: the
             # two differ only in the roll-off (a first-order low-pass only by its bilinear
             # zero at the Nyquist frequency), and where the record cannot tell them apart
             # the process is named, with the tie reported.
