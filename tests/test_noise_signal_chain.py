@@ -71,6 +71,7 @@ def test_the_low_pass_order_is_found(order):
     x = x + AFTER * rng.normal(size=n)
     found = aj.noise.select_sensor_noise(x, DT)
     assert found.effects == ("bandlimit",), found.steps
+    assert found.steps[-1]["model"].split("+") == ["white", "bandlimit", "filter_floor"]
     p = found.parameters["bandlimit"]
     assert p["order"] == order
     assert p["corner_Hz"] == pytest.approx(CORNER, rel=0.1)

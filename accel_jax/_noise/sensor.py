@@ -232,9 +232,11 @@ def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
     each process beside it (a second-order low-pass on a steeper or gentler roll-off leaves
     a misfit that such a companion takes up in the forward steps). Tried once the selection
     is done: in the forward steps a gentler roll-off takes up a Gauss–Markov process beside
-    the low-pass instead (harness records). Returns (model, the order's name or None)."""
+    the low-pass instead (harness records). Returns (model, the companions dropped:
+    [{"effect", "evidence"}], the evidence 2 ln B of the model before against the one
+    returned)."""
     if "bandlimit" not in model.names:
-        return model, None
+        return model, []
     companions = [n for n in model.names if n in ("gauss_markov", "exp_cosine")]
     orders = [o for o in spectral.LOW_PASS_ORDERS if o != "bandlimit"]
     trials = []  # (order, the names dropped beside the low-pass)
@@ -246,13 +248,13 @@ def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
         names = tuple(o if n == "bandlimit" else n for n in model.names if n not in dropped)
         rest = tuple(n for n in names if n != o)
         specs.append((names, model.lines, model.transient, dataclasses.replace(model, names=rest)))
-    best, name, top = model, None, evidence
-    for (o, dropped), alt in zip(trials, _evaluate_many(rec, floor, specs), strict=True):
+    best, gone, top = model, (), evidence
+    for (_, dropped), alt in zip(trials, _evaluate_many(rec, floor, specs), strict=True):
         k = sum(PARAMETER_COUNT[n] for n in dropped)  # the parameters it saves
         score = 2 * ((alt.train + alt.held) - (model.train + model.held)) + k * log_j
         if score >= top:
-            best, name, top = alt, o, score
-    return best, name
+            best, gone, top = alt, dropped, score
+    return best, [{"effect": c, "evidence": float(-top)} for c in gone]
 
 
 def _with_held_out(selection: SensorNoiseSelection, **changes) -> SensorNoiseSelection:
@@ -399,9 +401,10 @@ def _select(
     if exchanged:  # the substitute may leave another effect without evidence
         model, again = _backward(rec, floor, model, log_j, evidence)
         removed += again
-    model, order = _low_pass_order(rec, floor, model, log_j, evidence)
-    if order is not None:  # a companion that took up the roll-off's misfit may go
-        model, again = _backward(rec, floor, model, log_j, evidence)
+    reordered, dropped = _low_pass_order(rec, floor, model, log_j, evidence)
+    if reordered is not model:  # a companion that took up the roll-off's misfit may go
+        removed += dropped
+        model, again = _backward(rec, floor, reordered, log_j, evidence)
         removed += again
     if removed or exchanged:
         swap = {}  # the effect the forward path added → the one now in its place
