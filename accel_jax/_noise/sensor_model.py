@@ -443,7 +443,7 @@ def _parameters(model: _Model) -> int:
 
 def _named(model: _Model) -> list:
     """The model's effects by name (a low-pass of any order as `bandlimit`)."""
-    names = ["bandlimit" if n in spectral.LOW_PASS_ORDERS else n for n in model.names]
+    names = [spectral.effect_name(n) for n in model.names]
     if model.lines:
         names.append("sinusoid")
     if model.transient is not None:

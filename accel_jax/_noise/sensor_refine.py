@@ -4,9 +4,10 @@
 the weakest below the evidence bar removed until every one stands (an effect added early
 can lose its evidence once a later one is in). `_exchanges`: each named low-frequency or
 exponential-cosine process tried against the other `LOW_FREQUENCY` ones in its place, and
-a low-pass with the white noise after it against a Gauss–Markov process (either way; the
-low-pass stays only where it is better by the bar); a better one by the bar replaces it, one within the bar either way
-is a tie. Both judge by `sensor_model`'s evidence and held-out check.
+a low-pass with the white noise after it against the best of a Gauss–Markov process, a
+random walk or flicker in its place (a Gauss–Markov process against the low-pass too; the
+low-pass stays only where it is better by the bar); a better one by the bar replaces it,
+one within the bar either way is a tie. Both judge by `sensor_model`'s evidence and held-out check.
 """
 
 from __future__ import annotations
@@ -81,10 +82,10 @@ peaked spectrum, and kept it)."""
 
 LOW_PASS = ("bandlimit", "filter_floor")
 """A low-pass with the white noise after it: one effect in the exchange. Its spectrum (a
-level that falls at the corner onto a lower white floor) is what a Gauss–Markov or an
-exponential-cosine process over white noise makes too; only the roll-off's shape tells
-them apart, so each is tried in the other's place (a low-pass of any order named; the
-second-order one tried)."""
+level that falls at the corner onto a lower white floor) is what a Gauss–Markov process
+over white noise makes too, and with a very low corner what a random walk or flicker makes;
+only the roll-off's shape tells them apart, so each is tried in the other's place (a
+low-pass of any order named; the second-order one tried)."""
 
 
 def _units(model: _Model) -> list:
@@ -117,11 +118,6 @@ def _substitutes(unit: tuple, model: _Model) -> list:
     return subs
 
 
-def _label(name: str) -> str:
-    """An effect's name as the selection reports it (a low-pass of any order: `bandlimit`)."""
-    return "bandlimit" if name in spectral.LOW_PASS_ORDERS else name
-
-
 def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     """Each named effect of `EXCHANGED` against each unnamed `LOW_FREQUENCY` one in its
     place (the rest of the model kept, the substitute's fit started from the model's
@@ -151,7 +147,7 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
         for (unit, other, parent), alt in zip(
             pairs, _evaluate_many(rec, floor, specs), strict=True
         ):
-            name, other_name = _label(unit[0]), _label(other[0])  # (a low-pass: with its floor)
+            name, other_name = spectral.effect_name(unit[0]), spectral.effect_name(other[0])  # (a low-pass: with its floor)
             k = sum(PARAMETER_COUNT[n] for n in unit) - sum(PARAMETER_COUNT[n] for n in other)
             score = 2 * ((model.train + model.held) - (alt.train + alt.held)) - k * log_j
             # A low-pass with white noise after it stays only where it beats the best of a
@@ -178,6 +174,6 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
             return model, exchanged, ties
         score, model, name, other = best
         exchanged.append({"effect": name, "by": other, "evidence": float(-score)})
-    named = {_label(n) for n in model.names}
+    named = {spectral.effect_name(n) for n in model.names}
     ties = [t for t in ties if t["effect"] in named and t["alternative"] not in named]
     return model, exchanged, ties

@@ -96,6 +96,12 @@ Gauss–Markov process over white noise only near the Nyquist frequency (its bil
 there), so the record may not tell the two apart (the exchange says so)."""
 
 
+def effect_name(name: str) -> str:
+    """A component's name as the selection reports it: a low-pass of any order is
+    `bandlimit`."""
+    return "bandlimit" if name in LOW_PASS_ORDERS else name
+
+
 def low_pass(names) -> str | None:
     """The low-pass of `names` (a key of `LOW_PASS_ORDERS`), or None."""
     return next((n for n in names if n in LOW_PASS_ORDERS), None)
@@ -493,7 +499,7 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
                     z[slot] = value
                 out.append(z)
             continue
-        for slot, value in grids["bandlimit" if name in LOW_PASS_ORDERS else name]:
+        for slot, value in grids[effect_name(name)]:
             z = base.copy()
             z[slot] = value
             out.append(z)
