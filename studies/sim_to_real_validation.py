@@ -606,13 +606,19 @@ def score(
     """
     library = [c for c in classes[1:] if c not in out_of_library]
     verdict_names = tuple(library) + ("none", "cannot_tell", "unexplained")
+    # A verdict outside the classes (a family member such as stop_contact, named for an
+    # inelastic stop) gets a column of its own in every row, after the library's.
+    seen = dict.fromkeys(v["verdict"] for v in verdicts)
+    verdict_names = verdict_names[: len(library)] + tuple(
+        v for v in seen if v not in verdict_names
+    ) + verdict_names[len(library) :]
     confusion = {t: {v: 0 for v in verdict_names} for t in classes}
     strict, lenient, shrinks, false_alarms, n_none, n_effect = 0, 0, [], 0, 0, 0
     n_outside, unexplained = 0, 0
     per_class = {}
     for truth, verdict in zip(truths, verdicts, strict=True):
         t, v = truth["effect"], verdict["verdict"]
-        confusion[t][v] = confusion[t].get(v, 0) + 1
+        confusion[t][v] += 1
         if t in out_of_library:
             ok = tied_ok = v == "unexplained"
         else:

@@ -84,3 +84,26 @@ def test_blind_diagnosis_finds_relative_folders_from_any_working_folder(tmp_path
     answers = module.diagnose_blind([Path("datasets") / "noise"])
     assert [a["file"] for a in answers["noise"]] == ["noise_0000.csv"]
     assert answers["noise"][0]["verdict"] == "none"
+
+
+def test_score_gives_every_verdict_a_column_in_every_row(tmp_path):
+    # A verdict outside the scored classes (stop_contact, the compliant member of the stop
+    # family) must have a column in every row of the confusion matrix, and the open-world
+    # figure must draw it: the full report's blind step records raised KeyError here.
+    module = _load("sim_to_real_validation")
+    kind = "step_independent"
+    classes = module.CLASSES[kind]
+    outside = module.OUT_OF_LIBRARY[kind]
+    truths = [{"effect": c} for c in classes] + [{"effect": "stop_saturation"}]
+    verdicts = [
+        {"verdict": "none", "tied": [], "gap": {"shrink": 0.0}} for _ in classes
+    ] + [{"verdict": "stop_contact", "tied": [], "gap": {"shrink": 0.9}}]
+    section = module.score(truths, verdicts, classes, outside, assurance=None)
+    columns = [list(row) for row in section["confusion"].values()]
+    assert all(c == columns[0] for c in columns)
+    assert "stop_contact" in columns[0]
+    assert section["confusion"]["stop_saturation"]["stop_contact"] == 1
+    assert section["per_class"]["stop_saturation"]["correct"] == 1  # the family counts
+    gaps = [1.0] * len(truths)
+    out = module._open_world_figure(tmp_path, kind, section, truths, verdicts, gaps)
+    assert (tmp_path / out["file"]).stat().st_size > 0
