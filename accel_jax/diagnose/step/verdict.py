@@ -237,6 +237,37 @@ def ranking_entry(
     }
 
 
+def _noise_not_credited(name: str, fit: StepFit, entry: dict) -> str:
+    """Why the best library effect, a noise model, does not explain the record: its
+    held-out one-step errors are not white, or its free-run errors are not of the size it
+    predicts (`assess.assess_fit`)."""
+    why = []
+    white = fit.one_step_whiteness or {}
+    if white and not white.get("white", True):
+        why.append(
+            "its one-step prediction errors on the held-out part are not white (Ljung–Box "
+            f"p = {white['p_value']:.2g} over {white['lags']} lags)"
+        )
+    if fit.variance_consistent is False:
+        ratios = ", ".join(f"{r:.2g}" for r in fit.free_run_over_noise_variance or ())
+        why.append(
+            "its free-run errors are not of the size it predicts (mean square over its "
+            f"variance, training and held-out: {ratios}; within "
+            f"{1 / assess.NOISE_VARIANCE_FACTOR:g}–{assess.NOISE_VARIANCE_FACTOR:g} "
+            "expected)"
+        )
+    if not why:
+        why.append("it is not significant and credible")
+    described = f"{fit.model.description}; " if fit.model is not None else ""
+    return (
+        f"the best library effect, {name} ({described}evidence "
+        f"2 ln B = {entry['evidence']:.1f}), does not explain the record: "
+        + " and ".join(why)
+        + " — the record's noise is not that model's (coloured otherwise, or inside the "
+        "loop) or a deterministic misfit remains"
+    )
+
+
 def _pct(x: float) -> str:
     return f"{x:+.1%}" if abs(x) < 10 else f"{x:+.3g}×"
 
@@ -322,7 +353,11 @@ def _reason(
             "(not this device? give its values with --params)"
         )
     partial = decision["best_partial"]
-    if partial:
+    if partial and by_name[partial].stochastic:
+        # A noise model is credited by its one-step errors and the size of its free-run
+        # errors, not by a free-run gap (which a noise cannot close): say which failed.
+        parts.append(_noise_not_credited(partial, by_name[partial], entry[partial]))
+    elif partial:
         parts.append(
             f"the best library effect, {partial}, explains "
             f"{entry[partial]['explained_fraction']:.0%} "
