@@ -44,8 +44,8 @@ class AbstractStepEffect(AbstractEffect):
     - `inverse_stop(z, ctx)`: 1/h in units of the training output's half range (0 for
         none), with symmetric stops at deflection ±h; an effect with stops is `nonlinear`;
     - `output_offset(z, ctx)`: an offset c [V] added to the output (U_out = v + c);
-    - `noise(z, ctx)`: (φ, s) of white + AR(1) output noise: φ the AR(1) coefficient, s
-        the white share of the one-step prediction variance (φ = 0: white);
+    - `noise(z, ctx)`: (φ, θ, ln V₀) of the output noise's ARMA(1,1) on the block means
+        (`block_noise`; 0, 0, 0: white);
     - `contact(z, ctx)`: (1/h_hi, 1/h_lo, κ, ζ_c) of compliant stops (clearances in units
         of the training output's half range, 0: none on that side; κ the stiffness over
         the loop's, ζ_c the damping ratio); an effect with it sets `contact`.
@@ -93,8 +93,11 @@ class AbstractStepEffect(AbstractEffect):
         return self.starts
 
     def noise(self, z, ctx):
+        """The output noise's one-step model on the block means, ARMA(1,1): (φ, θ, ln V₀),
+        n_k − φ n_{k−1} = a_k − θ a_{k−1}, V₀ the first block's variance over σ_a²
+        (0, 0, 0: white; see `innovations.innovation_terms`)."""
         zero = jnp.zeros_like(z[0])
-        return zero, zero
+        return zero, zero, zero
 
     def initial_guess(self, context):
         return np.asarray(self.starts[0])
@@ -228,8 +231,12 @@ class DisturbanceDrift(AbstractStepEffect):
 
 @register_effect
 class ColoredNoise(AbstractStepEffect):
-    """White + AR(1) (sampled Gauss–Markov) output noise: the AR(1) part's standard
-    deviation is λ = max(z₀, 0) times the white part's, its coefficient φ = tanh z₁."""
+    """White + Gauss–Markov output noise, each sampled at the record's rate and averaged
+    over the fit's blocks of m samples: the Gauss–Markov part's standard deviation is
+    λ = max(z₀, 0) times the white part's (per sample), its block-to-block coefficient
+    φ = |tanh z₁| (per sample φ^{1/m}). The block means of such noise are exactly
+    ARMA(1,1) (`block_noise`), with a moving-average part of either sign: the averaging
+    of the correlated part gives the opposite sign to the white part's."""
 
     name = "colored_noise"
     parameter_names = ("correlated_over_white", "ar1_coefficient")
@@ -240,19 +247,25 @@ class ColoredNoise(AbstractStepEffect):
 
     def noise(self, z, ctx):
         ratio = jnp.maximum(z[0], 0.0) ** 2
-        phi = jnp.tanh(z[1])
-        return phi, _white_share(ratio, phi)
+        phi, theta, first, _ = block_noise(ratio, jnp.tanh(z[1]), ctx.block, ctx.max_block)
+        return jnp.asarray(phi), jnp.asarray(theta), jnp.log(first)
 
     def physical(self, z, context: CandidateHost):
         ratio = max(float(z[0]), 0.0) ** 2
-        phi = float(np.tanh(z[1]))
-        tau = -context.dt / math.log(abs(phi)) if 0 < abs(phi) < 1 else float("nan")
-        white = float(_white_share(ratio, phi)) * context.innovation_variance
+        m = context.block_samples
+        phi, _, _, unit = (
+            float(v) for v in block_noise(ratio, np.tanh(float(z[1])), m, max(m, 1))
+        )
+        tau = -context.dt / math.log(phi) if 0 < phi < 1 else float("nan")
+        white = context.innovation_variance / unit  # one sample's white variance [V²]
+        gm_block = max(float(_block_noise_variance(ratio, phi, m)), 0.0) * white
         return {
             "ar1_coefficient": phi,
             "correlation_time_s": float(tau),
-            "sigma_white_V": math.sqrt(white),
-            "sigma_correlated_V": math.sqrt(ratio * white),
+            "sigma_white_V": math.sqrt(white / m),
+            "sigma_correlated_V": math.sqrt(gm_block),
+            "sigma_white_per_sample_V": math.sqrt(white),
+            "sigma_correlated_per_sample_V": math.sqrt(ratio * white),
         }
 
 
@@ -350,15 +363,48 @@ class StopContact(AbstractStepEffect):
         }
 
 
-def _white_share(ratio, phi):
-    """θ/φ of white + AR(1) noise written as ARMA(1,1) (n_k − φ n_{k−1} = a_k − θ a_{k−1}),
-    with σ_s²/σ_w² = `ratio`: θ/(1 + θ²) = c = φ/(ratio (1 − φ²) + 1 + φ²), the invertible
-    root θ = 2c/(1 + √(1 − 4c²)). It is also σ_w²/σ_a², the white share of the one-step
-    prediction variance (1 when ratio = 0 or φ = 0: white)."""
-    xp = jnp if isinstance(phi, jax.Array) or isinstance(ratio, jax.Array) else np
-    denominator = ratio * (1 - phi**2) + 1 + phi**2
-    c = phi / denominator
-    return 2 / (denominator * (1 + xp.sqrt(1 - 4 * c**2)))
+def _sums(phi_block, m, max_block):
+    """(S, T) of the per-sample coefficient r = |φ_block|^{1/m}: S = Σ_{j<m} r^j,
+    T = Σ_{0<d<m} (m − d) r^d, by powers masked to j < m (m ≤ max_block)."""
+    xp = jnp if isinstance(phi_block, jax.Array) or isinstance(m, jax.Array) else np
+    m = xp.asarray(m, dtype=float)
+    log_r = xp.log(xp.maximum(phi_block**2, 1e-300)) / (2 * m)
+    j = xp.arange(max_block, dtype=float)
+    powers = xp.where(j < m, xp.exp(j * log_r), 0.0)
+    return xp.sum(powers), xp.sum(xp.where(j > 0, (m - j) * powers, 0.0)), m
+
+
+def _block_noise_variance(ratio, phi_block, m, max_block=None):
+    """The block mean's variance of a Gauss–Markov part of `ratio` times one sample's
+    white variance (per unit white variance)."""
+    _, t, m = _sums(phi_block, m, int(m) if max_block is None else max_block)
+    return ratio * (m + 2 * t) / m**2
+
+
+def block_noise(ratio, phi_block, m, max_block):
+    """The exact ARMA(1,1) of the block means of white noise (variance 1 per sample) plus
+    a sampled Gauss–Markov process (variance `ratio`, per-sample coefficient
+    r = |φ_block|^{1/m}), m samples per block: (φ, θ, V₀, σ_a²) with φ = r^m, θ the
+    invertible moving-average root, V₀ the stationary variance of a block mean over σ_a²,
+    σ_a² the one-step prediction variance (per unit white variance).
+
+    The block means' autocovariance: γ₀ = 1/m + λ²(m + 2T)/m², γ_k = λ² r S² φ^{k−1}/m²
+    (k ≥ 1; S, T from `_sums`). Then u_k = n_k − φ n_{k−1} is MA(1) with c₀ = γ₀(1 + φ²)
+    − 2φγ₁ and c₁ = γ₁ − φγ₀: θ/(1 + θ²) = −c₁/c₀ and σ_a² = c₀/(1 + θ²). For m = 1 this
+    is white + AR(1) (θ of the white part's sign, ≥ 0); averaging makes the correlated
+    part's contribution to −c₁ negative, and it dominates where the correlated part does."""
+    xp = jnp if isinstance(phi_block, jax.Array) or isinstance(ratio, jax.Array) else np
+    s, t, m = _sums(phi_block, m, max_block)
+    phi = xp.abs(phi_block)
+    r = xp.exp(xp.log(xp.maximum(phi, 1e-300)) / m)
+    gamma0 = 1 / m + ratio * (m + 2 * t) / m**2
+    gamma1 = ratio * r * s**2 / m**2
+    c0 = gamma0 * (1 + phi**2) - 2 * phi * gamma1
+    rho = xp.clip(-(gamma1 - phi * gamma0) / c0, -0.5 + 1e-12, 0.5 - 1e-12)
+    theta = 2 * rho / (1 + xp.sqrt(1 - 4 * rho**2))
+    variance = c0 / (1 + theta**2)
+    return phi, theta, gamma0 / variance, variance
+
 
 
 def step_effects() -> list[AbstractStepEffect]:

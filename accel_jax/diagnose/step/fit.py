@@ -169,8 +169,9 @@ class CandidateModel(eqx.Module):
     `inverse_low` the upper and lower stop's inverse clearance in units of the training
     output's half range (0: no stop on that side); `stiffness`, `damping_ratio` a compliant
     contact's κ and ζ_c (`_simulate.contact`; used by a `contact` candidate only: the other
-    stops are inelastic); `output_offset` [V]; `phi`, `share` the noise
-    model's AR(1) coefficient and white share (0, 0: white); `penalties` the residuals of
+    stops are inelastic); `output_offset` [V]; `phi`, `theta`,
+    `log_first` the noise model's ARMA(1,1) on the block means (`effects.block_noise`;
+    0, 0, 0: white); `penalties` the residuals of
     every prior and barrier.
     """
 
@@ -188,7 +189,8 @@ class CandidateModel(eqx.Module):
     damping_ratio: jax.Array
     output_offset: jax.Array
     phi: jax.Array
-    share: jax.Array
+    theta: jax.Array
+    log_first: jax.Array
     penalties: jax.Array
 
 
@@ -204,7 +206,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
     gain = ctx.polarity * jnp.exp(GAIN_SIGMA * w[W.GAIN])
     slot = w[W.EFFECT]
     rate = jnp.zeros_like(w[0])
-    high = low = stiffness = damping = offset = phi = share = jnp.zeros_like(w[0])
+    high = low = stiffness = damping = offset = phi = theta = first = jnp.zeros_like(w[0])
     used = jnp.zeros(SLOT, w.dtype)
     bounds = jnp.full(SLOT, jnp.inf, w.dtype)
     prior = jnp.zeros(SLOT, w.dtype)
@@ -219,8 +221,8 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
         high, low = high + symmetric + contact[0], low + symmetric + contact[1]
         stiffness, damping = stiffness + contact[2], damping + contact[3]
         offset = offset + effect.output_offset(ze, ctx)
-        p, s = effect.noise(ze, ctx)
-        phi, share = phi + p, share + s
+        p, q, v = effect.noise(ze, ctx)
+        phi, theta, first = phi + p, theta + q, first + v
         mask = jnp.arange(SLOT) < effect.n_params
         used = jnp.where(on, mask.astype(w.dtype), used)
         bound = jnp.asarray(effect.bounds + (jnp.inf,) * (SLOT - len(effect.bounds)), w.dtype)
@@ -270,7 +272,8 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
         damping_ratio=damping,
         output_offset=offset,
         phi=phi,
-        share=share,
+        theta=theta,
+        log_first=first,
         penalties=penalties,
     )
 
@@ -419,7 +422,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     def error_of(w, candidate):
         m = unpack(w, candidate, effects, base, prior_sigma, ctx)
         prediction = predict(m, ctx, n, mode)
-        a, log_v = innovation_terms(u_out - prediction, m.phi, m.share)
+        a, log_v = innovation_terms(u_out - prediction, m.phi, m.theta, m.log_first)
         return m, prediction, a, log_v
 
     def residuals(w, candidate):

@@ -1,6 +1,6 @@
-"""One-step prediction errors of the step diagnosis's noise model, white + AR(1) output
-noise (`effects.ColoredNoise`; white alone at φ = 0), as an ARMA(1,1) recursion evaluated
-by a blocked first-order filter."""
+"""One-step prediction errors of the step diagnosis's noise model, white + Gauss–Markov
+output noise averaged over the fit's blocks (`effects.ColoredNoise`; white alone at
+φ = θ = 0), as an ARMA(1,1) recursion evaluated by a blocked first-order filter."""
 
 from __future__ import annotations
 
@@ -9,20 +9,18 @@ import math
 import jax.numpy as jnp
 
 
-def innovation_terms(error, phi, share):
-    """One-step prediction errors of white + AR(1) noise (an ARMA(1,1) recursion
-    a_k = e_k − φ e_{k−1} + θ a_{k−1}, θ = sφ, s the white share (`_white_share`)), and
-    ln V, V the variance of the first sample over σ_a², its exact stationary term
-    (σ_w² + σ_s²)/σ_a² = s + (1 − θφ)(1 − s)/(1 − φ²).
+def innovation_terms(error, phi, theta, log_first):
+    """One-step prediction errors of ARMA(1,1) output noise on the block means
+    (n_k − φ n_{k−1} = a_k − θ a_{k−1}: the recursion a_k = e_k − φ e_{k−1} + θ a_{k−1};
+    `effects.block_noise`), scaled by σ_a, and ln V₀, V₀ the first block's stationary
+    variance over σ_a² (the first error is e₀/√V₀). White noise: φ = θ = ln V₀ = 0.
 
     The recursion is a first-order linear filter, evaluated in two levels of matrix
     products (`_first_order_filter`): a small program, which matters because every fit
     differentiates it many times over (a parallel scan compiled 4× slower)."""
-    theta = share * phi
-    variance = share + (1 - theta * phi) * (1 - share) / (1 - phi**2)
-    first = error[:1] / jnp.sqrt(variance)
+    first = error[:1] * jnp.exp(-0.5 * log_first)
     b = jnp.concatenate([first, error[1:] - phi * error[:-1]])
-    return _first_order_filter(b, theta), jnp.log(variance)
+    return _first_order_filter(b, theta), log_first
 
 
 def _first_order_filter(b, theta):

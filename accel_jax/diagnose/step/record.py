@@ -431,6 +431,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         nominal_filter_time_constant=float(base.filter_time_constant),
         top=float(np.max(yb)),
         bottom=float(np.min(yb)),
+        block_samples=int(m),
     )
     linear = [e for e in effects if not e.nonlinear]
     nonlinear = [e for e in effects if e.nonlinear]

@@ -52,7 +52,8 @@ class RecordHost:
     second start (changes half a sample earlier: `TIMING_PRIOR`'s mean);
     `nominal_torquer_time_constant`, `nominal_filter_time_constant` [s] the nominal
     device's lags T_dm, T_f (a lag effect departs from these); `top`, `bottom` [V] the
-    whole record's largest and smallest output (block means, held-out part included).
+    whole record's largest and smallest output (block means, held-out part included);
+    `block_samples` m, the samples in one block.
     """
 
     lag_unit: float
@@ -69,6 +70,7 @@ class RecordHost:
     nominal_filter_time_constant: float
     top: float
     bottom: float
+    block_samples: int
 
     def nominal_lag(self, field: str) -> float:
         """The nominal device's value [s] of the lag `ServoParams` field `field`
