@@ -41,6 +41,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import colored_truth  # noqa: E402
+from measured_input_harness import _commit  # noqa: E402
 
 CLASSES = colored_truth.CLASSES
 NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
@@ -151,17 +152,6 @@ def score(truths: dict, rows: dict) -> dict:
             )
         out[effect] = section
     return out
-
-
-def _commit() -> str | None:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
-            cwd=Path(__file__).resolve().parent,
-        )
-        return out.stdout.strip() or None
-    except (OSError, subprocess.CalledProcessError):
-        return None
 
 
 def main(argv=None) -> int:

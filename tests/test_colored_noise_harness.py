@@ -1,0 +1,42 @@
+"""studies/colored_noise_harness.py's scoring, on rows made by hand (the blind run itself
+takes ~15 s of a core per record and is run on its own)."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import colored_noise_harness as harness  # noqa: E402
+
+
+def _row(verdict, lb=20.0, p=0.5, significant=True, consistent=True):
+    return {
+        "verdict": verdict,
+        "noise_ljung_box": lb,
+        "noise_ljung_box_p": p,
+        "noise_significant": significant,
+        "noise_variance_consistent": consistent,
+    }
+
+
+def test_score_counts_per_class_and_strength_band():
+    truths = {
+        "a": {"effect": "output_gm", "ratio": 1.5},
+        "b": {"effect": "output_gm", "ratio": 12.0},
+        "c": {"effect": "moment_gm", "ratio": 5.0},
+        "d": {"effect": "none", "ratio": None},
+    }
+    rows = {
+        "a": _row("colored_noise"),
+        "b": _row("unexplained", lb=60.0, p=1e-5),
+        "c": _row("unexplained", lb=150.0, p=1e-20, consistent=False),
+        "d": _row("colored_noise"),
+    }
+    score = harness.score(truths, rows)
+    out = score["output_gm"]
+    assert out["verdicts"] == {"colored_noise": 1, "unexplained": 1}
+    assert out["right_share"] == 0.5
+    assert out["by_ratio"]["1-3"] == {"n": 1, "right": 1}
+    assert out["by_ratio"]["8-20"] == {"n": 1, "right": 0}
+    assert out["noise_white_held_out"] == 1
+    assert score["moment_gm"]["noise_variance_consistent"] == 0
+    assert score["none"]["right"] == "none" and score["none"]["right_share"] == 0.0
