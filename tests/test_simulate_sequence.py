@@ -343,32 +343,33 @@ def test_every_effect_is_the_nominal_model_at_zero():
 def test_innovations_of_white_plus_ar1_noise():
     rng = np.random.default_rng(4)
     e = rng.normal(size=3000)
-    a, log_v = innovation_terms(jnp.asarray(e), 0.0, 1.0)
+    a, log_v = innovation_terms(jnp.asarray(e), 0.0, 0.0, 0.0)
     np.testing.assert_allclose(a, e, atol=1e-15)
     assert float(log_v) == 0.0
-    # The parallel recursion against a plain loop: a_k = e_k − φ e_{k−1} + θ a_{k−1}.
-    phi, share = 0.9, 0.4
-    a, log_v = innovation_terms(jnp.asarray(e), phi, share)
-    theta = share * phi
-    variance = share + (1 - theta * phi) * (1 - share) / (1 - phi**2)
-    loop = np.empty_like(e)
-    loop[0] = e[0] / np.sqrt(variance)
-    for k in range(1, e.size):
-        loop[k] = e[k] - phi * e[k - 1] + theta * loop[k - 1]
-    np.testing.assert_allclose(a, loop, atol=1e-12)
-    # White + AR(1) noise is whitened: its innovations have the predicted white share.
-    from accel_jax.diagnose.step.effects import _white_share
+    # The blocked recursion against a plain loop: a_k = e_k − φ e_{k−1} + θ a_{k−1}, the
+    # first error scaled by the first block's variance, with θ of either sign.
+    for phi, theta, variance in ((0.9, 0.36, 2.5), (0.97, -0.2, 9.0)):
+        a, log_v = innovation_terms(jnp.asarray(e), phi, theta, np.log(variance))
+        loop = np.empty_like(e)
+        loop[0] = e[0] / np.sqrt(variance)
+        for k in range(1, e.size):
+            loop[k] = e[k] - phi * e[k - 1] + theta * loop[k - 1]
+        np.testing.assert_allclose(a, loop, atol=1e-12)
+        assert float(log_v) == pytest.approx(np.log(variance))
+    # White + AR(1) noise per sample (blocks of one sample) is whitened: its innovations
+    # have the predicted one-step variance.
+    from accel_jax.diagnose.step.effects import block_noise
 
     sigma_w, ratio, phi = 1.0, 4.0, 0.95
-    share = float(_white_share(ratio, phi))
+    phi_b, theta, first, variance = block_noise(ratio, phi, 1, 16)
     ar = np.zeros(200_000)
     w = rng.normal(size=ar.size) * np.sqrt(ratio * (1 - phi**2))
     for k in range(1, ar.size):
         ar[k] = phi * ar[k - 1] + w[k]
     x = ar + sigma_w * rng.normal(size=ar.size)
-    a, _ = innovation_terms(jnp.asarray(x), phi, share)
+    a, _ = innovation_terms(jnp.asarray(x), phi_b, theta, jnp.log(first))
     a = np.asarray(a)[100:]
-    assert np.var(a) == pytest.approx(sigma_w**2 / share, rel=0.02)
+    assert np.var(a) == pytest.approx(float(variance) * sigma_w**2, rel=0.02)
     assert abs(np.corrcoef(a[1:], a[:-1])[0, 1]) < 0.01
 
 
