@@ -253,12 +253,13 @@ class ColoredNoise(AbstractStepEffect):
     def physical(self, z, context: CandidateHost):
         ratio = max(float(z[0]), 0.0) ** 2
         m = context.block_samples
-        phi, _, _, unit = (
+        phi, _, first, unit = (
             float(v) for v in block_noise(ratio, np.tanh(float(z[1])), m, max(m, 1))
         )
         tau = -context.dt / math.log(phi) if 0 < phi < 1 else float("nan")
         white = context.innovation_variance / unit  # one sample's white variance [V²]
-        gm_block = max(float(_block_noise_variance(ratio, phi, m)), 0.0) * white
+        # A block mean's variance is first·unit per unit white variance, 1/m of it white.
+        gm_block = max(first * unit - 1 / m, 0.0) * white
         return {
             "ar1_coefficient": phi,
             "correlation_time_s": float(tau),
@@ -372,13 +373,6 @@ def _sums(phi_block, m, max_block):
     j = xp.arange(max_block, dtype=float)
     powers = xp.where(j < m, xp.exp(j * log_r), 0.0)
     return xp.sum(powers), xp.sum(xp.where(j > 0, (m - j) * powers, 0.0)), m
-
-
-def _block_noise_variance(ratio, phi_block, m, max_block=None):
-    """The block mean's variance of a Gauss–Markov part of `ratio` times one sample's
-    white variance (per unit white variance)."""
-    _, t, m = _sums(phi_block, m, int(m) if max_block is None else max_block)
-    return ratio * (m + 2 * t) / m**2
 
 
 def block_noise(ratio, phi_block, m, max_block):
