@@ -15,11 +15,12 @@ from the loop equations without reading the library's effect code; it reuses
 
 The diagnosis runs in a fresh process that sees only the CSV files, against the reference
 device with T_dm = T_f = 0 (the truths' lags), as `measured_input_harness.py` and the blind
-validation do. Scored per class: the verdicts (the library's noise effect is
-`colored_noise`; right for both coloured classes, which the library does not tell apart
-yet), by strength band; for each coloured record the `colored_noise` candidate's evidence,
-its held-out one-step whiteness (Ljung–Box) and whether its free-run errors are of the
-size it predicts — the two conditions under which the diagnosis credits a noise. Float64.
+validation do. Scored per class: the verdicts (right: `colored_noise` for output noise,
+`moment_noise` for a moment inside the loop, or `cannot_tell` naming the truth; also how
+often a coloured noise is credited at either place), by strength band; for each coloured
+record both noise candidates' evidence, held-out one-step whiteness (Ljung–Box) and
+whether their free-run errors are of the size they predict — the two conditions under
+which the diagnosis credits a noise. Float64.
 
     python studies/colored_noise_harness.py --per-class 30 --out out/colored_noise
 
@@ -64,21 +65,22 @@ nominal = NominalDevice.reference(**NOMINAL_LAGS)
 out = {}
 for f in sorted(pathlib.Path(sys.argv[2]).glob("*.csv")):
     result = diagnose_many([read_csv(f)], nominal, recommend=False)[0]
-    noise = next((e for e in result.ranking if e["effect"] == "colored_noise"), {})
-    white = noise.get("one_step_whiteness") or {}
-    out[f.stem] = {
-        "verdict": result.verdict,
-        "tied": list(result.tied),
-        "reason": result.reason,
-        "noise_evidence": noise.get("evidence"),
-        "noise_significant": noise.get("significant"),
-        "noise_explains": noise.get("explains"),
-        "noise_ljung_box": white.get("statistic"),
-        "noise_ljung_box_p": white.get("p_value"),
-        "noise_variance_consistent": noise.get("variance_consistent"),
-        "noise_deterministic_misfit": noise.get("deterministic_misfit"),
-        "noise_params": noise.get("params"),
-    }
+    row = {"verdict": result.verdict, "tied": list(result.tied), "reason": result.reason}
+    for effect, key in (("colored_noise", "noise"), ("moment_noise", "moment")):
+        noise = next((e for e in result.ranking if e["effect"] == effect), {})
+        white = noise.get("one_step_whiteness") or {}
+        row.update({
+            key + "_evidence": noise.get("evidence"),
+            key + "_significant": noise.get("significant"),
+            key + "_explains": noise.get("explains"),
+            key + "_ljung_box": white.get("statistic"),
+            key + "_ljung_box_p": white.get("p_value"),
+            key + "_variance_consistent": noise.get("variance_consistent"),
+            key + "_deterministic_misfit": noise.get("deterministic_misfit"),
+            key + "_fit_failed": noise.get("fit_failed"),
+            key + "_params": noise.get("params"),
+        })
+    out[f.stem] = row
 pathlib.Path(sys.argv[1]).write_text(json.dumps(out, default=float))
 """
 )
@@ -117,39 +119,66 @@ def diagnose_blind(folder: Path) -> dict:
         return json.loads(out.read_text())
 
 
+RIGHT = {"none": "none", "output_gm": "colored_noise", "moment_gm": "moment_noise"}
+"""The verdict that names each class's truth (the place of a coloured noise included)."""
+
+NOISE_EFFECTS = ("colored_noise", "moment_noise")
+
+
+def _names_truth(row: dict, right: str) -> bool:
+    """Named, or `cannot_tell` with the truth among the tied."""
+    return row["verdict"] == right or (row["verdict"] == "cannot_tell" and right in row["tied"])
+
+
+def _credits_noise(row: dict) -> bool:
+    """A coloured noise credited, at either place (or a tie between the two)."""
+    return row["verdict"] in NOISE_EFFECTS or (
+        row["verdict"] == "cannot_tell" and set(row["tied"]) <= set(NOISE_EFFECTS)
+    )
+
+
 def score(truths: dict, rows: dict) -> dict:
-    """Per class: verdict counts, the share named `colored_noise` (coloured classes) or
-    `none` (the `none` class), by strength band; for the coloured classes, how often the
-    noise candidate was significant, white on the held-out part, and of consistent size."""
+    """Per class: verdict counts, the share that names the truth (`RIGHT`: the noise and its
+    place, or `cannot_tell` naming it; `none` for the `none` class) and, for the coloured
+    classes, the share that credits a coloured noise at either place, by strength band;
+    for each noise candidate, how often it was significant, white on the held-out part,
+    of consistent size, and a fit that lost to the nominal (`fit_failed`)."""
     out = {}
     for effect in CLASSES:
         names = [n for n in truths if truths[n]["effect"] == effect]
         if not names:
             continue
-        right = "none" if effect == "none" else "colored_noise"
+        right = RIGHT[effect]
         verdicts = [rows[n]["verdict"] for n in names]
         section = {
             "n": len(names),
             "verdicts": {v: verdicts.count(v) for v in sorted(set(verdicts))},
             "right": right,
-            "right_share": verdicts.count(right) / len(names),
+            "right_share": sum(_names_truth(rows[n], right) for n in names) / len(names),
         }
         if effect != "none":
+            section["noise_credited_share"] = sum(_credits_noise(rows[n]) for n in names) / len(
+                names
+            )
             section["by_ratio"] = {}
             for low, high in BANDS:
                 band = [n for n in names if low <= truths[n]["ratio"] < high]
                 section["by_ratio"][f"{low:g}-{high:g}"] = {
                     "n": len(band),
-                    "right": sum(rows[n]["verdict"] == right for n in band),
+                    "right": sum(_names_truth(rows[n], right) for n in band),
+                    "noise_credited": sum(_credits_noise(rows[n]) for n in band),
                 }
-            for key in ("noise_significant", "noise_variance_consistent"):
-                section[key] = sum(bool(rows[n][key]) for n in names)
-            section["noise_white_held_out"] = sum(
-                (rows[n]["noise_ljung_box_p"] or 0.0) >= 1e-3 for n in names
-            )
-            section["noise_ljung_box_median"] = float(
-                np.median([rows[n]["noise_ljung_box"] or np.nan for n in names])
-            )
+            for key in ("noise", "moment"):
+                if rows[names[0]].get(key + "_evidence", "absent") == "absent":
+                    continue  # rows of a run before the candidate existed
+                for field in ("significant", "variance_consistent", "fit_failed"):
+                    section[f"{key}_{field}"] = sum(bool(rows[n].get(f"{key}_{field}")) for n in names)
+                section[key + "_white_held_out"] = sum(
+                    (rows[n][key + "_ljung_box_p"] or 0.0) >= 1e-3 for n in names
+                )
+                section[key + "_ljung_box_median"] = float(
+                    np.median([rows[n][key + "_ljung_box"] or np.nan for n in names])
+                )
         out[effect] = section
     return out
 

@@ -12,10 +12,11 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 
 from .. import openworld
-from .fit import GAIN_SIGMA, REFIT_FIELDS, n_timing
+from .fit import GAIN_SIGMA, REFIT_FIELDS, n_timing, refitted_device
 from .layout import W
 from .state import StepFit, StepRecord
 
@@ -41,6 +42,7 @@ def _fit_entry(
     decrement,
     objective,
     trained,
+    base=None,
 ) -> StepFit:
     train = ~rec.held
     n_train = int(np.sum(train))
@@ -64,7 +66,12 @@ def _fit_entry(
     )
     effect = effects_all[candidate - 1] if candidate else None
     gain = rec.polarity * math.exp(GAIN_SIGMA * z_gain)
-    context = rec.host.candidate(innovation_variance=rss / n_train, test_gain=gain * rec.k_test)
+    device = None
+    if base is not None and effect is not None and effect.loop_noise:
+        device = refitted_device(base, jnp.asarray(z), jnp.asarray(rec.prior_sigma))
+    context = rec.host.candidate(
+        innovation_variance=rss / n_train, test_gain=gain * rec.k_test, device=device
+    )
     params = {}
     if effect is not None:
         params = effect.physical(w[W.effect(effect.n_params)], context)
@@ -93,9 +100,12 @@ def _fit_entry(
     )
 
 
-def fit_entries(rec: StepRecord, effects_all, candidates, outputs, u_out) -> list[StepFit]:
+def fit_entries(
+    rec: StepRecord, effects_all, candidates, outputs, u_out, base=None
+) -> list[StepFit]:
     """Each candidate's fit (`StepFit`) from the outputs of `fit._fit_record` for one
-    record (its padding cut off)."""
+    record (its padding cut off); `base` the nominal device (`ServoParams`), which a
+    moment noise's physical values need (its fitted loop)."""
     w, prediction, innovations, log_v, converged, steps, prior, decrement, objective, trained = (
         np.asarray(o) for o in outputs
     )
@@ -122,6 +132,7 @@ def fit_entries(rec: StepRecord, effects_all, candidates, outputs, u_out) -> lis
             decrement=decrement[c],
             objective=objective[c],
             trained=trained[c],
+            base=base,
         )
         for c, candidate in enumerate(candidates)
     ]

@@ -9,6 +9,9 @@ nominal loop at zero (the package `step` describes the kind; `fit` applies the h
 - `disturbance_drift`: a drifting external moment, M(t) = M + Ṁ t;
 - `colored_noise`: correlated output noise, white + first-order Gauss–Markov (AR(1)),
   fitted through its one-step prediction errors (an ARMA(1,1) recursion);
+- `moment_noise`: a Gauss–Markov moment inside the loop (filtered by it) on top of white
+  output noise, fitted through a Kalman filter of the loop's states over the blocks
+  (`innovations.moment_noise_terms`; a program of its own, `fit.fit_moment`);
 - `stop_contact`: compliant stops, a unilateral spring-damper at each stop, each side at
   its own clearance (one side may be out of reach): `_simulate.contact.contact_record`.
   Fitted only where the inelastic clamp of `stop_saturation` was fitted and does not
@@ -30,6 +33,7 @@ import numpy as np
 
 from ..._params import ServoParams
 from ..base import AbstractEffect, effect_library, register_effect
+from .innovations import moment_kalman, moment_noise_model
 from .layout import SLOT
 
 if TYPE_CHECKING:
@@ -49,9 +53,13 @@ class AbstractStepEffect(AbstractEffect):
     - `contact(z, ctx)`: (1/h_hi, 1/h_lo, κ, ζ_c) of compliant stops (clearances in units
         of the training output's half range, 0: none on that side; κ the stiffness over
         the loop's, ζ_c the damping ratio); an effect with it sets `contact`.
+    - `moment_noise(z, ctx)`: (λ², φ_block) of a Gauss–Markov moment inside the loop
+        (`innovations.moment_noise_model`; λ² = 0: none); an effect with it sets
+        `loop_noise`.
 
     Class attributes: `nonlinear` (simulated with stops, sample by sample), `contact`
-    (its stops compliant: a program of its own, `fit.fit_contact`), `stochastic`
+    (its stops compliant: a program of its own, `fit.fit_contact`), `loop_noise` (its
+    noise inside the loop: a program of its own, `fit.fit_moment`), `stochastic`
     (changes the noise model, not the prediction), `starts` (the starting points of its
     parameters, one tuple per start), `bounds` (|z| beyond which a steep penalty acts),
     `held_out_nuisance`
@@ -62,6 +70,7 @@ class AbstractStepEffect(AbstractEffect):
     kind = "step"
     nonlinear: ClassVar[bool] = False
     contact_stops: ClassVar[bool] = False
+    loop_noise: ClassVar[bool] = False
     stochastic: ClassVar[bool] = False
     starts: ClassVar[tuple] = ((0.0,), (0.0,))
     bounds: ClassVar[tuple] = (10.0, 10.0)
@@ -82,6 +91,10 @@ class AbstractStepEffect(AbstractEffect):
     def contact(self, z, ctx):
         zero = jnp.zeros_like(z[0])
         return zero, zero, zero, zero
+
+    def moment_noise(self, z, ctx):
+        zero = jnp.zeros_like(z[0])
+        return zero, zero
 
     def prior(self, z, ctx):
         """Prior residuals of its parameters (shape (SLOT,), the slot's; default none)."""
@@ -361,6 +374,60 @@ class StopContact(AbstractStepEffect):
             "stop_low_displacement_m": -low / context.gain,
             "contact_stiffness_over_loop": float(CONTACT_STIFFNESS * np.exp(2.0 * float(z[2]))),
             "contact_damping_ratio": float(CONTACT_DAMPING * np.exp(1.5 * float(z[3]))),
+        }
+
+
+@register_effect
+class MomentNoise(AbstractStepEffect):
+    """White output noise plus a Gauss–Markov moment inside the loop, which the closed loop
+    filters before it reaches the output: the moment's low-frequency output is λ = max(z₀, 0)
+    times the white part's standard deviation (per sample; `sigma_moment_static_V`, the
+    output the moment would give through the loop's static gain; what reaches the output,
+    filtered, is `sigma_correlated_per_sample_V`), its block-to-block coefficient
+    φ = |tanh z₁| (rate −ln φ/(mΔ)). Fitted through a Kalman filter of the loop's states
+    and the moment over the blocks (`innovations.moment_noise_terms`), with the fitted
+    device's loop: where the moment is slow against the loop it is an output Gauss–Markov
+    process (`colored_noise`) too, and the two places are not told apart; where it is fast,
+    the loop shapes it (a resonance, a roll-off) and only this model whitens it."""
+
+    name = "moment_noise"
+    parameter_names = ("moment_over_white", "ar1_coefficient")
+    description = "correlated (Gauss–Markov) moment noise inside the loop, on top of white noise"
+    stochastic = True
+    loop_noise = True
+    starts = ((1.0, 1.5), (3.0, 0.5))
+    bounds = (30.0, 5.0)
+
+    def moment_noise(self, z, ctx):
+        return jnp.maximum(z[0], 0.0) ** 2, jnp.tanh(z[1])
+
+    def physical(self, z, context: CandidateHost):
+        ratio = max(float(z[0]), 0.0) ** 2
+        m = context.block_samples
+        phi = abs(float(np.tanh(float(z[1]))))
+        device = context.device
+        if device is None:
+            raise ValueError("moment_noise's physical values need the fitted device")
+        _, _, _, loop_block, loop_sample = moment_noise_model(
+            device, context.dt / m, m, max(m, 1), ratio, phi
+        )
+        # The one-step variance per unit white variance, from the filter run to its steady
+        # state on a long stretch of zeros (the innovations' variance does not depend on
+        # the data).
+        _, s = moment_kalman(
+            jnp.zeros(4096), device, context.dt / m, m, max(m, 1), ratio, phi
+        )
+        unit = float(s[-1])
+        white = context.innovation_variance / unit  # one sample's white variance [V²]
+        tau = -context.dt / math.log(phi) if 0 < phi < 1 else float("nan")
+        return {
+            "ar1_coefficient": phi,
+            "correlation_time_s": float(tau),
+            "sigma_white_V": math.sqrt(white / m),
+            "sigma_correlated_V": math.sqrt(max(float(loop_block), 0.0) * white),
+            "sigma_white_per_sample_V": math.sqrt(white),
+            "sigma_moment_static_V": math.sqrt(ratio * white),
+            "sigma_correlated_per_sample_V": math.sqrt(max(float(loop_sample), 0.0) * white),
         }
 
 

@@ -16,9 +16,9 @@ from ..._sweep import even_chunk_size, sweep
 from ..base import DiagnosisResult, require_float64
 from .assess import NESTED_ABSOLUTE, explains_deterministically, fit_entries, nested_losers
 from .effects import step_effects
-from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_nonlinear
+from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
-from .record import prepare, prior_sigma_of, stack_on_host
+from .record import _guesses, prepare, prior_sigma_of, stack_on_host
 from .state import StepFit, RecordShape, StepRecord
 from .verdict import evaluate
 
@@ -60,7 +60,8 @@ def _fit_grouped(
         )
         for j, i in enumerate(members):
             entries[i] = fit_entries(
-                records[i], effects, candidates, [o[j] for o in outputs], records[i].u_out
+                records[i], effects, candidates, [o[j] for o in outputs], records[i].u_out,
+                base=nominal.params,
             )
     return entries
 
@@ -92,7 +93,10 @@ def diagnose_step(
     """
     require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
     effects = step_effects()
-    linear = [0] + [i for i, e in enumerate(effects, start=1) if not e.nonlinear]
+    linear = [0] + [
+        i for i, e in enumerate(effects, start=1) if not e.nonlinear and not e.loop_noise
+    ]
+    loop_noise = [i for i, e in enumerate(effects, start=1) if e.loop_noise]
     nonlinear = [i for i, e in enumerate(effects, start=1) if e.nonlinear]
     clamp = [i for i in nonlinear if not effects[i - 1].contact_stops]
     contact = [i for i in nonlinear if effects[i - 1].contact_stops]
@@ -108,6 +112,10 @@ def diagnose_step(
     # basin. Its record is fitted again with every candidate's second start at the nominal
     # optimum (same program; only where a candidate lost).
     _restart_losers(fits, records, effects, linear, nominal)
+    # Noise inside the loop, for the records that no deterministic linear model explains:
+    # from its own starts (the nominal fit's device and nuisances), from the output noise's
+    # fit (its two parameters have the same meaning) and from the nominal optimum.
+    _fit_loop_noise(fits, records, effects, loop_noise, nominal)
     # The stop candidate, for the records that no linear model explains.
     stop_starts = {}
     for i, rec in enumerate(records):
@@ -192,6 +200,35 @@ def diagnose_step(
                     continue
                 _recommend(result, data, nominal)
     return results
+
+
+def _fit_loop_noise(fits, records: list[StepRecord], effects, loop_noise, nominal) -> None:
+    """Fit the noise-inside-the-loop candidates (`loop_noise`) of the records that no
+    deterministic linear model explains; their fits are appended to `fits` in place."""
+    if not loop_noise:
+        return
+    chosen = [effects[i - 1] for i in loop_noise]
+    starts = {}
+    for i, rec in enumerate(records):
+        if rec.domain_problems or any(explains_deterministically(f, rec) for f in fits[i]):
+            continue
+        nominal_w = np.asarray(fits[i][0].w_trained)
+        own = _guesses(nominal_w, chosen, rec.host, nominal_first=False)
+        output_noise = [f for f in fits[i] if f.effect == "colored_noise"]
+        extra = [_at_nominal(nominal_w)]
+        if output_noise:
+            moved = np.array(output_noise[0].w_trained, dtype=np.float64)
+            extra.append(moved)
+        extra_rows = np.broadcast_to(
+            np.stack(extra)[None], (own.shape[0], len(extra), own.shape[2])
+        )
+        starts[i] = np.concatenate([own, extra_rows], axis=1)
+    entries = _fit_grouped(
+        fit_moment, nominal, records, starts, loop_noise, effects,
+        "diagnose step (noise inside the loop)",
+    )
+    for i, record_fits in entries.items():
+        fits[i] = fits[i] + record_fits
 
 
 NESTED_RESTARTS = 2

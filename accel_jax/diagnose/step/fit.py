@@ -22,7 +22,7 @@ from ..._params import ServoParams
 from ..._simulate.contact import contact_record
 from ..._simulate.sequence import SequenceInputs, accel_moment, linear_record, stop_record
 from .effects import step_effects
-from .innovations import innovation_terms
+from .innovations import innovation_terms, moment_noise_terms
 from .layout import SLOT, W
 
 REFIT_FIELDS = ("moment_of_inertia", "damping", "stiffness", "torquer_gain")
@@ -171,7 +171,9 @@ class CandidateModel(eqx.Module):
     contact's κ and ζ_c (`_simulate.contact`; used by a `contact` candidate only: the other
     stops are inelastic); `output_offset` [V]; `phi`, `theta`,
     `log_first` the noise model's ARMA(1,1) on the block means (`effects.block_noise`;
-    0, 0, 0: white); `penalties` the residuals of
+    0, 0, 0: white); `moment_ratio`, `moment_phi` a Gauss–Markov moment noise's λ² and
+    φ_block (`innovations.moment_noise_terms`; used by a `moment` candidate only);
+    `penalties` the residuals of
     every prior and barrier.
     """
 
@@ -191,6 +193,8 @@ class CandidateModel(eqx.Module):
     phi: jax.Array
     theta: jax.Array
     log_first: jax.Array
+    moment_ratio: jax.Array
+    moment_phi: jax.Array
     penalties: jax.Array
 
 
@@ -207,6 +211,7 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
     slot = w[W.EFFECT]
     rate = jnp.zeros_like(w[0])
     high = low = stiffness = damping = offset = phi = theta = first = jnp.zeros_like(w[0])
+    moment_ratio = moment_phi = jnp.zeros_like(w[0])
     used = jnp.zeros(SLOT, w.dtype)
     bounds = jnp.full(SLOT, jnp.inf, w.dtype)
     prior = jnp.zeros(SLOT, w.dtype)
@@ -223,6 +228,8 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
         offset = offset + effect.output_offset(ze, ctx)
         p, q, v = effect.noise(ze, ctx)
         phi, theta, first = phi + p, theta + q, first + v
+        ratio_e, phi_e = effect.moment_noise(ze, ctx)
+        moment_ratio, moment_phi = moment_ratio + ratio_e, moment_phi + phi_e
         mask = jnp.arange(SLOT) < effect.n_params
         used = jnp.where(on, mask.astype(w.dtype), used)
         bound = jnp.asarray(effect.bounds + (jnp.inf,) * (SLOT - len(effect.bounds)), w.dtype)
@@ -274,6 +281,8 @@ def unpack(w, candidate, effects, base, prior_sigma, ctx) -> CandidateModel:
         phi=phi,
         theta=theta,
         log_first=first,
+        moment_ratio=moment_ratio,
+        moment_phi=moment_phi,
         penalties=penalties,
     )
 
@@ -286,9 +295,11 @@ def moment_jumps(params, ctx, gain: float | jax.Array = 1.0):
     return ctx.accel_sign * gain * accel_moment(params) * ctx.change_accel
 
 
-MODES = ("linear", "clamp", "contact")
+MODES = ("linear", "clamp", "contact", "moment")
 """How `predict` simulates a candidate (static): the linear loop (`linear_record`), with
-inelastic stops (`stop_record`) or with compliant ones (`_simulate.contact`)."""
+inelastic stops (`stop_record`) or with compliant ones (`_simulate.contact`); "moment" is
+the linear loop with the noise model of a moment inside it (`innovations.moment_noise_terms`,
+in `_fit_record`)."""
 
 
 def predict(m: CandidateModel, ctx, n, mode: str):
@@ -307,7 +318,7 @@ def predict(m: CandidateModel, ctx, n, mode: str):
         moment_jumps(m.params, ctx),
     )
     args = (m.params, ctx.dt, n, sequence)
-    if mode == "linear":
+    if mode in ("linear", "moment"):
         record = linear_record(
             *args, block=ctx.block, max_block=ctx.max_block, duration=ctx.duration
         )
@@ -422,7 +433,13 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     def error_of(w, candidate):
         m = unpack(w, candidate, effects, base, prior_sigma, ctx)
         prediction = predict(m, ctx, n, mode)
-        a, log_v = innovation_terms(u_out - prediction, m.phi, m.theta, m.log_first)
+        if mode == "moment":
+            a, log_v = moment_noise_terms(
+                u_out - prediction, m.params, ctx.dt, ctx.block, ctx.max_block,
+                m.moment_ratio, m.moment_phi, ctx.train,
+            )
+        else:
+            a, log_v = innovation_terms(u_out - prediction, m.phi, m.theta, m.log_first)
         return m, prediction, a, log_v
 
     def residuals(w, candidate):
@@ -441,7 +458,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
             solver,
             guess,
             args=candidate,
-            max_steps={"linear": FIT_MAX_STEPS, "clamp": STOP_FIT_MAX_STEPS}.get(
+            max_steps={
+                "linear": FIT_MAX_STEPS, "moment": FIT_MAX_STEPS, "clamp": STOP_FIT_MAX_STEPS
+            }.get(
                 mode, CONTACT_FIT_MAX_STEPS
             ),
             throw=False,
@@ -596,3 +615,7 @@ def fit_nonlinear(base, prior_sigma, ctx, u_out, guesses, candidates):
 
 def fit_contact(base, prior_sigma, ctx, u_out, guesses, candidates):
     return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, "contact")
+
+
+def fit_moment(base, prior_sigma, ctx, u_out, guesses, candidates):
+    return _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, "moment")

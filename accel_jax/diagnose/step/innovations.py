@@ -1,12 +1,19 @@
-"""One-step prediction errors of the step diagnosis's noise model, white + Gauss–Markov
-output noise averaged over the fit's blocks (`effects.ColoredNoise`; white alone at
-φ = θ = 0), as an ARMA(1,1) recursion evaluated by a blocked first-order filter."""
+"""One-step prediction errors of the step diagnosis's noise models on the fit's block means:
+white + Gauss–Markov output noise (`effects.ColoredNoise`; white alone at φ = θ = 0) as an
+ARMA(1,1) recursion evaluated by a blocked first-order filter (`innovation_terms`), and
+white output noise + a Gauss–Markov moment inside the loop (`effects.MomentNoise`) by a
+Kalman filter of the loop's states through each block (`moment_noise_terms`)."""
 
 from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
+
+from ..._servo import time_constant
+from ..._simulate.matrix import expm_minus_identity
+from ..._simulate.sequence import loop_system
 
 
 def innovation_terms(error, phi, theta, log_first):
@@ -49,3 +56,97 @@ def _first_order_filter(b, theta):
     ends = lower_toeplitz(powers(within[size], blocks)) @ local[:, -1]
     carried = jnp.concatenate([jnp.zeros(1, b.dtype), ends[:-1]])
     return (local + within[1:][None, :] * carried[:, None]).reshape(-1)[:n]
+
+
+MIN_BLOCK_COEFFICIENT = 1e-3
+"""|φ_block| of a moment noise is kept at least this (its rate −ln|φ|/(mΔ) stays finite)."""
+
+
+def moment_noise_model(params, dt, m, max_block: int, ratio, phi_block):
+    """The block-mean model of white output noise (variance 1 per sample) plus a
+    Gauss–Markov moment inside the loop (`effects.MomentNoise`), exactly: (Gᵐ, Σ, P, S_b).
+
+    The moment M̃ (in the scaled loop's units, `_simulate.sequence.loop_system`) is a
+    first-order Gauss–Markov process of rate β = −ln|φ_block|/(mΔ) and variance
+    `ratio`/g², g the loop's static output per unit moment (so `ratio` is the moment part's
+    low-frequency output variance over the white variance). The loop's four states and M̃
+    form x' = A x + noise; `P` solves A P + P Aᵀ + Q_c = 0 (Q_c = 2βσ² at M̃; stationary),
+    and one sample's map is Φ = e^{AΔ} with process covariance P − Φ P Φᵀ (exact for a
+    stationary process; written with F = Φ − I for precision at small AΔ). An ideal lag's
+    dummy state (a zero row of A: neither driven nor read) is given a stable pole so that
+    the Lyapunov equation is regular; it changes nothing else.
+
+    One block: the state z = [x; s] with s accumulating C x/m over the block's m samples
+    (Gm = Gᵐ, G = [[Φ, 0], [C/m, 1]], from s = 0) and the noise Σ = Σ_{i<m} Gⁱ Q_w Gⁱᵀ;
+    the block mean is s_m plus the white part's mean (variance 1/m). `S_b` is the loop
+    part's stationary block-mean variance and `S_s` one sample's (per unit white
+    variance)."""
+    a_full, _, c_full = loop_system(params, jnp.ones_like(params.moment_of_inertia))
+    a = a_full[:5, :5]
+    c = c_full[:5]
+    dtype = a.dtype
+    idle = jnp.all(a[:4] == 0, axis=1)
+    diagonal = jnp.where(idle, -1.0 / time_constant(params), 0.0)
+    a = a.at[jnp.arange(4), jnp.arange(4)].add(diagonal)
+    phi = jnp.clip(jnp.abs(phi_block), MIN_BLOCK_COEFFICIENT, 1.0 - 1e-12)
+    rate = -jnp.log(phi) / (m * dt)
+    a = a.at[4, 4].set(-rate)
+    static = -c[:4] @ jnp.linalg.solve(a[:4, :4], a[:4, 4])
+    variance = ratio / static**2
+    q_c = jnp.zeros((5, 5), dtype).at[4, 4].set(2 * rate * variance)
+    eye = jnp.eye(5, dtype=dtype)
+    kron = jnp.kron(eye, a) + jnp.kron(a, eye)
+    p = jnp.linalg.solve(kron, -q_c.reshape(-1)).reshape(5, 5)
+    p = 0.5 * (p + p.T)
+    f = expm_minus_identity(a * dt)
+    q = -(f @ p + p @ f.T + f @ p @ f.T)
+    g = jnp.zeros((6, 6), dtype).at[:5, :5].set(eye + f).at[5, :5].set(c / m).at[5, 5].set(1.0)
+    q_w = jnp.zeros((6, 6), dtype).at[:5, :5].set(0.5 * (q + q.T))
+
+    def step(j, carry):
+        power, total = carry
+        on = j < m
+        total = jnp.where(on, total + power @ q_w @ power.T, total)
+        return jnp.where(on, g @ power, power), total
+
+    power, total = jax.lax.fori_loop(
+        0, max_block, step, (jnp.eye(6, dtype=dtype), jnp.zeros((6, 6), dtype))
+    )
+    lead = power[:, :5]
+    joint = lead @ p @ lead.T + total
+    return power, total, p, joint[5, 5], c @ p @ c
+
+
+def moment_noise_terms(error, params, dt, m, max_block: int, ratio, phi_block, mask):
+    """One-step prediction errors of block means under white output noise plus a
+    Gauss–Markov moment inside the loop (`moment_noise_model`), by a Kalman filter from
+    the stationary state: (ã, ln V) with ã_k = a_k·√(S_∞/S_k), a_k the innovation, S_k its
+    variance (per unit white variance; S_∞ the last block's) and ln V = Σ_k mask_k
+    ln(S_k/S_∞) over the blocks `mask` counts, so that −½[n ln(Σ ã²/n) + ln V] is the
+    exact profiled log-likelihood, as for `innovation_terms`. With `ratio` 0 it is white
+    noise exactly (S_k = 1/m, ã = e)."""
+    a, s = moment_kalman(error, params, dt, m, max_block, ratio, phi_block)
+    last = s[-1]
+    return a * jnp.sqrt(last / s), jnp.sum(mask * jnp.log(s / last))
+
+
+def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block):
+    """The innovations a_k and their variances S_k (per unit white variance) of
+    `moment_noise_terms`'s Kalman filter."""
+    power, total, p0, _, _ = moment_noise_model(params, dt, m, max_block, ratio, phi_block)
+    lead = power[:, :5]
+    white = 1.0 / m
+
+    def step(carry, e):
+        mean, cov = carry
+        predicted = lead @ mean
+        joint = lead @ cov @ lead.T + total
+        s = joint[5, 5] + white
+        a = e - predicted[5]
+        gain = joint[:5, 5] / s
+        new_cov = joint[:5, :5] - jnp.outer(joint[:5, 5], joint[:5, 5]) / s
+        return (predicted[:5] + gain * a, 0.5 * (new_cov + new_cov.T)), (a, s)
+
+    zero = jnp.zeros(5, error.dtype)
+    _, (a, s) = jax.lax.scan(step, (zero, p0.astype(error.dtype)), error)
+    return a, s

@@ -433,7 +433,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         bottom=float(np.min(yb)),
         block_samples=int(m),
     )
-    linear = [e for e in effects if not e.nonlinear]
+    linear = [e for e in effects if not e.nonlinear and not e.loop_noise]
     nonlinear = [e for e in effects if e.nonlinear]
     return StepRecord(
         data=data,

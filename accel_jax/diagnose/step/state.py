@@ -77,11 +77,13 @@ class RecordHost:
         (`torquer_time_constant` or `filter_time_constant`)."""
         return getattr(self, "nominal_" + field)
 
-    def candidate(self, *, innovation_variance: float, test_gain: float) -> CandidateHost:
+    def candidate(
+        self, *, innovation_variance: float, test_gain: float, device: Any = None
+    ) -> CandidateHost:
         """These scales with one candidate's fit (`CandidateHost`)."""
         own = {f.name: getattr(self, f.name) for f in dataclasses.fields(RecordHost)}
         return CandidateHost(
-            **own, innovation_variance=innovation_variance, test_gain=test_gain
+            **own, innovation_variance=innovation_variance, test_gain=test_gain, device=device
         )
 
 
@@ -92,11 +94,13 @@ class CandidateHost(RecordHost):
 
     **Fields:** those of `RecordHost`; `innovation_variance` [V²] the fit's one-step
     prediction variance on the training part; `test_gain` [V/V] the fitted closed-loop
-    test gain, polarity included.
+    test gain, polarity included; `device` the fitted device (`ServoParams`: the nominal's
+    with J, μ, c, k_dm refitted; None where not given).
     """
 
     innovation_variance: float
     test_gain: float
+    device: Any = None
 
 
 @dataclasses.dataclass(frozen=True)
