@@ -103,7 +103,7 @@ CASES = {
     # Gauss–Markov output noise 12× the white noise's σ (issue 44 item 2).
     "colored_noise_strong": dict(gm=(12 * SIGMA, 2e-4)),
     # A Gauss–Markov moment inside the loop, its output part 3× the white noise's σ: the
-    # loop filters it, and the output noise model does not describe it (not credited yet).
+    # loop filters it, and only the moment-noise model describes it.
     "moment_noise": dict(moment_gm=(3.0, 2e-4)),
 }
 
@@ -257,20 +257,44 @@ def test_strong_output_noise_is_named_and_its_size_recovered(diagnosed):
     # 5.4e-4 V against the truth's 4e-4 V, and the fit gives no standard error for it.
 
 
-def test_a_noise_not_credited_says_which_of_its_checks_failed(diagnosed):
-    # A moment noise inside the loop is filtered by the loop: the output noise model is
-    # the best library effect but its held-out one-step errors are not white. The
-    # summary must say that, not the free-run gap's "explains N % of the excess", which a
-    # noise model cannot close (it read "explains 100 %; 0 V remains" beside the verdict
-    # unexplained on blind records). When a moment-noise model credits this record, the
-    # verdict changes and this test has to change with it.
+def test_moment_noise_inside_the_loop_is_named_at_its_place(diagnosed):
+    # A Gauss–Markov moment inside the loop, its output part 3× the white noise's σ: the
+    # loop filters it (a correlation time near the loop's own), so the output noise model
+    # leaves coloured one-step errors (Ljung–Box fails on the held-out part) and only the
+    # moment-noise model, a Kalman filter of the fitted loop, whitens them. Before
+    # `moment_noise` the record read unexplained.
     _, result = diagnosed["moment_noise"]
-    entry = _entry(result, "colored_noise")
-    assert entry["significant"] and not entry["explains"]
-    assert result.verdict == "unexplained", result.summary()
-    assert "colored_noise" in result.reason
-    assert "one-step prediction errors on the held-out part are not white" in result.reason
-    assert "of the excess" not in result.reason
+    assert result.verdict == "moment_noise", result.summary()
+    output = _entry(result, "colored_noise")
+    assert output["significant"] and not output["explains"]
+    assert not output["one_step_whiteness"]["white"]
+    params = _entry(result, "moment_noise")["params"]
+    assert params["correlation_time_s"] == pytest.approx(2e-4, rel=0.35)
+    assert params["sigma_correlated_per_sample_V"] == pytest.approx(3 * SIGMA, rel=0.3)
+
+
+def test_a_noise_not_credited_says_which_of_its_checks_failed():
+    # The summary of an unexplained record whose best partial is a noise model says which
+    # of the noise's checks failed, not the free-run gap's "explains N % of the excess",
+    # which a noise model cannot close (it read "explains 100 %; 0 V remains" beside the
+    # verdict unexplained on blind records).
+    from accel_jax.diagnose.step.effects import ColoredNoise
+    from accel_jax.diagnose.step.verdict import _noise_not_credited
+
+    fit = SimpleNamespace(
+        one_step_whiteness={"white": False, "p_value": 1e-9, "lags": 20},
+        variance_consistent=False,
+        free_run_over_noise_variance=[1.2, 6.5],
+        model=ColoredNoise(),
+    )
+    text = _noise_not_credited("colored_noise", fit, {"evidence": 812.0})
+    assert "colored_noise" in text and "812.0" in text
+    assert "one-step prediction errors on the held-out part are not white" in text
+    assert "p = 1e-09 over 20 lags" in text
+    assert "not of the size it predicts" in text and "1.2, 6.5" in text
+    assert "of the excess" not in text
+    fit.one_step_whiteness, fit.variance_consistent = {"white": True}, True
+    assert "not significant and credible" in _noise_not_credited("colored_noise", fit, {"evidence": 1.0})
 
 
 def test_a_different_device_is_never_none(diagnosed):

@@ -325,6 +325,7 @@ def test_every_effect_is_the_nominal_model_at_zero():
         "disturbance_drift",
         "colored_noise",
         "stop_contact",
+        "moment_noise",
     ]
     ctx = _context(N, INDEX, STEPS)
     base = aj.ServoParams.reference()

@@ -17,9 +17,10 @@ record's ADC quantisation, is measured without the model (`openworld.noise_floor
 
 **Effects** (each `AbstractStepEffect` changes the model through one hook and is the nominal model
 at z = 0): `torquer_lag`, `output_filter`, `stop_saturation`, `disturbance_drift`,
-`colored_noise` and `stop_contact` (compliant stops, fitted where the inelastic clamp of
-`stop_saturation` does not explain the record), each described where it is defined
-(`effects`).
+`colored_noise`, `stop_contact` (compliant stops, fitted where the inelastic clamp of
+`stop_saturation` does not explain the record) and `moment_noise` (a Gauss–Markov moment
+inside the loop, fitted where no deterministic linear effect explains the record), each
+described where it is defined (`effects`).
 
 **Held out**: every third segment of constant test voltage, from the third on (the last
 third of the record when it has fewer than four segments; `record.held_out_samples`).

@@ -263,8 +263,8 @@ def _noise_not_credited(name: str, fit: StepFit, entry: dict) -> str:
         f"the best library effect, {name} ({described}evidence "
         f"2 ln B = {entry['evidence']:.1f}), does not explain the record: "
         + " and ".join(why)
-        + " — the record's noise is not that model's (coloured otherwise, or inside the "
-        "loop) or a deterministic misfit remains"
+        + " — the record's noise is not that model's (coloured another way, or entering "
+        "at another place) or a deterministic misfit remains"
     )
 
 
