@@ -13,7 +13,7 @@ import numpy as np
 from ..._data import NominalDevice
 from .. import openworld
 from ..base import SIGNIFICANCE, DiagnosisResult, held_out_gap
-from . import assess, nuisance
+from . import assess, noise_null, nuisance
 from .assess import assess_fit
 from .fit import DELAY_LIMIT, REFIT_FIELDS
 from .refit import _describe_where, _localise, _ranges, _refit_report
@@ -57,8 +57,19 @@ def evaluate(
         nominal_fit, plausible=bool(nominal_fit.converged and not nominal_fit.out_of_prior)
     )
     fits = [nominal_fit, *candidates]
+    # A noise candidate's predictability judged against its own fitted noise
+    # (`noise_null`): only where the fixed fraction calls the misfit deterministic (the
+    # calibrated test can only call it so less often).
+    own = {
+        fit.effect: noise_null.calibrated(predictable, fit, rec, nominal.params, window)
+        for fit in candidates
+        if fit.stochastic and fit.model is not None and predictable.get("deterministic")
+    }
     entries = [
-        ranking_entry(fit, nominal_fit, n_train=n_train, slack=slack, predictable=predictable)
+        ranking_entry(
+            fit, nominal_fit, n_train=n_train, slack=slack,
+            predictable=own.get(fit.effect, predictable),
+        )
         for fit in candidates
     ]
     nominal_status = {
@@ -211,6 +222,9 @@ def ranking_entry(
             "deterministic_misfit": absorbed,
             "one_step_whiteness": fit.one_step_whiteness,
             "variance_consistent": fit.variance_consistent,
+            # What each predictor removes from the fitted noise alone (`noise_null`; None
+            # where the fixed fraction did not call the misfit deterministic).
+            "predictability_null_quantile": predictable.get("null_quantile"),
         }
     return {
         "effect": fit.effect,
@@ -324,12 +338,20 @@ def _reason(
                 "differs from its model in detail"
             )
         if fit.stochastic:
+            null = entry[verdict].get("predictability_null_quantile")
+            beyond = (
+                " no more than from the fitted noise alone (its "
+                f"{noise_null.NULL_QUANTILE:.0%} quantiles over {noise_null.NULL_DRAWS} draws: "
+                f"{null['input_locked']:.2f}, {null['periodic']:.2f}, {null['trend']:.2f})"
+                if null
+                else ""
+            )
             text += (
                 "; the misfit is not predictable from the input changes, a periodic component "
                 "or a trend (held-out fractions removed: "
                 f"{predictable['input_locked']:.2f}, {predictable['periodic']:.2f}, "
-                f"{predictable['trend']:.2f}), and with the correlated noise the one-step "
-                "prediction errors are white"
+                f"{predictable['trend']:.2f}{beyond}), and with the correlated noise the "
+                "one-step prediction errors are white"
             )
         return text + "."
     parts = []
@@ -377,16 +399,29 @@ def _reason(
             )
     stochastic = [e for e in entries if e["stochastic"] and e["significant"]]
     if stochastic and stochastic[0].get("deterministic_misfit"):
-        best = max(("input_locked", "periodic", "trend"), key=lambda k: predictable[k])
+        null = stochastic[0].get("predictability_null_quantile")
+        tests = ("input_locked", "periodic", "trend")
+        if null:  # among the tests that beat the noise's own null
+            tests = tuple(
+                k for k in tests
+                if predictable[k] >= openworld.PREDICTABLE and predictable[k] > null[k]
+            ) or tests
+        best = max(tests, key=lambda k: predictable[k])
         what = {
             "input_locked": "locked to the input changes",
             "periodic": f"periodic ({predictable['frequency_Hz']:.4g} Hz)",
             "trend": "a trend",
         }[best]
+        beyond = (
+            f", against at most {null[best]:.0%} from the fitted noise alone in "
+            f"{noise_null.NULL_QUANTILE:.0%} of {noise_null.NULL_DRAWS} draws"
+            if null
+            else ""
+        )
         parts.append(
             f"correlated noise would absorb it, but the misfit is {what} (a predictor fitted on "
-            f"the training part removes {predictable[best]:.0%} of the held-out residual): "
-            "deterministic, not noise"
+            f"the training part removes {predictable[best]:.0%} of the held-out residual"
+            f"{beyond}): deterministic, not noise"
         )
     if where:
         parts.append(where)
