@@ -49,12 +49,15 @@ def _sqrt_psd(matrix: np.ndarray) -> np.ndarray:
 def noise_draws(fit: StepFit, rec: StepRecord, base, count: int, seed: int = 0) -> np.ndarray:
     """`count` realisations (count, rec.n) [V] of `fit`'s fitted noise on the record's blocks
     (`fit.model` a noise effect: `colored_noise` or `moment_noise`)."""
+    model = fit.model
+    if model is None or not model.stochastic:
+        raise ValueError(f"{fit.effect} is not a noise candidate")
     rng = np.random.default_rng(seed)
     n, m = rec.n, rec.block
-    z = np.asarray(fit.w)[W.effect(fit.model.n_params)]
+    z = np.asarray(fit.w)[W.effect(model.n_params)]
     white = float(fit.params["sigma_white_per_sample_V"])
     ratio, phi_block = max(float(z[0]), 0.0) ** 2, float(np.tanh(float(z[1])))
-    if fit.model.loop_noise:
+    if model.loop_noise:
         import jax.numpy as jnp
 
         device = refitted_device(base, jnp.asarray(fit.z), jnp.asarray(rec.prior_sigma))
@@ -74,7 +77,8 @@ def noise_draws(fit: StepFit, rec: StepRecord, base, count: int, seed: int = 0) 
     phi, theta, _, variance = (float(v) for v in block_noise(ratio, phi_block, m, max(m, 1)))
     burn = int(min(MAX_BURN, 10.0 / max(1.0 - abs(phi), 1e-12)))
     a = rng.standard_normal((count, n + burn)) * np.sqrt(variance)
-    return white * lfilter([1.0, -theta], [1.0, -phi], a, axis=1)[:, burn:]
+    filtered = np.asarray(lfilter([1.0, -theta], [1.0, -phi], a, axis=1))
+    return white * filtered[:, burn:]
 
 
 def calibrated(
