@@ -1,8 +1,9 @@
 """One-step prediction errors of the step diagnosis's noise models on the fit's block means:
 white + Gauss–Markov output noise (`effects.ColoredNoise`; white alone at φ = θ = 0) as an
 ARMA(1,1) recursion evaluated by a blocked first-order filter (`innovation_terms`), and
-white output noise + a Gauss–Markov moment inside the loop (`effects.MomentNoise`) by a
-Kalman filter of the loop's states through each block (`moment_noise_terms`)."""
+white output noise + a Gauss–Markov moment inside the loop (`effects.MomentNoise`) by the
+package's Kalman filter (`accel_jax._kalman.kalman_filter`) on the loop's states carried
+through each block (`moment_noise_terms`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import math
 import jax
 import jax.numpy as jnp
 
+from ..._kalman import LinearGaussianModel, kalman_filter
 from ..._servo import time_constant
 from ..._simulate.matrix import expm_minus_identity
 from ..._simulate.sequence import loop_system
@@ -132,21 +134,20 @@ def moment_noise_terms(error, params, dt, m, max_block: int, ratio, phi_block, m
 
 def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block):
     """The innovations a_k and their variances S_k (per unit white variance) of
-    `moment_noise_terms`'s Kalman filter."""
+    `moment_noise_terms`'s Kalman filter: the package's `kalman_filter` on the state
+    ξ_k = [x at the end of block k; s_k, block k's loop part], ξ_{k+1} = [Gᵐ]₍:,:5₎ ξ_k[:5] +
+    w_k (w ~ N(0, Σ)), observed as s_k + the white part's mean (variance 1/m); its prior is
+    the stationary joint of the first block (P through one block, plus Σ)."""
     power, total, p0, _, _ = moment_noise_model(params, dt, m, max_block, ratio, phi_block)
-    lead = power[:, :5]
-    white = 1.0 / m
-
-    def step(carry, e):
-        mean, cov = carry
-        predicted = lead @ mean
-        joint = lead @ cov @ lead.T + total
-        s = joint[5, 5] + white
-        a = e - predicted[5]
-        gain = joint[:5, 5] / s
-        new_cov = joint[:5, :5] - jnp.outer(joint[:5, 5], joint[:5, 5]) / s
-        return (predicted[:5] + gain * a, 0.5 * (new_cov + new_cov.T)), (a, s)
-
-    zero = jnp.zeros(5, error.dtype)
-    _, (a, s) = jax.lax.scan(step, (zero, p0.astype(error.dtype)), error)
-    return a, s
+    dtype = error.dtype
+    lead = power[:, :5].astype(dtype)
+    transition = jnp.zeros((6, 6), dtype).at[:, :5].set(lead)
+    model = LinearGaussianModel(
+        transition=transition,
+        process_covariance=total.astype(dtype),
+        observation=jnp.zeros((1, 6), dtype).at[0, 5].set(1.0),
+        observation_covariance=jnp.reshape(1.0 / m, (1, 1)).astype(dtype),
+    )
+    prior = lead @ p0.astype(dtype) @ lead.T + total.astype(dtype)
+    out = kalman_filter(model, error, jnp.zeros(6, dtype), prior)
+    return out.innovations[:, 0], out.innovation_covariances[:, 0, 0]
