@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import openworld
-from .fit import GAIN_SIGMA, REFIT_FIELDS, n_timing, refitted_device
+from .model import GAIN_SIGMA, REFIT_FIELDS, n_timing, refitted_device
 from .layout import W
 from .state import StepFit, StepRecord
 

@@ -24,7 +24,7 @@ import numpy as np
 from ..._data import DataError, NominalDevice, StepData
 from ..base import INDISTINCT, SIGNIFICANCE, require_float64, verdict_line
 from .design import next_experiments
-from .fit import REFIT_FIELDS
+from .model import REFIT_FIELDS
 from .joint import (
     CANDIDATES,
     PreparedSet,

@@ -24,7 +24,7 @@ from scipy.signal import lfilter
 
 from .. import openworld
 from .effects import block_noise
-from .fit import refitted_device
+from .model import refitted_device
 from .innovations import moment_noise_model
 from .layout import W
 from .state import StepFit, StepRecord

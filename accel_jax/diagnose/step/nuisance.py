@@ -10,7 +10,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import DELAY_LIMIT, GAIN_SIGMA, n_timing, timing_terms
+from .model import DELAY_LIMIT, GAIN_SIGMA, n_timing, timing_terms
 from .layout import W
 from .state import StepFit, StepRecord
 

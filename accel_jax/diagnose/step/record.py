@@ -18,7 +18,7 @@ from ..._simulate.sequence import accel_moment
 from .. import openworld
 from .domain import check_domain
 from .inputs import UNCLOCKED_CHANGES, clock_grid, level_groups, read_inputs
-from .fit import (
+from .model import (
     DELAY_LIMIT,
     DELAY_PRIOR_SIGMA,
     GAIN_SIGMA,

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..._servo import scale_factor
 from ..base import ljung_box
-from .fit import REFIT_FIELDS, refitted_device
+from .model import REFIT_FIELDS, refitted_device
 from .layout import W
 from .nuisance import change_shifts
 from .segments import segments, time_text

@@ -25,7 +25,7 @@ from ..._data import StepData
 
 if TYPE_CHECKING:
     from .effects import AbstractStepEffect
-    from .fit import StepContext
+    from .model import StepContext
     from .inputs import Clock
 
 

@@ -15,7 +15,7 @@ from .. import openworld
 from ..base import SIGNIFICANCE, DiagnosisResult, held_out_gap
 from . import assess, noise_null, nuisance
 from .assess import assess_fit
-from .fit import DELAY_LIMIT, REFIT_FIELDS
+from .model import DELAY_LIMIT, REFIT_FIELDS
 from .refit import _describe_where, _localise, _ranges, _refit_report
 from .state import StepFit, StepRecord
 
