@@ -305,8 +305,11 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
 @_diagnose("--kind", type=click.Choice(["step", "vibration", "noise"]), default=None)
 @_diagnose("--params", "params_file")
 @_diagnose("--input-delay", "input_delay", type=float, default=None)
+@_diagnose("--discover/--no-discover", "discover", default=False)
 @outputs("diagnose", out="diagnosis")
-def diagnose(files, kind, params_file, input_delay, json_out, plot_out, out_dir, force, device):
+def diagnose(
+    files, kind, params_file, input_delay, discover, json_out, plot_out, out_dir, force, device
+):
     paths = _start("diagnosis", out_dir, force, device, json_out, plot_out)
     from . import DataError, StepData, read_csv, with_input_delay
     from .diagnose import SetDiagnosis, diagnose_step_set
@@ -336,11 +339,13 @@ def diagnose(files, kind, params_file, input_delay, json_out, plot_out, out_dir,
             sources, unused_params = {"sources": list(kinds)}, None
         else:
             data = with_input_delay(read_csv(files[0], kind=kind), input_delay, path=files[0])
-            result = run_diagnosis(data, _nominal(params_file))
+            result = run_diagnosis(data, _nominal(params_file), discover=discover)
             sources = {"source": str(files[0])}
             unused_params = data.kind if params_file is not None and data.kind != "step" else None
     click.echo(result.summary())
     write(paths["text"], result.summary(), "summary")
+    if discover and len(files) > 1:
+        click.echo("note: --discover looks at one record; a set of records is not searched")
     if unused_params is not None:
         click.echo(
             f"note: --params is not used by the {unused_params} diagnosis (its nominal model "

@@ -357,6 +357,7 @@ class DiagnosisResult:
     remaining_gap: dict = dataclasses.field(default_factory=dict)
     reason: str = ""
     next_experiment: list = dataclasses.field(default_factory=list)
+    discovery: dict | None = None
 
     def to_dict(self) -> dict:
         """The JSON document of docs/models.md §5's CLI contract (plain numbers and strings)."""
@@ -373,6 +374,7 @@ class DiagnosisResult:
             "refit": self.refit,
             "notes": list(self.notes),
             **({"next_experiment": self.next_experiment} if self.next_experiment else {}),
+            **({"discovery": self.discovery} if self.discovery is not None else {}),
         }
 
     def summary(self) -> str:
@@ -463,8 +465,40 @@ class DiagnosisResult:
             lines.append(
                 f"next experiment: {e['description']} (expected 2 ln B ≈ {e['expected_2lnB']:.3g})"
             )
+        lines.extend(discovery_lines(self.discovery))
         lines.extend(f"note: {note}" for note in self.notes)
         return "\n".join(lines)
+
+
+def discovery_lines(discovery: dict | None) -> list[str]:
+    """The summary's "discovered (hypothesis)" block (`step.discover`); none without one."""
+    if discovery is None:
+        return []
+    best = discovery.get("best")
+    if best is None:
+        return ["discovered (hypothesis): nothing found in the term library"]
+
+    def term_text(d):
+        parts = [
+            f"{col['term']} at the {col['place']} ({col['formula']}), "
+            f"c = {col['coefficient']:.3g} ± {col['sigma']:.2g}"
+            for col in d["columns"]
+        ]
+        return " + ".join(parts)
+
+    lines = [
+        f"discovered (hypothesis, {discovery['rating']}): {term_text(best)}",
+        f"   held-out gap {best['held_out_gap_before_V']:.3g} → "
+        f"{best['held_out_gap_after_V']:.3g} V above the floor "
+        f"({best['explained_fraction']:.0%} explained), evidence {best['evidence']:.1f}, "
+        f"stable in {best['stability']:.0%} of resamples",
+    ]
+    tie = discovery.get("tie")
+    if tie is not None:
+        lines.append(
+            f"   cannot tell it from: {term_text(tie)} (evidence {tie['evidence']:.1f})"
+        )
+    return lines
 
 
 def _fitted_lines(result) -> list[str]:

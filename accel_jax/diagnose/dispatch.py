@@ -14,11 +14,17 @@ _KINDS = {"step": diagnose_step, "vibration": diagnose_vibration, "noise": diagn
 
 
 def diagnose_many(
-    datasets: list[Dataset], nominal: NominalDevice | None = None, *, recommend: bool = True
+    datasets: list[Dataset],
+    nominal: NominalDevice | None = None,
+    *,
+    recommend: bool = True,
+    discover: bool = False,
 ) -> list[DiagnosisResult]:
     """Diagnose several records (same kind) against one nominal device, each on its own;
     records of one length are fitted as one batch (one compilation). See `diagnose`.
-    `recommend` (step records): compute the next experiment for a lag tie. Several step
+    `recommend` (step records): compute the next experiment for a lag tie; `discover`
+    (step records): look for the missing term of an unexplained record
+    (`step.discover`). Several step
     records of one device diagnosed *together*: `step.joint_verdict.diagnose_step_set`."""
     if not datasets:
         return []
@@ -31,11 +37,13 @@ def diagnose_many(
     nominal = NominalDevice.reference() if nominal is None else nominal
     if kind == "step":
         steps = cast(list[StepData], list(datasets))  # every record of kind "step"
-        return diagnose_step(steps, nominal, recommend=recommend)
+        return diagnose_step(steps, nominal, recommend=recommend, discover=discover)
     return _KINDS[kind](list(datasets), nominal)
 
 
-def diagnose(data: Dataset, nominal: NominalDevice | None = None) -> DiagnosisResult:
+def diagnose(
+    data: Dataset, nominal: NominalDevice | None = None, *, discover: bool = False
+) -> DiagnosisResult:
     """Diagnose the sim-to-real gap of one record.
 
     1. Refits the nominal parameters (under their prior where the kind has one); 2.
@@ -52,6 +60,8 @@ def diagnose(data: Dataset, nominal: NominalDevice | None = None) -> DiagnosisRe
         uses it (the vibration and noise nominal models have no servo parameters).
 
     **Returns:** a `DiagnosisResult` (`.verdict`, `.ranking`, `.gap`, `.where`, `.refit`,
-    `.to_dict()`, `.summary()`). Computed in float64 (x64 must be enabled).
+    `.to_dict()`, `.summary()`). Computed in float64 (x64 must be enabled). With
+    `discover` (step records), an unexplained record also gets `.discovery`: the missing
+    term found in the term library, a hypothesis (`step.discover`).
     """
-    return diagnose_many([data], nominal)[0]
+    return diagnose_many([data], nominal, discover=discover)[0]

@@ -71,7 +71,11 @@ LAG_PAIR = frozenset({"torquer_lag", "output_filter"})
 
 
 def diagnose_step(
-    datasets: list[StepData], nominal: NominalDevice, *, recommend: bool = True
+    datasets: list[StepData],
+    nominal: NominalDevice,
+    *,
+    recommend: bool = True,
+    discover: bool | str = False,
 ) -> list[DiagnosisResult]:
     """Diagnose step records against a nominal device (docs/models.md §5, `step` kind).
 
@@ -87,6 +91,10 @@ def diagnose_step(
     - `recommend`: with a `cannot_tell` between `torquer_lag` and `output_filter`, compute
         the experiment that would separate them (`result.next_experiment`, from the joint
         fit of `joint`: ~10–60 s per such record on a CPU).
+    - `discover`: True: for an `unexplained` record that passed the domain check, look for
+        the missing term in the term library (`discover`: `result.discovery`, a
+        hypothesis; the verdict stays `unexplained`); "all": for every record that passed
+        it (a check that nothing is found where nothing is missing).
 
     **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;
     a `ValueError` otherwise).
@@ -189,6 +197,13 @@ def diagnose_step(
                 "inelastic stops or a linear model already explains the record"
             )
         results.append(evaluate(rec.data, nominal, rec, record_fits))
+    if discover:
+        from .discover import discover as discover_term
+
+        for rec, record_fits, result in zip(records, fits, results, strict=True):
+            wanted = discover == "all" or result.verdict == "unexplained"
+            if wanted and not rec.domain_problems:
+                result.discovery = discover_term(rec, nominal, record_fits[0], effects)
     if recommend:
         for data, rec, result in zip(datasets, records, results, strict=True):
             if result.verdict == "cannot_tell" and set(result.tied) == LAG_PAIR:

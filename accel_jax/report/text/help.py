@@ -108,6 +108,11 @@ OPTIONS = {
         "--input-delay": "Step records: the input channels' known delay behind u_out's, in "
         "seconds (an ADC's skew, an anti-alias filter's group delay). Default: unknown, and "
         "for a measured u_test fitted, where it can take up a lag of the loop of its size.",
+        "--discover/--no-discover": "Step records: where no library effect explains the record "
+        "(unexplained), look for the missing term in a library of terms at named places in "
+        "the loop (pickoff, spring, damping, torquer, output, forcing) and report it as a "
+        "hypothesis: the term, its coefficient ± σ, the held-out gap it closes, its "
+        "evidence and stability. Adds about a minute per such record on a CPU.",
         "--json": "Write the diagnosis as JSON here.",
         "--plot": "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
         "--force": _RECORDS_FORCE,

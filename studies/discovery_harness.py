@@ -1,0 +1,218 @@
+"""Blind check of the discovery of a missing term (`accel_jax.diagnose.step.discover`) on
+step records the library did not make.
+
+Every record comes from an independent truth simulator written from the loop's physics
+without the diagnosis's code: `step_truth.py` (a pickoff nonlinearity, a vibrating stand, a
+clean record, and the library's own effects for the leave-one-out cases) and
+`discovery_truth.py` (a torquer's scale factor by current direction, Coulomb friction with
+sticking, pickoff hysteresis, a second mechanical mode), each on `step_truth`'s randomised
+conventions (device, polarities, offsets, ADC, sample rate, start state, off-grid changes).
+
+The denominator is fixed here, before any run (`EXPECTED`): each class's generating term in
+the term library, or its stated equivalent; a record is right when the best discovered
+subset is exactly that (or the one tie it lists is), and credible-and-right counts toward
+the issue's figure. Classes whose cause the term library deliberately lacks
+(`pickoff_hysteresis`, `second_mode`) and clean records (`none`, discovered on every record
+with `discover="all"`) must give no credible discovery. Leave-one-out classes
+(`loo_<effect>`) are diagnosed with that effect removed from the library.
+
+The diagnosis runs in a fresh process per library that sees only the CSV files, against
+the reference device with T_dm = T_f = 0 (the truths' lags), as the other blind harnesses
+do. Float64.
+
+    python studies/discovery_harness.py --per-class 5 --out out/discovery
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import discovery_truth  # noqa: E402
+import step_truth  # noqa: E402
+from measured_input_harness import _commit  # noqa: E402
+
+EXPECTED = {
+    "none": None,
+    "pickoff_nonlinearity": ("pickoff_cube", "pickoff_square"),
+    "periodic_disturbance": ("forcing_sinusoid",),
+    "torquer_asymmetry": ("torquer_asymmetry",),
+    "coulomb_friction": ("dry_friction",),
+    "pickoff_hysteresis": None,
+    "second_mode": None,
+    "loo_disturbance_drift": ("forcing_ramp",),
+    "loo_torquer_lag": ("torquer_pole",),
+    "loo_output_filter": ("output_pole",),
+}
+"""Each class's generating term(s) in the term library, sorted (None: nothing to find —
+no credible discovery is the right answer)."""
+
+CLASSES = tuple(EXPECTED)
+LEFT_OUT = {c: c.removeprefix("loo_") for c in CLASSES if c.startswith("loo_")}
+
+_BLIND = """
+import json, pathlib, sys
+import accel_jax
+from accel_jax._runtime import apply_device, enable_compilation_cache
+apply_device(latency_bound=True)
+enable_compilation_cache()
+import jax
+jax.config.update("jax_enable_x64", True)
+from accel_jax import NominalDevice, read_csv
+from accel_jax.diagnose.step import effects as library, entry, fit
+left_out = sys.argv[3]
+if left_out:
+    reduced = [e for e in library.step_effects() if e.name != left_out]
+    entry.step_effects = fit.step_effects = lambda: reduced
+nominal = NominalDevice.reference(torquer_time_constant=0.0, filter_time_constant=0.0)
+files = sorted(pathlib.Path(sys.argv[2]).glob("*.csv"))
+out = {}
+for f in files:
+    result = entry.diagnose_step([read_csv(f)], nominal, recommend=False, discover="all")[0]
+    out[f.stem] = {
+        "verdict": result.verdict,
+        "tied": list(result.tied),
+        "discovery": result.discovery,
+    }
+pathlib.Path(sys.argv[1]).write_text(json.dumps(out, default=float))
+"""
+
+
+def record_rng(seed: int, effect: str, index: int) -> np.random.Generator:
+    return np.random.default_rng([seed, CLASSES.index(effect), index])
+
+
+def _world(effect: str, rng) -> tuple[dict, tuple]:
+    """(truth, (t, u_test, u_out)) of one record of class `effect`."""
+    if effect in discovery_truth.CLASSES and effect != "none":
+        truth = discovery_truth.draw(rng, effect)
+        return truth, discovery_truth.make(truth, rng)
+    source = LEFT_OUT.get(effect, effect)
+    truth = step_truth.draw_truth(rng, source)
+    t, u, y, _ = step_truth.make(truth, rng)
+    return truth, (t, u, y)
+
+
+def write_records(per_class: int, seed: int, folder: Path, classes) -> dict:
+    """Write `per_class` records of each class under folder/<class>/; their truths by name."""
+    from accel_jax import StepData, write_csv
+
+    truths = {}
+    for effect in classes:
+        for i in range(per_class):
+            truth, (t, u, y) = _world(effect, record_rng(seed, effect, i))
+            name = f"{effect}_{i:04d}"
+            write_csv(folder / effect / f"{name}.csv", StepData(t, u, y))
+            truths[name] = {"class": effect, **truth}
+    return truths
+
+
+def diagnose_blind(folder: Path, left_out: str) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "rows.json"
+        subprocess.run(
+            [sys.executable, "-c", _BLIND, str(out), str(folder), left_out],
+            check=True,
+            cwd=Path(__file__).resolve().parent.parent,
+        )
+        return json.loads(out.read_text())
+
+
+def judge(effect: str, row: dict) -> dict:
+    """One record's outcome: the discovery's rating, its best terms, right or not."""
+    discovery = row.get("discovery")
+    rating = discovery["rating"] if discovery else "not run"
+    best = discovery.get("best") if discovery else None
+    terms = tuple(sorted(best["terms"])) if best else ()
+    tie = discovery.get("tie") if discovery else None
+    tie_terms = tuple(sorted(tie["terms"])) if tie else ()
+    expected = EXPECTED[effect]
+    right = expected is not None and expected in (terms, tie_terms)
+    return {
+        "rating": rating,
+        "best": list(terms),
+        "tie": list(tie_terms),
+        "right": bool(right),
+        "credible_and_right": bool(right and rating == "credible"),
+        "credible": rating == "credible",
+    }
+
+
+def score(truths: dict, rows: dict) -> dict:
+    by_class = {}
+    for name, truth in truths.items():
+        outcome = judge(truth["class"], rows[name])
+        entry = by_class.setdefault(
+            truth["class"],
+            {"records": 0, "credible": 0, "right": 0, "credible_and_right": 0, "unexplained": 0},
+        )
+        entry["records"] += 1
+        entry["unexplained"] += rows[name]["verdict"] == "unexplained"
+        for key in ("credible", "right", "credible_and_right"):
+            entry[key] += outcome[key]
+    findable = [c for c in by_class if EXPECTED[c] is not None]
+    nothing = [c for c in by_class if EXPECTED[c] is None]
+    return {
+        "by_class": by_class,
+        "findable_credible_and_right": sum(by_class[c]["credible_and_right"] for c in findable),
+        "findable_records": sum(by_class[c]["records"] for c in findable),
+        "nothing_to_find_credible": sum(by_class[c]["credible"] for c in nothing),
+        "nothing_to_find_records": sum(by_class[c]["records"] for c in nothing),
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--per-class", type=int, default=5)
+    parser.add_argument("--seed", type=int, default=4500)
+    parser.add_argument("--classes", nargs="+", choices=CLASSES, default=list(CLASSES))
+    parser.add_argument("--out", type=Path, default=Path("out/discovery"))
+    args = parser.parse_args(argv)
+    if args.per_class < 1:
+        parser.error("--per-class must be at least 1")
+    start = time.time()
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "records"
+        truths = write_records(args.per_class, args.seed, folder, args.classes)
+        libraries: dict[str, list[str]] = {}
+        for effect in args.classes:
+            libraries.setdefault(LEFT_OUT.get(effect, ""), []).append(effect)
+        for left_out, classes in libraries.items():
+            group = Path(tmp) / f"group_{left_out or 'full'}"
+            group.mkdir()
+            for effect in classes:
+                for f in (folder / effect).glob("*.csv"):
+                    f.rename(group / f.name)
+            rows.update(diagnose_blind(group, left_out))
+    result = {
+        "commit": _commit(),
+        "seed": args.seed,
+        "per_class": args.per_class,
+        "expected": {k: list(v) if v else None for k, v in EXPECTED.items()},
+        "nominal": "the reference device with T_dm = T_f = 0",
+        "seconds": time.time() - start,
+        "score": score(truths, rows),
+        "records": {
+            n: {"truth": truths[n], **rows[n], "outcome": judge(truths[n]["class"], rows[n])}
+            for n in truths
+        },
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    partial = args.out / "result.json.partial"
+    partial.write_text(json.dumps(result, indent=1, default=float))
+    partial.replace(args.out / "result.json")
+    print(json.dumps(result["score"], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
