@@ -14,9 +14,10 @@ import pytest
 
 from accel_jax._data import NominalDevice
 from accel_jax._simulate.sequence import SequenceInputs, linear_record
-from accel_jax.diagnose.step import discover as D
+from accel_jax.diagnose.step import terms
 from accel_jax.diagnose.step import effects as step_effects_module
 from accel_jax.diagnose.step import entry, fit
+from accel_jax.diagnose.step.discover import STABLE
 from accel_jax.diagnose.step.entry import diagnose_step
 
 from test_diagnose_step import CASES, U, _record
@@ -45,27 +46,27 @@ def test_at_zero_the_exact_linear_record(lags):
     dt, n, m = 2e-6, 300, 5
     duration = dt * (n * m - 1)
     exact = linear_record(params, dt, n, _sequence(), block=m, max_block=m, duration=duration)
-    scales = D.Scales(1.0, 1e-3, duration, 2 * np.pi * 1e3)
-    mine = D.term_record(params, dt, n, m, _sequence(), jnp.zeros(D.N_COEFFICIENTS), scales)
+    scales = terms.Scales(1.0, 1e-3, duration, 2 * np.pi * 1e3)
+    mine = terms.term_record(params, dt, n, m, _sequence(), jnp.zeros(terms.N_COEFFICIENTS), scales)
     assert float(jnp.max(jnp.abs(mine - exact))) < 1e-12
 
 
 def test_first_order_effects_against_finite_differences():
     params = NominalDevice.reference().params
     dt, n, m = 2e-6, 200, 5
-    scales = D.Scales(1.0, 1e-3, dt * (n * m - 1), 2 * np.pi * 1e3)
+    scales = terms.Scales(1.0, 1e-3, dt * (n * m - 1), 2 * np.pi * 1e3)
 
     def record(c):
-        return D.term_record(params, dt, n, m, _sequence(), c, scales)
+        return terms.term_record(params, dt, n, m, _sequence(), c, scales)
 
-    c0 = jnp.zeros(D.N_COEFFICIENTS)
+    c0 = jnp.zeros(terms.N_COEFFICIENTS)
     jac = jax.jacfwd(record)(c0)
     h = 1e-6
-    for k in range(D.N_COEFFICIENTS):
-        e = jnp.zeros(D.N_COEFFICIENTS).at[k].set(h)
+    for k in range(terms.N_COEFFICIENTS):
+        e = jnp.zeros(terms.N_COEFFICIENTS).at[k].set(h)
         central = (record(e) - record(-e)) / (2 * h)
         scale = float(jnp.max(jnp.abs(central))) + 1e-12
-        assert float(jnp.max(jnp.abs(jac[:, k] - central))) < 1e-5 * scale, D.TERMS
+        assert float(jnp.max(jnp.abs(jac[:, k] - central))) < 1e-5 * scale, terms.TERMS
     # Every term reaches the output (none is a dead column).
     assert bool(jnp.all(jnp.max(jnp.abs(jac), axis=0) > 0))
 
@@ -104,7 +105,7 @@ def test_a_vibrating_stand_is_found_as_a_sinusoidal_moment(discovered):
     assert best["terms"] == ["forcing_sinusoid"]
     assert best["frequency_Hz"] == pytest.approx(1300.0, abs=1.0)
     assert best["held_out_at_floor"]
-    assert best["stability"] >= D.STABLE
+    assert best["stability"] >= STABLE
     assert result.discovery["rating"] == "credible"
 
 

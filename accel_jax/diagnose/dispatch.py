@@ -38,7 +38,13 @@ def diagnose_many(
     if kind == "step":
         steps = cast(list[StepData], list(datasets))  # every record of kind "step"
         return diagnose_step(steps, nominal, recommend=recommend, discover=discover)
-    return _KINDS[kind](list(datasets), nominal)
+    results = _KINDS[kind](list(datasets), nominal)
+    if discover:
+        for result in results:
+            result.notes.append(
+                f"no discovery: the search for a missing term covers step records, not {kind}"
+            )
+    return results
 
 
 def diagnose(
