@@ -34,6 +34,11 @@ prediction errors are reported beside it).
 **Verdict**: `openworld.decide` — `none`, an effect, `cannot_tell` or `unexplained`, after
 a domain check (`domain`) that refuses records the model family cannot describe.
 
+**Discovery** (`diagnose_step(..., discover=True)`): where no library effect explains a
+record, the missing term is looked for in a library of terms at named places in the loop
+(`terms`, `discover`) and reported as a hypothesis (`DiagnosisResult.discovery`); the
+verdict stays `unexplained`.
+
 **Modules.** `entry` (`diagnose_step`), `record` (a record read into a `StepRecord`, the
 typed state of `state`; `segments`, `domain`), `inputs` (a measured input read as
 plateaus), `effects`, `fit` (the JAX fit of every candidate, each model a `CandidateModel`;
@@ -42,7 +47,8 @@ candidate's fit, a `state.StepFit`, and its assessment), `verdict` (the open-wor
 decision; the ranking's entries, as reported, from `ranking_entry`), `refit` and `nuisance`
 (what the refit says); several records of one device: `joint` (the joint fit, each
 candidate's a `state.JointFit`), `joint_verdict` (its ranking and verdict,
-`diagnose_step_set`), `design` (the next experiment for a lag tie).
+`diagnose_step_set`), `design` (the next experiment for a lag tie); `terms` and `discover`
+(the discovery of a missing term).
 
 Everything is float64 (enable x64: the fitted change times are ~1e-7 s, and the evidence
 compares log-likelihoods of ~1e4 to within ~1).
