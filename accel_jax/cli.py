@@ -305,7 +305,7 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
 @_diagnose("--kind", type=click.Choice(["step", "vibration", "noise"]), default=None)
 @_diagnose("--params", "params_file")
 @_diagnose("--input-delay", "input_delay", type=float, default=None)
-@_diagnose("--discover/--no-discover", "discover", default=False)
+@_diagnose("--discover/--no-discover", "discover", default=True)
 @outputs("diagnose", out="diagnosis")
 def diagnose(
     files, kind, params_file, input_delay, discover, json_out, plot_out, out_dir, force, device

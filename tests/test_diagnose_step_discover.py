@@ -7,6 +7,8 @@ filter: its first-order equivalent is the term `output_pole`)."""
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -107,6 +109,26 @@ def test_a_vibrating_stand_is_found_as_a_sinusoidal_moment(discovered):
     assert best["held_out_at_floor"]
     assert best["stability"] >= STABLE
     assert result.discovery["rating"] == "credible"
+
+
+def test_the_command_line_reports_the_discovery(discovered, tmp_path):
+    # `accel-jax diagnose` looks for the missing term of an unexplained record by default;
+    # `--no-discover` does not.
+    from click.testing import CliRunner
+
+    from accel_jax import write_csv
+    from accel_jax.cli import main
+
+    csv = write_csv(tmp_path / "rec.csv", _record(1, **CASES["periodic_disturbance"]))
+    out_json = tmp_path / "d.json"
+    result = CliRunner().invoke(main, ["diagnose", str(csv), "--json", str(out_json)])
+    assert result.exit_code == 0, result.output
+    assert "discovered (hypothesis, credible): forcing_sinusoid" in result.output
+    doc = json.loads(out_json.read_text())
+    assert doc["verdict"] == "unexplained"
+    assert doc["discovery"]["best"]["terms"] == ["forcing_sinusoid"]
+    plain = CliRunner().invoke(main, ["diagnose", str(csv), "--no-discover"])
+    assert plain.exit_code == 0 and "discovered" not in plain.output
 
 
 def test_nothing_credible_on_a_clean_record(discovered):

@@ -58,6 +58,13 @@ GLOSSARY: tuple[tuple[str, str], ...] = (
         "effect closes it).",
     ),
     (
+        "discovery",
+        "for an unexplained step record, the missing term found in a library of terms at "
+        "named places in the loop (pickoff, spring, damping, torquer, output, forcing): a "
+        "hypothesis, rated credible (held-out gap at the noise floor, stable, evidence ≥ "
+        "10), tentative or nothing found; the verdict stays unexplained.",
+    ),
+    (
         "δK_a",
         "relative error of the identified scale factor K_a against the true one, in %.",
     ),

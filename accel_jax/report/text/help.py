@@ -112,7 +112,8 @@ OPTIONS = {
         "(unexplained), look for the missing term in a library of terms at named places in "
         "the loop (pickoff, spring, damping, torquer, output, forcing) and report it as a "
         "hypothesis: the term, its coefficient ± σ, the held-out gap it closes, its "
-        "evidence and stability. Adds about a minute per such record on a CPU.",
+        "evidence and stability (on by default; about 1.6× a cold diagnosis of such a "
+        "record on a CPU).",
         "--json": "Write the diagnosis as JSON here.",
         "--plot": "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
         "--force": _RECORDS_FORCE,
