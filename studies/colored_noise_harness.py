@@ -44,6 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import colored_truth  # noqa: E402
 from measured_input_harness import _commit  # noqa: E402
 
+from accel_jax.report import write_json_atomic  # noqa: E402
+
 CLASSES = colored_truth.CLASSES
 NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
 BANDS = ((1.0, 3.0), (3.0, 8.0), (8.0, 20.0))
@@ -215,10 +217,7 @@ def main(argv=None) -> int:
             for n in truths
         },
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    partial = args.out / "result.json.partial"
-    partial.write_text(json.dumps(result, indent=1, default=float))
-    partial.replace(args.out / "result.json")
+    write_json_atomic(args.out / "result.json", result)  # whole or not at all
     print(json.dumps(result["score"], indent=1))
     return 0
 

@@ -40,6 +40,8 @@ import discovery_truth  # noqa: E402
 import step_truth  # noqa: E402
 from measured_input_harness import _commit  # noqa: E402
 
+from accel_jax.report import write_json_atomic  # noqa: E402
+
 EXPECTED = {
     "none": None,
     "pickoff_nonlinearity": ("pickoff_cube", "pickoff_square"),
@@ -206,10 +208,7 @@ def main(argv=None) -> int:
             for n in truths
         },
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    partial = args.out / "result.json.partial"
-    partial.write_text(json.dumps(result, indent=1, default=float))
-    partial.replace(args.out / "result.json")
+    write_json_atomic(args.out / "result.json", result)  # whole or not at all
     print(json.dumps(result["score"], indent=1))
     return 0
 
