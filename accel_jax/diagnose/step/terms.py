@@ -106,10 +106,10 @@ class Scales(NamedTuple):
     omega: jax.Array | float
 
 
-def _signals(x, drive, xdot, c_out, t, ideal_torquer, scales: Scales):
+def _signals(x, drive, c_out, t, ideal_torquer, scales: Scales):
     """Every coefficient's signal at one sample: (moment (N_COEFFICIENTS,), pickoff (…),
     output (…)), each zero where the term does not enter there."""
-    h, period = scales.half, scales.period
+    h = scales.half
     v, w = x[0], x[1]
     torque = jnp.where(ideal_torquer, drive - v, x[2])
     y = c_out @ x
@@ -127,7 +127,6 @@ def _signals(x, drive, xdot, c_out, t, ideal_torquer, scales: Scales):
         "torquer_square": torque * jnp.abs(torque) / h,
         "torquer_dead_zone": h * jnp.tanh(torque / smooth),
         "torquer_pole": zero,  # both poles are `term_record`'s own
-
         "output_square": y * y / h,
         "output_pole": zero,
         "forcing_ramp": h * t / scales.duration,
@@ -215,8 +214,7 @@ def term_record(params, dt, n: int, m: int, sequence: SequenceInputs, coefficien
 
     def forces(z, time, lagged_torque, torque_before):
         x, drive = z[:N_STATES], z[N_STATES]
-        xdot = a @ x + b * drive
-        s_moment, s_pickoff, s_output = _signals(x, drive, xdot, c_out, time, ideal_torquer, scales)
+        s_moment, s_pickoff, s_output = _signals(x, drive, c_out, time, ideal_torquer, scales)
         torque_now = torque(z)
         moment_force = (
             lead @ s_moment + (lagged_torque - torque_now)
