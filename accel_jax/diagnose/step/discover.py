@@ -213,6 +213,17 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
     # its clip has no derivative there, and only its prior brings it back.)
     seen_train = np.any(j_theta[train, :-1] != 0, axis=0)
     held_only = np.flatnonzero(np.any(j_theta[test, :-1] != 0, axis=0) & ~seen_train)
+    # The held-out refit moves what the diagnosis moves there for every library effect
+    # (`fit`): the times of the changes that start a held-out segment, and a measured
+    # input's held-out levels, under their priors — and anything only the held-out part sees.
+    held_mask = np.zeros(w.size, bool)
+    tail = [np.asarray(rec.ctx.held_out_change)]
+    if rec.ctx.level_sigma is not None:
+        tail.append(np.asarray(rec.ctx.held_out_level))
+    tail = np.concatenate(tail) > 0
+    held_mask[W.FIXED : W.FIXED + tail.size] = tail[: w.size - W.FIXED]
+    held_mask[held_only] = True
+    held_moved = np.flatnonzero(held_mask)
     free = np.ones(w.size, bool)
     free[held_only] = False
     free[W.EFFECT] = False
@@ -272,10 +283,8 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
         tuned = scales._replace(omega=scales.omega + resolution * params[-1])
         return u_out - prediction(params[:n_free], params[n_free:-1] @ pick, tuned)
 
-    # The held-out part's own nuisances (w's entries the training part does not see: the
-    # change times of the held-out segments) refitted there with the terms, as the
-    # diagnosis refits them for every library effect.
-    held_index = jnp.asarray(held_only)
+    # The held-out part's own nuisances (`held_moved`) refitted there with the terms.
+    held_index = jnp.asarray(held_moved)
     test_j = jnp.asarray(test.astype(np.float64))
 
     def held_residuals(x, args):
@@ -290,9 +299,11 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
     held_jacobian_at = jax.jit(jax.jacfwd(held_residuals))
 
     def held_out_error(theta, coefficients, tuned):
-        x = np.asarray(w)[held_only]
+        w_trained = np.asarray(w).copy()
+        w_trained[np.flatnonzero(free)] = np.asarray(theta[:-1])
+        x = w_trained[held_moved]
         args = (theta, coefficients, tuned)
-        if held_only.size:
+        if held_moved.size:
             x = _least_squares(held_at, held_jacobian_at, x, args).x
         w_full = jnp.asarray(w).at[jnp.asarray(np.flatnonzero(free))].set(theta[:-1])
         full = jnp.concatenate([w_full.at[held_index].set(jnp.asarray(x)), theta[-1:]])
