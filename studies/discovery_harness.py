@@ -171,15 +171,79 @@ def score(truths: dict, rows: dict) -> dict:
     }
 
 
+def truth_coefficient(truth: dict, scales: dict) -> float | None:
+    """The generating term's coefficient in the term library's units, from the truth's
+    physics (None where no single-coefficient mapping is stated):
+
+    - torquer_asymmetry: the torquer's moment is k i (1 + a sgn i) = k i + a k |i|, so
+      c = a in the loop's own frame, whose sign the record's output polarity sets;
+    - loo_disturbance_drift: the settled output moves by drift_V over the record, and the
+      ramp moves it by c·h, so c = drift_V / h (in the output's frame);
+    - loo_torquer_lag, loo_output_filter: a first-order lag of time constant lag_s, the
+      pole's c·T, so c = lag_s / T.
+
+    (The periodic disturbance's coefficients are the input-referred moment's, its truth the
+    output's amplitude after the loop's response: not compared. The pickoff truth is a
+    pair.)"""
+    effect = truth["class"]
+    sign = float(truth.get("output_sign", 1.0))
+    if effect == "torquer_asymmetry":
+        return sign * truth["asymmetry"]
+    if effect == "loo_disturbance_drift":
+        return sign * truth["drift_V"] / scales["half_V"]
+    if effect in ("loo_torquer_lag", "loo_output_filter"):
+        return truth["lag_s"] / scales["period_s"]
+    return None
+
+
+def calibration(records: dict) -> dict:
+    """Where the best discovered subset is exactly the generating term and a truth
+    coefficient is stated (`truth_coefficient`): (c − c_true)/σ per record, and the
+    fraction within 2σ (the issue's target: 85–99 %)."""
+    z = {}
+    for name, row in records.items():
+        truth, discovery = row["truth"], row.get("discovery")
+        expected = EXPECTED[truth["class"]]
+        best = discovery.get("best") if discovery else None
+        if not best or expected is None or tuple(sorted(best["terms"])) != expected:
+            continue
+        true = truth_coefficient(truth, discovery["scales"])
+        if true is None or len(best["columns"]) != 1:
+            continue
+        column = best["columns"][0]
+        z[name] = (column["coefficient"] - true) / column["sigma"]
+    within = [abs(v) <= 2 for v in z.values()]
+    return {
+        "records": len(z),
+        "within_2_sigma": int(sum(within)),
+        "fraction": float(np.mean(within)) if within else None,
+        "z": z,
+    }
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--per-class", type=int, default=5)
     parser.add_argument("--seed", type=int, default=4500)
     parser.add_argument("--classes", nargs="+", choices=CLASSES, default=list(CLASSES))
     parser.add_argument("--out", type=Path, default=Path("out/discovery"))
+    parser.add_argument(
+        "--rescore", type=Path, metavar="RESULT_JSON",
+        help="score a saved result again (and add the calibration figure); no records run",
+    )
     args = parser.parse_args(argv)
     if args.per_class < 1:
         parser.error("--per-class must be at least 1")
+    if args.rescore is not None:
+        try:
+            saved = json.loads(args.rescore.read_text())
+            records = saved["records"]
+        except (OSError, ValueError, KeyError) as error:
+            parser.error(f"--rescore: cannot read a harness result from {args.rescore}: {error}")
+        truths = {n: r["truth"] for n, r in records.items()}
+        rescored = {"score": score(truths, records), "calibration": calibration(records)}
+        print(json.dumps(rescored, indent=1))
+        return 0
     start = time.time()
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -203,13 +267,15 @@ def main(argv=None) -> int:
         "nominal": "the reference device with T_dm = T_f = 0",
         "seconds": time.time() - start,
         "score": score(truths, rows),
+        "calibration": None,
         "records": {
             n: {"truth": truths[n], **rows[n], "outcome": judge(truths[n]["class"], rows[n])}
             for n in truths
         },
     }
+    result["calibration"] = calibration(result["records"])
     write_json_atomic(args.out / "result.json", result)  # whole or not at all
-    print(json.dumps(result["score"], indent=1))
+    print(json.dumps({"score": result["score"], "calibration": result["calibration"]}, indent=1))
     return 0
 
 
