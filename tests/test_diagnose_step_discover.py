@@ -101,6 +101,9 @@ def test_a_pickoff_nonlinearity_is_found_at_the_pickoff(discovered):
     assert best["explained_fraction"] > 0.9
     assert "discovered (hypothesis" in result.summary()
     assert "discovery" in result.to_dict()
+    # At rest the loop's gain takes a pickoff's error: no coefficient of the static model.
+    assert [c["static"] for c in best["consequence"]] == [None, None]
+    assert "no static term" in result.summary()
 
 
 def test_a_vibrating_stand_is_found_from_the_command_line(tmp_path):
@@ -122,6 +125,9 @@ def test_a_vibrating_stand_is_found_from_the_command_line(tmp_path):
     assert best["terms"] == ["forcing_sinusoid"]
     assert best["frequency_Hz"] == pytest.approx(1300.0, abs=1.0)
     assert best["held_out_at_floor"] and best["stability"] >= STABLE
+    # What it means for a designer: a disturbance, no coefficient of the static model.
+    assert all(c["static"] is None for c in best["consequence"])
+    assert "for a designer: forcing_sinusoid" in result.output
     plain = CliRunner().invoke(main, ["diagnose", str(csv), "--no-discover"])
     assert plain.exit_code == 0 and "discovered" not in plain.output
 
@@ -145,3 +151,9 @@ def test_leave_one_out_the_output_filter_is_found_as_an_extra_lag(discovered):
     extra = alone["columns"][0]["coefficient"] * discovery["scales"]["period_s"]
     assert extra == pytest.approx(3e-5, rel=0.3)
     assert alone["explained_fraction"] > 0.9
+
+
+def test_discover_refuses_an_unknown_mode():
+    nominal = NominalDevice.reference()
+    with pytest.raises(ValueError, match="discover must be False, True or 'all'"):
+        diagnose_step([], nominal, discover="every")

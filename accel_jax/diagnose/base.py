@@ -493,6 +493,7 @@ def discovery_lines(discovery: dict | None) -> list[str]:
         f"({best['explained_fraction']:.0%} explained), evidence {best['evidence']:.1f}, "
         f"stable in {best['stability']:.0%} of resamples",
     ]
+    lines += [f"   for a designer: {c['text']}" for c in best.get("consequence", ())]
     tie = discovery.get("tie")
     if tie is not None:
         lines.append(

@@ -28,13 +28,15 @@ Rating: **credible** (held-out gap at the noise floor as `assess` judges a libra
 stable in ≥ 80 % of resamples, evidence ≥ 10), **tentative** (evidence ≥ 10 but not all of
 that), **nothing found**.
 
-The held-out segments' change times are refitted there with the terms, as the diagnosis
-refits them for every library effect; the held-out gap is then the excess over the noise
-floor of the held-out free-run errors.
+What the diagnosis refits on the held-out part for every library effect (the times of the
+changes that start a held-out segment, a measured input's held-out levels, under their
+priors) is refitted there with the terms; the held-out gap is then the excess over the
+noise floor of the held-out free-run errors. Each named subset carries what it means for
+a designer (`consequence`).
 
 What this slice does not yet do (issue 45): the network reference of what is achievable,
-the vibration-table and noise-record term libraries, the designer's consequence (δK_a,
-vibration error) and the exciting experiment. Float64.
+the vibration-table and noise-record term libraries, and the exciting experiment.
+Float64.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from scipy.optimize import least_squares
 from ..._data import NominalDevice
 from ..._simulate.sequence import SequenceInputs
 from .. import openworld
+from .consequence import consequence
 from .layout import W
 from .model import moment_jumps, unpack
 from .state import StepFit, StepRecord
@@ -405,8 +408,8 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
             f"the extended BIC (γ = 1) on the linearised fit; the best {CONFIRM} refitted in "
             "full (device, the record's nuisances, an output offset, the terms); evidence "
             f"2 ln B ≈ Δχ² − k ln n (BIC); stability over {BOOTSTRAP} block-bootstrap "
-            "resamples of the training segments; the held-out change times as the nominal "
-            "fit's"
+            "resamples of the training segments; the held-out part's nuisances refitted with "
+            "the terms as for every library effect"
         ),
         "sinusoid_start_Hz": omega / (2 * np.pi),
         "scales": {"half_V": float(rec.host.half), "period_s": float(rec.period)},
@@ -428,4 +431,9 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
         result["best"] = best
         ties = [d for d in confirmed[1:] if d["criterion"] - best["criterion"] < TIE_BAND]
         result["tie"] = ties[0] if ties else None
+        # What it means for a designer (eq. (1)'s coefficients, their vibration error).
+        for named in (best, result["tie"]):
+            if named is not None:
+                half = float(rec.host.half)
+                named["consequence"] = consequence(named["columns"], half, nominal)
     return result

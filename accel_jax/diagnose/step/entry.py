@@ -100,6 +100,8 @@ def diagnose_step(
     a `ValueError` otherwise).
     """
     require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
+    if not (discover is False or discover is True or discover == "all"):
+        raise ValueError(f"discover must be False, True or 'all', got {discover!r}.")
     effects = step_effects()
     linear = [0] + [
         i for i, e in enumerate(effects, start=1) if not e.nonlinear and not e.loop_noise

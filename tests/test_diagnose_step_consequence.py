@@ -1,0 +1,113 @@
+"""What a discovered term means for a designer (`accel_jax.diagnose.step.consequence`):
+each static map against the loop with the term simulated to rest (`term_record`), the
+static gain K1 against the simulated output per g, and the coefficients' vibration errors
+against the library's own eq. (1) evaluation. Float64."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from accel_jax._data import NominalDevice
+from accel_jax._servo import time_constant
+from accel_jax._simulate.sequence import SequenceInputs, accel_moment
+from accel_jax.diagnose.step import terms
+from accel_jax.diagnose.step.consequence import consequence, static_gain
+
+H = 2.0  # V, the record's half span
+C = 0.01
+
+
+@pytest.fixture(autouse=True)
+def _x64():
+    with jax.enable_x64(True):
+        yield
+
+
+@pytest.fixture(scope="module")
+def settle():
+    """The settled output [V] of the loop under a constant external moment M̃ [V] with one
+    term's coefficient set (20 loop time constants at 500 kHz)."""
+    with jax.enable_x64(True):
+        nominal = NominalDevice.reference(torquer_time_constant=0.0, filter_time_constant=0.0)
+        params = nominal.params
+        dt, n, m = 2e-6, 100, 60
+        scales = terms.Scales(H, float(time_constant(params)), dt * (n * m - 1), 2e3 * np.pi)
+        names = [t.name for t in terms.TERMS]
+
+        @jax.jit
+        def settled(moment, coefficients):
+            seq = SequenceInputs(
+                0.0, 1.0, moment, 0.0, 0.0, 0.0, jnp.array([0]), jnp.array([0.0]),
+                jnp.array([0.0]),
+            )
+            return terms.term_record(params, dt, n, m, seq, coefficients, scales)[-1]
+
+        def run(name, c, moment):
+            column = terms.columns((names.index(name),))[0]
+            coefficients = jnp.zeros(terms.N_COEFFICIENTS).at[column].set(c)
+            return float(settled(moment, coefficients))
+
+        yield nominal, run
+
+
+def test_static_gain_is_the_simulated_output_per_g(settle):
+    nominal, run = settle
+    per_g = float(accel_moment(nominal.params))
+    assert static_gain(nominal) == pytest.approx(run("forcing_ramp", 0.0, per_g), rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    "name, shift",
+    [
+        ("torquer_asymmetry", lambda y: C * abs(y)),
+        ("spring_square", lambda y: C * y * y / H),
+        ("output_square", lambda y: C * y * y / H),
+        ("spring_cube", lambda y: C * y**3 / H**2),
+        ("torquer_square", lambda y: -C * y * abs(y) / H),
+        ("torquer_dead_zone", lambda y: -C * H * np.sign(y)),
+    ],
+)
+def test_static_maps_against_the_loop_at_rest(settle, name, shift):
+    _, run = settle
+    for moment in (1.0, -1.0, 2.0, -2.0):
+        y0 = run(name, 0.0, moment)
+        dy = run(name, C, moment) - y0
+        # First order in c: the maps' error is O(c²) of the shift itself.
+        assert dy == pytest.approx(shift(y0), rel=0.04, abs=1e-6), (name, moment)
+
+
+def test_pickoff_terms_leave_almost_nothing_at_rest(settle):
+    _, run = settle
+    for name in ("pickoff_square", "pickoff_cube", "pickoff_abs"):
+        y0 = run(name, 0.0, 2.0)
+        assert abs(run(name, C, 2.0) - y0) < 0.01 * C * y0 * y0 / H
+
+
+def test_consequence_entries(settle):
+    nominal, _ = settle
+    k1 = static_gain(nominal)
+    columns = [
+        {"term": "torquer_asymmetry", "coefficient": 2e-4},
+        {"term": "spring_square", "coefficient": 1e-3},
+        {"term": "spring_cube", "coefficient": -1e-3},
+        {"term": "output_pole", "coefficient": 0.1},
+        {"term": "forcing_sinusoid (sin)", "coefficient": 0.1},
+    ]
+    out = consequence(columns, H, nominal)
+    asym, k2, k3, pole, tone = out
+    assert asym["static"]["coefficient"] == "asymmetry"
+    assert asym["static"]["value"] == pytest.approx(4e-4)
+    assert k2["static"]["value"] == pytest.approx(1e-3 * k1 / H)
+    assert k3["static"]["value"] == pytest.approx(-1e-3 * k1**2 / H**2)
+    # An asymmetry A1 under a mean 2 g (more than the vibration's sine + 2σ most of the
+    # time) gives about A1/2·E[|a + v| − |a|]: smaller than A1/2·(0.5 + 1.4·0.8) g.
+    error = asym["static"]["vibration_error_ug"] * 1e-6
+    assert 0 < error < 2e-4 * (0.5 + 1.4 * 0.8)
+    assert asym["static"]["within_limit"] == (4e-4 <= asym["static"]["paper_limit_ppm"] * 1e-6)
+    assert pole["static"] is None and "dynamic" in pole["text"]
+    assert tone["static"] is None and "disturbance" in tone["text"]
+    assert all(isinstance(e["text"], str) and e["text"] for e in out)
+
