@@ -1,7 +1,8 @@
 """What a discovered term means for a designer (`accel_jax.diagnose.step.consequence`):
 each static map against the loop with the term simulated to rest (`term_record`), the
-static gain K1 against the simulated output per g, and the coefficients' vibration errors
-against the library's own eq. (1) evaluation. Float64."""
+static gain K1 against the simulated output per g, and the entries' vibration errors and
+limits; and the record that would excite a barely measured term (`excite`): its standard
+errors against the closed form of a linear model, the terms it picks. Float64."""
 
 from __future__ import annotations
 
@@ -111,3 +112,53 @@ def test_consequence_entries(settle):
     assert tone["static"] is None and "disturbance" in tone["text"]
     assert all(isinstance(e["text"], str) and e["text"] for e in out)
 
+
+
+def test_excite_standard_errors_against_the_closed_form():
+    # A model linear in everything: y = θ₀ + a² c x (x a fixed signal, a the step factor),
+    # θ₀ under a unit normal prior, the floor σ: σ_c from the 2×2 information exactly.
+    from accel_jax.diagnose.step import excite
+
+    x = jnp.linspace(-1.0, 1.0, 50) ** 2
+    sigma = 0.1
+
+    def prediction(theta, c, scales, amplitude):
+        return theta[0] + amplitude**2 * c[0] * x
+
+    def penalties(theta):
+        return theta
+
+    pick = jnp.eye(1)
+    errors = excite.standard_errors(
+        prediction, penalties, jnp.zeros(1), jnp.asarray([0.3]), pick, None, sigma, (1.0, 2.0)
+    )
+    for row, a in zip(errors, (1.0, 2.0), strict=True):
+        j = np.stack([np.ones(50), a**2 * np.asarray(x)], axis=1) / sigma
+        info = j.T @ j + np.diag([1.0, 0.0])
+        assert row[0] == pytest.approx(np.sqrt(np.linalg.inv(info)[1, 1]), rel=1e-10)
+    assert errors[1, 0] == pytest.approx(errors[0, 0] / 4, rel=1e-10)
+
+
+def test_excite_picks_the_barely_measured_terms():
+    from accel_jax.diagnose.step import excite
+
+    def cand(terms, values):
+        return {
+            "terms": terms,
+            "columns": [
+                {"term": t, "coefficient": c, "sigma": s}
+                for t, (c, s) in zip(terms, values, strict=True)
+            ],
+        }
+
+    best = cand(["pickoff_cube"], [(0.1, 1e-4)])
+    pair = cand(["pickoff_square", "pickoff_cube"], [(-0.12, 0.05), (0.08, 0.02)])
+    other = cand(["pickoff_abs"], [(0.01, 0.01)])  # weak, but not beside the best
+    weak = excite.weak_terms(best, None, [best, pair, other])
+    assert [(c["terms"], i) for c, i in weak] == [(["pickoff_square", "pickoff_cube"], 0)]
+    scale = {"factor": 2.0, "deflection_V": 3.2, "stop_V": 4.0}
+    e = excite.entry("pickoff_square", pair, -0.12, 0.05, 0.01, scale)
+    assert e["z_here"] == pytest.approx(2.4) and e["z_excited"] == pytest.approx(12.0)
+    assert "beside pickoff_cube" in e["text"] and e["records_for_z5"] == 1
+    slow = excite.entry("pickoff_square", pair, -0.12, 0.05, 0.048, scale)
+    assert slow["records_for_z5"] == 4 and "4 such records" in slow["text"]  # (5/2.5)²

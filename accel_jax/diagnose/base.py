@@ -494,6 +494,7 @@ def discovery_lines(discovery: dict | None) -> list[str]:
         f"stable in {best['stability']:.0%} of resamples",
     ]
     lines += [f"   for a designer: {c['text']}" for c in best.get("consequence", ())]
+    lines += [f"   to excite it: {e['text']}" for e in discovery.get("excite", ())]
     tie = discovery.get("tie")
     if tie is not None:
         lines.append(

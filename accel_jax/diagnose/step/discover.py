@@ -32,11 +32,12 @@ What the diagnosis refits on the held-out part for every library effect (the tim
 changes that start a held-out segment, a measured input's held-out levels, under their
 priors) is refitted there with the terms; the held-out gap is then the excess over the
 noise floor of the held-out free-run errors. Each named subset carries what it means for
-a designer (`consequence`).
+a designer (`consequence`); a barely measured term of it, or one a refitted candidate adds
+to it, the record that would excite it (`excite`).
 
 What this slice does not yet do (issue 45): the network reference of what is achievable,
-the vibration-table and noise-record term libraries, and the exciting experiment.
-Float64.
+the vibration-table and noise-record term libraries, and an experiment that separates a
+tie. Float64.
 """
 
 from __future__ import annotations
@@ -50,8 +51,9 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..._data import NominalDevice
-from ..._simulate.sequence import SequenceInputs
+from ..._simulate.sequence import SequenceInputs, equilibrium
 from .. import openworld
+from . import excite
 from .consequence import consequence
 from .layout import W
 from .model import moment_jumps, unpack
@@ -89,11 +91,13 @@ def _model(rec: StepRecord, nominal: NominalDevice, w: np.ndarray, free: np.ndar
     def unpacked(theta):
         return unpack(w_fixed.at[index].set(theta[:-1]), 0, effects, base, prior_sigma, ctx)
 
-    def prediction(theta, coefficients, scales):
+    def prediction(theta, coefficients, scales, amplitude=1.0):
+        # (`amplitude`: the test steps scaled, for the record that would excite a term.)
         model = unpacked(theta)
         sequence = SequenceInputs(
-            ctx.first_level, model.gain, model.moment, model.rate, model.dv, model.dw,
-            ctx.change_index, model.step, model.shift, moment_jumps(model.params, ctx),
+            ctx.first_level * amplitude, model.gain, model.moment, model.rate, model.dv,
+            model.dw, ctx.change_index, model.step * amplitude, model.shift,
+            moment_jumps(model.params, ctx),
         )
         blocks = term_record(model.params, ctx.dt, n, m, sequence, coefficients, scales)
         return blocks + model.output_offset + ctx.scale * theta[-1]
@@ -101,7 +105,7 @@ def _model(rec: StepRecord, nominal: NominalDevice, w: np.ndarray, free: np.ndar
     def penalties(theta):
         return jnp.concatenate([unpacked(theta).penalties, theta[-1:]])
 
-    return prediction, penalties
+    return prediction, penalties, unpacked
 
 
 PAD = 16
@@ -199,7 +203,7 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
 
     # 1. Screen: the first-order effect of every parameter of w and of every coefficient.
     all_free = np.ones(w.size, bool)
-    prediction_all, penalties_all = _model(rec, nominal, w, all_free, effects)
+    prediction_all, penalties_all, _ = _model(rec, nominal, w, all_free, effects)
     theta_w = jnp.concatenate([jnp.asarray(w), jnp.zeros(1)])
 
     @jax.jit
@@ -266,7 +270,7 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
     # 3. Confirm: one compiled refit for every subset (its columns chosen by `pick`, a
     # (MAX_COLUMNS, N_COEFFICIENTS) selection; unused columns pinned at 0), the sinusoid's
     # frequency free in units of the record's frequency resolution.
-    prediction, penalties = _model(rec, nominal, w, free, effects)
+    prediction, penalties, unpacked = _model(rec, nominal, w, free, effects)
     train_j = jnp.asarray(train.astype(np.float64))
     resolution = 2 * jnp.pi / scales.duration
 
@@ -316,6 +320,7 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
     test_rows = np.flatnonzero(test)
     gap_before = openworld.excess(float(np.mean((r0[test_rows] * sigma) ** 2)), sigma**2)
     confirmed = []
+    fitted = {}  # each confirmed subset's fitted parameters, by its terms
     chosen = [item for item in ranked[:CONFIRM] if item[0] < 0]
     # The single terms of a chosen pair are confirmed too: a pair can win the linearised
     # screen only because one term's start (a sinusoid's frequency) is off.
@@ -401,6 +406,7 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
         if tone > 0:
             entry["frequency_Hz"] = float((omega + float(resolution) * params[-1]) / (2 * np.pi))
         confirmed.append(entry)
+        fitted[tuple(entry["terms"])] = (params, pick, len(cols), tuned)
     confirmed.sort(key=lambda d: d["criterion"])
     result = {
         "method": (
@@ -436,4 +442,39 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
             if named is not None:
                 half = float(rec.host.half)
                 named["consequence"] = consequence(named["columns"], half, nominal)
+        weak = excite.weak_terms(best, result["tie"], confirmed)
+        if weak:
+            result["excite"] = _excite(
+                weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma
+            )
     return result
+
+
+def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma):
+    """`excite` entries (see `excite`) for the barely excited columns `weak`."""
+    out = []
+    for candidate, i in weak:
+        params, pick, n_cols, tuned = fitted[tuple(candidate["terms"])]
+        theta = jnp.asarray(params[:n_free])
+        coefficients = jnp.asarray(params[n_free : n_free + n_cols])
+        used = jnp.asarray(pick[:n_cols])
+        model = unpacked(theta)
+        steps = np.asarray(model.step)
+        levels = float(rec.ctx.first_level) + np.concatenate([[0.0], np.cumsum(steps)])
+        drive = float(model.gain) * levels
+        deflection = max(
+            abs(float(equilibrium(model.params, d, model.moment)[0])) for d in drive
+        )
+        p = nominal.params
+        stop = float(p.pickoff_gain * p.amplifier_gain * p.stop_displacement)
+        factor = max(1.0, excite.REACH * stop / max(deflection, 1e-12))
+        scale = {"factor": factor, "deflection_V": deflection * factor, "stop_V": stop}
+        errors = excite.standard_errors(
+            prediction, penalties, theta, coefficients, used, tuned, sigma, (1.0, factor)
+        )
+        here, there = errors[:, i]
+        column = candidate["columns"][i]
+        out.append(
+            excite.entry(column["term"], candidate, column["coefficient"], here, there, scale)
+        )
+    return out
