@@ -103,13 +103,14 @@ def _world(effect: str, rng) -> tuple[dict, tuple]:
     return truth, (t, u, y)
 
 
-def write_records(per_class: int, seed: int, folder: Path, classes) -> dict:
-    """Write `per_class` records of each class under folder/<class>/; their truths by name."""
+def write_records(per_class: int, seed: int, folder: Path, classes, first: int = 0) -> dict:
+    """Write `per_class` records of each class (indices `first`, `first` + 1, …) under
+    folder/<class>/; their truths by name."""
     from accel_jax import StepData, write_csv
 
     truths = {}
     for effect in classes:
-        for i in range(per_class):
+        for i in range(first, first + per_class):
             truth, (t, u, y) = _world(effect, record_rng(seed, effect, i))
             name = f"{effect}_{i:04d}"
             write_csv(folder / effect / f"{name}.csv", StepData(t, u, y))
@@ -226,20 +227,28 @@ def main(argv=None) -> int:
     parser.add_argument("--per-class", type=int, default=5)
     parser.add_argument("--seed", type=int, default=4500)
     parser.add_argument("--classes", nargs="+", choices=CLASSES, default=list(CLASSES))
+    parser.add_argument(
+        "--first", type=int, default=0,
+        help="the first record index of each class (a run that extends an earlier one)",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/discovery"))
     parser.add_argument(
-        "--rescore", type=Path, metavar="RESULT_JSON",
-        help="score a saved result again (and add the calibration figure); no records run",
+        "--rescore", type=Path, nargs="+", metavar="RESULT_JSON",
+        help="score saved results again, together (and add the calibration figure); no "
+        "records run",
     )
     args = parser.parse_args(argv)
+    if args.first < 0:
+        parser.error("--first must be at least 0")
     if args.per_class < 1:
         parser.error("--per-class must be at least 1")
     if args.rescore is not None:
-        try:
-            saved = json.loads(args.rescore.read_text())
-            records = saved["records"]
-        except (OSError, ValueError, KeyError) as error:
-            parser.error(f"--rescore: cannot read a harness result from {args.rescore}: {error}")
+        records = {}
+        for path in args.rescore:
+            try:
+                records.update(json.loads(path.read_text())["records"])
+            except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
+                parser.error(f"--rescore: cannot read a harness result from {path}: {error}")
         truths = {n: r["truth"] for n, r in records.items()}
         rescored = {"score": score(truths, records), "calibration": calibration(records)}
         print(json.dumps(rescored, indent=1))
@@ -248,7 +257,7 @@ def main(argv=None) -> int:
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "records"
-        truths = write_records(args.per_class, args.seed, folder, args.classes)
+        truths = write_records(args.per_class, args.seed, folder, args.classes, args.first)
         libraries: dict[str, list[str]] = {}
         for effect in args.classes:
             libraries.setdefault(LEFT_OUT.get(effect, ""), []).append(effect)
@@ -263,6 +272,7 @@ def main(argv=None) -> int:
         "commit": _commit(),
         "seed": args.seed,
         "per_class": args.per_class,
+        "first": args.first,
         "expected": {k: list(v) if v else None for k, v in EXPECTED.items()},
         "nominal": "the reference device with T_dm = T_f = 0",
         "seconds": time.time() - start,

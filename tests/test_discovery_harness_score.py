@@ -81,3 +81,16 @@ def test_rescore_refuses_a_file_that_is_not_a_result(tmp_path, capsys):
         harness.main(["--rescore", str(bad)])
     assert stop.value.code == 2
     assert "cannot read a harness result" in capsys.readouterr().err
+
+
+def test_rescore_merges_runs(tmp_path, capsys):
+    first = {"a": _row("loo_output_filter", ["output_pole"], 0.1, 1e-3, lag_s=3e-5)}
+    later = {"b": _row("loo_output_filter", ["torquer_pole"], 0.1, 1e-3, lag_s=3e-5)}
+    paths = []
+    for i, records in enumerate((first, later)):
+        paths.append(tmp_path / f"r{i}.json")
+        paths[-1].write_text(json.dumps({"records": records}))
+    assert harness.main(["--rescore", *map(str, paths)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["score"]["findable_records"] == 2
+    assert printed["score"]["findable_credible_and_right"] == 1
