@@ -25,8 +25,8 @@ The term library (`terms.TERMS`) and the loop simulated with its terms
    term of the subset.
 
 Rating: **credible** (held-out gap at the noise floor as `assess` judges a library effect,
-stable in ≥ 80 % of resamples, evidence ≥ 10), **tentative** (evidence ≥ 10 but not all of
-that), **nothing found**.
+stable in ≥ 80 % of resamples, evidence ≥ 10), **tentative** (evidence ≥ 10 and some of
+the held-out gap explained, but not all of that), **nothing found**.
 
 What the diagnosis refits on the held-out part for every library effect (the times of the
 changes that start a held-out segment, a measured input's held-out levels, under their
@@ -432,7 +432,9 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
         and best["stability"] >= STABLE
         and best["held_out_at_floor"]
     )
-    if best["evidence"] >= CREDIBLE_EVIDENCE:
+    # A subset that does not shrink the held-out gap at all is no discovery, whatever its
+    # training evidence (a clean record's pair: evidence 152, the held-out gap larger).
+    if best["evidence"] >= CREDIBLE_EVIDENCE and best["explained_fraction"] > 0:
         result["rating"] = "credible" if credible else "tentative"
         result["best"] = best
         ties = [d for d in confirmed[1:] if d["criterion"] - best["criterion"] < TIE_BAND]
