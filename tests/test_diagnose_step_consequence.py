@@ -153,8 +153,9 @@ def test_excite_picks_the_barely_measured_terms():
 
     best = cand(["pickoff_cube"], [(0.1, 1e-4)])
     pair = cand(["pickoff_square", "pickoff_cube"], [(-0.12, 0.05), (0.08, 0.02)])
-    other = cand(["pickoff_abs"], [(0.01, 0.01)])  # weak, but not beside the best
-    weak = excite.weak_terms(best, None, [best, pair, other])
+    other = cand(["pickoff_abs"], [(0.025, 0.01)])  # weak, but not beside the best
+    noise = cand(["pickoff_abs", "pickoff_cube"], [(0.01, 0.01), (0.1, 1e-4)])  # z = 1
+    weak = excite.weak_terms(best, None, [best, pair, other, noise])
     assert [(c["terms"], i) for c, i in weak] == [(["pickoff_square", "pickoff_cube"], 0)]
     scale = {"factor": 2.0, "deflection_V": 3.2, "stop_V": 4.0}
     e = excite.entry("pickoff_square", pair, -0.12, 0.05, 0.01, scale)

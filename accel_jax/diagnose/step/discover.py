@@ -474,8 +474,9 @@ def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free,
         errors = excite.standard_errors(
             prediction, penalties, theta, coefficients, used, tuned, sigma, (1.0, factor)
         )
-        here, there = errors[:, i]
         column = candidate["columns"][i]
+        here = column["sigma"]  # the fit's own, scaled by the information's ratio
+        there = here * errors[1, i] / errors[0, i]
         out.append(
             excite.entry(column["term"], candidate, column["coefficient"], here, there, scale)
         )

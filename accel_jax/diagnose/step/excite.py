@@ -8,11 +8,12 @@ its test steps scaled by s, so that the largest settled deflection voltage reach
 standard error there is computed from the linearised Fisher information: the Jacobian of
 the block means with respect to the device's free parameters, the record's nuisances,
 the output offset and the subset's coefficients, at the fitted values (the sinusoid's
-frequency held), whitened by the record's floor, plus the priors'. The same computation
-at s = 1 gives the error on the record as it is, so both come from one method; the
-repeats of the scaled record that would bring the term to `WANTED_Z` follow from the
-information growing with the number of records. A first-order statement (the fitted
-values taken as the truth), not a simulation of the refit.
+frequency held), whitened by the record's floor, plus the priors'. The fit's own σ
+(the candidates list's) is scaled by the ratio of that standard error at s to the same
+computation at s = 1, so that both numbers reported come from one method; the repeats of
+the scaled record that would bring the term to `WANTED_Z` follow from the information
+growing with the number of records. A first-order statement (the fitted values taken as
+the truth), not a simulation of the refit.
 """
 
 from __future__ import annotations
@@ -26,6 +27,14 @@ import numpy as np
 WEAK_Z = 3.0
 """|c|/σ below which a term counts as barely excited."""
 
+HINT_Z = 2.0
+"""|c|/σ from which a barely excited term is reported: a term measured at less than this
+is as likely absent as present (several candidates add one each), and its excitation
+would only be noise in the summary."""
+
+MAX_ENTRIES = 2
+"""At most this many terms reported, the best measured first."""
+
 REACH = 0.8
 """The scaled record's largest settled deflection voltage, over the stops'."""
 
@@ -34,8 +43,9 @@ WANTED_Z = 5.0
 
 
 def weak_terms(best: dict, tie: dict | None, candidates: list[dict]) -> list[tuple[dict, int]]:
-    """(candidate, column index) of every barely excited column: in the best subset, its
-    tie, or a refitted candidate that adds one term to the best subset."""
+    """(candidate, column index) of the barely excited columns (HINT_Z ≤ |c|/σ < WEAK_Z,
+    at most `MAX_ENTRIES`, the best measured first): in the best subset, its tie, or a
+    refitted candidate that adds one term to the best subset."""
     named = set(best["terms"])
     pool = [best] + ([tie] if tie is not None else [])
     pool += [
@@ -46,9 +56,14 @@ def weak_terms(best: dict, tie: dict | None, candidates: list[dict]) -> list[tup
     for candidate in pool:
         for i, column in enumerate(candidate["columns"]):
             sigma = column["sigma"]
-            if sigma > 0 and abs(column["coefficient"]) < WEAK_Z * sigma:
+            if sigma > 0 and HINT_Z * sigma <= abs(column["coefficient"]) < WEAK_Z * sigma:
                 out.append((candidate, i))
-    return out
+
+    def z(item):
+        column = item[0]["columns"][item[1]]
+        return abs(column["coefficient"]) / column["sigma"]
+
+    return sorted(out, key=z, reverse=True)[:MAX_ENTRIES]
 
 
 def standard_errors(prediction, penalties, theta, coefficients, pick, scales, sigma, amplitudes):
