@@ -29,8 +29,7 @@ from __future__ import annotations
 import math
 
 from ..._data import NominalDevice
-from ..._servo import loop_stiffness
-from ..._simulate.sequence import accel_moment
+from ..._simulate.sequence import accel_moment, equilibrium
 from ..._static import PPM_UNITS, StaticTransferFunction
 from ..._tolerance import cyclone4, paper_limits
 from ..._vibration import vibration_error
@@ -65,8 +64,7 @@ def static_gain(nominal: NominalDevice) -> float:
     """K1 [V/g]: the output at rest per g of input acceleration (`accel_moment` times the
     loop's static gain k_dp k_y l k_dm / C)."""
     p = nominal.params
-    gain = p.pickoff_gain * p.amplifier_gain * p.pendulum_length
-    return float(accel_moment(p) * gain * p.torquer_gain / loop_stiffness(p))
+    return float(equilibrium(p, accel_moment(p), 0.0)[0])  # the deflection voltage v = output
 
 
 def consequence(columns: list[dict], half: float, nominal: NominalDevice) -> list[dict]:

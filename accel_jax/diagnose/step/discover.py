@@ -56,6 +56,7 @@ from ..._simulate.sequence import SequenceInputs, equilibrium
 from .. import openworld
 from . import excite
 from .consequence import consequence
+from .joint import nominal_stop_voltage
 from .layout import W
 from .model import moment_jumps, unpack
 from .state import StepFit, StepRecord
@@ -508,27 +509,28 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
 
 
 def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma):
-    """`excite` entries (see `excite`) for the barely excited columns `weak`."""
-    out = []
+    """`excite` entries (see `excite`) for the barely excited columns `weak`: one Fisher
+    computation per candidate, however many of its columns are weak."""
+    out, errors_of = [], {}
+    stop = nominal_stop_voltage(nominal.params)
     for candidate, i in weak:
-        params, pick, n_cols, tuned = fitted[tuple(candidate["terms"])]
+        key = tuple(candidate["terms"])
+        params, pick, n_cols, tuned = fitted[key]
         theta = jnp.asarray(params[:n_free])
-        coefficients = jnp.asarray(params[n_free : n_free + n_cols])
-        used = jnp.asarray(pick[:n_cols])
-        model = unpacked(theta)
-        steps = np.asarray(model.step)
-        levels = float(rec.ctx.first_level) + np.concatenate([[0.0], np.cumsum(steps)])
-        drive = float(model.gain) * levels
-        deflection = max(
-            abs(float(equilibrium(model.params, d, model.moment)[0])) for d in drive
-        )
-        p = nominal.params
-        stop = float(p.pickoff_gain * p.amplifier_gain * p.stop_displacement)
-        factor = max(1.0, excite.REACH * stop / max(deflection, 1e-12))
-        scale = {"factor": factor, "deflection_V": deflection * factor, "stop_V": stop}
-        errors = excite.standard_errors(
-            prediction, penalties, theta, coefficients, used, tuned, sigma, (1.0, factor)
-        )
+        if key not in errors_of:
+            model = unpacked(theta)
+            steps = np.asarray(model.step)
+            levels = float(rec.ctx.first_level) + np.concatenate([[0.0], np.cumsum(steps)])
+            drive = model.gain * jnp.asarray(levels)
+            deflection = float(jnp.max(jnp.abs(equilibrium(model.params, drive, model.moment)[0])))
+            factor = max(1.0, excite.REACH * stop / max(deflection, 1e-12))
+            scale = {"factor": factor, "deflection_V": deflection * factor, "stop_V": stop}
+            errors = excite.standard_errors(
+                prediction, penalties, theta, jnp.asarray(params[n_free : n_free + n_cols]),
+                jnp.asarray(pick[:n_cols]), tuned, sigma, (1.0, factor),
+            )
+            errors_of[key] = (errors, scale)
+        errors, scale = errors_of[key]
         column = candidate["columns"][i]
         here = column["sigma"]  # the fit's own, scaled by the information's ratio
         there = here * errors[1, i] / errors[0, i]
