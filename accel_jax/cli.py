@@ -306,9 +306,11 @@ def identify(files, params_file, method, gamma, json_out, plot_out, out_dir, for
 @_diagnose("--params", "params_file")
 @_diagnose("--input-delay", "input_delay", type=float, default=None)
 @_diagnose("--discover/--no-discover", "discover", default=True)
+@_diagnose("--ceiling", "ceiling", is_flag=True, default=False)
 @outputs("diagnose", out="diagnosis")
 def diagnose(
-    files, kind, params_file, input_delay, discover, json_out, plot_out, out_dir, force, device
+    files, kind, params_file, input_delay, discover, ceiling, json_out, plot_out, out_dir,
+    force, device,
 ):
     paths = _start("diagnosis", out_dir, force, device, json_out, plot_out)
     from . import DataError, StepData, read_csv, with_input_delay
@@ -317,6 +319,8 @@ def diagnose(
     from .report.figures.diagnosis import save_plot, set_figure
     from .report import save_figure_atomic
 
+    if ceiling and not discover:
+        raise click.ClickException("--ceiling is part of a discovery; drop --no-discover.")
     if len(files) > 1 and kind not in (None, "step"):
         raise click.ClickException(
             f"several files are diagnosed together only as step records of one device; "
@@ -339,13 +343,18 @@ def diagnose(
             sources, unused_params = {"sources": list(kinds)}, None
         else:
             data = with_input_delay(read_csv(files[0], kind=kind), input_delay, path=files[0])
-            result = run_diagnosis(data, _nominal(params_file), discover=discover)
+            result = run_diagnosis(
+                data, _nominal(params_file), discover=discover, ceiling=ceiling
+            )
             sources = {"source": str(files[0])}
             unused_params = data.kind if params_file is not None and data.kind != "step" else None
     click.echo(result.summary())
     write(paths["text"], result.summary(), "summary")
     if discover and len(files) > 1:
-        click.echo("note: --discover looks at one record; a set of records is not searched")
+        click.echo(
+            "note: --discover (and --ceiling) look at one record; a set of records is not "
+            "searched"
+        )
     if unused_params is not None:
         click.echo(
             f"note: --params is not used by the {unused_params} diagnosis (its nominal model "

@@ -40,19 +40,20 @@ LEVELS = (0.0, 1.0, -1.0, 0.0, 1.0, 0.0)
 GAIN = 2.5e5 * 8.5  # k_dp k_y [V/m]
 
 
-def _record(seed, *, device=None, moment_gm=None, **record):
+def _record(seed, *, device=None, moment_gm=None, levels=LEVELS, **record):
     """A record of the independent simulator: changes at arbitrary times between samples
-    (a DAC on its own clock), `u_test` sampled, the reference device off by ~1σ.
+    (a DAC on its own clock), `u_test` sampled, the reference device off by ~1σ; `levels`
+    the test sequence in units of U.
     `moment_gm` (ratio, τ [s]): a Gauss–Markov moment inside the loop whose part of the
     output has `ratio` × the white noise's σ (studies/colored_truth.py)."""
     rng = np.random.default_rng(seed)
-    times = np.arange(1, len(LEVELS)) * SEGMENT * RATE + rng.uniform(-1, 0, len(LEVELS) - 1)
+    times = np.arange(1, len(levels)) * SEGMENT * RATE + rng.uniform(-1, 0, len(levels) - 1)
     options = {"noise": SIGMA, "moment": 1e-6, **record}
     rec = step_truth.Record(
-        levels=np.asarray(LEVELS) * U,
+        levels=np.asarray(levels) * U,
         change_times=times / RATE,
         rate=RATE,
-        n=int(round(len(LEVELS) * SEGMENT * RATE)),
+        n=int(round(len(levels) * SEGMENT * RATE)),
         **options,
     )
     values = {

@@ -475,8 +475,27 @@ def discovery_lines(discovery: dict | None) -> list[str]:
     if discovery is None:
         return []
     best = discovery.get("best")
+    reference = discovery.get("ceiling")
+    reached = []
+    if reference is not None:
+        reached = [
+            f"   a network of the loop's states ({reference['parameters']} weights, an "
+            f"estimate, not a bound) removes {reference['explained_fraction']:.0%} of the "
+            "held-out gap"
+            + (
+                f"; the term reaches {best['ceiling_fraction']:.0%} of that"
+                if best is not None and best.get("ceiling_fraction") is not None
+                else ""
+            )
+            + (
+                " (the held-out part holds test levels outside the training part's: the "
+                "network is extrapolated there, a term of fixed form need not be)"
+                if reference.get("extrapolates")
+                else ""
+            )
+        ]
     if best is None:
-        return ["discovered (hypothesis): nothing found in the term library"]
+        return ["discovered (hypothesis): nothing found in the term library"] + reached
 
     def term_text(d):
         parts = [
@@ -493,6 +512,7 @@ def discovery_lines(discovery: dict | None) -> list[str]:
         f"({best['explained_fraction']:.0%} explained), evidence {best['evidence']:.1f}, "
         f"stable in {best['stability']:.0%} of resamples",
     ]
+    lines += reached
     lines += [f"   for a designer: {c['text']}" for c in best.get("consequence", ())]
     lines += [f"   to excite it: {e['text']}" for e in discovery.get("excite", ())]
     tie = discovery.get("tie")

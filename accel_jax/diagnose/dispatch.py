@@ -19,12 +19,14 @@ def diagnose_many(
     *,
     recommend: bool = True,
     discover: bool = False,
+    ceiling: bool = False,
 ) -> list[DiagnosisResult]:
     """Diagnose several records (same kind) against one nominal device, each on its own;
     records of one length are fitted as one batch (one compilation). See `diagnose`.
     `recommend` (step records): compute the next experiment for a lag tie; `discover`
     (step records): look for the missing term of an unexplained record
-    (`step.discover`). Several step
+    (`step.discover`), with `ceiling` the network reference of what a term of the states
+    could remove (`step.ceiling`). Several step
     records of one device diagnosed *together*: `step.joint_verdict.diagnose_step_set`."""
     if not datasets:
         return []
@@ -37,7 +39,9 @@ def diagnose_many(
     nominal = NominalDevice.reference() if nominal is None else nominal
     if kind == "step":
         steps = cast(list[StepData], list(datasets))  # every record of kind "step"
-        return diagnose_step(steps, nominal, recommend=recommend, discover=discover)
+        return diagnose_step(
+            steps, nominal, recommend=recommend, discover=discover, ceiling=ceiling
+        )
     results = _KINDS[kind](list(datasets), nominal)
     if discover:
         for result in results:
@@ -48,7 +52,11 @@ def diagnose_many(
 
 
 def diagnose(
-    data: Dataset, nominal: NominalDevice | None = None, *, discover: bool = False
+    data: Dataset,
+    nominal: NominalDevice | None = None,
+    *,
+    discover: bool = False,
+    ceiling: bool = False,
 ) -> DiagnosisResult:
     """Diagnose the sim-to-real gap of one record.
 
@@ -68,6 +76,7 @@ def diagnose(
     **Returns:** a `DiagnosisResult` (`.verdict`, `.ranking`, `.gap`, `.where`, `.refit`,
     `.to_dict()`, `.summary()`). Computed in float64 (x64 must be enabled). With
     `discover` (step records), an unexplained record also gets `.discovery`: the missing
-    term found in the term library, a hypothesis (`step.discover`).
+    term found in the term library, a hypothesis (`step.discover`); with `ceiling` too,
+    the share of the held-out gap a network of the loop's states removes (`step.ceiling`).
     """
-    return diagnose_many([data], nominal, discover=discover)[0]
+    return diagnose_many([data], nominal, discover=discover, ceiling=ceiling)[0]

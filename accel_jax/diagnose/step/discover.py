@@ -36,9 +36,10 @@ noise floor of the held-out free-run errors. Each named subset carries what it m
 a designer (`consequence`); a barely measured term of it, or one a refitted candidate adds
 to it, the record that would excite it (`excite`).
 
-What this slice does not yet do (issue 45): the network reference of what is achievable,
-the vibration-table and noise-record term libraries, and an experiment that separates a
-tie. Float64.
+With `reference=True`, the network reference of what a term of the states could remove
+(`ceiling`) is fitted the same way, and each candidate gets the fraction of its shrink it
+reaches. What this slice does not yet do (issue 45): the vibration-table and noise-record
+term libraries, and an experiment that separates a tie. Float64.
 """
 
 from __future__ import annotations
@@ -49,15 +50,15 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..._data import NominalDevice
 from ..._simulate.sequence import SequenceInputs, equilibrium
 from .. import openworld
-from . import excite
+from . import ceiling, excite
 from .consequence import consequence
 from .joint import nominal_stop_voltage
 from .layout import W
+from .minpack import solve
 from .model import moment_jumps, unpack
 from .state import StepFit, StepRecord
 from .terms import N_COEFFICIENTS, TERMS, Scales, columns, term_record
@@ -70,7 +71,6 @@ CREDIBLE_EVIDENCE = 10.0
 TIE_BAND = 6.0
 """Subsets within this much extended BIC of the best are a tie (`cannot tell which term`)."""
 
-CONFIRM_MAX_EVALUATIONS = 200
 
 
 # ----------------------------------------------------------------------------------------
@@ -93,15 +93,19 @@ def _model(rec: StepRecord, nominal: NominalDevice, w: np.ndarray, free: np.ndar
     def unpacked(theta):
         return unpack(w_fixed.at[index].set(theta[:-1]), 0, effects, base, prior_sigma, ctx)
 
-    def prediction(theta, coefficients, scales, amplitude=1.0):
-        # (`amplitude`: the test steps scaled, for the record that would excite a term.)
+    def prediction(theta, coefficients, scales, amplitude=1.0, network=None):
+        # (`amplitude`: the test steps scaled, for the record that would excite a term;
+        # `network`: the network reference's flat parameters, `ceiling`.)
         model = unpacked(theta)
         sequence = SequenceInputs(
             ctx.first_level * amplitude, model.gain, model.moment, model.rate, model.dv,
             model.dw, ctx.change_index, model.step * amplitude, model.shift,
             moment_jumps(model.params, ctx),
         )
-        blocks = term_record(model.params, ctx.dt, n, m, sequence, coefficients, scales)
+        residual = None if network is None else ceiling.residual(network, scales.half)
+        blocks = term_record(
+            model.params, ctx.dt, n, m, sequence, coefficients, scales, residual
+        )
         return blocks + model.output_offset + ctx.scale * theta[-1]
 
     def penalties(theta):
@@ -200,25 +204,13 @@ def _local_cost(model: dict, weights: np.ndarray) -> float:
     return squares - float((rhs / scale) @ step)
 
 
-def _least_squares(fun, jac, x0, args):
-    """MINPACK's Levenberg–Marquardt (SciPy) on a compiled residual and Jacobian: its
-    scaling by the Jacobian's column norms converges in tens of evaluations where the
-    terms' coefficients and the nominal parameters differ in scale by 10⁴ (optimistix's
-    unscaled Levenberg–Marquardt needed hundreds of steps here)."""
-    return least_squares(
-        lambda p: np.asarray(fun(jnp.asarray(p), args)),
-        np.asarray(x0, dtype=np.float64),
-        jac=lambda p: np.asarray(jac(jnp.asarray(p), args)),  # pyright: ignore[reportArgumentType]  # SciPy's stubs take a callable too
-        method="lm",
-        xtol=1e-10,
-        ftol=1e-10,
-        max_nfev=CONFIRM_MAX_EVALUATIONS,
-    )
-
-
-def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> dict:
+def discover(
+    rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects, reference: bool = False
+) -> dict:
     """The `discovery` block of an unexplained step record (see the module docstring), from
-    its nominal fit `fit` (a `StepFit`, the nominal model's)."""
+    its nominal fit `fit` (a `StepFit`, the nominal model's). `reference`: also fit the
+    network reference of what a term of the states could achieve (`ceiling`; the block's
+    `ceiling`, each candidate's `ceiling_fraction`)."""
     n = len(rec.u_out)
     train = np.asarray(rec.ctx.train)[:n] > 0
     test = np.asarray(rec.ctx.test)[:n] > 0
@@ -322,26 +314,27 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
     test_j = jnp.asarray(test.astype(np.float64))
 
     def held_residuals(x, args):
-        theta, coefficients, tuned = args
+        theta, coefficients, tuned, network = args
         w_full = jnp.asarray(w).at[jnp.asarray(np.flatnonzero(free))].set(theta[:-1])
         w_full = w_full.at[held_index].set(x)
         full = jnp.concatenate([w_full, theta[-1:]])
-        e = (u_out - prediction_all(full, coefficients, tuned)) * test_j / sigma
+        predicted = prediction_all(full, coefficients, tuned, network=network)
+        e = (u_out - predicted) * test_j / sigma
         return jnp.concatenate([e, penalties_all(full)])
 
     held_at = jax.jit(held_residuals)
     held_jacobian_at = jax.jit(jax.jacfwd(held_residuals))
 
-    def held_out_error(theta, coefficients, tuned):
+    def held_out_error(theta, coefficients, tuned, network=None):
         w_trained = np.asarray(w).copy()
         w_trained[np.flatnonzero(free)] = np.asarray(theta[:-1])
         x = w_trained[held_moved]
-        args = (theta, coefficients, tuned)
+        args = (theta, coefficients, tuned, network)
         if held_moved.size:
-            x = _least_squares(held_at, held_jacobian_at, x, args).x
+            x = solve(held_at, held_jacobian_at, x, args).x
         w_full = jnp.asarray(w).at[jnp.asarray(np.flatnonzero(free))].set(theta[:-1])
         full = jnp.concatenate([w_full.at[held_index].set(jnp.asarray(x)), theta[-1:]])
-        return u_out - prediction_all(full, coefficients, tuned)
+        return u_out - prediction_all(full, coefficients, tuned, network=network)
 
     cost0 = float(np.sum(r0[train] ** 2) + np.sum(p0**2))
     test_rows = np.flatnonzero(test)
@@ -373,7 +366,7 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
         at_nominal = start.copy()
         at_nominal[n_free:] = 0.0
         solution = min(
-            (_least_squares(residuals_at, jacobian_at, x0, args) for x0 in (start, at_nominal)),
+            (solve(residuals_at, jacobian_at, x0, args) for x0 in (start, at_nominal)),
             key=lambda sol: sol.cost,
         )
         params = solution.x
@@ -480,6 +473,19 @@ def discover(rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects) -> 
         "tie": None,
         "rating": "nothing found",
     }
+    if reference:
+        result["ceiling"] = ceiling.fit_reference(
+            prediction, penalties, held_out_error, np.asarray(theta_w)[keep], scales,
+            (u_out, train_j, sigma, test_rows, gap_before, cost0),
+        )
+        result["ceiling"]["extrapolates"] = ceiling.outside_training(
+            rec, unpacked, theta_w[keep]
+        )
+        reached = result["ceiling"]["explained_fraction"]
+        for entry in confirmed:
+            entry["ceiling_fraction"] = (
+                entry["explained_fraction"] / reached if reached > 0 else None
+            )
     if not confirmed:
         return result
     best = confirmed[0]

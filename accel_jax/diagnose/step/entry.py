@@ -76,6 +76,7 @@ def diagnose_step(
     *,
     recommend: bool = True,
     discover: bool | str = False,
+    ceiling: bool = False,
 ) -> list[DiagnosisResult]:
     """Diagnose step records against a nominal device (docs/models.md §5, `step` kind).
 
@@ -95,6 +96,10 @@ def diagnose_step(
         the missing term in the term library (`discover`: `result.discovery`, a
         hypothesis; the verdict stays `unexplained`); "all": for every record that passed
         it (a check that nothing is found where nothing is missing).
+    - `ceiling`: with `discover`, also fit the network reference of what a term of the
+        loop's states could remove of the held-out gap (`ceiling`: the discovery's
+        `ceiling` block and each candidate's `ceiling_fraction`; an estimate, never a
+        verdict; about as long again as the discovery).
 
     **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;
     a `ValueError` otherwise).
@@ -102,6 +107,8 @@ def diagnose_step(
     require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
     if not (discover is False or discover is True or discover == "all"):
         raise ValueError(f"discover must be False, True or 'all', got {discover!r}.")
+    if ceiling and not discover:
+        raise ValueError("ceiling=True needs discover: the reference is part of a discovery.")
     effects = step_effects()
     linear = [0] + [
         i for i, e in enumerate(effects, start=1) if not e.nonlinear and not e.loop_noise
@@ -205,7 +212,9 @@ def diagnose_step(
         for rec, record_fits, result in zip(records, fits, results, strict=True):
             wanted = discover == "all" or result.verdict == "unexplained"
             if wanted and not rec.domain_problems:
-                result.discovery = discover_term(rec, nominal, record_fits[0], effects)
+                result.discovery = discover_term(
+                    rec, nominal, record_fits[0], effects, reference=ceiling
+                )
     if recommend:
         for data, rec, result in zip(datasets, records, results, strict=True):
             if result.verdict == "cannot_tell" and set(result.tied) == LAG_PAIR:

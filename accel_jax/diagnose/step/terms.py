@@ -142,9 +142,13 @@ def _signals(x, drive, c_out, t, ideal_torquer, scales: Scales):
     return tuple(jnp.stack(out[p]) for p in ("moment", "pickoff", "output"))
 
 
-def term_record(params, dt, n: int, m: int, sequence: SequenceInputs, coefficients, scales):
+def term_record(
+    params, dt, n: int, m: int, sequence: SequenceInputs, coefficients, scales, residual=None
+):
     """U_out [V] of the loop with the terms' `coefficients` (N_COEFFICIENTS,): the means of
-    `n` blocks of `m` samples (static). At zero coefficients, `linear_record`'s record."""
+    `n` blocks of `m` samples (static). At zero coefficients, `linear_record`'s record.
+    `residual`: None, or a function (v, w, m, g·U) [V] → (moment, output) [V] added as the
+    terms are (the network reference, `ceiling`)."""
     (first_level, gain, moment, rate, dv, dw, change_index, change_step, change_shift) = sequence[
         :9
     ]
@@ -221,6 +225,9 @@ def term_record(params, dt, n: int, m: int, sequence: SequenceInputs, coefficien
             + lead_torquer * (torque_now - torque_before)
         )
         output = c_out @ x + feed * (lead @ s_pickoff) + lead @ s_output
+        if residual is not None:
+            extra_moment, extra_output = residual(x[0], x[1], torque_now, drive)
+            moment_force, output = moment_force + extra_moment, output + extra_output
         return jnp.stack([moment_force, lead @ s_pickoff]), output
 
     def padded(v):

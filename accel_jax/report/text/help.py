@@ -112,8 +112,12 @@ OPTIONS = {
         "(unexplained), look for the missing term in a library of terms at named places in "
         "the loop (pickoff, spring, damping, torquer, output, forcing) and report it as a "
         "hypothesis: the term, its coefficient ± σ, the held-out gap it closes, its "
-        "evidence and stability (on by default; about 1.6× a cold diagnosis of such a "
+        "evidence and stability (on by default; about 1.8× a cold diagnosis of such a "
         "record on a CPU).",
+        "--ceiling": "Step records, with --discover: also fit a small network of the loop's "
+        "states as a residual moment and output, and report how much of the held-out gap it "
+        "removes and how much of that the discovered term reaches (an estimate of what a "
+        "term of the states could do, never a verdict; several minutes more on a CPU).",
         "--json": "Write the diagnosis as JSON here.",
         "--plot": "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
         "--force": _RECORDS_FORCE,
