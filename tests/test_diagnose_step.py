@@ -218,6 +218,11 @@ def test_effect_named_and_recovered(diagnosed, case, name, tolerance):
     # variance to sampling error: with τ_c = 1e-4 s over 400 held-out 10 µs block means
     # there are ~20 independent samples, so the variance is known to ±30 % (1σ).
     assert result.explained_fraction > (0.5 if case == "colored_noise" else 0.9)
+    # The named effect's own fit judged by the joint nuisance test (the nominal refit of
+    # this stop record strains a change time at ~ −4.5σ; the effect's fit does not).
+    own = result.refit["effect_nuisance_test"]
+    assert own is not None and not own["strained"], own
+    assert "Its own fit needs strained nuisances" not in result.reason
 
 
 def test_lags_named_or_honestly_tied(diagnosed):

@@ -143,8 +143,10 @@ def test_leave_one_out_the_output_filter_is_found_as_an_extra_lag(discovered):
     # is an extra pole at the output (in series with the nominal's, so not exact); an extra
     # pole in the feedback path describes the record about as well (the lag tie of the
     # library's own two lags). (With `output_filter` removed from the library the verdict
-    # is `torquer_lag`, its input delay strained at −7σ; discovery starts from the nominal
-    # fit, which the library changes only where a restart from its optimum improves it.)
+    # is `torquer_lag`, its own nuisances within their priors; the nominal refit's input
+    # delay is at −7σ: it takes up the lag the nominal lacks. Discovery starts from the
+    # nominal fit, which the library changes only where a restart from its optimum
+    # improves it.)
     discovery = discovered["output_filter"].discovery
     assert {"torquer_pole", "output_pole"} & set(discovery["best"]["terms"]), discovery
     alone = next(c for c in discovery["candidates"] if c["terms"] == ["output_pole"])

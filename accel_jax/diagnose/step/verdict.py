@@ -83,6 +83,11 @@ def evaluate(
     nuisances = nuisance.nuisance_test(nominal_fit, rec)
     if decision["verdict"] == "none" and nuisances["strained"]:
         decision = {**decision, "verdict": "unexplained", "path": "nuisances"}
+    # A named effect's own fit judged the same way: named with strained nuisances, the
+    # effect may stand in for another that they complete (a torquer lag and an input delay
+    # for an output filter). Stated, the verdict kept.
+    named = {f.effect: f for f in candidates}.get(decision["verdict"])
+    effect_nuisances = nuisance.nuisance_test(named, rec) if named is not None else None
     entries.sort(key=lambda r: (not r["fit_failed"], r["significant"], r["evidence"]), reverse=True)
     verdict = decision["verdict"]
     by_name = {f.effect: f for f in fits}
@@ -122,7 +127,14 @@ def evaluate(
         decision, nominal_fit, by_name, entries, rec, predictable, remaining, sigma, where_text,
         nuisances,
     )
+    if effect_nuisances is not None and effect_nuisances["strained"]:
+        reason = (
+            reason.rstrip(".") + f". Its own fit needs strained nuisances: "
+            + nuisance.strained_sentence(effect_nuisances, by_name[verdict])
+            + f"; {verdict} may stand in for an effect they complete."
+        )
     refit = _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict, nuisances)
+    refit["effect_nuisance_test"] = effect_nuisances
     where = {
         **_localise(rec.view, nominal_fit.error, sigma, rec),
         "predictability": predictable,
