@@ -16,7 +16,7 @@ import pytest
 
 from accel_jax._data import NominalDevice
 from accel_jax._simulate.sequence import SequenceInputs, linear_record
-from accel_jax.diagnose.step import terms
+from accel_jax.diagnose.step import ceiling, terms
 from accel_jax.diagnose.step.discover import STABLE
 from accel_jax.diagnose.step.entry import diagnose_step
 
@@ -116,7 +116,9 @@ def test_a_vibrating_stand_is_found_from_the_command_line(tmp_path):
 
     csv = write_csv(tmp_path / "rec.csv", _record(1, **CASES["periodic_disturbance"]))
     out_json = tmp_path / "d.json"
-    result = CliRunner().invoke(main, ["diagnose", str(csv), "--json", str(out_json)])
+    result = CliRunner().invoke(
+        main, ["diagnose", str(csv), "--ceiling", "--json", str(out_json)]
+    )
     assert result.exit_code == 0, result.output
     assert "discovered (hypothesis, credible): forcing_sinusoid" in result.output
     doc = json.loads(out_json.read_text())
@@ -128,6 +130,14 @@ def test_a_vibrating_stand_is_found_from_the_command_line(tmp_path):
     # What it means for a designer: a disturbance, no coefficient of the static model.
     assert all(c["static"] is None for c in best["consequence"])
     assert "for a designer: forcing_sinusoid" in result.output
+    # `--ceiling`: the network reference fitted and stated beside the term (a forcing is a
+    # term of time, outside what a function of the states represents).
+    reference = doc["discovery"]["ceiling"]
+    assert reference["parameters"] == ceiling.size() and 0 <= reference["explained_fraction"] <= 1
+    if reference["explained_fraction"] > 0:
+        ratio = best["explained_fraction"] / reference["explained_fraction"]
+        assert best["ceiling_fraction"] == pytest.approx(ratio)
+    assert "a network of the loop's states" in result.output
     plain = CliRunner().invoke(main, ["diagnose", str(csv), "--no-discover"])
     assert plain.exit_code == 0 and "discovered" not in plain.output
 

@@ -30,8 +30,10 @@ from .minpack import solve
 from .state import StepRecord
 from .terms import N_COEFFICIENTS
 
-WIDTH = 8
-"""Hidden units (one tanh layer)."""
+WIDTH = 16
+"""Hidden units (one tanh layer). On a pickoff-nonlinearity record whose held-out levels
+lie inside the training part's, widths 8, 16 and 32 removed 58, 78 and 82 % of the
+held-out excess in 74, 67 and 117 s of fitting: 16 is where the gain flattens."""
 
 STARTS = 2
 """Random starts of the hidden layer (fixed keys); the fit with the lowest cost is kept."""

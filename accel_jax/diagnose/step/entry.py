@@ -99,7 +99,7 @@ def diagnose_step(
     - `ceiling`: with `discover`, also fit the network reference of what a term of the
         loop's states could remove of the held-out gap (`ceiling`: the discovery's
         `ceiling` block and each candidate's `ceiling_fraction`; an estimate, never a
-        verdict; about as long again as the discovery).
+        verdict; on a CPU 1–2 min more, the discovery itself ~90 s).
 
     **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;
     a `ValueError` otherwise).

@@ -117,7 +117,7 @@ OPTIONS = {
         "--ceiling": "Step records, with --discover: also fit a small network of the loop's "
         "states as a residual moment and output, and report how much of the held-out gap it "
         "removes and how much of that the discovered term reaches (an estimate of what a "
-        "term of the states could do, never a verdict; several minutes more on a CPU).",
+        "term of the states could do, never a verdict; 1–2 minutes more on a CPU).",
         "--json": "Write the diagnosis as JSON here.",
         "--plot": "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
         "--force": _RECORDS_FORCE,
