@@ -424,6 +424,9 @@ def discover(
             "held_out_at_floor": gap_after <= openworld.FLOOR_FACTOR * sigma,
             "stability": 0.0,  # below, once every subset is refitted
             "converged": bool(converged),
+            # The σ above are scaled by max(1, this): a training misfit of the model's form
+            # widens them (calibration against a truth reads them so).
+            "chi2_per_dof_train": chi2_train / dof,
         }
         if tone > 0:
             entry["frequency_Hz"] = float((omega + float(resolution) * params[-1]) / (2 * np.pi))
