@@ -313,11 +313,12 @@ def diagnose(
     force, device,
 ):
     paths = _start("diagnosis", out_dir, force, device, json_out, plot_out)
-    from . import DataError, StepData, read_csv, with_input_delay
+    from . import read_csv, with_input_delay
     from .diagnose import SetDiagnosis, diagnose_step_set
     from .diagnose import diagnose as run_diagnosis
     from .report.figures.diagnosis import save_plot, set_figure
     from .report import save_figure_atomic
+    from .report.text.diagnose import diagnose_notes
 
     if ceiling and not discover:
         raise click.ClickException("--ceiling is part of a discovery; drop --no-discover.")
@@ -331,35 +332,19 @@ def diagnose(
     with _refused():
         if len(files) > 1:
             datasets = [with_input_delay(read_csv(f), input_delay, path=f) for f in files]
-            kinds = {str(file): d.kind for file, d in zip(files, datasets, strict=True)}
-            if set(kinds.values()) != {"step"}:
-                listed = ", ".join(f"{f} ({k})" for f, k in kinds.items())
-                raise DataError(
-                    "several files are diagnosed together only when every one is a step "
-                    f"record (t, u_test, u_out[, a_in]) of one device; got {listed}."
-                )
-            steps = [d for d in datasets if isinstance(d, StepData)]  # all of them, checked
-            result = diagnose_step_set(steps, _nominal(params_file), names=list(kinds))
-            sources, unused_params = {"sources": list(kinds)}, None
+            sources = {"sources": [str(f) for f in files]}
+            result = diagnose_step_set(datasets, _nominal(params_file), names=sources["sources"])
+            kind_read = "step"
         else:
             data = with_input_delay(read_csv(files[0], kind=kind), input_delay, path=files[0])
             result = run_diagnosis(
                 data, _nominal(params_file), discover=discover, ceiling=ceiling
             )
-            sources = {"source": str(files[0])}
-            unused_params = data.kind if params_file is not None and data.kind != "step" else None
+            sources, kind_read = {"source": str(files[0])}, data.kind
     click.echo(result.summary())
     write(paths["text"], result.summary(), "summary")
-    if discover and len(files) > 1:
-        click.echo(
-            "note: --discover (and --ceiling) look at one record; a set of records is not "
-            "searched"
-        )
-    if unused_params is not None:
-        click.echo(
-            f"note: --params is not used by the {unused_params} diagnosis (its nominal model "
-            "has no servo-loop parameters)"
-        )
+    for line in diagnose_notes(len(files), kind_read, discover, params_file is not None):
+        click.echo(line)
     write(paths["json_out"], json_writer(lambda: {**sources, **result.to_dict()}), "json")
     if isinstance(result, SetDiagnosis):  # several files
         write(paths["plot_out"], lambda path: save_figure_atomic(set_figure(result), path), "plot")

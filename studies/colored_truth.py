@@ -489,19 +489,7 @@ def truth_device(truth: dict) -> step_truth.Device:
 
 def truth_record(truth: dict) -> step_truth.Record:
     """The `step_truth.Record` of a drawn record (its `gm` left at none)."""
-    return step_truth.Record(
-        levels=np.asarray(truth["levels_V"], dtype=float),
-        change_times=np.asarray(truth["change_times_s"], dtype=float),
-        rate=truth["rate"],
-        n=int(round(step_truth.DURATION * truth["rate"])),
-        moment=truth["moment_Nm"],
-        output_offset=truth["output_offset_V"],
-        output_sign=truth["output_sign"],
-        adc_step=truth["adc_step_V"],
-        noise=truth["noise_V"],
-        start=truth["start"],
-        start_level=truth["start_level_V"],
-    )
+    return step_truth.record_from_truth(truth)
 
 
 def draw_truth(rng: np.random.Generator, effect: str) -> dict:

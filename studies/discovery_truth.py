@@ -505,21 +505,7 @@ def device_of(truth: dict) -> step_truth.Device:
 def record_of(truth: dict) -> step_truth.Record:
     """The truth's record (as step_truth.make builds it; `duration_s` from the dict,
     step_truth.DURATION if absent)."""
-    rate = truth["rate"]
-    duration = truth.get("duration_s", step_truth.DURATION)
-    return step_truth.Record(
-        levels=np.asarray(truth["levels_V"], dtype=float),
-        change_times=np.asarray(truth["change_times_s"], dtype=float),
-        rate=rate,
-        n=int(round(duration * rate)),
-        moment=truth["moment_Nm"],
-        output_offset=truth["output_offset_V"],
-        output_sign=truth["output_sign"],
-        adc_step=truth["adc_step_V"],
-        noise=truth["noise_V"],
-        start=truth["start"],
-        start_level=truth["start_level_V"],
-    )
+    return step_truth.record_from_truth(truth)
 
 
 def effects_of(truth: dict) -> Effects:

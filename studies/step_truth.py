@@ -546,6 +546,27 @@ def draw_truth(rng: np.random.Generator, effect: str) -> dict:
     return truth
 
 
+def record_from_truth(truth: dict, **changes) -> Record:
+    """The `Record` of a drawn world (`draw_truth`'s dict, or another truth simulator's
+    with the same keys): its sequence, conventions and start, `duration_s` long
+    (`DURATION` where the dict has none); `changes` set further fields (`hold_level`)."""
+    rate = truth["rate"]
+    return Record(
+        levels=np.asarray(truth["levels_V"], dtype=float),
+        change_times=np.asarray(truth["change_times_s"], dtype=float),
+        rate=rate,
+        n=int(round(truth.get("duration_s", DURATION) * rate)),
+        moment=truth["moment_Nm"],
+        output_offset=truth["output_offset_V"],
+        output_sign=truth["output_sign"],
+        adc_step=truth["adc_step_V"],
+        noise=truth["noise_V"],
+        start=truth["start"],
+        start_level=truth["start_level_V"],
+        **changes,
+    )
+
+
 def make(truth: dict, rng: np.random.Generator):
     """Simulate one drawn world (`draw_truth`'s, or `draw_truth_on_stop`'s): (t, u_test
     column, u_out column, noise component) [s, V]."""
@@ -559,19 +580,7 @@ def make(truth: dict, rng: np.random.Generator):
     effect = truth["effect"]
     rate = truth["rate"]
     n = int(round(DURATION * rate))
-    record = Record(
-        levels=np.asarray(truth["levels_V"]),
-        change_times=np.asarray(truth["change_times_s"]),
-        rate=rate,
-        n=n,
-        moment=truth["moment_Nm"],
-        output_offset=truth["output_offset_V"],
-        output_sign=truth["output_sign"],
-        adc_step=truth["adc_step_V"],
-        noise=truth["noise_V"],
-        start=truth["start"],
-        start_level=truth["start_level_V"],
-    )
+    record = record_from_truth(truth)
     if effect == "torquer_lag":
         device.T_dm = truth["lag_s"]
     elif effect == "output_filter":

@@ -18,6 +18,7 @@ from accel_jax.cli import main
 from accel_jax.diagnose.step import design as sd
 from accel_jax.diagnose.step import joint as sj
 from accel_jax.diagnose.step import joint_verdict as sjv
+from accel_jax.report.text.diagnose import diagnose_notes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import step_truth  # noqa: E402
@@ -233,6 +234,15 @@ def test_acceleration_column_is_read_and_checked():
         parse_csv(constant)
 
 
+def test_the_library_refuses_a_set_with_a_record_of_another_kind():
+    """`diagnose_step_set` itself (not only the CLI) names each record's kind, before any
+    fit, when one is not a step record."""
+    step = _record(12, SMALL, device={"T_dm": 3e-5})
+    noise = parse_csv("t,a_out\n" + "\n".join(f"{i * 1e-3},{i % 3}" for i in range(300)))
+    with pytest.raises(DataError, match=r"every one is a step record.*a \(step\), b \(noise\)"):
+        sjv.diagnose_step_set([step, noise], NOMINAL, names=["a", "b"])
+
+
 def test_cli_diagnoses_several_files_together_and_refuses_bad_combinations(tmp_path):
     device = {"T_dm": 3e-5}
     small, stops = tmp_path / "small.csv", tmp_path / "stops.csv"
@@ -248,6 +258,7 @@ def test_cli_diagnoses_several_files_together_and_refuses_bad_combinations(tmp_p
     assert plot.stat().st_size > 10_000  # one row per record: data, model, residuals
     assert "joint diagnosis of 2 records" in result.output
     assert "verdict: torquer_lag" in result.output
+    assert "a set of records is not searched" in result.output  # --discover is the default
     payload = json.loads(out.read_text())
     assert payload["verdict"] == "torquer_lag"
     assert payload["sources"] == [str(small), str(stops)]
@@ -267,6 +278,14 @@ def test_cli_diagnoses_several_files_together_and_refuses_bad_combinations(tmp_p
     wrong.write_text("t,u_test,a_out\n" + "\n".join(f"{i * 1e-6},0,1" for i in range(300)))
     bad = runner.invoke(main, ["diagnose", str(small), str(wrong)])
     assert bad.exit_code != 0 and "wrong.csv" in bad.output and "Traceback" not in bad.output
+
+
+def test_the_diagnose_commands_notes_name_the_options_that_did_not_apply():
+    assert diagnose_notes(1, "step", True, True) == []
+    (searched,) = diagnose_notes(2, "step", True, False)
+    assert "--discover (and --ceiling) look at one record" in searched
+    (params,) = diagnose_notes(1, "noise", False, True)
+    assert "--params is not used by the noise diagnosis" in params
 
 
 def test_identify_takes_the_stop_level_record_for_the_pickoff_gain(tmp_path):

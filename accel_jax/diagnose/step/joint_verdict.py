@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
-from ..._data import DataError, NominalDevice, StepData
+from ..._data import DataError, Dataset, NominalDevice, StepData
 from ..base import INDISTINCT, SIGNIFICANCE, require_float64, verdict_line
 from .design import next_experiments
 from .model import REFIT_FIELDS
@@ -116,7 +117,7 @@ def _shared_extra(values) -> str:
 
 
 def diagnose_step_set(
-    datasets: list[StepData],
+    datasets: Sequence[Dataset],
     nominal: NominalDevice | None = None,
     *,
     names: list[str] | None = None,
@@ -127,21 +128,32 @@ def diagnose_step_set(
     **Arguments:** `datasets` validated `StepData` records of one device (small steps,
     stop-level steps, acceleration steps in any mix); `nominal` its nominal device (default
     the reference); `names` the records' names for the report; `recommend` whether a
-    `cannot_tell` computes the next experiment (`next_experiments`).
+    `cannot_tell` computes the next experiment (`next_experiments`). A record of another
+    kind is refused (`DataError`, naming each record's kind).
 
     **Returns:** a `SetDiagnosis`. Float64 (x64 must be enabled; `ValueError` otherwise).
     """
     require_float64("the evidence compares log-likelihoods of ~1e4 to within ~1")
     nominal = NominalDevice.reference() if nominal is None else nominal
     names = names or [f"#{i + 1}" for i in range(len(datasets))]
-    given = [name for name, d in zip(names, datasets, strict=True) if d.input_delay is not None]
+    if not all(isinstance(d, StepData) for d in datasets):
+        listed = ", ".join(
+            f"{name} ({getattr(d, 'kind', type(d).__name__)})"
+            for name, d in zip(names, datasets, strict=True)
+        )
+        raise DataError(
+            "several records are diagnosed together only when every one is a step "
+            f"record (t, u_test, u_out[, a_in]) of one device; got {listed}."
+        )
+    steps = [d for d in datasets if isinstance(d, StepData)]  # all of them, checked above
+    given = [name for name, d in zip(names, steps, strict=True) if d.input_delay is not None]
     if given:
         raise DataError(
             f"record {given[0]} gives an input delay: the joint fit of a set takes each "
             "record's change times as its columns show them; diagnose that record alone to "
             "use its known delay."
         )
-    prepared = prepare_set(list(datasets), nominal)
+    prepared = prepare_set(steps, nominal)
     fits = fit_set(prepared, nominal)
     scores, ranking = _rank(fits, prepared, nominal)
     notes = [

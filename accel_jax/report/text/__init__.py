@@ -8,5 +8,6 @@ prints these lines and writes the files.
 - `tolerance`: an implausible option's message, the limits table, its legend and the
   passport check, and the JSON payload;
 - `identify`: several records of one device (small steps and stop-level records);
+- `diagnose`: the notes on options that did not apply to the records given;
 - `noise`: the IEEE terms and the effects of a static record, and its exports.
 """
