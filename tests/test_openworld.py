@@ -38,24 +38,24 @@ OK = {"explains": True, "white": True, "plausible": True}
 
 def test_none_only_when_the_nominal_model_explains_and_nothing_is_significant():
     weak = [_c("a", 3.0, significant=False)]
-    assert openworld.decide(OK, weak)["verdict"] == "none"
+    assert openworld.decide(OK, weak).verdict == "none"
     for broken in ("explains", "white", "plausible"):
         status = {**OK, broken: False}
         out = openworld.decide(status, weak)
-        assert out["verdict"] == "unexplained", broken
+        assert out.verdict == "unexplained", broken
     # Nothing significant and the nominal model far from the floor: unexplained, no partial.
     out = openworld.decide({**OK, "explains": False}, weak)
-    assert out["best_partial"] is None and out["path"] == "unexplained"
+    assert out.best_partial is None and out.path == "unexplained"
 
 
 def test_effects_deterministic_first_then_stochastic():
     bad = {**OK, "explains": False}
     out = openworld.decide(bad, [_c("lag", 50.0), _c("noise", 900.0, stochastic=True)])
-    assert out["verdict"] == "lag" and out["path"] == "deterministic"
+    assert out.verdict == "lag" and out.path == "deterministic"
     out = openworld.decide(
         bad, [_c("lag", 50.0, explains=False, fraction=0.3), _c("noise", 900.0, stochastic=True)]
     )
-    assert out["verdict"] == "noise" and out["path"] == "stochastic"
+    assert out.verdict == "noise" and out.path == "stochastic"
     # A noise that absorbs a predictable misfit is not named: unexplained, with the best
     # partial deterministic effect.
     out = openworld.decide(
@@ -65,22 +65,36 @@ def test_effects_deterministic_first_then_stochastic():
             _c("noise", 900.0, stochastic=True, deterministic=True, fraction=0.0),
         ],
     )
-    assert out["verdict"] == "unexplained" and out["best_partial"] == "lag"
+    assert out.verdict == "unexplained" and out.best_partial == "lag"
 
 
 def test_ties_credibility_and_domain():
     bad = {**OK, "explains": False}
     out = openworld.decide(bad, [_c("a", 100.0), _c("b", 96.0)])
-    assert out["verdict"] == "cannot_tell" and out["tied"] == ["a", "b"]
+    assert out.verdict == "cannot_tell" and out.tied == ("a", "b")
     out = openworld.decide(bad, [_c("a", 100.0), _c("b", 96.0)], resolve_tie=lambda a, b: "b")
-    assert out["verdict"] == "b"
+    assert out.verdict == "b"
     out = openworld.decide(bad, [_c("a", 100.0), _c("b", 80.0)])
-    assert out["verdict"] == "a"
+    assert out.verdict == "a"
     # An effect whose fit leaves its prior is not named.
     out = openworld.decide(bad, [_c("a", 100.0, plausible=False), _c("b", 80.0)])
-    assert out["verdict"] == "b"
+    assert out.verdict == "b"
     out = openworld.decide(OK, [_c("a", 100.0)], domain=["returns to zero"])
-    assert out["verdict"] == "unexplained" and out["path"] == "domain"
+    assert out.verdict == "unexplained" and out.path == "domain"
+
+
+def test_the_decision_is_typed_and_its_old_dict_reads_with_a_warning():
+    out = openworld.decide({**OK, "explains": False}, [_c("a", 100.0), _c("b", 96.0)])
+    assert isinstance(out, openworld.Decision)
+    assert out.to_dict() == {
+        "verdict": "cannot_tell",
+        "tied": ["a", "b"],
+        "chosen": "a",
+        "best_partial": None,
+        "path": "deterministic",
+    }
+    with pytest.warns(DeprecationWarning, match="use result.verdict"):
+        assert out["verdict"] == "cannot_tell"
 
 
 def test_gap_arithmetic():

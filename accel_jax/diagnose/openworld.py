@@ -26,10 +26,12 @@ q/√12 when it is the larger.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
+from .._deprecated import LegacyItems
 from .base import INDISTINCT, ljung_box
 
 FLOOR_FACTOR = 1.0
@@ -65,6 +67,43 @@ never give `none`, and an effect whose fit needs it is not named."""
 
 VERDICTS = ("none", "cannot_tell", "unexplained")
 """The verdicts that are not an effect's name."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Decision(LegacyItems):
+    """The open-world verdict (`decide`) and how it was reached.
+
+    - `verdict`: `none`, `cannot_tell`, `unexplained` or an effect's name;
+    - `tied`: the two effects of a `cannot_tell` (else empty);
+    - `chosen`: the effect whose model is reported "after" (None for `none` and
+        `unexplained`);
+    - `best_partial`: with `unexplained`, the significant, credible effect that explains
+        most of the excess (None if none);
+    - `path`: which rule decided (`domain`, `nominal`, `deterministic`, `stochastic`, either
+        `+nested`, `unexplained`; a kind's own later rule, e.g. the step kind's
+        `nuisances`).
+
+    It was a plain dict; `decision["verdict"]` still reads for one release, with a
+    `DeprecationWarning`.
+    """
+
+    verdict: str
+    tied: tuple[str, ...] = ()
+    chosen: str | None = None
+    best_partial: str | None = None
+    path: str = ""
+
+    def to_dict(self) -> dict:
+        return {
+            "verdict": self.verdict,
+            "tied": list(self.tied),
+            "chosen": self.chosen,
+            "best_partial": self.best_partial,
+            "path": self.path,
+        }
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
 
 
 def excess(mean_square: float, floor_variance: float) -> float:
@@ -253,7 +292,7 @@ def decide(
     domain: list[str] | None = None,
     indistinct: float = INDISTINCT,
     resolve_tie=None,
-) -> dict:
+) -> Decision:
     """The open-world verdict from the nominal model's status and the candidates' fits.
 
     **Arguments:**
@@ -267,27 +306,16 @@ def decide(
     - `domain`: problems found by a domain check (the record is outside the model family).
     - `resolve_tie(first, second)`: the effect a tie resolves to, or None (nested effects).
 
-    **Returns:** dict with `verdict`, `tied`, `chosen` (the effect whose model is reported
-    "after", or None), `best_partial` (for `unexplained`), `path` (which rule decided).
+    **Returns:** a `Decision`: `verdict`, `tied`, `chosen` (the effect whose model is
+    reported "after", or None), `best_partial` (for `unexplained`), `path` (which rule
+    decided).
     """
     if domain:
         partial = _best_partial(candidates)
-        return {
-            "verdict": "unexplained",
-            "tied": [],
-            "chosen": None,
-            "best_partial": partial,
-            "path": "domain",
-        }
+        return Decision(verdict="unexplained", best_partial=partial, path="domain")
     usable = [c for c in candidates if c["significant"] and c["plausible"]]
     if not usable and nominal["explains"] and nominal["white"] and nominal["plausible"]:
-        return {
-            "verdict": "none",
-            "tied": [],
-            "chosen": None,
-            "best_partial": None,
-            "path": "nominal",
-        }
+        return Decision(verdict="none", path="nominal")
     deterministic = [c for c in usable if not c["stochastic"] and c["explains"]]
     stochastic = [
         c
@@ -302,34 +330,11 @@ def decide(
             first, second = group[0]["effect"], group[1]["effect"]
             simpler = resolve_tie(first, second) if resolve_tie else None
             if simpler is not None:
-                return {
-                    "verdict": simpler,
-                    "tied": [],
-                    "chosen": simpler,
-                    "best_partial": None,
-                    "path": path + "+nested",
-                }
-            return {
-                "verdict": "cannot_tell",
-                "tied": [first, second],
-                "chosen": first,
-                "best_partial": None,
-                "path": path,
-            }
-        return {
-            "verdict": group[0]["effect"],
-            "tied": [],
-            "chosen": group[0]["effect"],
-            "best_partial": None,
-            "path": path,
-        }
-    return {
-        "verdict": "unexplained",
-        "tied": [],
-        "chosen": None,
-        "best_partial": _best_partial(candidates),
-        "path": "unexplained",
-    }
+                return Decision(verdict=simpler, chosen=simpler, path=path + "+nested")
+            return Decision(verdict="cannot_tell", tied=(first, second), chosen=first, path=path)
+        return Decision(verdict=group[0]["effect"], chosen=group[0]["effect"], path=path)
+    partial = _best_partial(candidates)
+    return Decision(verdict="unexplained", best_partial=partial, path="unexplained")
 
 
 def _best_partial(candidates: list[dict]) -> str | None:

@@ -130,8 +130,8 @@ def evaluate(data: NoiseData, rec: NoiseRecord, effects, outputs) -> DiagnosisRe
         ranking,
         resolve_tie=lambda a, b: _resolve_nested(a, b, fits[1:], NESTED, NESTED_LEVEL),
     )
-    verdict, tied = decision["verdict"], decision["tied"]
-    shown = decision["chosen"] or decision["best_partial"]
+    verdict, tied = decision.verdict, list(decision.tied)
+    shown = decision.chosen or decision.best_partial
     chosen = shown or "nominal"
     # The noise floor is the shown model's own predicted innovation variance on the
     # held-out part (the filter's S_k): what remains above it is what the model did not
@@ -225,7 +225,7 @@ def evaluate(data: NoiseData, rec: NoiseRecord, effects, outputs) -> DiagnosisRe
 
 
 def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) -> str:
-    verdict = decision["verdict"]
+    verdict = decision.verdict
     sigma = math.sqrt(floor)
     entry = {e["effect"]: e for e in ranking}
     if verdict == "none":
@@ -234,7 +234,7 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
             f"{assessed['nominal']['whiteness']['p_value']:.2g}) and no effect is significant."
         )
     if verdict == "cannot_tell":
-        a, b = decision["tied"]
+        a, b = decision.tied
         return (
             f"{a} and {b} both whiten the held-out record and their evidence differs by "
             f"{abs(entry[a]['evidence'] - entry[b]['evidence']):.1f} (< 6 on the 2 ln B scale)."
@@ -261,8 +261,8 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
             f"does not carry its phase into the held-out part (projection "
             f"{predictable['periodic_z']:.1f} standard errors): a wandering line"
         )
-    if decision["best_partial"]:
-        best = decision["best_partial"]
+    if decision.best_partial:
+        best = decision.best_partial
         own = assessed[best]
         if not own["whiteness"]["white"]:
             p_value = own["whiteness"]["p_value"]

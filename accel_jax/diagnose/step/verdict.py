@@ -81,17 +81,17 @@ def evaluate(
     # The nuisances judged together: a record whose nominal refit needs strained nuisances
     # is not `none` (an effect they absorbed would go unseen).
     nuisances = nuisance.nuisance_test(nominal_fit, rec)
-    if decision["verdict"] == "none" and nuisances["strained"]:
-        decision = {**decision, "verdict": "unexplained", "path": "nuisances"}
+    if decision.verdict == "none" and nuisances["strained"]:
+        decision = dataclasses.replace(decision, verdict="unexplained", path="nuisances")
     # A named effect's own fit judged the same way: named with strained nuisances, the
     # effect may stand in for another that they complete (a torquer lag and an input delay
     # for an output filter). Stated, the verdict kept.
-    named = {f.effect: f for f in candidates}.get(decision["verdict"])
+    named = {f.effect: f for f in candidates}.get(decision.verdict)
     effect_nuisances = nuisance.nuisance_test(named, rec) if named is not None else None
     entries.sort(key=lambda r: (not r["fit_failed"], r["significant"], r["evidence"]), reverse=True)
-    verdict = decision["verdict"]
+    verdict = decision.verdict
     by_name = {f.effect: f for f in fits}
-    shown = decision["chosen"] or decision["best_partial"]
+    shown = decision.chosen or decision.best_partial
     after_fit = by_name[shown] if shown else nominal_fit
     floor_after = after_fit.model_noise_variance if after_fit.stochastic else None
     gap = held_out_gap(
@@ -164,7 +164,7 @@ def evaluate(
     return DiagnosisResult(
         kind="step",
         verdict=verdict,
-        tied=decision["tied"],
+        tied=list(decision.tied),
         ranking=entries,
         gap=gap,
         where=where,
@@ -311,8 +311,8 @@ def _reason(
     nuisances: dict,
 ):
     whiteness = nominal_fit.whiteness or {}  # (the nominal fit's, set by `evaluate`)
-    path = decision["path"]
-    verdict = decision["verdict"]
+    path = decision.path
+    verdict = decision.verdict
     floor = f"{sigma:.3g} V noise floor"
     if path == "domain":
         return "; ".join(rec.domain_problems) + "."
@@ -330,7 +330,7 @@ def _reason(
         )
     entry = {e["effect"]: e for e in entries}
     if verdict == "cannot_tell":
-        a, b = decision["tied"]
+        a, b = decision.tied
         return (
             f"{a} and {b} both bring the held-out gap to the floor and their evidence differs by "
             f"{abs(entry[a]['evidence'] - entry[b]['evidence']):.1f} (< 6 on the 2 ln B scale): "
@@ -386,7 +386,7 @@ def _reason(
             f"the refit needs {shifts}: beyond {openworld.PRIOR_LIMIT:.0f}σ of the prior "
             "(not this device? give its values with --params)"
         )
-    partial = decision["best_partial"]
+    partial = decision.best_partial
     if partial and by_name[partial].stochastic:
         # A noise model is credited by its one-step errors and the size of its free-run
         # errors, not by a free-run gap (which a noise cannot close): say which failed.

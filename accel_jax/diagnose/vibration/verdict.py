@@ -107,13 +107,13 @@ def evaluate(
         )
         entry["explained_fraction"] = openworld.explained_fraction(g["before"], g["after"])
     decision = openworld.decide(nominal_status, ranking)
-    verdict, tied = decision["verdict"], decision["tied"]
+    verdict, tied = decision.verdict, list(decision.tied)
     for entry in ranking:
         g = held_out_gap(
             fits[0].held_out_errors, by_name[entry["effect"]].held_out_errors, floor, block=1
         )
         entry["gap_shrink"] = g["shrink"]
-    chosen = decision["chosen"] or decision["best_partial"] or "nominal"
+    chosen = decision.chosen or decision.best_partial or "nominal"
     after = by_name[chosen].held_out_errors
     gap = held_out_gap(fits[0].held_out_errors, after, floor, block=1)
     gap["unit"] = "g"
@@ -253,11 +253,11 @@ def lack_of_fit(rss: float, n_params: int, pure: dict) -> dict:
 
 
 def _reason(decision, entry, lack, gap, sigma) -> str:
-    verdict = decision["verdict"]
+    verdict = decision.verdict
     if verdict == "none":
         return "no effect is significant (2 ln B < 10 or no cross-validated improvement)."
     if verdict == "cannot_tell":
-        a, b = decision["tied"]
+        a, b = decision.tied
         return (
             f"{a} and {b} both fit and their evidence differs by "
             f"{abs(entry[a]['evidence'] - entry[b]['evidence']):.1f} (< 6 on the 2 ln B scale): "
@@ -268,7 +268,7 @@ def _reason(decision, entry, lack, gap, sigma) -> str:
             f"{verdict} is significant (2 ln B = {entry[verdict]['evidence']:.1f}) and shrinks "
             f"the cross-validated gap from {gap['before']:.3g} g to {gap['after']:.3g} g."
         )
-    best = decision["best_partial"]
+    best = decision.best_partial
     text = "the repeated test conditions show a lack of fit that no library effect removes"
     if best:
         text += (
