@@ -14,6 +14,7 @@ import warnings
 
 import pytest
 
+from accel_jax.diagnose.base import DiagnosisResult
 from accel_jax.diagnose.discovery_result import (
     DiscoveredColumn,
     Discovery,
@@ -103,12 +104,14 @@ def test_to_dict_is_the_old_block_key_for_key():
     assert list(empty["candidates"][0]) == CANDIDATE
 
 
-def test_the_old_access_warns():
+def test_the_diagnosis_writes_the_block_and_the_old_access_warns():
     found, _ = _discoveries()
+    result = DiagnosisResult("step", "unexplained", [], [], {}, {}, {}, discovery=found)
+    assert result.to_dict()["discovery"] == found.to_dict()
     old = found.to_dict()
     pattern = r"result\['best'\] is deprecated.*use result\.best \(or result\.to_dict\(\)"
     with pytest.warns(DeprecationWarning, match=pattern) as caught:
-        assert found["best"] == old["best"]
+        assert result.discovery["best"] == old["best"]
     assert "next release" in str(caught[0].message)
     assert caught[0].filename == __file__  # attributed to the caller
     with pytest.warns(DeprecationWarning, match=re.escape("result.get('rating')")):
