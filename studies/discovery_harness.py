@@ -82,7 +82,7 @@ for f in files:
     out[f.stem] = {
         "verdict": result.verdict,
         "tied": list(result.tied),
-        "discovery": result.discovery,
+        "discovery": None if result.discovery is None else result.discovery.to_dict(),
     }
 pathlib.Path(sys.argv[1]).write_text(json.dumps(out, default=float))
 """

@@ -93,24 +93,47 @@ def test_a_ceiling_without_a_discovery_is_refused():
 
 
 def test_the_summary_states_the_reference_and_what_the_term_reaches():
-    from accel_jax.diagnose.base import discovery_lines
+    import dataclasses
 
-    column = {
-        "term": "pickoff_cube", "place": "pickoff", "formula": "U_amp += c·v³/h²",
-        "coefficient": -0.06, "sigma": 0.009,
-    }
-    best = {
-        "columns": [column], "held_out_gap_before_V": 0.07, "held_out_gap_after_V": 0.0,
-        "explained_fraction": 1.0, "evidence": 1e6, "stability": 1.0, "ceiling_fraction": 1.71,
-    }
-    reference = {"parameters": 58, "explained_fraction": 0.58, "extrapolates": False}
-    lines = discovery_lines({"best": best, "rating": "credible", "ceiling": reference})
-    text = "\n".join(lines)
+    from accel_jax.diagnose.base import discovery_lines
+    from accel_jax.diagnose.discovery_result import (
+        DiscoveredColumn,
+        Discovery,
+        DiscoveryCandidate,
+        DiscoveryScales,
+        NetworkReference,
+    )
+
+    column = DiscoveredColumn(
+        term="pickoff_cube", place="pickoff", family="pickoff", formula="U_amp += c·v³/h²",
+        coefficient=-0.06, sigma=0.009,
+    )
+    best = DiscoveryCandidate(
+        terms=("pickoff_cube",), columns=(column,), evidence=1e6, criterion=-1e6,
+        delta_chi2_train=1e6, ebic_linearised=-1e6, held_out_gap_before_V=0.07,
+        held_out_gap_after_V=0.0, explained_fraction=1.0, held_out_at_floor=True,
+        stability=1.0, converged=True, chi2_per_dof_train=1.0, ceiling_fraction=1.71,
+        ceiling_compared=True,
+    )
+    reference = NetworkReference(
+        method="", parameters=58, delta_chi2_train=1e5, held_out_gap_before_V=0.07,
+        held_out_gap_after_V=0.046, explained_fraction=0.58, converged=True, extrapolates=False,
+    )
+    found = Discovery(
+        method="", sinusoid_start_Hz=0.0, scales=DiscoveryScales(1.0, 3e-4),
+        candidates=(best,), best=best, rating="credible", ceiling=reference,
+    )
+    text = "\n".join(discovery_lines(found))
     assert "removes 58% of the held-out gap; the term reaches 171% of that" in text
     assert "extrapolated" not in text
     # Nothing found: the reference is still stated, and where the held-out part leaves the
     # training part's levels, that it is extrapolated there.
-    lines = discovery_lines({"best": None, "ceiling": {**reference, "extrapolates": True}})
+    nothing = dataclasses.replace(
+        found, best=None, rating="nothing found",
+        ceiling=dataclasses.replace(reference, extrapolates=True),
+    )
+    lines = discovery_lines(nothing)
     assert lines[0].endswith("nothing found in the term library")
     assert "removes 58%" in lines[1] and "extrapolated there" in lines[1]
-    assert discovery_lines({"best": best, "rating": "credible"})[1].startswith("   held-out")
+    without = dataclasses.replace(found, ceiling=None)
+    assert discovery_lines(without)[1].startswith("   held-out")

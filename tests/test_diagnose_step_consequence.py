@@ -14,6 +14,7 @@ import pytest
 from accel_jax._data import NominalDevice
 from accel_jax._servo import time_constant
 from accel_jax._simulate.sequence import SequenceInputs, accel_moment
+from accel_jax.diagnose.discovery_result import DiscoveredColumn, DiscoveryCandidate
 from accel_jax.diagnose.step import terms
 from accel_jax.diagnose.step.consequence import consequence, static_gain
 
@@ -87,15 +88,27 @@ def test_pickoff_terms_leave_almost_nothing_at_rest(settle):
         assert abs(run(name, C, 2.0) - y0) < 0.01 * C * y0 * y0 / H
 
 
+def _column(term, coefficient, sigma=0.0):
+    """A discovered column (only its term, coefficient and σ read here)."""
+    return DiscoveredColumn(term, "", "", "", coefficient, sigma)
+
+
+def _candidate(terms, columns):
+    """A refitted subset (only its terms and columns read here)."""
+    return DiscoveryCandidate(
+        tuple(terms), tuple(columns), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, 0.0, True, 1.0
+    )
+
+
 def test_consequence_entries(settle):
     nominal, _ = settle
     k1 = static_gain(nominal)
     columns = [
-        {"term": "torquer_asymmetry", "coefficient": 2e-4},
-        {"term": "spring_square", "coefficient": 1e-3},
-        {"term": "spring_cube", "coefficient": -1e-3},
-        {"term": "output_pole", "coefficient": 0.1},
-        {"term": "forcing_sinusoid (sin)", "coefficient": 0.1},
+        _column("torquer_asymmetry", 2e-4),
+        _column("spring_square", 1e-3),
+        _column("spring_cube", -1e-3),
+        _column("output_pole", 0.1),
+        _column("forcing_sinusoid (sin)", 0.1),
     ]
     out = consequence(columns, H, nominal)
     asym, k2, k3, pole, tone = out
@@ -143,20 +156,15 @@ def test_excite_picks_the_barely_measured_terms():
     from accel_jax.diagnose.step import excite
 
     def cand(terms, values):
-        return {
-            "terms": terms,
-            "columns": [
-                {"term": t, "coefficient": c, "sigma": s}
-                for t, (c, s) in zip(terms, values, strict=True)
-            ],
-        }
+        columns = [_column(t, c, s) for t, (c, s) in zip(terms, values, strict=True)]
+        return _candidate(terms, columns)
 
     best = cand(["pickoff_cube"], [(0.1, 1e-4)])
     pair = cand(["pickoff_square", "pickoff_cube"], [(-0.12, 0.05), (0.08, 0.02)])
     other = cand(["pickoff_abs"], [(0.025, 0.01)])  # weak, but not beside the best
     noise = cand(["pickoff_abs", "pickoff_cube"], [(0.01, 0.01), (0.1, 1e-4)])  # z = 1
     weak = excite.weak_terms(best, None, [best, pair, other, noise])
-    assert [(c["terms"], i) for c, i in weak] == [(["pickoff_square", "pickoff_cube"], 0)]
+    assert [(c.terms, i) for c, i in weak] == [(("pickoff_square", "pickoff_cube"), 0)]
     scale = {"factor": 2.0, "deflection_V": 3.2, "stop_V": 4.0}
     e = excite.entry("pickoff_square", pair, -0.12, 0.05, 0.01, scale)
     assert e["z_here"] == pytest.approx(2.4) and e["z_excited"] == pytest.approx(12.0)

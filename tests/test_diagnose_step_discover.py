@@ -90,19 +90,19 @@ def test_a_pickoff_nonlinearity_is_found_at_the_pickoff(discovered):
     result = discovered["pickoff_nonlinearity"]
     assert result.verdict == "unexplained"  # the library did not contain it
     discovery = result.discovery
-    best = discovery["best"]
-    assert best is not None and discovery["rating"] in ("credible", "tentative")
-    assert sorted(best["terms"]) == ["pickoff_cube", "pickoff_square"], result.summary()
+    best = discovery.best
+    assert best is not None and discovery.rating in ("credible", "tentative")
+    assert sorted(best.terms) == ["pickoff_cube", "pickoff_square"], result.summary()
     assert step_truth.Device().l == 4.28e-3  # so that G θ_ref = U in CASES
-    ratio = discovery["scales"]["half_V"] / U
+    ratio = discovery.scales.half_V / U
     truth = {"pickoff_square": 0.06 * ratio, "pickoff_cube": -0.05 * ratio**2}
-    for column in best["columns"]:
-        assert abs(column["coefficient"] - truth[column["term"]]) < 3 * column["sigma"], column
-    assert best["explained_fraction"] > 0.9
+    for column in best.columns:
+        assert abs(column.coefficient - truth[column.term]) < 3 * column.sigma, column
+    assert best.explained_fraction > 0.9
     assert "discovered (hypothesis" in result.summary()
-    assert "discovery" in result.to_dict()
+    assert result.to_dict()["discovery"] == discovery.to_dict()
     # At rest the loop's gain takes a pickoff's error: no coefficient of the static model.
-    assert [c["static"] for c in best["consequence"]] == [None, None]
+    assert [c["static"] for c in best.consequence] == [None, None]
     assert "no static term" in result.summary()
 
 
@@ -145,7 +145,7 @@ def test_a_vibrating_stand_is_found_from_the_command_line(tmp_path):
 def test_nothing_credible_on_a_clean_record(discovered):
     result = discovered["clean"]
     assert result.verdict == "none"
-    assert result.discovery["rating"] != "credible"
+    assert result.discovery.rating != "credible"
 
 
 def test_leave_one_out_the_output_filter_is_found_as_an_extra_lag(discovered):
@@ -158,11 +158,11 @@ def test_leave_one_out_the_output_filter_is_found_as_an_extra_lag(discovered):
     # nominal fit, which the library changes only where a restart from its optimum
     # improves it.)
     discovery = discovered["output_filter"].discovery
-    assert {"torquer_pole", "output_pole"} & set(discovery["best"]["terms"]), discovery
-    alone = next(c for c in discovery["candidates"] if c["terms"] == ["output_pole"])
-    extra = alone["columns"][0]["coefficient"] * discovery["scales"]["period_s"]
+    assert {"torquer_pole", "output_pole"} & set(discovery.best.terms), discovery
+    alone = next(c for c in discovery.candidates if c.terms == ("output_pole",))
+    extra = alone.columns[0].coefficient * discovery.scales.period_s
     assert extra == pytest.approx(3e-5, rel=0.3)
-    assert alone["explained_fraction"] > 0.9
+    assert alone.explained_fraction > 0.9
 
 
 def test_discover_refuses_an_unknown_mode():

@@ -191,7 +191,7 @@ def test_import_layers_catch_an_upward_import(monkeypatch):
 # kinds; each kind is a subpackage that imports, of the diagnosis, only those and itself (the
 # kinds' fits included); and nothing imports an old place of the kinds'
 # modules (kept for one release, CHANGELOG.md).
-_DIAGNOSE_SHARED = {"base", "openworld", "discovery_text"}
+_DIAGNOSE_SHARED = {"base", "openworld", "discovery_text", "discovery_result"}
 _DIAGNOSE_KINDS = {"step": set(), "noise": set(), "vibration": set()}
 _DIAGNOSE_OLD = {
     "step_fit", "step_input", "step_effects", "step_assess", "step_verdict", "step_refit",

@@ -30,6 +30,7 @@ import numpy as np
 
 from .._checks import require_float64 as _require_float64
 from .._noise.whiteness import ljung_box as ljung_box
+from .discovery_result import Discovery
 from .discovery_text import discovery_lines as discovery_lines
 
 SIGNIFICANCE = 10.0
@@ -343,6 +344,9 @@ class DiagnosisResult:
     - `next_experiment`: with a `cannot_tell` that another experiment can break (the step
         kind's two lags), the experiments a user can run, best first, each with its
         expected 2 ln B (`step.design.next_experiments`); else empty.
+    - `discovery`: for a step record searched for a missing term, the `Discovery`
+        (`step.discover`: a hypothesis, never a verdict; `to_dict()` its JSON block);
+        else None.
     """
 
     kind: str
@@ -358,7 +362,7 @@ class DiagnosisResult:
     remaining_gap: dict = dataclasses.field(default_factory=dict)
     reason: str = ""
     next_experiment: list = dataclasses.field(default_factory=list)
-    discovery: dict | None = None
+    discovery: Discovery | None = None
 
     def to_dict(self) -> dict:
         """The JSON document of docs/models.md §5's CLI contract (plain numbers and strings)."""
@@ -375,7 +379,7 @@ class DiagnosisResult:
             "refit": self.refit,
             "notes": list(self.notes),
             **({"next_experiment": self.next_experiment} if self.next_experiment else {}),
-            **({"discovery": self.discovery} if self.discovery is not None else {}),
+            **({"discovery": self.discovery.to_dict()} if self.discovery is not None else {}),
         }
 
     def summary(self) -> str:

@@ -26,6 +26,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .. import openworld
+from ..discovery_result import NetworkReference
 from .minpack import solve
 from .state import StepRecord
 from .terms import N_COEFFICIENTS
@@ -108,12 +109,15 @@ def outside_training(rec: StepRecord, unpacked, theta) -> bool:
     return bool(drive[test].min() < low - margin or drive[test].max() > high + margin)
 
 
-def fit_reference(prediction, penalties, held_out_error, theta0, scales, record) -> dict:
-    """The `ceiling` block: the network fitted on the training part with the device and
-    the record's nuisances from `theta0` (the nominal fit; `prediction` and `penalties`
+def fit_reference(
+    prediction, penalties, held_out_error, theta0, scales, record, *, extrapolates: bool
+) -> NetworkReference:
+    """The discovery's `ceiling`: the network fitted on the training part with the device
+    and the record's nuisances from `theta0` (the nominal fit; `prediction` and `penalties`
     are `discover`'s model of the record), then its held-out gap with the held-out part's
     nuisances refitted (`held_out_error`), as for a term. `record`: (u_out, the training
-    mask, σ, the held-out rows, the gap before, the nominal cost)."""
+    mask, σ, the held-out rows, the gap before, the nominal cost); `extrapolates`: whether
+    the held-out part leaves the training part's levels (`outside_training`)."""
     u_out, train_j, sigma, test_rows, gap_before, cost0 = record
     n_free = theta0.size
     zero = jnp.zeros(N_COEFFICIENTS)
@@ -135,17 +139,18 @@ def fit_reference(prediction, penalties, held_out_error, theta0, scales, record)
     fitted = np.asarray(fun(jnp.asarray(solution.x), None))[: -flat.size]  # the prior's apart
     error = np.asarray(held_out_error(theta, zero, scales, network=flat))
     gap_after = openworld.excess(float(np.mean(error[test_rows] ** 2)), sigma**2)
-    return {
-        "method": (
+    return NetworkReference(
+        method=(
             f"a network of the states (v, w, m, g·U) → (moment, output), one tanh layer of "
             f"{WIDTH}, {flat.size} weights under a standard normal prior, fitted with "
             f"the device and the record's nuisances (best of {STARTS} starts): an "
             "estimate of what a term of the states could remove, not a bound, never a verdict"
         ),
-        "parameters": int(flat.size),
-        "delta_chi2_train": float(cost0 - np.sum(fitted**2)),
-        "held_out_gap_before_V": gap_before,
-        "held_out_gap_after_V": gap_after,
-        "explained_fraction": openworld.explained_fraction(gap_before, gap_after),
-        "converged": bool(solution.status > 0),
-    }
+        parameters=int(flat.size),
+        delta_chi2_train=float(cost0 - np.sum(fitted**2)),
+        held_out_gap_before_V=gap_before,
+        held_out_gap_after_V=gap_after,
+        explained_fraction=openworld.explained_fraction(gap_before, gap_after),
+        converged=bool(solution.status > 0),
+        extrapolates=extrapolates,
+    )

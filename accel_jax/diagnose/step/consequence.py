@@ -27,12 +27,14 @@ Float64 (the vibration errors are ppm-level; the diagnosis runs in float64).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 from ..._data import NominalDevice
 from ..._simulate.sequence import accel_moment, equilibrium
 from ..._static import PPM_UNITS, StaticTransferFunction
 from ..._tolerance import cyclone4, paper_limits
 from ..._vibration import vibration_error
+from ..discovery_result import DiscoveredColumn
 
 SCENARIO = "Cyclone-4 (the paper's Example 1: δ* = 5e-4 g, mean a3 = 2 g)"
 
@@ -67,17 +69,20 @@ def static_gain(nominal: NominalDevice) -> float:
     return float(equilibrium(p, accel_moment(p), 0.0)[0])  # the deflection voltage v = output
 
 
-def consequence(columns: list[dict], half: float, nominal: NominalDevice) -> list[dict]:
-    """Per column of a discovered subset (`discover`'s `columns`): `term`; `static` (the
-    coefficient of eq. (1) it implies: `coefficient`, `value` [g-units], `ppm` (×1e6, in
-    `ppm_unit`), `vibration_error_ug` in the scenario, `paper_limit_ppm` and
-    `within_limit`) or None; `text`, one line for the summary."""
+def consequence(
+    columns: Sequence[DiscoveredColumn], half: float, nominal: NominalDevice
+) -> list[dict]:
+    """Per column of a discovered subset (a `DiscoveryCandidate`'s `columns`), a
+    JSON-ready dict: `term`; `static` (the coefficient of eq. (1) it implies:
+    `coefficient`, `value` [g-units], `ppm` (×1e6, in `ppm_unit`), `vibration_error_ug` in
+    the scenario, `paper_limit_ppm` and `within_limit`) or None; `text`, one line for the
+    summary."""
     k1 = static_gain(nominal)
     scenario = cyclone4()
     limits = paper_limits(scenario)
     out = []
     for column in columns:
-        name, c = column["term"], float(column["coefficient"])
+        name, c = column.term, float(column.coefficient)
         base = name.split(" ")[0]
         entry = {"term": name, "static": None, "K1_V_per_g": k1}
         if base in _STATIC:

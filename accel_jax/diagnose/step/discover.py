@@ -44,6 +44,7 @@ term libraries, and an experiment that separates a tie. Float64.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -54,6 +55,7 @@ import numpy as np
 from ..._data import NominalDevice
 from ..._simulate.sequence import SequenceInputs, equilibrium
 from .. import openworld
+from ..discovery_result import DiscoveredColumn, Discovery, DiscoveryCandidate, DiscoveryScales
 from . import ceiling, excite
 from .consequence import consequence
 from .joint import nominal_stop_voltage
@@ -206,11 +208,12 @@ def _local_cost(model: dict, weights: np.ndarray) -> float:
 
 def discover(
     rec: StepRecord, nominal: NominalDevice, fit: StepFit, effects, reference: bool = False
-) -> dict:
-    """The `discovery` block of an unexplained step record (see the module docstring), from
-    its nominal fit `fit` (a `StepFit`, the nominal model's). `reference`: also fit the
-    network reference of what a term of the states could achieve (`ceiling`; the block's
-    `ceiling`, each candidate's `ceiling_fraction`)."""
+) -> Discovery:
+    """The discovery of an unexplained step record (see the module docstring), from its
+    nominal fit `fit` (a `StepFit`, the nominal model's): a `Discovery`, the JSON's
+    `discovery` block by its `to_dict()`. `reference`: also fit the network reference of
+    what a term of the states could achieve (`ceiling`; the discovery's `ceiling`, each
+    candidate's `ceiling_fraction`)."""
     n = len(rec.u_out)
     train = np.asarray(rec.ctx.train)[:n] > 0
     test = np.asarray(rec.ctx.test)[:n] > 0
@@ -397,44 +400,43 @@ def discover(
             for i in subset
             for part in (("sin", "cos") if TERMS[i].width > 1 else ("",))
         ]
-        entry = {
-            "terms": [TERMS[i].name for i in subset],
-            "columns": [
-                {
-                    "term": term.name + part,
-                    "place": term.place,
-                    "family": term.family,
-                    "formula": term.formula,
-                    "coefficient": float(value),
-                    "sigma": float(spread),
-                }
+        entry = DiscoveryCandidate(
+            terms=tuple(TERMS[i].name for i in subset),
+            columns=tuple(
+                DiscoveredColumn(
+                    term=term.name + part,
+                    place=term.place,
+                    family=term.family,
+                    formula=term.formula,
+                    coefficient=float(value),
+                    sigma=float(spread),
+                )
                 for (term, part), value, spread in zip(
                     names, params[n_free : n_free + len(cols)], std, strict=True
                 )
-            ],
-            "evidence": float(delta - k * math.log(n_train)),
-            "criterion": float(
+            ),
+            evidence=float(delta - k * math.log(n_train)),
+            criterion=float(
                 -delta + k * math.log(n_train) + 2 * math.log(math.comb(len(TERMS), len(subset)))
             ),
-            "delta_chi2_train": float(delta),
-            "ebic_linearised": float(ebic),
-            "held_out_gap_before_V": gap_before,
-            "held_out_gap_after_V": gap_after,
-            "explained_fraction": openworld.explained_fraction(gap_before, gap_after),
-            "held_out_at_floor": gap_after <= openworld.FLOOR_FACTOR * sigma,
-            "stability": 0.0,  # below, once every subset is refitted
-            "converged": bool(converged),
+            delta_chi2_train=float(delta),
+            ebic_linearised=float(ebic),
+            held_out_gap_before_V=gap_before,
+            held_out_gap_after_V=gap_after,
+            explained_fraction=openworld.explained_fraction(gap_before, gap_after),
+            held_out_at_floor=gap_after <= openworld.FLOOR_FACTOR * sigma,
+            stability=0.0,  # below, once every subset is refitted
+            converged=bool(converged),
             # The σ above are scaled by max(1, this): a training misfit of the model's form
             # widens them (calibration against a truth reads them so).
-            "chi2_per_dof_train": chi2_train / dof,
-        }
-        if tone > 0:
-            entry["frequency_Hz"] = float((omega + float(resolution) * params[-1]) / (2 * np.pi))
-        confirmed.append(entry)
-        fitted[tuple(entry["terms"])] = (params, pick, len(cols), tuned)
-        local[subset] = _local_model(
-            np.asarray(r), jac, segment_rows, n, entry["criterion"] + delta
+            chi2_per_dof_train=chi2_train / dof,
+            frequency_Hz=(
+                float((omega + float(resolution) * params[-1]) / (2 * np.pi)) if tone > 0 else None
+            ),
         )
+        confirmed.append(entry)
+        fitted[entry.terms] = (params, pick, len(cols), tuned)
+        local[subset] = _local_model(np.asarray(r), jac, segment_rows, n, entry.criterion + delta)
     # 4. Stability: the selection repeated on block-bootstrap resamples of the training
     # segments, every subset scored on the linearised problem except the refitted ones,
     # each scored by a Gauss–Newton step from its own optimum (the linearisation at c = 0
@@ -456,65 +458,81 @@ def discover(
             if criterion < value:
                 pick, value = subset, criterion
         picks.append(pick)
-    for entry, subset in zip(confirmed, local, strict=True):
-        entry["stability"] = float(np.mean([set(subset) <= set(p) for p in picks]))
-    confirmed.sort(key=lambda d: d["criterion"])
-    result = {
-        "method": (
-            f"{len(TERMS)} terms ({N_COEFFICIENTS} coefficients), subsets of ≤ {MAX_TERMS} by "
-            f"the extended BIC (γ = 1) on the linearised fit; the best {CONFIRM} refitted in "
-            "full (device, the record's nuisances, an output offset, the terms); evidence "
-            f"2 ln B ≈ Δχ² − k ln n (BIC); stability over {BOOTSTRAP} block-bootstrap "
-            "resamples of the training segments (the refitted subsets scored from their own "
-            "optima); the held-out part's nuisances refitted with "
-            "the terms as for every library effect"
-        ),
-        "sinusoid_start_Hz": omega / (2 * np.pi),
-        "scales": {"half_V": float(rec.host.half), "period_s": float(rec.period)},
-        "candidates": confirmed,
-        "best": None,
-        "tie": None,
-        "rating": "nothing found",
-    }
+    confirmed = [
+        dataclasses.replace(
+            entry, stability=float(np.mean([set(subset) <= set(p) for p in picks]))
+        )
+        for entry, subset in zip(confirmed, local, strict=True)
+    ]
+    confirmed.sort(key=lambda d: d.criterion)
+    method = (
+        f"{len(TERMS)} terms ({N_COEFFICIENTS} coefficients), subsets of ≤ {MAX_TERMS} by "
+        f"the extended BIC (γ = 1) on the linearised fit; the best {CONFIRM} refitted in "
+        "full (device, the record's nuisances, an output offset, the terms); evidence "
+        f"2 ln B ≈ Δχ² − k ln n (BIC); stability over {BOOTSTRAP} block-bootstrap "
+        "resamples of the training segments (the refitted subsets scored from their own "
+        "optima); the held-out part's nuisances refitted with "
+        "the terms as for every library effect"
+    )
+    result = Discovery(
+        method=method,
+        sinusoid_start_Hz=omega / (2 * np.pi),
+        scales=DiscoveryScales(half_V=float(rec.host.half), period_s=float(rec.period)),
+        candidates=tuple(confirmed),
+    )
     if reference:
-        result["ceiling"] = ceiling.fit_reference(
+        reached = ceiling.fit_reference(
             prediction, penalties, held_out_error, np.asarray(theta_w)[keep], scales,
             (u_out, train_j, sigma, test_rows, gap_before, cost0),
+            extrapolates=ceiling.outside_training(rec, unpacked, theta_w[keep]),
         )
-        result["ceiling"]["extrapolates"] = ceiling.outside_training(
-            rec, unpacked, theta_w[keep]
-        )
-        reached = result["ceiling"]["explained_fraction"]
-        for entry in confirmed:
-            entry["ceiling_fraction"] = (
-                entry["explained_fraction"] / reached if reached > 0 else None
+        fraction = reached.explained_fraction
+        confirmed = [
+            dataclasses.replace(
+                entry,
+                ceiling_fraction=entry.explained_fraction / fraction if fraction > 0 else None,
+                ceiling_compared=True,
             )
+            for entry in confirmed
+        ]
+        result = dataclasses.replace(result, candidates=tuple(confirmed), ceiling=reached)
     if not confirmed:
         return result
     best = confirmed[0]
     credible = (
-        best["evidence"] >= CREDIBLE_EVIDENCE
-        and best["stability"] >= STABLE
-        and best["held_out_at_floor"]
+        best.evidence >= CREDIBLE_EVIDENCE and best.stability >= STABLE and best.held_out_at_floor
     )
     # A subset that does not shrink the held-out gap at all is no discovery, whatever its
     # training evidence (a clean record's pair: evidence 152, the held-out gap larger).
-    if best["evidence"] >= CREDIBLE_EVIDENCE and best["explained_fraction"] > 0:
-        result["rating"] = "credible" if credible else "tentative"
-        result["best"] = best
-        ties = [d for d in confirmed[1:] if d["criterion"] - best["criterion"] < TIE_BAND]
-        result["tie"] = ties[0] if ties else None
-        # What it means for a designer (eq. (1)'s coefficients, their vibration error).
-        for named in (best, result["tie"]):
-            if named is not None:
-                half = float(rec.host.half)
-                named["consequence"] = consequence(named["columns"], half, nominal)
-        weak = excite.weak_terms(best, result["tie"], confirmed)
-        if weak:
-            result["excite"] = _excite(
-                weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma
-            )
-    return result
+    if not (best.evidence >= CREDIBLE_EVIDENCE and best.explained_fraction > 0):
+        return result
+    tie_at = next(
+        (i for i, d in enumerate(confirmed) if i and d.criterion - best.criterion < TIE_BAND),
+        None,
+    )
+    # What it means for a designer (eq. (1)'s coefficients, their vibration error), on the
+    # best subset and its tie, which stay their entries of the candidates.
+    half = float(rec.host.half)
+    for i in (0, tie_at):
+        if i is not None:
+            meaning = consequence(confirmed[i].columns, half, nominal)
+            confirmed[i] = dataclasses.replace(confirmed[i], consequence=tuple(meaning))
+    best = confirmed[0]
+    tie = None if tie_at is None else confirmed[tie_at]
+    weak = excite.weak_terms(best, tie, confirmed)
+    excited = None
+    if weak:
+        excited = _excite(
+            weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma
+        )
+    return dataclasses.replace(
+        result,
+        candidates=tuple(confirmed),
+        best=best,
+        tie=tie,
+        rating="credible" if credible else "tentative",
+        excite=None if excited is None else tuple(excited),
+    )
 
 
 def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma):
@@ -523,7 +541,7 @@ def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free,
     out, errors_of = [], {}
     stop = nominal_stop_voltage(nominal.params)
     for candidate, i in weak:
-        key = tuple(candidate["terms"])
+        key = candidate.terms
         params, pick, n_cols, tuned = fitted[key]
         theta = jnp.asarray(params[:n_free])
         if key not in errors_of:
@@ -540,10 +558,8 @@ def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free,
             )
             errors_of[key] = (errors, scale)
         errors, scale = errors_of[key]
-        column = candidate["columns"][i]
-        here = column["sigma"]  # the fit's own, scaled by the information's ratio
+        column = candidate.columns[i]
+        here = column.sigma  # the fit's own, scaled by the information's ratio
         there = here * errors[1, i] / errors[0, i]
-        out.append(
-            excite.entry(column["term"], candidate, column["coefficient"], here, there, scale)
-        )
+        out.append(excite.entry(column.term, candidate, column.coefficient, here, there, scale))
     return out

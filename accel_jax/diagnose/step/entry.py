@@ -93,12 +93,12 @@ def diagnose_step(
         the experiment that would separate them (`result.next_experiment`, from the joint
         fit of `joint`: ~10–60 s per such record on a CPU).
     - `discover`: True: for an `unexplained` record that passed the domain check, look for
-        the missing term in the term library (`discover`: `result.discovery`, a
-        hypothesis; the verdict stays `unexplained`); "all": for every record that passed
-        it (a check that nothing is found where nothing is missing).
+        the missing term in the term library (`discover`: `result.discovery`, a typed
+        `Discovery`, a hypothesis; the verdict stays `unexplained`); "all": for every
+        record that passed it (a check that nothing is found where nothing is missing).
     - `ceiling`: with `discover`, also fit the network reference of what a term of the
         loop's states could remove of the held-out gap (`ceiling`: the discovery's
-        `ceiling` block and each candidate's `ceiling_fraction`; an estimate, never a
+        `ceiling` and each candidate's `ceiling_fraction`; an estimate, never a
         verdict; on a CPU 1–2 min more, the discovery itself ~90 s).
 
     **Returns:** one `DiagnosisResult` per record, in order. Float64 (needs x64 enabled;

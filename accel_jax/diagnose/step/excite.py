@@ -19,10 +19,13 @@ the truth), not a simulation of the refit.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ..discovery_result import DiscoveryCandidate
 
 WEAK_Z = 3.0
 """|c|/σ below which a term counts as barely excited."""
@@ -42,26 +45,30 @@ WANTED_Z = 5.0
 """|c|/σ the suggested repeats of the scaled record would reach."""
 
 
-def weak_terms(best: dict, tie: dict | None, candidates: list[dict]) -> list[tuple[dict, int]]:
+def weak_terms(
+    best: DiscoveryCandidate,
+    tie: DiscoveryCandidate | None,
+    candidates: Sequence[DiscoveryCandidate],
+) -> list[tuple[DiscoveryCandidate, int]]:
     """(candidate, column index) of the barely excited columns (HINT_Z ≤ |c|/σ < WEAK_Z,
     at most `MAX_ENTRIES`, the best measured first): in the best subset, its tie, or a
     refitted candidate that adds one term to the best subset."""
-    named = set(best["terms"])
+    named = set(best.terms)
     pool = [best] + ([tie] if tie is not None else [])
     pool += [
         c for c in candidates
-        if named < set(c["terms"]) and len(c["terms"]) == len(named) + 1 and c not in pool
+        if named < set(c.terms) and len(c.terms) == len(named) + 1 and c not in pool
     ]
     out = []
     for candidate in pool:
-        for i, column in enumerate(candidate["columns"]):
-            sigma = column["sigma"]
-            if sigma > 0 and HINT_Z * sigma <= abs(column["coefficient"]) < WEAK_Z * sigma:
+        for i, column in enumerate(candidate.columns):
+            sigma = column.sigma
+            if sigma > 0 and HINT_Z * sigma <= abs(column.coefficient) < WEAK_Z * sigma:
                 out.append((candidate, i))
 
     def z(item):
-        column = item[0]["columns"][item[1]]
-        return abs(column["coefficient"]) / column["sigma"]
+        column = item[0].columns[item[1]]
+        return abs(column.coefficient) / column.sigma
 
     return sorted(out, key=z, reverse=True)[:MAX_ENTRIES]
 
@@ -93,11 +100,13 @@ def standard_errors(prediction, penalties, theta, coefficients, pick, scales, si
     return np.stack(out)
 
 
-def entry(term: str, candidate: dict, coefficient: float, here: float, there: float, scale):
-    """One `excite` entry and its summary text."""
+def entry(
+    term: str, candidate: DiscoveryCandidate, coefficient: float, here: float, there: float, scale
+) -> dict:
+    """One `excite` entry (JSON-ready) and its summary text."""
     z_here, z_there = abs(coefficient) / here, abs(coefficient) / there
     repeats = max(1, math.ceil((WANTED_Z / z_there) ** 2)) if z_there > 0 else math.inf
-    others = [t for t in candidate["terms"] if t != term.split(" ")[0]]
+    others = [t for t in candidate.terms if t != term.split(" ")[0]]
     beside = f" (beside {', '.join(others)})" if others else ""
     text = (
         f"{term}{beside} barely excited: c = {coefficient:.3g} ± {here:.2g} (z = {z_here:.1f}); "
@@ -108,7 +117,7 @@ def entry(term: str, candidate: dict, coefficient: float, here: float, there: fl
         text += f"; {repeats} such records for z ≈ {WANTED_Z:.0f}"
     return {
         "term": term,
-        "candidate": list(candidate["terms"]),
+        "candidate": list(candidate.terms),
         "coefficient": coefficient,
         "sigma_here": float(here),
         "z_here": float(z_here),

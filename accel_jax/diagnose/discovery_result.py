@@ -1,0 +1,211 @@
+"""The typed result of the discovery of a missing term in a step record
+(`step.discover`; `DiagnosisResult.discovery`): frozen dataclasses whose attributes carry
+the names of the keys of the `discovery` block of the JSON.
+
+`to_dict()` gives that block key for key, in the same order and with the same keys present
+(`frequency_Hz` only for a subset with the sinusoid, `ceiling_fraction` only where the
+network reference ran, `consequence` only on the best subset and its tie: `best` and `tie`
+are the same objects as their entries of `candidates`, so their `consequence` is in the
+`candidates` list too). A later stage that adds to one makes a new one with
+`dataclasses.replace`. The string-keyed access of the plain dict this replaced
+(`result.discovery["best"]`) still works for one release, with a `DeprecationWarning`
+(`accel_jax._deprecated.LegacyItems`).
+
+What stays JSON-ready dicts, presentation and no input of a decision: each named subset's
+`consequence` entries (`step.consequence`) and the `excite` entries (`step.excite`).
+Shared by the kinds' modules (`base` renders it through `discovery_text`); it imports none.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .._deprecated import LegacyItems
+
+
+class _Fields:
+    """`to_dict()`: the fields in their order, each as it is (plain values)."""
+
+    def to_dict(self) -> dict:
+        """The JSON-ready dict: one key per field, in the fields' order."""
+        return dict(vars(self))
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscoveredColumn(_Fields):
+    """One coefficient of a refitted subset (a sinusoid has two: its sin and cos parts).
+
+    **Fields:** `term` the term's name (with ` (sin)`/` (cos)` for a sinusoid's part);
+    `place` where in the loop it acts; `family` its family; `formula` its form;
+    `coefficient` its fitted value c (in the term's units, `DiscoveryScales`); `sigma` its
+    standard error (scaled by max(1, the training χ² per degree of freedom)).
+    """
+
+    term: str
+    place: str
+    family: str
+    formula: str
+    coefficient: float
+    sigma: float
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscoveryCandidate:
+    """One refitted subset of terms.
+
+    **Fields:**
+
+    - `terms`: the terms' names; `columns`: their coefficients (`DiscoveredColumn`).
+    - `evidence`: 2 ln B ≈ Δχ² − k ln n against the nominal fit (BIC); `criterion`: the
+        extended BIC relative to the nominal fit (lower is better; the candidates' order);
+        `delta_chi2_train`: Δχ² on the training part; `ebic_linearised`: the criterion of
+        the linearised screen that chose it.
+    - `held_out_gap_before_V`, `held_out_gap_after_V` [V]: the held-out gap above the
+        noise floor without and with the terms; `explained_fraction`: the fraction of its
+        square removed; `held_out_at_floor`: whether the gap after is at the floor.
+    - `stability`: the fraction of block-bootstrap resamples whose pick contains every
+        term of the subset; `converged`: whether the full refit converged;
+        `chi2_per_dof_train`: the training χ² per degree of freedom.
+    - `frequency_Hz` [Hz]: a sinusoid's fitted frequency (None, and not in the JSON,
+        without the sinusoid).
+    - `ceiling_fraction`: the fraction of the network reference's shrink the subset reaches
+        (None where the reference removed nothing); in the JSON only where the reference ran,
+        `ceiling_compared` (never in the JSON).
+    - `consequence`: what the subset means for a designer (`step.consequence`'s JSON-ready
+        entries, one per column), for the best subset and its tie; else None, not in the
+        JSON.
+    """
+
+    terms: tuple[str, ...]
+    columns: tuple[DiscoveredColumn, ...]
+    evidence: float
+    criterion: float
+    delta_chi2_train: float
+    ebic_linearised: float
+    held_out_gap_before_V: float
+    held_out_gap_after_V: float
+    explained_fraction: float
+    held_out_at_floor: bool
+    stability: float
+    converged: bool
+    chi2_per_dof_train: float
+    frequency_Hz: float | None = None
+    ceiling_fraction: float | None = None
+    ceiling_compared: bool = False
+    consequence: tuple[dict, ...] | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON-ready dict: the fields in their order, `terms` and `columns` as lists;
+        `frequency_Hz` and `consequence` only when set, `ceiling_fraction` only where the
+        reference ran (`ceiling_compared` never)."""
+        out = {
+            "terms": list(self.terms),
+            "columns": [column.to_dict() for column in self.columns],
+            "evidence": self.evidence,
+            "criterion": self.criterion,
+            "delta_chi2_train": self.delta_chi2_train,
+            "ebic_linearised": self.ebic_linearised,
+            "held_out_gap_before_V": self.held_out_gap_before_V,
+            "held_out_gap_after_V": self.held_out_gap_after_V,
+            "explained_fraction": self.explained_fraction,
+            "held_out_at_floor": self.held_out_at_floor,
+            "stability": self.stability,
+            "converged": self.converged,
+            "chi2_per_dof_train": self.chi2_per_dof_train,
+        }
+        if self.frequency_Hz is not None:
+            out["frequency_Hz"] = self.frequency_Hz
+        if self.ceiling_compared:
+            out["ceiling_fraction"] = self.ceiling_fraction
+        if self.consequence is not None:
+            out["consequence"] = list(self.consequence)
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkReference(_Fields):
+    """The network reference of what a term of the loop's states could remove
+    (`step.ceiling.fit_reference`): an estimate, not a bound, never a verdict.
+
+    **Fields:** `method` in words; `parameters` the network's weights; `delta_chi2_train`
+    Δχ² on the training part; `held_out_gap_before_V`, `held_out_gap_after_V` [V] the
+    held-out gap above the floor without and with it; `explained_fraction` the fraction of
+    its square removed; `converged` whether its fit converged; `extrapolates` whether the
+    held-out part holds test levels outside the training part's
+    (`step.ceiling.outside_training`).
+    """
+
+    method: str
+    parameters: int
+    delta_chi2_train: float
+    held_out_gap_before_V: float
+    held_out_gap_after_V: float
+    explained_fraction: float
+    converged: bool
+    extrapolates: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscoveryScales(_Fields):
+    """The units of the terms' coefficients: `half_V` the training output's half range h
+    [V], `period_s` the nominal device's period T [s]."""
+
+    half_V: float
+    period_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Discovery(LegacyItems):
+    """The discovery of a missing term in one step record (`step.discover`): a hypothesis,
+    never a verdict.
+
+    **Fields:**
+
+    - `method`: the method in words; `sinusoid_start_Hz` [Hz]: the sinusoid's starting
+        frequency (the nominal residual's periodogram peak); `scales`: the terms' units
+        (`DiscoveryScales`).
+    - `candidates`: the refitted subsets, best (lowest criterion) first
+        (`DiscoveryCandidate`).
+    - `best`, `tie`: the discovered subset and one that cannot be told from it, each the
+        same object as its entry of `candidates` (None where nothing was found / no tie).
+    - `rating`: `"credible"`, `"tentative"` or `"nothing found"`.
+    - `ceiling`: the network reference (`NetworkReference`), with `reference=True`; else
+        None, not in the JSON.
+    - `excite`: the records that would excite a barely measured term (`step.excite`'s
+        JSON-ready entries); None, not in the JSON, where no term is barely measured.
+
+    `to_dict()` is the JSON's `discovery` block; `result.discovery["best"]` and the other
+    keys of the dict this replaced still work for one release, with a
+    `DeprecationWarning`.
+    """
+
+    method: str
+    sinusoid_start_Hz: float
+    scales: DiscoveryScales
+    candidates: tuple[DiscoveryCandidate, ...]
+    best: DiscoveryCandidate | None = None
+    tie: DiscoveryCandidate | None = None
+    rating: str = "nothing found"
+    ceiling: NetworkReference | None = None
+    excite: tuple[dict, ...] | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON-ready dict: the fields in their order (`best` and `tie` as their
+        candidates' dicts); `ceiling` and `excite` only when set."""
+        out = {
+            "method": self.method,
+            "sinusoid_start_Hz": self.sinusoid_start_Hz,
+            "scales": self.scales.to_dict(),
+            "candidates": [candidate.to_dict() for candidate in self.candidates],
+            "best": None if self.best is None else self.best.to_dict(),
+            "tie": None if self.tie is None else self.tie.to_dict(),
+            "rating": self.rating,
+        }
+        if self.ceiling is not None:
+            out["ceiling"] = self.ceiling.to_dict()
+        if self.excite is not None:
+            out["excite"] = list(self.excite)
+        return out
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
