@@ -38,7 +38,12 @@ class DiscoveredColumn(_Fields):
     **Fields:** `term` the term's name (with ` (sin)`/` (cos)` for a sinusoid's part);
     `place` where in the loop it acts; `family` its family; `formula` its form;
     `coefficient` its fitted value c (in the term's units, `DiscoveryScales`); `sigma` its
-    standard error (scaled by max(1, the training χ² per degree of freedom)).
+    standard error: on the subsets that `excite` may name (the best, its tie, the best
+    with one term added) the half-width of its profile-likelihood interval
+    (`step.profile`), elsewhere the linearised one; both at Δχ² = max(1, the training χ²
+    per degree of freedom). Where profiled (else None, not in the JSON):
+    `sigma_linearised` the linearised one, `interval` (lower, upper), `profile_found`
+    whether both ends were found to `profile.TOLERANCE`.
     """
 
     term: str
@@ -47,6 +52,16 @@ class DiscoveredColumn(_Fields):
     formula: str
     coefficient: float
     sigma: float
+    sigma_linearised: float | None = None
+    interval: tuple[float, float] | None = None
+    profile_found: bool | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON-ready dict: the fields in their order, the profile's only when set."""
+        out = {k: v for k, v in vars(self).items() if v is not None}
+        if self.interval is not None:
+            out["interval"] = list(self.interval)
+        return out
 
 
 @dataclasses.dataclass(frozen=True)

@@ -56,7 +56,7 @@ from ..._data import NominalDevice
 from ..._simulate.sequence import SequenceInputs, equilibrium
 from .. import openworld
 from ..discovery_result import DiscoveredColumn, Discovery, DiscoveryCandidate, DiscoveryScales
-from . import ceiling, excite
+from . import ceiling, excite, profile
 from .consequence import consequence
 from .joint import nominal_stop_voltage
 from .layout import W
@@ -297,10 +297,10 @@ def discover(
     resolution = 2 * jnp.pi / scales.duration
 
     def residuals(params, args):
-        pick, used, tone = args
+        pick, used, tone, fixed = args  # `fixed`: coefficients held (`profile`), else 0
         theta, c, shift = params[:n_free], params[n_free:-1], params[-1]
         tuned = scales._replace(omega=scales.omega + resolution * shift)
-        e = (u_out - prediction(theta, c @ pick, tuned)) * train_j / sigma
+        e = (u_out - prediction(theta, c @ pick + fixed, tuned)) * train_j / sigma
         pinned = jnp.concatenate([c * (1 - used), shift * (1 - tone)[None]])
         return jnp.concatenate([e, penalties(theta), pinned])
 
@@ -363,7 +363,8 @@ def discover(
         tone = np.asarray(float(_SINUSOID in subset))
         padded = np.pad(coef, (0, MAX_COLUMNS - len(cols)))
         start = np.concatenate([np.asarray(theta_w)[keep], padded, [0.0]])
-        args = (jnp.asarray(pick), jnp.asarray(used), jnp.asarray(tone))
+        held = jnp.zeros(N_COEFFICIENTS)
+        args = (jnp.asarray(pick), jnp.asarray(used), jnp.asarray(tone), held)
         # From the linearised estimate and from the nominal fit itself (the terms at 0):
         # the linearised estimate of a strong term can start in another basin.
         at_nominal = start.copy()
@@ -472,7 +473,8 @@ def discover(
         f"2 ln B ≈ Δχ² − k ln n (BIC); stability over {BOOTSTRAP} block-bootstrap "
         "resamples of the training segments (the refitted subsets scored from their own "
         "optima); the held-out part's nuisances refitted with "
-        "the terms as for every library effect"
+        "the terms as for every library effect; the σ of the best subset, its tie and the "
+        "best with one term added from the profile likelihood"
     )
     result = Discovery(
         method=method,
@@ -517,6 +519,13 @@ def discover(
         if i is not None:
             meaning = consequence(confirmed[i].columns, half, nominal)
             confirmed[i] = dataclasses.replace(confirmed[i], consequence=tuple(meaning))
+    # The σ that the summary and `excite` read, from the profile likelihood (the
+    # linearised one can be an order of magnitude off: `profile`).
+    named = set(confirmed[0].terms)
+    for i, entry in enumerate(confirmed):
+        grows = named < set(entry.terms) and len(entry.terms) == len(named) + 1
+        if i in (0, tie_at) or grows:
+            confirmed[i] = _profiled(entry, fitted[entry.terms], residuals_at, jacobian_at, n_free)
     best = confirmed[0]
     tie = None if tie_at is None else confirmed[tie_at]
     weak = excite.weak_terms(best, tie, confirmed)
@@ -533,6 +542,27 @@ def discover(
         rating="credible" if credible else "tentative",
         excite=None if excited is None else tuple(excited),
     )
+
+
+def _profiled(entry, fit, residuals_at, jacobian_at, n_free):
+    """`entry` with each column's σ from its profile-likelihood interval (`profile`) at
+    Δχ² = max(1, its training χ²/dof), the linearised σ kept beside it."""
+    params, pick, n_cols, _ = fit
+    used = (np.arange(MAX_COLUMNS) < n_cols).astype(np.float64)
+    tone = np.asarray(float(entry.frequency_Hz is not None))
+    linearised = [column.sigma for column in entry.columns]
+    found = profile.column_intervals(
+        solve, residuals_at, jacobian_at, params, (pick, used, tone), n_free, n_cols,
+        linearised, max(1.0, entry.chi2_per_dof_train),
+    )
+    columns = tuple(
+        dataclasses.replace(
+            column, sigma=p.sigma, sigma_linearised=column.sigma,
+            interval=(p.lower, p.upper), profile_found=p.found,
+        )
+        for column, p in zip(entry.columns, found, strict=True)
+    )
+    return dataclasses.replace(entry, columns=columns)
 
 
 def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma):
