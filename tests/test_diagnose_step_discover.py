@@ -98,6 +98,11 @@ def test_a_pickoff_nonlinearity_is_found_at_the_pickoff(discovered):
     truth = {"pickoff_square": 0.06 * ratio, "pickoff_cube": -0.05 * ratio**2}
     for column in best.columns:
         assert abs(column.coefficient - truth[column.term]) < 3 * column.sigma, column
+        # Its σ from the profile likelihood, found on both sides; here the linearised σ is
+        # far too wide (the model is strongly nonlinear along the square's trade-off).
+        assert column.profile_found and column.interval is not None, column
+        assert column.interval[0] < column.coefficient < column.interval[1], column
+        assert column.sigma_linearised is not None and column.sigma < column.sigma_linearised
     assert best.explained_fraction > 0.9
     assert "discovered (hypothesis" in result.summary()
     assert result.to_dict()["discovery"] == discovery.to_dict()
