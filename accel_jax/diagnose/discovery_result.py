@@ -39,7 +39,8 @@ class DiscoveredColumn(_Fields):
     `place` where in the loop it acts; `family` its family; `formula` its form;
     `coefficient` its fitted value c (in the term's units, `DiscoveryScales`); `sigma` its
     standard error: on the subsets that `excite` may name (the best, its tie, the best
-    with one term added) the half-width of its profile-likelihood interval
+    with one term added where its linearised σ leave a term below `excite.WEAK_Z`) the
+    half-width of its profile-likelihood interval
     (`step.profile`), elsewhere the linearised one; both at Δχ² = max(1, the training χ²
     per degree of freedom). Where profiled (else None, not in the JSON):
     `sigma_linearised` the linearised one, `interval` (lower, upper), `profile_found`
