@@ -25,7 +25,8 @@ form: `Flicker` (1/f noise, f_c = B²/|ω|) and `ButterworthLowPass` (the output
 gain on the spectrum); `difference_parts` assembles the spectrum of the first difference of
 a record (the Whittle fits' y_k = x_k − x_{k−1}). tests/test_noise_one_model.py checks the
 spectra against the autocovariances (and so the state-space forms) and each path's spectrum
-against these.
+against these. The record's deterministic terms (periodic lines, the start-up transient)
+are `mean_models`'.
 """
 
 from __future__ import annotations
