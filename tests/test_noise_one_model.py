@@ -9,7 +9,9 @@
 - The noise diagnosis' Whittle spectrum (`diagnose.noise.fit.spectrum`), for each
   candidate at random parameters, equals the models'.
 - The diagnosis' hand-unrolled Kalman filter (`noise_fit.filter_terms`) gives the
-  log-likelihood terms of `accel_jax._kalman.kalman_filter` on the models' state space.
+  log-likelihood terms of `accel_jax._kalman.kalman_filter` on the models' state space,
+  and takes its transition from `ExponentialCosine.discrete_state_space` (finite, with
+  finite derivatives, at the nominal candidate's ρ = 0).
 - The deterministic terms of the mean (`accel_jax._noise.mean_models`: `PeriodicLine`,
   `StartupTransient`) are the formulas the sensor-noise selection used, and every path
   that fits, evaluates or reports a line or a transient goes through them.
@@ -283,6 +285,67 @@ def test_diagnosis_filter_is_the_generic_kalman_filter(candidate):
         # The first term carries the diffuse prior (S ≈ 1e6 var): equal to its round-off.
         np.testing.assert_allclose(np.asarray(terms[1:]), np.asarray(reference[1:]), rtol=1e-9)
         np.testing.assert_allclose(float(terms[0]), float(reference[0]), rtol=1e-9)
+
+
+def test_exp_cosine_discrete_state_space_is_its_state_space():
+    """`ExponentialCosine.discrete_state_space` of the per-sample parameters is the model's
+    `state_space(Δ)` (to the bit given 1 − ρ² as −expm1(−2αΔ), to 1e-12 with its own
+    1 − ρ²), and F is ρ Rot(θ)."""
+    rng = np.random.default_rng(310)
+    for _ in range(DRAWS):
+        model = _stationary_models(rng)[2]
+        assert isinstance(model, ExponentialCosine)
+        alpha, beta = float(model.decay_rate), float(model.angular_frequency)
+        rho, theta = math.exp(-alpha * DT), beta * DT
+        variance = model.sigma**2
+        expected = model.state_space(DT)
+        exact = ExponentialCosine.discrete_state_space(
+            variance, jnp.exp(-model.decay_rate * DT), model.angular_frequency * DT,
+            -jnp.expm1(-2 * model.decay_rate * DT),
+        )  # fmt: skip
+        for got, want in zip(exact, expected, strict=True):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        plain = ExponentialCosine.discrete_state_space(variance, rho, theta)
+        for got, want in zip(plain, expected, strict=True):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12, atol=0)
+        rotation = [[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]]
+        _close(plain[0], rho * np.array(rotation))
+
+
+def test_diagnosis_filter_builds_its_transition_from_the_model(monkeypatch):
+    """`filter_terms` takes the block's transition and noise from
+    `ExponentialCosine.discrete_state_space` (a spy sees the call with the candidate's v, ρ,
+    θ), and the likelihood, its gradient and its Hessian stay finite at the nominal
+    candidate, where ρ = 0 and v = 0 (no log of ρ on the way)."""
+    import jax
+
+    seen = []
+    real = ExponentialCosine.discrete_state_space
+
+    def spy(*args):
+        seen.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(ExponentialCosine, "discrete_state_space", staticmethod(spy))
+    rng = np.random.default_rng(320)
+    x = rng.normal(size=200).cumsum() * 0.05 + rng.normal(size=200)
+    record = jnp.asarray(x - x.mean())
+    diffuse = _DIFFUSE * float(jnp.mean(record**2))
+    z = jnp.asarray(_diagnosis_draw(rng))
+    white, parts = noise_fit._components(z, 2)
+    noise_fit.filter_terms(white, parts, record, diffuse)
+    assert len(seen) == 1
+    for got, want in zip(seen[0], (parts.variance, parts.decay, parts.rotation), strict=True):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    weight = jnp.asarray((np.arange(200) > 0).astype(float))
+    args = (record, weight, 0, diffuse)
+    white, parts = noise_fit._components(z, 0)
+    assert float(parts.decay) == 0.0 and float(parts.variance) == 0.0
+    value = noise_fit._negative_log_likelihood(z, args)
+    gradient = jax.grad(noise_fit._negative_log_likelihood)(z, args)
+    hessian = jax.hessian(noise_fit._negative_log_likelihood)(z, args)
+    for a in (value, gradient, hessian):
+        assert np.all(np.isfinite(np.asarray(a)))
 
 
 # --------------------------------------------------------------------------------------

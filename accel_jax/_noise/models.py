@@ -251,6 +251,21 @@ class ExponentialCosine(AbstractNoiseModel):
         h = jnp.array([[1.0, 0.0]], dtype=f.dtype)
         return f, q, h, var * eye, jnp.zeros((), f.dtype)
 
+    @staticmethod
+    def discrete_state_space(variance, decay, rotation, refresh=None):
+        """(F, Q, H, P0, r) of the per-sample parameters (`variance` σ², `decay` ρ = e^{−αΔ},
+        `rotation` θ = βΔ): F = ρ Rot(θ), Q = σ²(1 − ρ²) I, H = [1, 0], P0 = σ² I, r = 0.
+        Finite, with finite derivatives, at ρ = 0 and σ² = 0 (a fit's nominal candidate: no
+        log of ρ is taken); at θ = 0 the Gauss–Markov process in s₁. `refresh`: 1 − ρ² where
+        the caller has it to better precision (`state_space`: −expm1(−2αΔ))."""
+        along, across = decay * jnp.cos(rotation), decay * jnp.sin(rotation)
+        f = jnp.array([[along, -across], [across, along]])
+        refresh = 1 - decay**2 if refresh is None else refresh
+        eye = jnp.eye(2, dtype=f.dtype)
+        q = variance * refresh * eye
+        h = jnp.array([[1.0, 0.0]], dtype=f.dtype)
+        return f, q, h, variance * eye, jnp.zeros((), f.dtype)
+
     def autocovariance(self, lag_times):
         lag_times = jnp.asarray(lag_times)
         return (
