@@ -242,14 +242,9 @@ class ExponentialCosine(AbstractNoiseModel):
 
     def state_space(self, sample_interval):
         decay = jnp.exp(-self.decay_rate * sample_interval)
-        angle = self.angular_frequency * sample_interval
-        c, s = jnp.cos(angle), jnp.sin(angle)
-        f = decay * jnp.array([[c, -s], [s, c]])
-        var = self.sigma**2
-        eye = jnp.eye(2, dtype=f.dtype)
-        q = var * -jnp.expm1(-2 * self.decay_rate * sample_interval) * eye
-        h = jnp.array([[1.0, 0.0]], dtype=f.dtype)
-        return f, q, h, var * eye, jnp.zeros((), f.dtype)
+        refresh = -jnp.expm1(-2 * self.decay_rate * sample_interval)  # 1 − ρ², to full precision
+        rotation = self.angular_frequency * sample_interval
+        return self.discrete_state_space(self.sigma**2, decay, rotation, refresh)
 
     @staticmethod
     def discrete_state_space(variance, decay, rotation, refresh=None):
