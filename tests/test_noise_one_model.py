@@ -9,13 +9,19 @@
 - The noise diagnosis' Whittle spectrum (`diagnose.noise.fit.spectrum`), for each
   candidate at random parameters, equals the models'.
 - The diagnosis' hand-unrolled Kalman filter (`noise_fit.filter_terms`) gives the
-  log-likelihood terms of `accel_jax._kalman.kalman_filter` on the models' state space.
+  log-likelihood terms of `accel_jax._kalman.kalman_filter` on the models' state space,
+  and takes its transition from `ExponentialCosine.discrete_state_space` (finite, with
+  finite derivatives, at the nominal candidate's ρ = 0).
+- The deterministic terms of the mean (`accel_jax._noise.mean_models`: `PeriodicLine`,
+  `StartupTransient`) are the formulas the sensor-noise selection used, and every path
+  that fits, evaluates or reports a line or a transient goes through them.
 
 All in float64 (tests/conftest.py), to round-off.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -281,6 +287,67 @@ def test_diagnosis_filter_is_the_generic_kalman_filter(candidate):
         np.testing.assert_allclose(float(terms[0]), float(reference[0]), rtol=1e-9)
 
 
+def test_exp_cosine_discrete_state_space_is_its_state_space():
+    """`ExponentialCosine.discrete_state_space` of the per-sample parameters is the model's
+    `state_space(Δ)` (to the bit given 1 − ρ² as −expm1(−2αΔ), to 1e-12 with its own
+    1 − ρ²), and F is ρ Rot(θ)."""
+    rng = np.random.default_rng(310)
+    for _ in range(DRAWS):
+        model = _stationary_models(rng)[2]
+        assert isinstance(model, ExponentialCosine)
+        alpha, beta = float(model.decay_rate), float(model.angular_frequency)
+        rho, theta = math.exp(-alpha * DT), beta * DT
+        variance = model.sigma**2
+        expected = model.state_space(DT)
+        exact = ExponentialCosine.discrete_state_space(
+            variance, jnp.exp(-model.decay_rate * DT), model.angular_frequency * DT,
+            -jnp.expm1(-2 * model.decay_rate * DT),
+        )  # fmt: skip
+        for got, want in zip(exact, expected, strict=True):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        plain = ExponentialCosine.discrete_state_space(variance, rho, theta)
+        for got, want in zip(plain, expected, strict=True):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12, atol=0)
+        rotation = [[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]]
+        _close(plain[0], rho * np.array(rotation))
+
+
+def test_diagnosis_filter_builds_its_transition_from_the_model(monkeypatch):
+    """`filter_terms` takes the block's transition and noise from
+    `ExponentialCosine.discrete_state_space` (a spy sees the call with the candidate's v, ρ,
+    θ), and the likelihood, its gradient and its Hessian stay finite at the nominal
+    candidate, where ρ = 0 and v = 0 (no log of ρ on the way)."""
+    import jax
+
+    seen = []
+    real = ExponentialCosine.discrete_state_space
+
+    def spy(*args):
+        seen.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(ExponentialCosine, "discrete_state_space", staticmethod(spy))
+    rng = np.random.default_rng(320)
+    x = rng.normal(size=200).cumsum() * 0.05 + rng.normal(size=200)
+    record = jnp.asarray(x - x.mean())
+    diffuse = _DIFFUSE * float(jnp.mean(record**2))
+    z = jnp.asarray(_diagnosis_draw(rng))
+    white, parts = noise_fit._components(z, 2)
+    noise_fit.filter_terms(white, parts, record, diffuse)
+    assert len(seen) == 1
+    for got, want in zip(seen[0], (parts.variance, parts.decay, parts.rotation), strict=True):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    weight = jnp.asarray((np.arange(200) > 0).astype(float))
+    args = (record, weight, 0, diffuse)
+    white, parts = noise_fit._components(z, 0)
+    assert float(parts.decay) == 0.0 and float(parts.variance) == 0.0
+    value = noise_fit._negative_log_likelihood(z, args)
+    gradient = jax.grad(noise_fit._negative_log_likelihood)(z, args)
+    hessian = jax.hessian(noise_fit._negative_log_likelihood)(z, args)
+    for a in (value, gradient, hessian):
+        assert np.all(np.isfinite(np.asarray(a)))
+
+
 # --------------------------------------------------------------------------------------
 # The diagnosis figure's fitted-model PSD (a fourth copy of the formulas, in
 # report/figures/diagnosis.py): checked against the models' one-sided PSD
@@ -373,3 +440,127 @@ def test_spectra_from_half_angle_sines_equal_the_cosine_forms_and_are_exact_near
     got = float(GaussMarkov.discrete_spectrum(jnp.asarray(w), 1.0, rho))
     assert got == pytest.approx(float(exact), rel=1e-13)
     assert abs(poisson(w, rho) / float(exact) - 1) > 1e-5
+
+
+# --------------------------------------------------------------------------------------
+# The deterministic terms of the mean (`_noise.mean_models`): periodic lines and the
+# start-up transient, and every path that fits, evaluates or reports one
+# --------------------------------------------------------------------------------------
+
+
+def _line_draws(rng):
+    t = np.arange(int(rng.integers(200, 4000))) * DT
+    return t, rng.uniform(0.05, 0.5 / DT), rng.normal(0, 1e-3), rng.normal(0, 1e-3)
+
+
+@pytest.mark.parametrize("seed", range(DRAWS))
+def test_periodic_line_is_the_formula_the_selection_used(seed):
+    """`PeriodicLine.signal` is the old `_line_signal` (c cos 2πft + s sin 2πft, w formed
+    as 2π·f·t) and `basis` the old `_line_design`'s columns, to the bit on the host and to
+    1e-12 of the amplitude traced; `to_dict` the old report {"frequency_Hz", "amplitude"
+    = math.hypot(c, s)}; the power A²/2 the mean square over whole periods, split between
+    ±f in `line_spectrum`."""
+    import jax
+
+    from accel_jax._noise.mean_models import PeriodicLine
+
+    rng = np.random.default_rng(500 + seed)
+    t, f, c, s = _line_draws(rng)
+    line = PeriodicLine(f, c, s)
+    w = 2 * np.pi * f * t
+    old = c * np.cos(w) + s * np.sin(w)
+    np.testing.assert_array_equal(line.signal(t), old)
+    cos, sin = PeriodicLine.basis(t, f)
+    np.testing.assert_array_equal(cos, np.cos(2 * np.pi * f * t))
+    np.testing.assert_array_equal(sin, np.sin(2 * np.pi * f * t))
+    amplitude = math.hypot(c, s)
+    traced = jax.jit(lambda line, t: line.signal(t))(line, jnp.asarray(t))
+    np.testing.assert_allclose(np.asarray(traced), old, rtol=0, atol=1e-12 * amplitude)
+    assert line.to_dict() == {"frequency_Hz": f, "amplitude": amplitude}
+    assert list(line.to_dict()) == ["frequency_Hz", "amplitude"]
+    periods = np.arange(4096) / 4096 * 3 / f  # three whole periods
+    _close(line.power, float(np.mean(line.signal(periods) ** 2)))
+    frequencies, powers = line.line_spectrum()
+    np.testing.assert_array_equal(frequencies, [-f, f])
+    _close(np.sum(powers), amplitude**2 / 2)
+
+
+@pytest.mark.parametrize("seed", range(DRAWS))
+def test_startup_transient_is_the_formula_the_selection_used(seed):
+    """`StartupTransient.signal` is the old `_transient_signal` a e^{−(t − t₀)/τ} on a
+    record's times (t₀ = 0), to the bit on the host and to 1e-12 traced; one of unit
+    amplitude over a τ grid is the old transient test's template; `to_dict` the old report
+    {"time_constant_s", "amplitude"}, in that order."""
+    import jax
+
+    from accel_jax._noise.mean_models import StartupTransient
+
+    rng = np.random.default_rng(600 + seed)
+    t = np.arange(int(rng.integers(200, 4000))) * DT
+    a, tau = rng.normal(0, 1e-2), math.exp(rng.uniform(-3, 1))
+    transient = StartupTransient(a, tau)
+    old = a * np.exp(-(t - t[0]) / tau)
+    np.testing.assert_array_equal(transient.signal(t), old)
+    traced = jax.jit(lambda m, t: m.signal(t))(transient, jnp.asarray(t))
+    np.testing.assert_allclose(np.asarray(traced), old, rtol=0, atol=1e-12 * abs(a))
+    taus = np.geomspace(2 * DT, t.size * DT / 4, 24)
+    np.testing.assert_array_equal(
+        StartupTransient(1.0, taus).signal(t[:, None]), np.exp(-t[:, None] / taus[None, :])
+    )
+    assert list(transient.to_dict().items()) == [("time_constant_s", tau), ("amplitude", a)]
+    with pytest.raises(ValueError, match="time_constant"):
+        StartupTransient(a, -tau)
+
+
+def test_selection_fits_evaluates_and_reports_lines_and_transients_through_the_components(
+    monkeypatch,
+):
+    """Every path of the sensor-noise selection that fits, evaluates or reports a line or a
+    transient goes through `mean_models`: `_fit_line` returns a `PeriodicLine` built on its
+    `basis`; `_Record.residual` takes out `signal`s; `_transient_test` builds its templates
+    with `StartupTransient.signal` and returns one; `_physical` reports `to_dict`s; the
+    open-world periodic predictor (`openworld.predictability`) regresses on `basis`."""
+    from accel_jax._noise import sensor_model
+    from accel_jax._noise.mean_models import PeriodicLine, StartupTransient
+    from accel_jax.diagnose import openworld
+
+    rng = np.random.default_rng(700)
+    n = 3000
+    t = np.arange(n) * DT
+    x = 1e-3 * rng.normal(size=n) + 2e-3 * np.cos(2 * np.pi * 3.3 * t + 0.4) + 0.2
+    x += 5e-3 * np.exp(-t / 0.3)
+    calls = []
+    spied = ((PeriodicLine, "basis"), (PeriodicLine, "signal"), (StartupTransient, "signal"))
+    for cls, name in spied:
+        real = cls.__dict__[name]
+        function = real.__func__ if isinstance(real, staticmethod) else real
+
+        def spy(*args, function=function, label=f"{cls.__name__}.{name}"):
+            calls.append(label)
+            return function(*args)
+
+        monkeypatch.setattr(cls, name, staticmethod(spy) if isinstance(real, staticmethod) else spy)
+
+    rec = sensor_model._Record(x, DT)
+    line = sensor_model._fit_line(x[: rec.split], rec.t[: rec.split], 3.3, 0.05)
+    assert isinstance(line, PeriodicLine) and calls == ["PeriodicLine.basis"]
+    assert float(line.frequency) == pytest.approx(3.3, rel=1e-3)
+    white = sensor_model._evaluate(rec, 1e-12, (), (), None)
+    calls.clear()
+    found = sensor_model._transient_test(rec.residual((line,), None)[: rec.split], DT, white, 1e-12)
+    assert calls == ["PeriodicLine.signal", "PeriodicLine.basis", "StartupTransient.signal"]
+    transient = found["transient"]
+    assert isinstance(transient, StartupTransient)
+    assert float(transient.amplitude) == pytest.approx(5e-3, rel=0.3)
+    calls.clear()
+    residual = rec.residual((line,), transient)
+    assert calls[0] == "PeriodicLine.signal" and calls[-1] == "StartupTransient.signal"
+    expected = x - np.mean(x[: rec.split]) - line.signal(rec.t) - transient.signal(rec.t)
+    np.testing.assert_array_equal(residual, expected)
+    model = dataclasses.replace(white, lines=(line,), transient=transient)
+    reported = sensor_model._physical(model, DT, 1e-12)
+    assert reported["sinusoid"] == [line.to_dict()]
+    assert reported["startup_transient"] == transient.to_dict()
+    calls.clear()
+    openworld.predictability(x - x.mean(), 2000, DT, np.zeros(0, int), np.zeros(0), 10)
+    assert calls == ["PeriodicLine.basis"]

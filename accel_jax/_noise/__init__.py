@@ -9,6 +9,8 @@ one concept per module,
   other modules share (array aliases, the log-parameter clip, `NoiseFitResult`);
 - `models`: the noise models (white, GM, exponential-cosine, random walk, their sums) in
   exact discrete state-space form, `simulate_noise` and `model_parameters`;
+- `mean_models`: the deterministic terms of a record's mean (a periodic line, the start-up
+  transient), each with its `signal(t)`;
 - `paper`: the paper's rules (15) and (19)-(21);
 - `fit`: beyond the paper, nonlinear least squares on the autocorrelation (optimistix
   Levenberg-Marquardt) and exact maximum likelihood of the discrete-time state-space form

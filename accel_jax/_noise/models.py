@@ -25,7 +25,8 @@ form: `Flicker` (1/f noise, f_c = B²/|ω|) and `ButterworthLowPass` (the output
 gain on the spectrum); `difference_parts` assembles the spectrum of the first difference of
 a record (the Whittle fits' y_k = x_k − x_{k−1}). tests/test_noise_one_model.py checks the
 spectra against the autocovariances (and so the state-space forms) and each path's spectrum
-against these.
+against these. The record's deterministic terms (periodic lines, the start-up transient)
+are `mean_models`'.
 """
 
 from __future__ import annotations
@@ -241,14 +242,24 @@ class ExponentialCosine(AbstractNoiseModel):
 
     def state_space(self, sample_interval):
         decay = jnp.exp(-self.decay_rate * sample_interval)
-        angle = self.angular_frequency * sample_interval
-        c, s = jnp.cos(angle), jnp.sin(angle)
-        f = decay * jnp.array([[c, -s], [s, c]])
-        var = self.sigma**2
+        refresh = -jnp.expm1(-2 * self.decay_rate * sample_interval)  # 1 − ρ², to full precision
+        rotation = self.angular_frequency * sample_interval
+        return self.discrete_state_space(self.sigma**2, decay, rotation, refresh)
+
+    @staticmethod
+    def discrete_state_space(variance, decay, rotation, refresh=None):
+        """(F, Q, H, P0, r) of the per-sample parameters (`variance` σ², `decay` ρ = e^{−αΔ},
+        `rotation` θ = βΔ): F = ρ Rot(θ), Q = σ²(1 − ρ²) I, H = [1, 0], P0 = σ² I, r = 0.
+        Finite, with finite derivatives, at ρ = 0 and σ² = 0 (a fit's nominal candidate: no
+        log of ρ is taken); at θ = 0 the Gauss–Markov process in s₁. `refresh`: 1 − ρ² where
+        the caller has it to better precision (`state_space`: −expm1(−2αΔ))."""
+        along, across = decay * jnp.cos(rotation), decay * jnp.sin(rotation)
+        f = jnp.array([[along, -across], [across, along]])
+        refresh = 1 - decay**2 if refresh is None else refresh
         eye = jnp.eye(2, dtype=f.dtype)
-        q = var * -jnp.expm1(-2 * self.decay_rate * sample_interval) * eye
+        q = variance * refresh * eye
         h = jnp.array([[1.0, 0.0]], dtype=f.dtype)
-        return f, q, h, var * eye, jnp.zeros((), f.dtype)
+        return f, q, h, variance * eye, jnp.zeros((), f.dtype)
 
     def autocovariance(self, lag_times):
         lag_times = jnp.asarray(lag_times)

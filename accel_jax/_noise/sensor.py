@@ -337,7 +337,7 @@ def _select(
         if model.transient is None:
             r = rec.residual(model.lines, None)
             found = _transient_test(r[: rec.split], dt, model, floor)
-            transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
+            transient = found["transient"]
             score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
             score = score if math.isfinite(score) else -math.inf
             # the noise refit without the transient only when it can be accepted
@@ -348,7 +348,7 @@ def _select(
                 # the transient's power (a white variance inflated by it makes the
                 # transient look small beside a slow Gauss–Markov fitted to it).
                 found = _transient_test(r[: rec.split], dt, refit, floor)
-                transient = {k: found[k] for k in ("time_constant_s", "amplitude")}
+                transient = found["transient"]
                 score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
                 refit = _evaluate(rec, floor, model.names, model.lines, transient, refit)
             scored.append((score, "startup_transient", refit))

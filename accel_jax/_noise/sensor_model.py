@@ -1,16 +1,17 @@
 """The sensor-noise selection's candidate models and how they are judged.
 
 A candidate (`_Model`) is a set of named stochastic effects (fitted by the Whittle
-likelihood of `accel_jax._noise.spectral`), periodic lines (`_fit_line`, each found by a
-golden-section search around a periodogram peak) and a start-up transient
-a e^{−t/τ}, fitted to a record (`_Record`) on its training part (the first 2/3) and
-scored on the whole record. Here: the fits (`_evaluate`; `_evaluate_many` runs several
-on threads, one per core), the evidence of a larger model against a smaller one
-(`_evidence`: 2 Δ ln L − k ln J, k from `PARAMETER_COUNT`), the paired held-out check
-(`_held_out_z`), the transient's exact time-domain likelihood ratio (`_transient_test`:
-Durbin–Levinson on the record's first differences), the held-out excess deviance and the
-explained fraction, the model's variogram (for the level-shift test) and its fitted values
-in physical units (`_physical`). `accel_jax._noise.sensor` drives the selection.
+likelihood of `accel_jax._noise.spectral`), periodic lines (`mean_models.PeriodicLine`s,
+`_fit_line`, each found by a golden-section search around a periodogram peak) and a
+start-up transient a e^{−t/τ} (`mean_models.StartupTransient`), fitted to a record
+(`_Record`) on its training part (the first 2/3) and scored on the whole record. Here:
+the fits (`_evaluate`; `_evaluate_many` runs several on threads, one per core), the
+evidence of a larger model against a smaller one (`_evidence`: 2 Δ ln L − k ln J, k from
+`PARAMETER_COUNT`), the paired held-out check (`_held_out_z`), the transient's exact
+time-domain likelihood ratio (`_transient_test`: Durbin–Levinson on the record's first
+differences), the held-out excess deviance and the explained fraction, the model's
+variogram (for the level-shift test) and its fitted values in physical units
+(`_physical`). `accel_jax._noise.sensor` drives the selection.
 
 Float64, NumPy on the host; one jitted, vmapped Whittle fit per record length.
 """
@@ -29,6 +30,7 @@ import numpy as np
 
 from .._runtime import usable_cpus
 from . import spectral
+from .mean_models import PeriodicLine, StartupTransient
 
 HELD_OUT_FRACTION = 1 / 3
 
@@ -61,14 +63,14 @@ PARAMETER_COUNT = {
 
 
 def _line_design(t, f):
-    return np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t), np.ones_like(t)], 1)
+    return np.stack([*PeriodicLine.basis(t, f), np.ones_like(t)], 1)
 
 
 LINE_BLOCK = 32
 """Samples per block of the demodulated record in the line's frequency search."""
 
 
-def _fit_line(r: np.ndarray, t: np.ndarray, f0: float, width: float) -> dict:
+def _fit_line(r: np.ndarray, t: np.ndarray, f0: float, width: float) -> PeriodicLine:
     """A sinusoid at the frequency near f0 (±width) that best fits r: the frequency that
     maximises the periodogram |Σ r_k e^{−i2πf t_k}|² (a grid, then golden-section search),
     evaluated on the record demodulated at f0 and summed over blocks of `LINE_BLOCK`
@@ -106,23 +108,25 @@ def _fit_line(r: np.ndarray, t: np.ndarray, f0: float, width: float) -> dict:
     f = f0 + 0.5 * (lo + hi)
     design = _line_design(t, f)
     coef, *_ = np.linalg.lstsq(design, r, rcond=None)
-    return {"frequency_Hz": float(f), "cos": float(coef[0]), "sin": float(coef[1])}
+    return PeriodicLine(float(f), float(coef[0]), float(coef[1]))
 
 
-def _line_signal(line: dict, t: np.ndarray) -> np.ndarray:
-    w = 2 * np.pi * line["frequency_Hz"] * t
-    return line["cos"] * np.cos(w) + line["sin"] * np.sin(w)
-
-
-def _transient_signal(transient: dict, t: np.ndarray) -> np.ndarray:
-    return transient["amplitude"] * np.exp(-(t - t[0]) / transient["time_constant_s"])
+def _mean_key(lines: tuple, transient: StartupTransient | None) -> str:
+    """The deterministic terms as a key of the fits' and periodograms' caches: the exact
+    reprs of their parameters."""
+    key: list[tuple[float, ...]] = [
+        (float(line.frequency), float(line.cosine), float(line.sine)) for line in lines
+    ]
+    if transient is not None:
+        key.append((float(transient.amplitude), float(transient.time_constant)))
+    return repr(key)
 
 
 @dataclasses.dataclass
 class _Model:
     names: tuple
-    lines: tuple
-    transient: dict | None
+    lines: tuple  # of `PeriodicLine`s
+    transient: StartupTransient | None
     z: np.ndarray
     train: float
     held: float
@@ -152,13 +156,13 @@ class _Record:
     def residual(self, lines, transient):
         r = self.x - np.mean(self.x[: self.split])
         for line in lines:
-            r = r - _line_signal(line, self.t)
-        if transient is not None:
-            r = r - _transient_signal(transient, self.t)
+            r = r - line.signal(self.t)
+        if transient is not None:  # (self.t starts at 0: the record's first sample)
+            r = r - transient.signal(self.t)
         return r
 
     def grams(self, lines, transient):
-        key = repr((lines, transient))
+        key = _mean_key(lines, transient)
         if key not in self._grams:
             r = self.residual(lines, transient)
             self._grams[key] = (
@@ -171,7 +175,7 @@ class _Record:
 def _evaluate(record, floor, names, lines, transient, parent=None) -> _Model:
     parent_z, parent_names = (parent.z, parent.names) if parent is not None else (None, ())
     start = None if parent_z is None else (np.asarray(parent_z).tobytes(), tuple(parent_names))
-    key = (record.key, floor, tuple(names), repr(lines), repr(transient), start)
+    key = (record.key, floor, tuple(names), _mean_key(lines, transient), start)
     if key not in record.fits:  # the same fit again (a deterministic XLA call): reused
         record.fits[key] = _fit(record, floor, names, lines, transient, parent_z, parent_names)
     return record.fits[key]
@@ -309,12 +313,13 @@ def _transient_test(r: np.ndarray, dt: float, model: _Model, floor: float) -> di
     geometric grid of τ from 2Δ to a quarter of the window.
 
     The spectral (Whittle) likelihood cannot judge a transient: its taper gives the first
-    samples of the record, where the transient lives, almost no weight."""
+    samples of the record, where the transient lives, almost no weight. Returns
+    {"evidence": 2 ln Λ, "transient": the `StartupTransient`}."""
     y = np.diff(r)[:TRANSIENT_WINDOW]
     size = y.size
     taus = np.geomspace(2 * dt, max(size * dt / 4, 3 * dt), TRANSIENT_TAUS)
     k = np.arange(size + 1) * dt
-    templates = np.diff(np.exp(-k[:, None] / taus[None, :]), axis=0)
+    templates = np.diff(StartupTransient(1.0, taus).signal(k[:, None]), axis=0)
     gamma = _differenced_autocovariance(model, floor, size)
     columns = np.concatenate([y[:, None], np.ones((size, 1)), templates], axis=1)
     e, d = _innovations(gamma, columns)
@@ -326,11 +331,8 @@ def _transient_test(r: np.ndarray, dt: float, model: _Model, floor: float) -> di
     energy = np.diag(gram)[2:] - gram[2:, 1] ** 2 / drift
     z2 = np.where(energy > 0, cross**2 / np.where(energy > 0, energy, 1.0), 0.0)
     i = int(np.argmax(z2))
-    return {
-        "evidence": float(z2[i]),
-        "time_constant_s": float(taus[i]),
-        "amplitude": float(cross[i] / energy[i]) if energy[i] > 0 else 0.0,
-    }
+    amplitude = float(cross[i] / energy[i]) if energy[i] > 0 else 0.0
+    return {"evidence": float(z2[i]), "transient": StartupTransient(amplitude, float(taus[i]))}
 
 
 def _held_out_deviance(record, floor, model: _Model) -> dict:
@@ -400,15 +402,9 @@ def _physical(model: _Model, dt: float, floor: float) -> dict:
         if "filter_floor" in model.names:  # the white noise after the filter, fitted
             out["bandlimit"]["white_after_filter_sigma"] = math.sqrt(math.exp(z[9]))
     if model.lines:
-        out["sinusoid"] = [
-            {
-                "frequency_Hz": line["frequency_Hz"],
-                "amplitude": math.hypot(line["cos"], line["sin"]),
-            }
-            for line in model.lines
-        ]
+        out["sinusoid"] = [line.to_dict() for line in model.lines]
     if model.transient is not None:
-        out["startup_transient"] = dict(model.transient)
+        out["startup_transient"] = model.transient.to_dict()
     # the white variance after the filter: the output grid's (or a negligible floor) and
     # the fitted `filter_floor`
     out["post_filter_floor_variance"] = floor + (

@@ -37,7 +37,10 @@ whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 
 Each of these spectra (and λ, H and the assembly of f_y) is defined once, in `models`
 (`WhiteNoise`, `GaussMarkov`, `ExponentialCosine`, `RandomWalk`, `Flicker`,
 `ButterworthLowPass`, `difference_parts`); `_parts` calls them with this module's
-parameterisation, and `component_models` gives the models of a parameter vector.
+parameterisation, and `component_models` gives the models of a parameter vector. The lines
+and the transient are terms of the mean, not of this spectrum: `mean_models`
+(`PeriodicLine`, `StartupTransient`), regressed out of the record before the fit
+(`sensor_model`).
 
 The Whittle log-likelihood of the periodogram I_j of y at ω_j = 2πj/m is
 −Σ_j [ln f_y(ω_j) + I_j/f_y(ω_j)]; records longer than `FULL_RESOLUTION` bins use it on

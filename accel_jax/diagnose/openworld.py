@@ -32,6 +32,7 @@ import math
 import numpy as np
 
 from .._deprecated import LegacyItems
+from .._noise.mean_models import PeriodicLine
 from .base import INDISTINCT, ljung_box
 
 FLOOR_FACTOR = 1.0
@@ -263,8 +264,10 @@ def predictability(
     usable = freqs >= 3.0 / (n * dt)
     if np.any(usable):
         f = float(freqs[usable][np.argmax(spectrum[usable])])
-        basis = np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t), np.ones(n)], 1)
+        basis = np.stack([*PeriodicLine.basis(t, f), np.ones(n)], 1)
         coef, *_ = np.linalg.lstsq(basis[train], r[train], rcond=None)
+        # the least-squares prediction (a matrix product: `PeriodicLine.signal`, c cos + s sin
+        # elementwise, is the same line but differs in the last bit at ~1 sample in 4)
         sinusoid = basis[:, :2] @ coef[:2]
         out["periodic"] = _reduction(r[held] - coef[2], sinusoid[held])
         out["frequency_Hz"] = f

@@ -67,10 +67,13 @@ def filter_terms(white, parts: NoiseComponents, record, diffuse):
     """Exact Kalman filter of level + coloured block + white noise on a record.
 
     State (ℓ, s₁, s₂): ℓ_{k+1} = ℓ_k + √walk·w, (s₁, s₂)_{k+1} = ρ Rot(θ)(s₁, s₂)_k + noise of
-    covariance v(1 − ρ²) I (`accel_jax._noise.ExponentialCosine`'s exact discrete form; a
-    Gauss–Markov noise at θ = 0), observation x_k = ℓ_k + s₁,k + σ_w w_k. Prior: ℓ diffuse
-    (variance `diffuse`), (s₁, s₂) stationary (v I). The covariance update is the standard
-    form (P⁺ = P − K S Kᵀ), written out for the six distinct entries.
+    covariance v(1 − ρ²) I (the transition F and its noise Q are
+    `accel_jax._noise.ExponentialCosine.discrete_state_space`'s; a Gauss–Markov noise at θ =
+    0), observation x_k = ℓ_k + s₁,k + σ_w w_k. Prior: ℓ diffuse (variance `diffuse`),
+    (s₁, s₂) stationary, v I (the model's P0, taken as v itself: read from P0's diagonal,
+    the Hessian of the likelihood, the intervals' information, sums its terms in another
+    order, ~10⁻¹⁵ apart). The covariance update is the standard form (P⁺ = P − K S Kᵀ),
+    written out for the six distinct entries.
 
     **Arguments:** `white` σ_w²; `parts` (`NoiseComponents`); `record` x (n,), centred;
     `diffuse` the level's prior variance.
@@ -79,9 +82,11 @@ def filter_terms(white, parts: NoiseComponents, record, diffuse):
     jit/vmap/grad-safe.
     """
     v, rho, theta, walk = parts.variance, parts.decay, parts.rotation, parts.walk
-    a11 = rho * jnp.cos(theta)
-    a21 = rho * jnp.sin(theta)
-    refresh = v * (1 - rho**2)
+    # The block's exact discrete form, from the per-sample parameters (no log of ρ: the
+    # nominal candidate's ρ = 0 stays finite, its derivatives too).
+    transition, refresh, _, _, _ = ExponentialCosine.discrete_state_space(v, rho, theta)
+    a11, a21 = transition[0, 0], transition[1, 0]  # F = [[a11, −a21], [a21, a11]]
+    refresh = refresh[0, 0]
     log_2pi = math.log(2 * math.pi)
 
     def step(carry, x):
