@@ -343,7 +343,7 @@ def discover(
     test_rows = np.flatnonzero(test)
     gap_before = openworld.excess(float(np.mean((r0[test_rows] * sigma) ** 2)), sigma**2)
     confirmed = []
-    fitted = {}  # each confirmed subset's fitted parameters, by its terms
+    fitted = {}  # by its terms: each confirmed subset's (params, pick, n_cols, tuned, args)
     local = {}  # each confirmed subset's Gauss–Newton model at its optimum, by its subset
     chosen = [item for item in ranked[:CONFIRM] if item[0] < 0]
     # The single terms of a chosen pair are confirmed too: a pair can win the linearised
@@ -436,7 +436,7 @@ def discover(
             ),
         )
         confirmed.append(entry)
-        fitted[entry.terms] = (params, pick, len(cols), tuned)
+        fitted[entry.terms] = (params, pick, len(cols), tuned, (pick, used, tone))
         local[subset] = _local_model(np.asarray(r), jac, segment_rows, n, entry.criterion + delta)
     # 4. Stability: the selection repeated on block-bootstrap resamples of the training
     # segments, every subset scored on the linearised problem except the refitted ones,
@@ -550,12 +550,10 @@ def discover(
 def _profiled(entry, fit, residuals_at, jacobian_at, n_free):
     """`entry` with each column's σ from its profile-likelihood interval (`profile`) at
     Δχ² = max(1, its training χ²/dof), the linearised σ kept beside it."""
-    params, pick, n_cols, _ = fit
-    used = (np.arange(MAX_COLUMNS) < n_cols).astype(np.float64)
-    tone = np.asarray(float(entry.frequency_Hz is not None))
+    params, _, n_cols, _, args = fit  # `args`: the refit's own (pick, used, tone)
     linearised = [column.sigma for column in entry.columns]
     found = profile.column_intervals(
-        solve, residuals_at, jacobian_at, params, (pick, used, tone), n_free, n_cols,
+        solve, residuals_at, jacobian_at, params, args, n_free, n_cols,
         linearised, max(1.0, entry.chi2_per_dof_train),
     )
     columns = tuple(
@@ -575,7 +573,7 @@ def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free,
     stop = nominal_stop_voltage(nominal.params)
     for candidate, i in weak:
         key = candidate.terms
-        params, pick, n_cols, tuned = fitted[key]
+        params, pick, n_cols, tuned, _ = fitted[key]
         theta = jnp.asarray(params[:n_free])
         if key not in errors_of:
             model = unpacked(theta)
