@@ -63,7 +63,9 @@ def interval(
     standard error (the first probe's scale); `level`: Δχ² that bounds the interval.
 
     **Returns:** a `ProfileInterval`. A side not found within `MAX_REFITS` refits takes
-    the last secant (or extrapolated) estimate, and `found` is False.
+    the last secant (or extrapolated) estimate, and `found` is False; so does a side whose
+    refit gives a non-finite Δχ² (its end: the bracket beyond the level, else the farthest
+    probe below it or the first probe; never NaN).
     """
     if not (sigma_linearised > 0 and math.isfinite(sigma_linearised)):
         raise ValueError(f"the linearised σ must be positive and finite, not {sigma_linearised}")
@@ -75,8 +77,13 @@ def interval(
         x = PROBE * sigma_linearised
         value = 0.0
         for _ in range(MAX_REFITS):
-            value = math.sqrt(max(delta_chi2(estimate + side * x), 0.0))
+            delta = delta_chi2(estimate + side * x)
             refits += 1
+            if not math.isfinite(delta):  # a failed refit: this side is not found
+                x = far[0] if far is not None else max(near[0], PROBE * sigma_linearised)
+                found = False
+                break
+            value = math.sqrt(max(delta, 0.0))
             if abs(value**2 / level - 1.0) <= TOLERANCE:
                 break
             if value < target:
