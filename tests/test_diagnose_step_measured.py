@@ -3,6 +3,7 @@ the clean records), a swept input refused, nested fits that never end below the 
 model, and every nuisance shown and judged together. The records come from the
 independent truth simulator (studies/step_truth.py, written without the diagnosis code)."""
 
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -102,46 +103,51 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
     prep = _prep()
     calm = nuisance_test(_fit(0.4, timing=(-0.3, -0.6, -0.4, -0.5, -0.2)), prep)
     # The gain, the output's lateness behind the input, five change times.
-    assert not calm["strained"] and calm["count"] == 7
+    assert not calm.strained and calm.count == 7
     # A delay of two samples between the channels moves every change alike: reported as
     # the delay, not a strain.
     delayed = nuisance_test(_fit(0.4, timing=(-2.4, -2.6, -2.5, -2.3, -2.5)), prep)
-    assert not delayed["strained"]
-    assert delayed["input_delay_samples"] == pytest.approx(2.46)
+    assert not delayed.strained
+    assert delayed.input_delay_samples == pytest.approx(2.46)
     # The loop lag the fitted delay can take up: the column's phase (1 sample) less the
     # output's lead, none here; on a measured input of unknown delay, DELAY_LIMIT more.
-    assert calm["hidden_lag_samples"] == pytest.approx(1.0 - 0.4) and delayed[
-        "hidden_lag_samples"] == 0.0
+    assert calm.hidden_lag_samples == pytest.approx(1.0 - 0.4)
+    assert delayed.hidden_lag_samples == 0.0
     # The −3.2σ test winding gain of a device resting on its stop at the start.
     strained = nuisance_test(_fit(-3.2, timing=(-0.5,) * 5), prep)
-    assert strained["strained"] and strained["largest"] == "test_winding_gain"
-    assert strained["family_p_value"] == pytest.approx(7 * 2 * 0.000687, rel=0.01)
+    assert strained.strained and strained.largest == "test_winding_gain"
+    assert strained.family_p_value == pytest.approx(7 * 2 * 0.000687, rel=0.01)
     text = strained_sentence(strained, None)
     assert f"{math.exp(-3.2 * GAIN_SIGMA):.3g} of nominal (-3.2σ)" in text
     assert "resting on a stop" in text and "winding fault" in text
     # A measured input's levels are judged with them; Bonferroni keeps the family's level.
     measured = nuisance_test(_fit(0.0, timing=(-0.5,) * 5, levels=(0.5, -4.0)), _prep(levels=True))
-    assert measured["count"] == 13 and measured["largest"] == "input_level_3"
-    assert measured["hidden_lag_samples"] == pytest.approx(DELAY_LIMIT + 1.0 - 0.5)
-    assert measured["strained"] == (measured["family_p_value"] < NUISANCE_ALPHA)
+    assert measured.count == 13 and measured.largest == "input_level_3"
+    assert measured.hidden_lag_samples == pytest.approx(DELAY_LIMIT + 1.0 - 0.5)
+    assert measured.strained == (measured.family_p_value < NUISANCE_ALPHA)
     assert "level 3 of the test input" in strained_sentence(measured, None)
     # An output that follows the input 3 samples later than its column shows: a lag the
     # model lacks, or a delay of the drive, which a free delay absorbs: a strain.
     late = nuisance_test(_fit(0.0, timing=(3.0,) * 5), prep)
-    assert late["strained"] and late["largest"] == "input_delay"
-    assert late["largest_sigma"] == pytest.approx(-7.0)
+    assert late.strained and late.largest == "input_delay"
+    assert late.largest_sigma == pytest.approx(-7.0)
     assert "3.0 samples (3 µs) later" in strained_sentence(late, None)
     # Half a sample late is the sampling phase's own spread: not a strain.
-    assert not nuisance_test(_fit(0.0, timing=(0.0,) * 5), prep)["strained"]
+    assert not nuisance_test(_fit(0.0, timing=(0.0,) * 5), prep).strained
     # With the channels' delay given (2.5 samples: the changes act that much earlier than
     # their column shows), changes fitted there are calm, and changes fitted at their
     # column are 2.5 samples late beyond it.
     given = _prep(known=2.5)
-    assert not nuisance_test(_fit(0.0, timing=(-3.0,) * 5), given)["strained"]
+    assert not nuisance_test(_fit(0.0, timing=(-3.0,) * 5), given).strained
     late = nuisance_test(_fit(0.0, timing=(0.0,) * 5), given)
-    assert late["strained"] and late["largest_sigma"] == pytest.approx(-6.0)
-    assert late["known_input_delay_samples"] == 2.5
+    assert late.strained and late.largest_sigma == pytest.approx(-6.0)
+    assert late.known_input_delay_samples == 2.5
     assert "2.5 samples (2.5 µs) later" in strained_sentence(late, None)
+    # Typed (`NuisanceTest`); the refit reports its `to_dict`, and the old dict access still
+    # reads for one release, with a warning that names the attribute.
+    assert list(late.to_dict()) == [f.name for f in dataclasses.fields(late)]
+    with pytest.warns(DeprecationWarning, match="result.strained"):
+        assert late["strained"] is True
 
 
 def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():

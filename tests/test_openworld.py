@@ -97,6 +97,35 @@ def test_the_decision_is_typed_and_its_old_dict_reads_with_a_warning():
         assert out["verdict"] == "cannot_tell"
 
 
+def test_typed_candidates_decide_as_their_dicts():
+    # `decide` reads typed `Candidate`s and `NominalStatus` (the step kind's ranking
+    # entries are `Candidate`s); the dicts the noise and vibration kinds pass decide alike,
+    # a missing `deterministic_misfit` read as False.
+    cases = [
+        (OK, [_c("a", 3.0, significant=False)]),
+        ({**OK, "white": False}, [_c("a", 3.0, significant=False)]),
+        ({**OK, "explains": False}, [_c("lag", 50.0), _c("noise", 900.0, stochastic=True)]),
+        (
+            {**OK, "explains": False},
+            [
+                _c("lag", 50.0, explains=False, fraction=0.3),
+                _c("noise", 900.0, stochastic=True, deterministic=True, fraction=0.0),
+            ],
+        ),
+        ({**OK, "explains": False}, [_c("a", 100.0), _c("b", 96.0)]),
+        ({**OK, "explains": False}, [_c("a", 100.0, plausible=False), _c("b", 80.0)]),
+    ]
+    for status, candidates in cases:
+        typed = openworld.decide(
+            openworld.NominalStatus(**status),
+            [openworld.Candidate.from_mapping(c) for c in candidates],
+        )
+        assert typed == openworld.decide(status, candidates)
+    bare = {k: v for k, v in _c("n", 900.0, stochastic=True).items() if k != "deterministic_misfit"}
+    assert openworld.Candidate.from_mapping(bare).deterministic_misfit is False
+    assert openworld.decide({**OK, "explains": False}, [bare]).verdict == "n"
+
+
 def test_gap_arithmetic():
     assert openworld.excess(5.0, 4.0) == 1.0 and openworld.excess(3.0, 4.0) == 0.0
     assert openworld.explained_fraction(2.0, 1.0) == pytest.approx(0.75)

@@ -308,3 +308,42 @@ def test_held_out_check_keeps_the_old_keys_present_only_where_they_were():
         assert "more_level_shifts" not in _held_out()
     with pytest.raises(KeyError):
         _held_out()["more_level_shifts"]
+
+
+def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
+    # The step verdict decides on `RankingEntry`s (an `openworld.Candidate` each) and
+    # reports their `to_dict`: the row `DiagnosisResult.ranking` held before, key for key
+    # and in order, a noise model's four keys only on a noise model's row.
+    from accel_jax.diagnose.openworld import Candidate
+    from accel_jax.diagnose.step.state import RankingEntry
+
+    common = dict(
+        evidence=12.5, significant=True, explains=False, plausible=True,
+        explained_fraction=0.4, fit_failed=False, objective_below_nominal=0.0,
+        explains_up_to_model_form=False, gap_after_V=1e-3, gap_shrink=0.2,
+        held_out_mean_square=2e-6, held_out_one_step_mean_square=1e-6, params={"T_dm_s": 4e-5},
+        converged=True, fit_steps=7, out_of_prior=["J"],
+    )
+    old_keys = [
+        "effect", "evidence", "fit_failed", "objective_below_nominal", "significant",
+        "stochastic", "explains", "explains_up_to_model_form", "plausible",
+        "explained_fraction", "gap_after_V", "gap_shrink", "held_out_mean_square",
+        "held_out_one_step_mean_square", "params", "converged", "fit_steps", "out_of_prior",
+    ]
+    noise_keys = [
+        "deterministic_misfit", "one_step_whiteness", "variance_consistent",
+        "predictability_null_quantile",
+    ]
+    lag = RankingEntry(effect="torquer_lag", stochastic=False, deterministic_misfit=False, **common)
+    assert isinstance(lag, Candidate)
+    assert list(lag.to_dict()) == old_keys
+    assert lag.to_dict()["out_of_prior"] == ["J"] and lag.to_dict()["evidence"] == 12.5
+    noise = RankingEntry(
+        effect="colored_noise", stochastic=True, deterministic_misfit=True,
+        one_step_whiteness={"white": True}, variance_consistent=False, **common,
+    )
+    row = noise.to_dict()
+    assert list(row) == old_keys + noise_keys
+    assert row["deterministic_misfit"] is True and row["variance_consistent"] is False
+    assert row["predictability_null_quantile"] is None
+    json.dumps(row)

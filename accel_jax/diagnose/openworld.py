@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -105,6 +106,64 @@ class Decision(LegacyItems):
 
     def _legacy(self) -> dict:
         return self.to_dict()
+
+
+@dataclasses.dataclass(frozen=True)
+class NominalStatus:
+    """What `decide` reads of the refitted nominal model: `explains` (its held-out excess
+    is at most `FLOOR_FACTOR` floors), `white` (its held-out residual passes the whiteness
+    test), `plausible` (its refit converged inside its prior)."""
+
+    explains: bool
+    white: bool
+    plausible: bool
+
+    @classmethod
+    def from_mapping(cls, status: Mapping) -> NominalStatus:
+        """From the plain dict `decide` took before (keys as the fields)."""
+        return cls(bool(status["explains"]), bool(status["white"]), bool(status["plausible"]))
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One effect's fit as `decide` reads it.
+
+    - `effect`: its name;
+    - `evidence`: 2 ln B over the nominal model;
+    - `significant`: its evidence and held-out improvement count (each kind's rule);
+    - `stochastic`: a noise model (tried after the deterministic effects);
+    - `explains`: with the effect, the held-out residual is at the floor;
+    - `plausible`: its fit converged and is credible;
+    - `explained_fraction`: what it removes of the nominal's held-out excess, in [0, 1];
+    - `deterministic_misfit`: for a noise model, the misfit it absorbs is predictable
+        (`predictability`), so it explains none of it.
+
+    A kind's ranking entry may extend it (the step kind's `RankingEntry`).
+    """
+
+    effect: str
+    evidence: float
+    significant: bool
+    stochastic: bool
+    explains: bool
+    plausible: bool
+    explained_fraction: float
+    deterministic_misfit: bool
+
+    @classmethod
+    def from_mapping(cls, entry: Mapping) -> Candidate:
+        """From a kind's ranking dict (keys as the fields; `deterministic_misfit` False
+        where absent)."""
+        return cls(
+            effect=entry["effect"],
+            evidence=float(entry["evidence"]),
+            significant=bool(entry["significant"]),
+            stochastic=bool(entry["stochastic"]),
+            explains=bool(entry["explains"]),
+            plausible=bool(entry["plausible"]),
+            explained_fraction=float(entry["explained_fraction"]),
+            deterministic_misfit=bool(entry.get("deterministic_misfit", False)),
+        )
 
 
 def excess(mean_square: float, floor_variance: float) -> float:
@@ -289,8 +348,8 @@ def predictability(
 
 
 def decide(
-    nominal: dict,
-    candidates: list[dict],
+    nominal: NominalStatus | Mapping,
+    candidates: Sequence[Candidate | Mapping],
     *,
     domain: list[str] | None = None,
     indistinct: float = INDISTINCT,
@@ -300,12 +359,9 @@ def decide(
 
     **Arguments:**
 
-    - `nominal`: `explains` (held-out excess at most FLOOR_FACTOR floors), `white`,
-        `plausible` (converged, inside its prior).
-    - `candidates`: one dict per effect with `effect`, `evidence`, `significant`,
-        `stochastic`, `explains` (with the effect, the held-out residual is at the
-        floor), `plausible`, `explained_fraction`, and for stochastic effects
-        `deterministic_misfit` (the misfit is predictable: `predictability`).
+    - `nominal`: the refitted nominal model's `NominalStatus` (or a dict of its fields).
+    - `candidates`: one `Candidate` per effect (or a dict of its fields, where a noise
+        model's `deterministic_misfit` may be left out).
     - `domain`: problems found by a domain check (the record is outside the model family).
     - `resolve_tie(first, second)`: the effect a tie resolves to, or None (nested effects).
 
@@ -313,37 +369,36 @@ def decide(
     reported "after", or None), `best_partial` (for `unexplained`), `path` (which rule
     decided).
     """
+    if not isinstance(nominal, NominalStatus):
+        nominal = NominalStatus.from_mapping(nominal)
+    typed = [c if isinstance(c, Candidate) else Candidate.from_mapping(c) for c in candidates]
     if domain:
-        partial = _best_partial(candidates)
+        partial = _best_partial(typed)
         return Decision(verdict="unexplained", best_partial=partial, path="domain")
-    usable = [c for c in candidates if c["significant"] and c["plausible"]]
-    if not usable and nominal["explains"] and nominal["white"] and nominal["plausible"]:
+    usable = [c for c in typed if c.significant and c.plausible]
+    if not usable and nominal.explains and nominal.white and nominal.plausible:
         return Decision(verdict="none", path="nominal")
-    deterministic = [c for c in usable if not c["stochastic"] and c["explains"]]
-    stochastic = [
-        c
-        for c in usable
-        if c["stochastic"] and c["explains"] and not c.get("deterministic_misfit", False)
-    ]
+    deterministic = [c for c in usable if not c.stochastic and c.explains]
+    stochastic = [c for c in usable if c.stochastic and c.explains and not c.deterministic_misfit]
     for group, path in ((deterministic, "deterministic"), (stochastic, "stochastic")):
         if not group:
             continue
-        group = sorted(group, key=lambda c: c["evidence"], reverse=True)
-        if len(group) > 1 and group[0]["evidence"] - group[1]["evidence"] < indistinct:
-            first, second = group[0]["effect"], group[1]["effect"]
+        group = sorted(group, key=lambda c: c.evidence, reverse=True)
+        if len(group) > 1 and group[0].evidence - group[1].evidence < indistinct:
+            first, second = group[0].effect, group[1].effect
             simpler = resolve_tie(first, second) if resolve_tie else None
             if simpler is not None:
                 return Decision(verdict=simpler, chosen=simpler, path=path + "+nested")
             return Decision(verdict="cannot_tell", tied=(first, second), chosen=first, path=path)
-        return Decision(verdict=group[0]["effect"], chosen=group[0]["effect"], path=path)
-    partial = _best_partial(candidates)
+        return Decision(verdict=group[0].effect, chosen=group[0].effect, path=path)
+    partial = _best_partial(typed)
     return Decision(verdict="unexplained", best_partial=partial, path="unexplained")
 
 
-def _best_partial(candidates: list[dict]) -> str | None:
+def _best_partial(candidates: list[Candidate]) -> str | None:
     """The significant, credible effect that explains most of the excess (None if none)."""
-    usable = [c for c in candidates if c["significant"] and c["plausible"]]
+    usable = [c for c in candidates if c.significant and c.plausible]
     if not usable:
         return None
-    best = max(usable, key=lambda c: (c["explained_fraction"], c["evidence"]))
-    return best["effect"] if best["explained_fraction"] > 0 else None
+    best = max(usable, key=lambda c: (c.explained_fraction, c.evidence))
+    return best.effect if best.explained_fraction > 0 else None

@@ -60,6 +60,7 @@ from . import ceiling, excite, profile
 from .consequence import consequence
 from .joint import nominal_stop_voltage
 from .layout import W
+from .local_model import LocalModel
 from .minpack import solve
 from .model import moment_jumps, unpack
 from .state import StepFit, StepRecord
@@ -176,34 +177,6 @@ def _select(seg_gram, seg_rhs, pen_gram, pen_rhs, weights, n_free, n_train):
         scored.append((ebic, subset, value - base, coef))
     scored.sort(key=lambda item: item[0])
     return scored, base
-
-
-def _local_model(r, jac, segment_rows, n, penalty) -> dict:
-    """A refitted subset's Gauss–Newton model at its optimum, per training segment (the
-    bootstrap reweights them) and for the rows every resample keeps (the priors): the
-    normal equations J'J, J'r and r'r; `penalty` its criterion's k ln n + 2 ln C(P, |S|)."""
-    rest = np.arange(n, r.shape[0])
-    return {
-        "gram": np.stack([jac[rows].T @ jac[rows] for rows in segment_rows]),
-        "rhs": np.stack([jac[rows].T @ r[rows] for rows in segment_rows]),
-        "squares": np.asarray([r[rows] @ r[rows] for rows in segment_rows]),
-        "rest": (jac[rest].T @ jac[rest], jac[rest].T @ r[rest], float(r[rest] @ r[rest])),
-        "penalty": float(penalty),
-    }
-
-
-def _local_cost(model: dict, weights: np.ndarray) -> float:
-    """The refitted subset's cost Σr² on a resample: one Gauss–Newton step from its
-    optimum on the reweighted normal equations."""
-    gram = np.tensordot(weights, model["gram"], 1) + model["rest"][0]
-    rhs = np.tensordot(weights, model["rhs"], 1) + model["rest"][1]
-    squares = float(weights @ model["squares"]) + model["rest"][2]
-    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-    try:
-        step = np.linalg.solve(gram / scale[:, None] / scale[None, :], rhs / scale)
-    except np.linalg.LinAlgError:
-        return squares
-    return squares - float((rhs / scale) @ step)
 
 
 def discover(
@@ -437,7 +410,9 @@ def discover(
         )
         confirmed.append(entry)
         fitted[entry.terms] = (params, pick, len(cols), tuned, (pick, used, tone))
-        local[subset] = _local_model(np.asarray(r), jac, segment_rows, n, entry.criterion + delta)
+        local[subset] = LocalModel.at_optimum(
+            np.asarray(r), jac, segment_rows, n, entry.criterion + delta
+        )
     # 4. Stability: the selection repeated on block-bootstrap resamples of the training
     # segments, every subset scored on the linearised problem except the refitted ones,
     # each scored by a Gauss–Newton step from its own optimum (the linearisation at c = 0
@@ -455,7 +430,7 @@ def discover(
         if linear is not None and linear[0] < value:
             pick, value = linear[1], linear[0]
         for subset, model in local.items():
-            criterion = _local_cost(model, weights) - nominal_cost + model["penalty"]
+            criterion = model.cost(weights) - nominal_cost + model.penalty
             if criterion < value:
                 pick, value = subset, criterion
         picks.append(pick)

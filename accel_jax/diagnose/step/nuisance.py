@@ -5,11 +5,13 @@ set of nuisances says about the record."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
 import numpy as np
 
+from ..._deprecated import LegacyItems
 from .model import DELAY_LIMIT, GAIN_SIGMA, n_timing, timing_terms
 from .layout import W
 from .state import StepFit, StepRecord
@@ -35,7 +37,69 @@ whose nuisances are what their priors say, it trips in at most this share (Bonfe
 the standardised shifts, each at most N(0, 1) under its prior: fitted shifts are shrunk)."""
 
 
-def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
+NUISANCE_METHOD = (
+    "Bonferroni over the standardised nuisance shifts (gain, the output's lateness behind the "
+    "input, change times about their mean, measured input levels)"
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class NuisanceTest(LegacyItems):
+    """A fit's nuisances judged together (`nuisance_test`).
+
+    - `standardised`: each nuisance's shift in σ of its prior, by name (`test_winding_gain`,
+        `input_delay`, `change_time_j` or `input_clock_rate`, a measured input's
+        `input_level_j` or `input_level_group_j` and `input_channel_drift`);
+    - `largest`, `largest_sigma`: the one furthest from its prior and its shift; `count`
+        how many were judged;
+    - `family_p_value`: Bonferroni's p of the largest; `alpha` the level
+        (`NUISANCE_ALPHA`); `strained` whether p < alpha;
+    - `input_delay_samples`: the mean change-time shift (positive when the output moves
+        first); `known_input_delay_samples` the delay the record gives (None if not);
+        `sample_period_s` [s] one sample;
+    - `hidden_lag_samples`, `hidden_lag_s` [s]: the largest loop lag the fitted delay can
+        take up (`hidden_lag_samples`).
+
+    `to_dict()` is what the refit reports (`refit["nuisance_test"]`). It was a plain dict;
+    `test["strained"]` still reads for one release, with a `DeprecationWarning`.
+    """
+
+    standardised: dict[str, float]
+    largest: str
+    largest_sigma: float
+    count: int
+    family_p_value: float
+    alpha: float
+    strained: bool
+    input_delay_samples: float
+    known_input_delay_samples: float | None
+    sample_period_s: float
+    hidden_lag_samples: float
+    hidden_lag_s: float
+    method: str = NUISANCE_METHOD
+
+    def to_dict(self) -> dict:
+        return {
+            "standardised": dict(self.standardised),
+            "largest": self.largest,
+            "largest_sigma": self.largest_sigma,
+            "count": self.count,
+            "family_p_value": self.family_p_value,
+            "alpha": self.alpha,
+            "strained": self.strained,
+            "input_delay_samples": self.input_delay_samples,
+            "known_input_delay_samples": self.known_input_delay_samples,
+            "sample_period_s": self.sample_period_s,
+            "hidden_lag_samples": self.hidden_lag_samples,
+            "hidden_lag_s": self.hidden_lag_s,
+            "method": self.method,
+        }
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
+
+
+def nuisance_test(fit: StepFit, rec: StepRecord) -> NuisanceTest:
     """Every fitted nuisance of `fit` with its shift in σ of its prior, judged together.
 
     Standardised: the test winding's gain (log-normal, `GAIN_SIGMA`); each change time
@@ -88,22 +152,20 @@ def nuisance_test(fit: StepFit, rec: StepRecord) -> dict:
     z = np.abs(np.asarray([v for _, v in shifts]))
     worst = int(np.argmax(z))
     p_value = min(1.0, len(shifts) * 2 * float(stats.norm.sf(z[worst])))
-    return {
-        "standardised": {name: value for name, value in shifts},
-        "largest": shifts[worst][0],
-        "largest_sigma": shifts[worst][1],
-        "count": len(shifts),
-        "family_p_value": p_value,
-        "alpha": NUISANCE_ALPHA,
-        "strained": bool(p_value < NUISANCE_ALPHA),
-        "input_delay_samples": -delay,
-        "known_input_delay_samples": rec.input_delay_known,
-        "sample_period_s": float(rec.dt_sample),
-        "hidden_lag_samples": hidden,
-        "hidden_lag_s": hidden * float(rec.dt_sample),
-        "method": "Bonferroni over the standardised nuisance shifts (gain, the output's "
-        "lateness behind the input, change times about their mean, measured input levels)",
-    }
+    return NuisanceTest(
+        standardised={name: value for name, value in shifts},
+        largest=shifts[worst][0],
+        largest_sigma=shifts[worst][1],
+        count=len(shifts),
+        family_p_value=p_value,
+        alpha=NUISANCE_ALPHA,
+        strained=bool(p_value < NUISANCE_ALPHA),
+        input_delay_samples=-delay,
+        known_input_delay_samples=rec.input_delay_known,
+        sample_period_s=float(rec.dt_sample),
+        hidden_lag_samples=hidden,
+        hidden_lag_s=hidden * float(rec.dt_sample),
+    )
 
 
 def hidden_lag_samples(
@@ -126,10 +188,10 @@ def change_shifts(w, ctx) -> np.ndarray:
     return np.asarray(timing_terms(timing, ctx)[0])
 
 
-def strained_sentence(test: dict, fit) -> str:
+def strained_sentence(test: NuisanceTest, fit) -> str:
     """What a failed joint nuisance test says, with the effects that make such a record."""
-    name, value = test["largest"], test["largest_sigma"]
-    where = f"(family-wise p = {test['family_p_value']:.2g} over {test['count']} nuisances)"
+    name, value = test.largest, test.largest_sigma
+    where = f"(family-wise p = {test.family_p_value:.2g} over {test.count} nuisances)"
     if name == "test_winding_gain":
         gain = math.exp(GAIN_SIGMA * value)
         return (
@@ -139,8 +201,8 @@ def strained_sentence(test: dict, fit) -> str:
             "a different device"
         )
     if name == "input_delay":
-        late = -test["input_delay_samples"] + (test.get("known_input_delay_samples") or 0.0)
-        micro = late * test.get("sample_period_s", float("nan")) * 1e6
+        late = -test.input_delay_samples + (test.known_input_delay_samples or 0.0)
+        micro = late * test.sample_period_s * 1e6
         return (
             f"the output follows the test input's changes {late:.1f} samples ({micro:.3g} µs) "
             f"later than its column shows ({value:+.1f}σ of the sampling phase) {where}: a "

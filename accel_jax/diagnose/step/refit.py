@@ -14,7 +14,7 @@ from ..._servo import scale_factor
 from ..base import ljung_box
 from .model import REFIT_FIELDS, refitted_device
 from .layout import W
-from .nuisance import change_shifts
+from .nuisance import NuisanceTest, change_shifts
 from .segments import segments, time_text
 from .state import StepFit, RecordView, StepRecord
 
@@ -111,7 +111,7 @@ def _refit_report(
     rec: StepRecord,
     sigma,
     verdict,
-    nuisance_test: dict,
+    nuisance_test: NuisanceTest,
 ):
     """The refit as the summary shows it: the device's values under the model the verdict
     names (or the first of a tie; the nominal model when it names none), and beside them
@@ -171,7 +171,7 @@ def _refit_report(
         "parameter_error": bool(
             verdict == "none" and rms_prior > 3 * sigma and rms_refit < 1.5 * sigma
         ),
-        "nuisance_test": nuisance_test,
+        "nuisance_test": nuisance_test.to_dict(),
     }
 
 

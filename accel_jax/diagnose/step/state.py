@@ -3,13 +3,14 @@ reads from a record (`StepRecord`), the scales its effects start from and report
 (`RecordHost`; with a candidate's fit, `CandidateHost`), the noise floor measured without a
 model (`NoiseFloor`), a measured clocked sequence's distinct levels (`LevelGroups`), the
 shape that batches records into one compiled program (`RecordShape`), each candidate's
-fit and its assessment (`StepFit`), and a candidate's joint fit to a set of records
+fit and its assessment (`StepFit`), its entry in the ranking (`RankingEntry`: what the
+verdict decides on), and a candidate's joint fit to a set of records
 (`JointFit`) and its score (`JointScore`).
 
 Each is a frozen dataclass: a later stage that changes a record (a note added, the joint
 fit's `on_stops`, a design's floor) or a fit (its assessment) makes a new one with
-`dataclasses.replace`. What the diagnosis reports stays dicts, built where it is reported
-(`verdict.ranking_entry`, `refit`).
+`dataclasses.replace`. What the diagnosis reports is made dicts where it is reported
+(`RankingEntry.to_dict`, `refit`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import equinox as eqx
 import numpy as np
 
 from ..._data import StepData
+from ..openworld import Candidate
 
 if TYPE_CHECKING:
     from .effects import AbstractStepEffect
@@ -365,3 +367,73 @@ class JointScore:
     log_likelihood: float
     records: list[dict[str, Any]]
     n: int
+
+
+@dataclasses.dataclass(frozen=True)
+class RankingEntry(Candidate):
+    """A candidate's entry in the ranking (`verdict.ranking_entry`): the fields
+    `openworld.decide` reads (`openworld.Candidate`) and what the diagnosis reports with
+    them (`to_dict`: `DiagnosisResult.ranking`'s dict, key for key).
+
+    - `fit_failed`: its nested fit ended below the nominal's likelihood (a solver failure,
+        `assess.nested_failed`); `objective_below_nominal` by how much (≥ 0, ln L units).
+    - `explains_up_to_model_form`: a deterministic effect that explains the record up to
+        its model form (`openworld.MODEL_FORM`).
+    - `gap_after_V` [V]: the held-out gap with the effect; `gap_shrink` the fraction of the
+        nominal's it removes (RMS).
+    - `held_out_mean_square`, `held_out_one_step_mean_square` [V²]: its free-run and
+        one-step errors' on the held-out part.
+    - `params`: the effect's physical values; `converged`, `fit_steps` the solver's word
+        and steps; `out_of_prior` the refitted values beyond `openworld.PRIOR_LIMIT`.
+    - A noise model's (None for a deterministic effect, and left out of `to_dict`):
+        `one_step_whiteness` its held-out one-step errors' Ljung–Box test,
+        `variance_consistent`, and `predictability_null_quantile` what each predictor
+        removes from the fitted noise alone (`noise_null`; None where not computed).
+    """
+
+    fit_failed: bool
+    objective_below_nominal: float
+    explains_up_to_model_form: bool
+    gap_after_V: float
+    gap_shrink: float
+    held_out_mean_square: float
+    held_out_one_step_mean_square: float
+    params: dict[str, Any]
+    converged: bool
+    fit_steps: int
+    out_of_prior: list[str]
+    one_step_whiteness: dict[str, Any] | None = None
+    variance_consistent: bool | None = None
+    predictability_null_quantile: dict[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {
+            "effect": self.effect,
+            "evidence": self.evidence,
+            "fit_failed": self.fit_failed,
+            "objective_below_nominal": self.objective_below_nominal,
+            "significant": self.significant,
+            "stochastic": self.stochastic,
+            "explains": self.explains,
+            "explains_up_to_model_form": self.explains_up_to_model_form,
+            "plausible": self.plausible,
+            "explained_fraction": self.explained_fraction,
+            "gap_after_V": self.gap_after_V,
+            "gap_shrink": self.gap_shrink,
+            "held_out_mean_square": self.held_out_mean_square,
+            "held_out_one_step_mean_square": self.held_out_one_step_mean_square,
+            "params": self.params,
+            "converged": self.converged,
+            "fit_steps": self.fit_steps,
+            "out_of_prior": list(self.out_of_prior),
+        }
+        if self.stochastic:
+            out.update(
+                {
+                    "deterministic_misfit": self.deterministic_misfit,
+                    "one_step_whiteness": self.one_step_whiteness,
+                    "variance_consistent": self.variance_consistent,
+                    "predictability_null_quantile": self.predictability_null_quantile,
+                }
+            )
+        return out

@@ -17,7 +17,7 @@ from . import assess, noise_null, nuisance
 from .assess import assess_fit
 from .model import DELAY_LIMIT, REFIT_FIELDS
 from .refit import _describe_where, _localise, _ranges, _refit_report
-from .state import StepFit, StepRecord
+from .state import RankingEntry, StepFit, StepRecord
 
 LOCK_WINDOW = 10.0
 """Window after each change for the input-locked predictor, in loop time constants T."""
@@ -72,23 +72,21 @@ def evaluate(
         )
         for fit in candidates
     ]
-    nominal_status = {
-        "explains": nominal_fit.explains,
-        "white": whiteness["white"],
-        "plausible": nominal_fit.plausible,
-    }
+    nominal_status = openworld.NominalStatus(
+        explains=nominal_fit.explains, white=whiteness["white"], plausible=nominal_fit.plausible
+    )
     decision = openworld.decide(nominal_status, entries, domain=list(rec.domain_problems))
     # The nuisances judged together: a record whose nominal refit needs strained nuisances
     # is not `none` (an effect they absorbed would go unseen).
     nuisances = nuisance.nuisance_test(nominal_fit, rec)
-    if decision.verdict == "none" and nuisances["strained"]:
+    if decision.verdict == "none" and nuisances.strained:
         decision = dataclasses.replace(decision, verdict="unexplained", path="nuisances")
     # A named effect's own fit judged the same way: named with strained nuisances, the
     # effect may stand in for another that they complete (a torquer lag and an input delay
     # for an output filter). Stated, the verdict kept.
     named = {f.effect: f for f in candidates}.get(decision.verdict)
     effect_nuisances = nuisance.nuisance_test(named, rec) if named is not None else None
-    entries.sort(key=lambda r: (not r["fit_failed"], r["significant"], r["evidence"]), reverse=True)
+    entries.sort(key=lambda r: (not r.fit_failed, r.significant, r.evidence), reverse=True)
     verdict = decision.verdict
     by_name = {f.effect: f for f in fits}
     shown = decision.chosen or decision.best_partial
@@ -113,7 +111,7 @@ def evaluate(
             "fitted_samples": rec.n * rec.block,
         }
     )
-    fraction = next((e["explained_fraction"] for e in entries if e["effect"] == shown), 0.0)
+    fraction = next((e.explained_fraction for e in entries if e.effect == shown), 0.0)
     remaining = after_fit.gap_held
     where_text = _describe_where(after_fit.error, rec, rec.view, sigma)
     remaining_gap = {
@@ -127,14 +125,16 @@ def evaluate(
         decision, nominal_fit, by_name, entries, rec, predictable, remaining, sigma, where_text,
         nuisances,
     )
-    if effect_nuisances is not None and effect_nuisances["strained"]:
+    if effect_nuisances is not None and effect_nuisances.strained:
         reason = (
             reason.rstrip(".") + f". Its own fit needs strained nuisances: "
             + nuisance.strained_sentence(effect_nuisances, by_name[verdict])
             + f"; {verdict} may stand in for an effect they complete."
         )
     refit = _refit_report(nominal, nominal_fit, by_name, shown, rec, sigma, verdict, nuisances)
-    refit["effect_nuisance_test"] = effect_nuisances
+    refit["effect_nuisance_test"] = (
+        effect_nuisances.to_dict() if effect_nuisances is not None else None
+    )
     where = {
         **_localise(rec.view, nominal_fit.error, sigma, rec),
         "predictability": predictable,
@@ -165,7 +165,7 @@ def evaluate(
         kind="step",
         verdict=verdict,
         tied=list(decision.tied),
-        ranking=entries,
+        ranking=[e.to_dict() for e in entries],
         gap=gap,
         where=where,
         refit=refit,
@@ -187,16 +187,16 @@ def _up_to_model_form(fit: StepFit, nominal_fit: StepFit) -> StepFit:
     return dataclasses.replace(fit, explains_model_form=form, explains=form)
 
 
-def _hidden_lag_note(nuisances: dict, rec: StepRecord) -> str:
+def _hidden_lag_note(nuisances: nuisance.NuisanceTest, rec: StepRecord) -> str:
     """What a `none` on a measured input cannot rule out: a lag of the loop up to
     `nuisance_test`'s `hidden_lag_samples`, which the input channel's fitted delay takes up."""
-    delay = nuisances["input_delay_samples"]
-    hidden = nuisances["hidden_lag_samples"]
+    delay = nuisances.input_delay_samples
+    hidden = nuisances.hidden_lag_samples
     return (
         f"the input channel's delay behind the output was fitted (the output moves "
         f"{abs(delay):.2f} samples {'before' if delay >= 0 else 'after'} the column shows a "
         f"change, {rec.dt_sample * 1e6:.3g} µs a sample): a lag of the loop (a torquer lag, "
-        f"an output filter) of up to {hidden:.1f} samples ({nuisances['hidden_lag_s'] * 1e6:.3g}"
+        f"an output filter) of up to {hidden:.1f} samples ({nuisances.hidden_lag_s * 1e6:.3g}"
         f" µs, for a channel delay of at most {DELAY_LIMIT:g} samples and the sampling phase) "
         "would hide in it and "
         "is not ruled out; where that delay is known, give it (`--input-delay`, "
@@ -206,13 +206,13 @@ def _hidden_lag_note(nuisances: dict, rec: StepRecord) -> str:
 
 def ranking_entry(
     fit: StepFit, nominal_fit: StepFit, *, n_train: int, slack: float, predictable
-) -> dict:
-    """A candidate's entry in the diagnosis's ranking (`DiagnosisResult.ranking`, as
-    reported): its evidence 2 ln B over the nominal model (Schwarz: ln n per parameter),
-    whether it is significant (by `slack` more than `SIGNIFICANCE`, improving the held-out
-    error, its nested fit not failed), explains and is credible, and what it closes of the
-    nominal's held-out gap; a noise model's whiteness and whether the misfit it absorbs is
-    predictable (`predictable`: `openworld.predictability`)."""
+) -> RankingEntry:
+    """A candidate's entry in the diagnosis's ranking (`RankingEntry`; its `to_dict` is
+    `DiagnosisResult.ranking`'s row): its evidence 2 ln B over the nominal model (Schwarz:
+    ln n per parameter), whether it is significant (by `slack` more than `SIGNIFICANCE`,
+    improving the held-out error, its nested fit not failed), explains and is credible, and
+    what it closes of the nominal's held-out gap; a noise model's whiteness and whether the
+    misfit it absorbs is predictable (`predictable`: `openworld.predictability`)."""
     evidence = 2 * (
         fit.log_likelihood - 0.5 * fit.k * math.log(n_train) - nominal_fit.log_likelihood
     )
@@ -231,39 +231,39 @@ def ranking_entry(
     noise = {}
     if fit.stochastic:
         noise = {
-            "deterministic_misfit": absorbed,
             "one_step_whiteness": fit.one_step_whiteness,
             "variance_consistent": fit.variance_consistent,
             # What each predictor removes from the fitted noise alone (`noise_null`; None
             # where the fixed fraction did not call the misfit deterministic).
             "predictability_null_quantile": predictable.get("null_quantile"),
         }
-    return {
-        "effect": fit.effect,
-        "evidence": float(evidence),
-        "fit_failed": failed,
-        "objective_below_nominal": max(assess.nested_shortfall(fit, nominal_fit), 0.0),
-        "significant": bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
-        "stochastic": fit.stochastic,
-        "explains": fit.explains,
-        "explains_up_to_model_form": fit.explains_model_form,
-        "plausible": fit.plausible and not failed,
-        "explained_fraction": 0.0 if failed or absorbed else fraction,
-        "gap_after_V": fit.gap_held,
-        "gap_shrink": (
+    return RankingEntry(
+        effect=fit.effect,
+        evidence=float(evidence),
+        fit_failed=failed,
+        objective_below_nominal=max(assess.nested_shortfall(fit, nominal_fit), 0.0),
+        significant=bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
+        stochastic=fit.stochastic,
+        explains=fit.explains,
+        explains_up_to_model_form=fit.explains_model_form,
+        plausible=fit.plausible and not failed,
+        explained_fraction=0.0 if failed or absorbed else fraction,
+        gap_after_V=fit.gap_held,
+        gap_shrink=(
             1 - fit.gap_held / nominal_fit.gap_held if nominal_fit.gap_held > 0 else 0.0
         ),
-        "held_out_mean_square": fit.ms_held,
-        "held_out_one_step_mean_square": fit.ms_held_one_step,
-        "params": fit.params,
-        "converged": fit.converged,
-        "fit_steps": fit.steps,
-        "out_of_prior": list(fit.out_of_prior),
+        held_out_mean_square=fit.ms_held,
+        held_out_one_step_mean_square=fit.ms_held_one_step,
+        params=fit.params,
+        converged=fit.converged,
+        fit_steps=fit.steps,
+        out_of_prior=list(fit.out_of_prior),
+        deterministic_misfit=absorbed,
         **noise,
-    }
+    )
 
 
-def _noise_not_credited(name: str, fit: StepFit, entry: dict) -> str:
+def _noise_not_credited(name: str, fit: StepFit, entry: RankingEntry) -> str:
     """Why the best library effect, a noise model, does not explain the record: its
     held-out one-step errors are not white, or its free-run errors are not of the size it
     predicts (`assess.assess_fit`)."""
@@ -287,7 +287,7 @@ def _noise_not_credited(name: str, fit: StepFit, entry: dict) -> str:
     described = f"{fit.model.description}; " if fit.model is not None else ""
     return (
         f"the best library effect, {name} ({described}evidence "
-        f"2 ln B = {entry['evidence']:.1f}), does not explain the record: "
+        f"2 ln B = {entry.evidence:.1f}), does not explain the record: "
         + " and ".join(why)
         + " — the record's noise is not that model's (coloured another way, or entering "
         "at another place) or a deterministic misfit remains"
@@ -308,7 +308,7 @@ def _reason(
     remaining,
     sigma,
     where,
-    nuisances: dict,
+    nuisances: nuisance.NuisanceTest,
 ):
     whiteness = nominal_fit.whiteness or {}  # (the nominal fit's, set by `evaluate`)
     path = decision.path
@@ -328,12 +328,12 @@ def _reason(
             f"(excess {nominal_fit.gap_held / sigma:.2f}× the {floor}) and white "
             f"(Ljung–Box p = {whiteness['p_value']:.2g}); no effect is significant."
         )
-    entry = {e["effect"]: e for e in entries}
+    entry = {e.effect: e for e in entries}
     if verdict == "cannot_tell":
         a, b = decision.tied
         return (
             f"{a} and {b} both bring the held-out gap to the floor and their evidence differs by "
-            f"{abs(entry[a]['evidence'] - entry[b]['evidence']):.1f} (< 6 on the 2 ln B scale): "
+            f"{abs(entry[a].evidence - entry[b].evidence):.1f} (< 6 on the 2 ln B scale): "
             "the record cannot tell them apart."
         )
     if verdict != "unexplained":
@@ -341,7 +341,7 @@ def _reason(
         text = (
             f"{verdict} brings the held-out gap from {nominal_fit.gap_held:.3g} V to "
             f"{fit.gap_held:.3g} V ({fit.gap_held / sigma:.2f}× the {floor}); evidence "
-            f"2 ln B = {entry[verdict]['evidence']:.1f} over the nominal model"
+            f"2 ln B = {entry[verdict].evidence:.1f} over the nominal model"
         )
         if fit.explains_model_form:
             text += (
@@ -350,7 +350,7 @@ def _reason(
                 "differs from its model in detail"
             )
         if fit.stochastic:
-            null = entry[verdict].get("predictability_null_quantile")
+            null = entry[verdict].predictability_null_quantile
             beyond = (
                 " no more than from the fitted noise alone (its "
                 f"{noise_null.NULL_QUANTILE:.0%} quantiles over {noise_null.NULL_DRAWS} draws: "
@@ -394,11 +394,11 @@ def _reason(
     elif partial:
         parts.append(
             f"the best library effect, {partial}, explains "
-            f"{entry[partial]['explained_fraction']:.0%} "
+            f"{entry[partial].explained_fraction:.0%} "
             f"of the excess; {remaining:.3g} V ({remaining / sigma:.1f}× the {floor}) remains"
         )
     else:
-        significant = [e for e in entries if e["significant"]]
+        significant = [e for e in entries if e.significant]
         if nominal_fit.explains and not whiteness["white"] and not significant:
             parts.append(
                 "the held-out residual is at the floor but not white (Ljung–Box p = "
@@ -409,9 +409,9 @@ def _reason(
                 f"the held-out gap is {remaining:.3g} V ({remaining / sigma:.1f}× the {floor}) "
                 "and no library effect that is significant and credible brings it to the floor"
             )
-    stochastic = [e for e in entries if e["stochastic"] and e["significant"]]
-    if stochastic and stochastic[0].get("deterministic_misfit"):
-        null = stochastic[0].get("predictability_null_quantile")
+    stochastic = [e for e in entries if e.stochastic and e.significant]
+    if stochastic and stochastic[0].deterministic_misfit:
+        null = stochastic[0].predictability_null_quantile
         tests = ("input_locked", "periodic", "trend")
         if null:  # among the tests that beat the noise's own null
             tests = tuple(
