@@ -68,7 +68,7 @@ from .fit import (
 )
 from .layout import N_LAG_STATES, Own, Shared, W
 from .record import MAX_CHANGES, prepare, prior_sigma_of, stack_on_host
-from .state import JointFit, JointScore, StepRecord
+from .state import JointFit, JointScore, RecordScore, StepRecord
 
 CANDIDATES = ("nominal", "torquer_lag", "output_filter")
 """The joint fit's models: the nominal device and the two lags that a small step cannot
@@ -473,10 +473,10 @@ def _best(out, rows) -> JointFit:
 
 
 def _score(fit: JointFit, prepared: PreparedSet, nominal: NominalDevice) -> JointScore:
-    """Profiled log-likelihood, per-record excess over the floor, and the physical values."""
+    """The profiled log-likelihood of the set and each record's misfit (`RecordScore`)."""
     preps = prepared.preps
     log_like = 0.0
-    records = []
+    records: list[RecordScore] = []
     for r, p in enumerate(preps):
         n = p.n
         error = prepared.data[r, :n] - fit.prediction[r, :n]
@@ -485,17 +485,19 @@ def _score(fit: JointFit, prepared: PreparedSet, nominal: NominalDevice) -> Join
         sigma = p.sigma
         over = openworld.excess(rss / n, sigma**2) / sigma
         records.append(
-            {
-                "rms_V": math.sqrt(rss / n),
-                "noise_floor_V": sigma,
-                "excess_over_floor": over,
-                "at_floor": bool(over <= openworld.FLOOR_FACTOR),
-            }
+            RecordScore(
+                rms_V=math.sqrt(rss / n),
+                noise_floor_V=sigma,
+                excess_over_floor=over,
+                at_floor=bool(over <= openworld.FLOOR_FACTOR),
+            )
         )
     shared = fit.x[:N_SHARED]
     priors = np.concatenate([shared[Shared.REFIT], shared[Shared.SCALES]])
     log_like -= 0.5 * float(np.sum(priors**2))
-    return JointScore(log_likelihood=log_like, records=records, n=sum(p.n for p in preps))
+    return JointScore(
+        log_likelihood=log_like, records=tuple(records), n=sum(p.n for p in preps)
+    )
 
 
 def shared_values(

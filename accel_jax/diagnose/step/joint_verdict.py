@@ -36,6 +36,7 @@ from .joint import (
     shared_values,
 )
 from .segments import time_text
+from .state import JointScore, SetRankingEntry
 
 
 @dataclasses.dataclass
@@ -44,10 +45,11 @@ class SetDiagnosis:
 
     **Fields:** `verdict` (`none`, `torquer_lag`, `output_filter`, `cannot_tell`,
     `unexplained`); `tied` (with `cannot_tell`); `reason`; `ranking` (per candidate: evidence
-    2 ln B against the nominal, records at their floor, shared values); `records` (per
-    record: name, whether simulated with the stops, its excess over the floor under the
-    chosen model); `shared` (the chosen model's shared device values); `next_experiment`
-    (with `cannot_tell`: the best experiments of `experiment_menu`, each with its expected
+    2 ln B against the nominal, records at their floor, shared values; each a
+    `SetRankingEntry`'s `to_dict`); `records` (per record: name, whether simulated with the
+    stops, whether it has `a_in`, then its misfit under the chosen model, a `RecordScore`'s
+    `to_dict`); `shared` (the chosen model's shared device values); `next_experiment` (with
+    `cannot_tell`: the best experiments of `experiment_menu`, each with its expected
     2 ln B); `notes`.
     """
 
@@ -161,8 +163,8 @@ def diagnose_step_set(
         for name, p in zip(names, prepared.preps, strict=True)
         for note in p.notes
     ]
-    if not any(r["all_at_floor"] for r in ranking):
-        first = min(r["worst_excess_over_floor"] for r in ranking)
+    if not any(r.all_at_floor for r in ranking):
+        first = min(r.worst_excess_over_floor for r in ranking)
         prepared, fits = release_lag_states(prepared, nominal, fits)
         scores, ranking = _rank(fits, prepared, nominal)
         notes.append(
@@ -173,9 +175,12 @@ def diagnose_step_set(
     return _diagnose_prepared(prepared, nominal, fits, scores, ranking, names, notes, recommend)
 
 
-def _rank(fits, prepared: PreparedSet, nominal: NominalDevice):
-    """Each candidate's score (`_score`) and ranking entry: evidence against the nominal
-    (Schwarz: ln n per lag parameter), records at their floor, shared values."""
+def _rank(
+    fits, prepared: PreparedSet, nominal: NominalDevice
+) -> tuple[dict[str, JointScore], list[SetRankingEntry]]:
+    """Each candidate's score (`_score`) and ranking entry (`SetRankingEntry`): evidence
+    against the nominal (Schwarz: ln n per lag parameter), records at their floor, shared
+    values."""
     scores = {c: _score(fits[c], prepared, nominal) for c in CANDIDATES}
     n_total = scores["nominal"].n
     ranking = []
@@ -184,53 +189,51 @@ def _rank(fits, prepared: PreparedSet, nominal: NominalDevice):
         if c != "nominal":
             evidence -= math.log(n_total)
         ranking.append(
-            {
-                "effect": c,
-                "evidence": float(evidence) if c != "nominal" else 0.0,
-                "all_at_floor": all(r["at_floor"] for r in scores[c].records),
-                "worst_excess_over_floor": max(
-                    r["excess_over_floor"] for r in scores[c].records
-                ),
-                "converged": fits[c].converged,
-                "shared": shared_values(fits[c], prepared, nominal, c),
-            }
+            SetRankingEntry(
+                effect=c,
+                evidence=float(evidence) if c != "nominal" else 0.0,
+                all_at_floor=all(r.at_floor for r in scores[c].records),
+                worst_excess_over_floor=max(r.excess_over_floor for r in scores[c].records),
+                converged=fits[c].converged,
+                shared=shared_values(fits[c], prepared, nominal, c),
+            )
         )
     return scores, ranking
 
 
-def _verdict(ranking):
-    by = {r["effect"]: r for r in ranking}
-    lags = sorted((r for r in ranking if r["effect"] != "nominal"), key=lambda r: -r["evidence"])
-    good = [r for r in lags if r["evidence"] >= SIGNIFICANCE and r["all_at_floor"]]
-    tied: list = []
-    if by["nominal"]["all_at_floor"] and not any(r["evidence"] >= SIGNIFICANCE for r in lags):
+def _verdict(ranking: list[SetRankingEntry]) -> tuple[str, list[str], str]:
+    by = {r.effect: r for r in ranking}
+    lags = sorted((r for r in ranking if r.effect != "nominal"), key=lambda r: -r.evidence)
+    good = [r for r in lags if r.evidence >= SIGNIFICANCE and r.all_at_floor]
+    tied: list[str] = []
+    if by["nominal"].all_at_floor and not any(r.evidence >= SIGNIFICANCE for r in lags):
         verdict = "none"
         reason = (
             "the nominal device, refitted within its prior, leaves every record at its noise "
             "floor and neither lag is significant"
         )
-    elif good and (len(good) == 1 or good[0]["evidence"] - good[1]["evidence"] >= INDISTINCT):
-        verdict = good[0]["effect"]
+    elif good and (len(good) == 1 or good[0].evidence - good[1].evidence >= INDISTINCT):
+        verdict = good[0].effect
         other = lags[1]
         reason = (
-            f"{verdict} brings every record to its floor (evidence {good[0]['evidence']:.1f} "
-            f"against the nominal, {good[0]['evidence'] - other['evidence']:.1f} against "
-            f"{other['effect']})"
+            f"{verdict} brings every record to its floor (evidence {good[0].evidence:.1f} "
+            f"against the nominal, {good[0].evidence - other.evidence:.1f} against "
+            f"{other.effect})"
         )
     elif len(good) == 2:
         verdict = "cannot_tell"
-        tied = [good[0]["effect"], good[1]["effect"]]
+        tied = [good[0].effect, good[1].effect]
         reason = (
             f"both lags bring every record to its floor; their evidence differs by "
-            f"{good[0]['evidence'] - good[1]['evidence']:.1f} (< {INDISTINCT:g}): these "
+            f"{good[0].evidence - good[1].evidence:.1f} (< {INDISTINCT:g}): these "
             "records cannot separate a lag inside the loop from one on the output"
         )
     else:
         verdict = "unexplained"
-        worst = min(ranking, key=lambda r: r["worst_excess_over_floor"])
+        worst = min(ranking, key=lambda r: r.worst_excess_over_floor)
         reason = (
             "no candidate brings every record to its floor; the best "
-            f"({worst['effect']}) leaves {worst['worst_excess_over_floor']:.2f} floors of "
+            f"({worst.effect}) leaves {worst.worst_excess_over_floor:.2f} floors of "
             "excess in its worst record (an effect outside the joint model: run the "
             "single-record diagnosis of each record)"
         )
@@ -239,13 +242,13 @@ def _verdict(ranking):
 
 def _diagnose_prepared(prepared, nominal, fits, scores, ranking, names, notes, recommend):
     verdict, tied, reason = _verdict(ranking)
-    by = {r["effect"]: r for r in ranking}
+    by = {r.effect: r for r in ranking}
     chosen = verdict if verdict in CANDIDATES else (tied[0] if tied else "nominal")
-    records = []
-    for r, (name, p) in enumerate(zip(names, prepared.preps, strict=True)):
-        entry = {"name": name, "on_stops": p.on_stops, "has_accel": p.has_accel}
-        entry.update(scores[chosen].records[r])
-        records.append(entry)
+    # What the result reports: dicts (`to_dict`), each record's name and kind first.
+    records = [
+        {"name": name, "on_stops": p.on_stops, "has_accel": p.has_accel, **score.to_dict()}
+        for name, p, score in zip(names, prepared.preps, scores[chosen].records, strict=True)
+    ]
     traces = {
         "records": [
             {
@@ -263,9 +266,9 @@ def _diagnose_prepared(prepared, nominal, fits, scores, ranking, names, notes, r
         verdict=verdict,
         tied=tied,
         reason=reason,
-        ranking=ranking,
+        ranking=[r.to_dict() for r in ranking],
         records=records,
-        shared=by[chosen]["shared"],
+        shared=by[chosen].shared,
         notes=notes,
         traces=traces,
     )

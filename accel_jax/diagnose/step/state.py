@@ -4,13 +4,15 @@ reads from a record (`StepRecord`), the scales its effects start from and report
 model (`NoiseFloor`), a measured clocked sequence's distinct levels (`LevelGroups`), the
 shape that batches records into one compiled program (`RecordShape`), each candidate's
 fit and its assessment (`StepFit`), its entry in the ranking (`RankingEntry`: what the
-verdict decides on), and a candidate's joint fit to a set of records
-(`JointFit`) and its score (`JointScore`).
+verdict decides on), and a candidate's joint fit to a set of records (`JointFit`), its
+score (`JointScore`, each record's `RecordScore`) and its entry in the set's ranking
+(`SetRankingEntry`).
 
 Each is a frozen dataclass: a later stage that changes a record (a note added, the joint
 fit's `on_stops`, a design's floor) or a fit (its assessment) makes a new one with
 `dataclasses.replace`. What the diagnosis reports is made dicts where it is reported
-(`RankingEntry.to_dict`, `refit`).
+(`RankingEntry.to_dict`, `refit`; a set's ranking and records by `to_dict` where
+`joint_verdict` puts them into its `SetDiagnosis`).
 """
 
 from __future__ import annotations
@@ -358,14 +360,40 @@ class JointFit:
     steps: list[int]
 
 
+@dataclasses.dataclass(frozen=True)
+class RecordScore:
+    """One record's misfit under a candidate's joint fit (`joint._score`).
+
+    **Fields** (named as reported): `rms_V` [V] the RMS of the record's block means less the
+    fit's; `noise_floor_V` [V] its floor (`StepRecord.sigma`); `excess_over_floor` the RMS's
+    excess over the floor (`openworld.excess`), in floors; `at_floor` whether that excess is
+    within `openworld.FLOOR_FACTOR`.
+    """
+
+    rms_V: float
+    noise_floor_V: float
+    excess_over_floor: float
+    at_floor: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """The score as the diagnosis reports it (`SetDiagnosis.records`, with the record's
+        name, `on_stops` and `has_accel` before it)."""
+        return {
+            "rms_V": self.rms_V,
+            "noise_floor_V": self.noise_floor_V,
+            "excess_over_floor": self.excess_over_floor,
+            "at_floor": self.at_floor,
+        }
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class JointScore:
     """A joint fit's score (`joint._score`): `log_likelihood` the profiled ln L of every
-    record with the shared priors; `records` each record's misfit as reported (`rms_V`,
-    `noise_floor_V`, `excess_over_floor`, `at_floor`); `n` the blocks of the set."""
+    record with the shared priors; `records` each record's misfit (`RecordScore`, in the
+    set's order); `n` the blocks of the set."""
 
     log_likelihood: float
-    records: list[dict[str, Any]]
+    records: tuple[RecordScore, ...]
     n: int
 
 
@@ -437,3 +465,35 @@ class RankingEntry(Candidate):
                 }
             )
         return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SetRankingEntry:
+    """A candidate's entry in the ranking of a set of records (`joint_verdict._rank`).
+
+    **Fields** (named as reported): `effect` the candidate (`joint.CANDIDATES`); `evidence`
+    its 2 ln B against the nominal model, every record together (Schwarz: ln n per lag
+    parameter; 0 for the nominal); `all_at_floor` whether it leaves every record at its
+    floor (`RecordScore.at_floor`); `worst_excess_over_floor` the largest of the records'
+    excesses over their floors, in floors; `converged` the solver's word
+    (`JointFit.converged`); `shared` the shared device values it fitted
+    (`joint.shared_values`: parameter name → value, as reported).
+    """
+
+    effect: str
+    evidence: float
+    all_at_floor: bool
+    worst_excess_over_floor: float
+    converged: bool
+    shared: dict[str, Any]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The entry as the diagnosis reports it (`SetDiagnosis.ranking`)."""
+        return {
+            "effect": self.effect,
+            "evidence": self.evidence,
+            "all_at_floor": self.all_at_floor,
+            "worst_excess_over_floor": self.worst_excess_over_floor,
+            "converged": self.converged,
+            "shared": self.shared,
+        }
