@@ -284,23 +284,26 @@ def test_a_noise_not_credited_says_which_of_its_checks_failed():
     # of the noise's checks failed, not the free-run gap's "explains N % of the excess",
     # which a noise model cannot close (it read "explains 100 %; 0 V remains" beside the
     # verdict unexplained on blind records).
+    from accel_jax.diagnose.openworld import Whiteness
     from accel_jax.diagnose.step.effects import ColoredNoise
     from accel_jax.diagnose.step.verdict import _noise_not_credited
 
     fit = SimpleNamespace(
-        one_step_whiteness={"white": False, "p_value": 1e-9, "lags": 20},
+        one_step_whiteness=Whiteness(80.0, 20, 1e-9, False, 1e-3),
         variance_consistent=False,
         free_run_over_noise_variance=[1.2, 6.5],
         model=ColoredNoise(),
     )
-    text = _noise_not_credited("colored_noise", fit, {"evidence": 812.0})
+    text = _noise_not_credited("colored_noise", fit, SimpleNamespace(evidence=812.0))
     assert "colored_noise" in text and "812.0" in text
     assert "one-step prediction errors on the held-out part are not white" in text
     assert "p = 1e-09 over 20 lags" in text
     assert "not of the size it predicts" in text and "1.2, 6.5" in text
     assert "of the excess" not in text
-    fit.one_step_whiteness, fit.variance_consistent = {"white": True}, True
-    assert "not significant and credible" in _noise_not_credited("colored_noise", fit, {"evidence": 1.0})
+    fit.one_step_whiteness = Whiteness(12.0, 20, 0.9, True, 1e-3)
+    fit.variance_consistent = True
+    entry = SimpleNamespace(evidence=1.0)
+    assert "not significant and credible" in _noise_not_credited("colored_noise", fit, entry)
 
 
 def test_a_different_device_is_never_none(diagnosed):

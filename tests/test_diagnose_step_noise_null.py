@@ -16,7 +16,11 @@ from accel_jax._servo import time_constant
 from accel_jax.diagnose import openworld
 from accel_jax.diagnose.step.effects import ColoredNoise, MomentNoise, block_noise
 from accel_jax.diagnose.step.innovations import moment_noise_model
-from accel_jax.diagnose.step.noise_null import calibrated, noise_draws
+from accel_jax.diagnose.step.noise_null import (
+    CalibratedPredictability,
+    calibrated,
+    noise_draws,
+)
 
 BASE = aj.NominalDevice.reference(torquer_time_constant=0.0, filter_time_constant=0.0).params
 M = 4
@@ -81,8 +85,17 @@ def test_a_sinusoid_stays_deterministic_and_the_noise_itself_does_not():
         )
         judged.append((plain, calibrated(plain, fit, rec, BASE, window, count=60)))
     (line_plain, line_null), (_, noise_null) = judged
-    assert line_plain["deterministic"] and line_null["deterministic"]
-    assert line_null["periodic"] > line_null["null_quantile"]["periodic"]
-    assert not noise_null["deterministic"]
+    assert line_plain.deterministic and line_null.deterministic
+    assert line_null.periodic > line_null.null_quantile["periodic"]
+    assert not noise_null.deterministic
     # The calibrated test can only call a misfit deterministic less often.
-    assert set(noise_null["null_quantile"]) == {"input_locked", "periodic", "trend"}
+    assert set(noise_null.null_quantile) == {"input_locked", "periodic", "trend"}
+    # Typed (`CalibratedPredictability`, an `openworld.Predictability`); `to_dict()` is the
+    # dict `calibrated` returned: the predictability's keys, then the null's.
+    assert isinstance(noise_null, CalibratedPredictability)
+    assert list(noise_null.to_dict()) == [
+        *line_plain.to_dict(), "null_quantile", "null_draws", "null_model"
+    ]
+    assert noise_null.null_draws == 60 and noise_null.null_model == "colored_noise"
+    with pytest.warns(DeprecationWarning, match="use result.null_quantile"):
+        assert noise_null["null_quantile"] == noise_null.null_quantile

@@ -139,18 +139,18 @@ def test_noise_floor_without_a_model_and_with_quantisation():
     signal = 2.0 * (t > 5e-3) * (1 - np.exp(-(t - 5e-3) / 3e-4) * np.cos(3000 * (t - 5e-3)))
     noisy = signal + 1e-3 * rng.normal(size=t.size)
     floor = openworld.noise_floor(noisy)
-    assert floor["sigma"] == pytest.approx(1e-3, rel=0.05) and floor["quantum"] == 0.0
+    assert floor.sigma == pytest.approx(1e-3, rel=0.05) and floor.quantum == 0.0
     # 4th differences of block means (the step fit's resolution): the same floor / √m.
     blocks = noisy.reshape(-1, 10).mean(axis=1)
-    assert openworld.noise_floor(blocks, order=4)["sigma"] == pytest.approx(
+    assert openworld.noise_floor(blocks, order=4).sigma == pytest.approx(
         1e-3 / math.sqrt(10), rel=0.08
     )
     # An ADC with steps coarser than the noise: the floor is at least q/√12.
     q = 5e-3
     coarse = q * np.round(noisy / q)
     floor = openworld.noise_floor(coarse)
-    assert floor["quantum"] == pytest.approx(q, rel=1e-9)
-    assert floor["sigma"] >= q / math.sqrt(12) * (1 - 1e-9)
+    assert floor.quantum == pytest.approx(q, rel=1e-9)
+    assert floor.sigma >= q / math.sqrt(12) * (1 - 1e-9)
     assert openworld.quantum(noisy) == 0.0
 
 
@@ -162,21 +162,21 @@ def test_predictability_tells_deterministic_from_stochastic():
     index = np.array([500, 1500, 2500, 3500, 4500, 5500])
     steps = np.array([1.0, -2.0, 1.0, 2.0, -1.0, -1.0])
     out = openworld.predictability(white, split, dt, index, steps, 300)
-    assert not out["deterministic"]
-    assert max(out["input_locked"], out["periodic"], out["trend"]) < openworld.PREDICTABLE
+    assert not out.deterministic
+    assert max(out.input_locked, out.periodic, out.trend) < openworld.PREDICTABLE
     line = white + 3 * np.sin(2 * np.pi * 700 * t + 0.4)
     out = openworld.predictability(line, split, dt, index, steps, 300)
-    assert out["deterministic"] and out["frequency_Hz"] == pytest.approx(700, rel=0.01)
+    assert out.deterministic and out.frequency_Hz == pytest.approx(700, rel=0.01)
     locked = white.copy()
     for i, s in zip(index, steps, strict=True):
         locked[i : i + 300] += 4 * s * np.exp(-np.arange(300) / 80)
     out = openworld.predictability(locked, split, dt, index, steps, 300)
-    assert out["deterministic"] and out["input_locked"] > 0.5
+    assert out.deterministic and out.input_locked > 0.5
     trend = white + 3 * t / t[-1]
-    assert openworld.predictability(trend, split, dt, index, steps, 300)["trend"] > 0.5
+    assert openworld.predictability(trend, split, dt, index, steps, 300).trend > 0.5
     # A static record leaves the trend out of the decision (a random walk is a noise).
     out = openworld.predictability(trend, split, dt, index[:0], steps[:0], 1, tests=("periodic",))
-    assert not out["deterministic"]
+    assert not out.deterministic
 
 
 def test_line_significance_on_a_white_residual():
@@ -192,17 +192,17 @@ def test_line_significance_on_a_white_residual():
         out = openworld.predictability(
             white, split, dt, none, none * 0.0, 1, ("periodic",), openworld.LINE_Z
         )
-        zs.append(out["periodic_z"])
-        assert not out["deterministic"], seed
+        zs.append(out.periodic_z)
+        assert not out.deterministic, seed
     assert abs(np.mean(zs)) < 0.5 and 0.5 < np.std(zs) < 1.6
     line = np.random.default_rng(7).normal(size=n) + 0.3 * np.sin(2 * np.pi * 0.56 * t)
     sized = openworld.predictability(line, split, dt, none, none * 0.0, 1, ("periodic",))
-    assert not sized["deterministic"]  # the size test alone misses it
+    assert not sized.deterministic  # the size test alone misses it
     out = openworld.predictability(
         line, split, dt, none, none * 0.0, 1, ("periodic",), openworld.LINE_Z
     )
-    assert out["deterministic"] and out["frequency_Hz"] == pytest.approx(0.56, rel=0.01)
-    assert out["periodic_rms"] == pytest.approx(0.3 / np.sqrt(2), rel=0.15)
+    assert out.deterministic and out.frequency_Hz == pytest.approx(0.56, rel=0.01)
+    assert out.periodic_rms == pytest.approx(0.3 / np.sqrt(2), rel=0.15)
 
 
 def test_a_wandering_line_is_seen_but_not_called_deterministic():
@@ -215,4 +215,36 @@ def test_a_wandering_line_is_seen_but_not_called_deterministic():
     x = np.random.default_rng(3).normal(size=n) + 0.5 * np.sin(2 * np.pi * 0.56 * t + phase)
     none = np.empty(0, int)
     out = openworld.predictability(x, split, dt, none, none * 0.0, 1, ("periodic",), 5.0)
-    assert out["periodic_z"] < -openworld.LINE_Z and not out["deterministic"]
+    assert out.periodic_z < -openworld.LINE_Z and not out.deterministic
+
+
+def test_the_floor_whiteness_and_predictability_are_typed_and_their_old_dicts_warn():
+    # Each was a plain dict: `to_dict()` is that dict (its keys in order, its values), and
+    # the old string-keyed access still reads, with a warning naming the attribute.
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=3000)
+    floor = openworld.noise_floor(x)
+    assert isinstance(floor, openworld.NoiseFloorEstimate)
+    assert list(floor.to_dict()) == ["sigma", "sigma_differences", "quantum"]
+    with pytest.warns(DeprecationWarning, match="use result.sigma"):
+        assert floor["sigma"] == floor.sigma
+    white = openworld.whiteness(x)
+    old = openworld.ljung_box(x, lags=20)
+    old.pop("autocorrelation")
+    old.update(white=bool(old["p_value"] >= openworld.WHITENESS_LEVEL))
+    old.update(level=openworld.WHITENESS_LEVEL)
+    assert isinstance(white, openworld.Whiteness)
+    assert white.to_dict() == old and list(white.to_dict()) == list(old)
+    with pytest.warns(DeprecationWarning, match="use result.white"):
+        assert white["white"] is white.white
+    out = openworld.predictability(x, 2000, 1e-3, np.array([500]), np.array([1.0]), 50)
+    assert isinstance(out, openworld.Predictability)
+    assert list(out.to_dict()) == [
+        "input_locked", "periodic", "periodic_z", "periodic_rms", "trend", "frequency_Hz",
+        "deterministic",
+    ]
+    assert [out.removed(test) for test in openworld.PREDICTORS] == [
+        out.input_locked, out.periodic, out.trend
+    ]
+    with pytest.warns(DeprecationWarning, match="use result.deterministic"):
+        assert out.get("deterministic") is out.deterministic

@@ -314,7 +314,7 @@ def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
     # The step verdict decides on `RankingEntry`s (an `openworld.Candidate` each) and
     # reports their `to_dict`: the row `DiagnosisResult.ranking` held before, key for key
     # and in order, a noise model's four keys only on a noise model's row.
-    from accel_jax.diagnose.openworld import Candidate
+    from accel_jax.diagnose.openworld import Candidate, Whiteness
     from accel_jax.diagnose.step.state import RankingEntry
 
     common = dict(
@@ -340,10 +340,32 @@ def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
     assert lag.to_dict()["out_of_prior"] == ["J"] and lag.to_dict()["evidence"] == 12.5
     noise = RankingEntry(
         effect="colored_noise", stochastic=True, deterministic_misfit=True,
-        one_step_whiteness={"white": True}, variance_consistent=False, **common,
+        one_step_whiteness=Whiteness(12.0, 20, 0.9, True, 1e-3), variance_consistent=False,
+        **common,
     )
     row = noise.to_dict()
     assert list(row) == old_keys + noise_keys
+    assert row["one_step_whiteness"] == {
+        "statistic": 12.0, "lags": 20, "p_value": 0.9, "white": True, "level": 1e-3
+    }
     assert row["deterministic_misfit"] is True and row["variance_consistent"] is False
     assert row["predictability_null_quantile"] is None
     json.dumps(row)
+
+
+def test_the_experiment_menu_is_typed_and_its_old_dicts_warn():
+    # `step.design.experiment_menu` returns `ExperimentDesign`s (they were dicts):
+    # `to_dict()` has the old keys in order; the old access reads with a warning, and
+    # `expected_evidence` still takes the old dict.
+    from accel_jax.diagnose.step.design import ExperimentDesign, experiment_menu
+
+    menu = experiment_menu(aj.NominalDevice.reference(), 500e3, 1e-4)
+    assert all(isinstance(d, ExperimentDesign) for d in menu)
+    keys = ["description", "record", "noise_V", "levels_V", "accel_levels_g"]
+    assert [list(d.to_dict()) for d in menu] == [keys] * len(menu)
+    steps, accel = menu[0], menu[1]
+    assert steps.accel_levels_g is None and accel.accel_levels_g == [0.0, 1.0, -1.0, 1.0, 0.0]
+    assert accel.record.a_in is not None and steps.noise_V == 1e-4
+    assert ExperimentDesign.from_mapping(accel.to_dict()).to_dict() == accel.to_dict()
+    with pytest.warns(DeprecationWarning, match="use result.levels_V"):
+        assert accel["levels_V"] == accel.levels_V

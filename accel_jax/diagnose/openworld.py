@@ -166,6 +166,119 @@ class Candidate:
         )
 
 
+@dataclasses.dataclass(frozen=True)
+class NoiseFloorEstimate(LegacyItems):
+    """A record's white-noise floor measured without any model (`noise_floor`), in the
+    record's unit (V for a step record's output).
+
+    - `sigma`: the floor used, the larger of `sigma_differences` and the quantisation
+        floor q/√12;
+    - `sigma_differences`: σ from the median absolute `order`-th difference;
+    - `quantum`: the step q of the ADC grid the values lie on (0 when none is found).
+
+    It was a plain dict; `floor["sigma"]` still reads for one release, with a
+    `DeprecationWarning`.
+    """
+
+    sigma: float
+    sigma_differences: float
+    quantum: float
+
+    def to_dict(self) -> dict:
+        return {
+            "sigma": self.sigma,
+            "sigma_differences": self.sigma_differences,
+            "quantum": self.quantum,
+        }
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
+
+
+@dataclasses.dataclass(frozen=True)
+class Whiteness(LegacyItems):
+    """The Ljung–Box test of a residual (`whiteness`, on `base.ljung_box`) with its verdict.
+
+    - `statistic`: Q (dimensionless);
+    - `lags`: L, the lags summed (capped at a quarter of the samples);
+    - `p_value`: P(χ²(L) > Q);
+    - `white`: whether `p_value` ≥ `level`;
+    - `level`: the level of the test (`WHITENESS_LEVEL`).
+
+    It was a plain dict (`ljung_box`'s less its `autocorrelation`, with `white` and
+    `level`); `test["white"]` still reads for one release, with a `DeprecationWarning`.
+    """
+
+    statistic: float
+    lags: int
+    p_value: float
+    white: bool
+    level: float
+
+    def to_dict(self) -> dict:
+        return {
+            "statistic": self.statistic,
+            "lags": self.lags,
+            "p_value": self.p_value,
+            "white": self.white,
+            "level": self.level,
+        }
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
+
+
+PREDICTORS = ("input_locked", "periodic", "trend")
+"""The predictors of `predictability`, each a field of `Predictability`."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Predictability(LegacyItems):
+    """How much of a held-out residual a predictor fitted on the training residual alone
+    removes (`predictability`).
+
+    - `input_locked`, `periodic`, `trend`: the fraction of the held-out mean square each
+        predictor removes (dimensionless; negative when it only adds its own noise);
+    - `periodic_z`: the held-out residual's projection on the continued sinusoid, in
+        standard errors;
+    - `periodic_rms`: that projection's RMS in the held-out part, in the residual's unit;
+    - `frequency_Hz` [Hz]: the sinusoid's frequency (None when none was fitted);
+    - `deterministic`: whether the misfit counts as deterministic.
+
+    A kind may extend it (the step kind's `noise_null.CalibratedPredictability`). It was a
+    plain dict; `out["deterministic"]` still reads for one release, with a
+    `DeprecationWarning`.
+    """
+
+    input_locked: float
+    periodic: float
+    periodic_z: float
+    periodic_rms: float
+    trend: float
+    frequency_Hz: float | None
+    deterministic: bool
+
+    def removed(self, test: str) -> float:
+        """The fraction that the predictor `test` (one of `PREDICTORS`) removes."""
+        if test not in PREDICTORS:
+            raise KeyError(test)
+        return getattr(self, test)
+
+    def to_dict(self) -> dict:
+        return {
+            "input_locked": self.input_locked,
+            "periodic": self.periodic,
+            "periodic_z": self.periodic_z,
+            "periodic_rms": self.periodic_rms,
+            "trend": self.trend,
+            "frequency_Hz": self.frequency_Hz,
+            "deterministic": self.deterministic,
+        }
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
+
+
 def excess(mean_square: float, floor_variance: float) -> float:
     """RMS in excess of the floor, sqrt(max(ms − σ², 0))."""
     return float(math.sqrt(max(mean_square - floor_variance, 0.0)))
@@ -197,14 +310,17 @@ def quantum(values: np.ndarray) -> float:
     return q if np.mean(whole) >= 0.99 else 0.0
 
 
-def noise_floor(values: np.ndarray, exclude: np.ndarray | None = None, order: int = 2) -> dict:
+def noise_floor(
+    values: np.ndarray, exclude: np.ndarray | None = None, order: int = 2
+) -> NoiseFloorEstimate:
     """The white-noise floor of a record, without any model of it.
 
     σ from the median absolute `order`-th difference (variance factor C(2k, k): 6 for the
     second, 70 for the fourth; robust to steps and transients, and a smooth signal adds
     only x⁽ᵏ⁾Δᵏ), and the quantisation floor q/√12 of an ADC grid (`quantum`). `exclude`
-    masks samples whose differences are not noise (e.g. next to a step). Returns `sigma`
-    (the floor used, the larger of the two), `sigma_differences`, `quantum`."""
+    masks samples whose differences are not noise (e.g. next to a step). Returns a
+    `NoiseFloorEstimate`: `sigma` (the floor used, the larger of the two),
+    `sigma_differences`, `quantum`."""
     x = np.asarray(values, dtype=np.float64)
     k = int(order)
     diff = np.diff(x, k)
@@ -218,16 +334,20 @@ def noise_floor(values: np.ndarray, exclude: np.ndarray | None = None, order: in
     sigma = mad / 0.6745 / math.sqrt(math.comb(2 * k, k))
     q = quantum(x)
     floor = max(sigma, q / math.sqrt(12.0))
-    return {"sigma": floor, "sigma_differences": sigma, "quantum": q}
+    return NoiseFloorEstimate(sigma=floor, sigma_differences=sigma, quantum=q)
 
 
-def whiteness(residual: np.ndarray, lags: int = 20) -> dict:
-    """Ljung–Box on a residual, with the verdict at `WHITENESS_LEVEL`."""
+def whiteness(residual: np.ndarray, lags: int = 20) -> Whiteness:
+    """Ljung–Box on a residual (`base.ljung_box`), with the verdict at `WHITENESS_LEVEL`:
+    a `Whiteness`."""
     test = ljung_box(residual, lags=lags)
-    test["white"] = bool(test["p_value"] >= WHITENESS_LEVEL)
-    test["level"] = WHITENESS_LEVEL
-    test.pop("autocorrelation", None)
-    return test
+    return Whiteness(
+        statistic=test["statistic"],
+        lags=test["lags"],
+        p_value=test["p_value"],
+        white=bool(test["p_value"] >= WHITENESS_LEVEL),
+        level=WHITENESS_LEVEL,
+    )
 
 
 def _reduction(before: np.ndarray, predicted: np.ndarray) -> float:
@@ -246,7 +366,7 @@ def predictability(
     window: int,
     tests: tuple[str, ...] = ("input_locked", "periodic", "trend"),
     line_z: float | None = None,
-) -> dict:
+) -> Predictability:
     """How much of the held-out residual a predictor fitted on the training residual alone
     removes: the test that tells a deterministic misfit from a stochastic one.
 
@@ -260,10 +380,11 @@ def predictability(
     - `trend`: a straight line fitted to the training residual and carried over.
 
     `held`: a boolean mask of the held-out samples, or the index where a held-out end part
-    starts. Each value is the fraction of the held-out mean square removed (negative when
-    the predictor only adds its own noise, as it does for a stochastic residual); the misfit
-    is `deterministic` when one of `tests` removes at least `PREDICTABLE` (a static record
-    leaves out the trend: a random walk, a noise, is as predictable by a line).
+    starts. Returns a `Predictability`: each predictor's fraction of the held-out mean
+    square removed (negative when the predictor only adds its own noise, as it does for a
+    stochastic residual); the misfit is `deterministic` when one of `tests` removes at least
+    `PREDICTABLE` (a static record leaves out the trend: a random walk, a noise, is as
+    predictable by a line).
 
     `line_z`: for a residual whose null is white, also call the misfit deterministic when
     the continued line's held-out projection is at least this many standard errors
@@ -275,17 +396,12 @@ def predictability(
         held = np.arange(n) >= int(held)
     held = np.asarray(held, dtype=bool)
     train = ~held
-    out = {
-        "input_locked": 0.0,
-        "periodic": 0.0,
-        "periodic_z": 0.0,
-        "periodic_rms": 0.0,
-        "trend": 0.0,
-        "frequency_Hz": None,
-    }
+    input_locked = periodic = periodic_z = periodic_rms = 0.0
+    frequency_Hz = None
     if np.sum(held) < 8 or np.sum(train) < 16:
-        out["deterministic"] = False
-        return out
+        return Predictability(
+            input_locked, periodic, periodic_z, periodic_rms, 0.0, frequency_Hz, False
+        )
     t = np.arange(n) * dt
     # Input-locked template: windows after the changes that start in the training part.
     steps = np.asarray(change_step, dtype=np.float64)
@@ -314,7 +430,7 @@ def predictability(
             covered[i:stop] = True
     covered &= held
     if np.any(covered):
-        out["input_locked"] = _reduction(r[covered], predicted[covered])
+        input_locked = _reduction(r[covered], predicted[covered])
     # Periodic component.
     centred = np.where(train, r - np.mean(r[train]), 0.0)
     pad = 16 * n if n <= 1 << 16 else 2 * n  # a finer grid than the FFT's; bounded cost
@@ -328,23 +444,25 @@ def predictability(
         # the least-squares prediction (a matrix product: `PeriodicLine.signal`, c cos + s sin
         # elementwise, is the same line but differs in the last bit at ~1 sample in 4)
         sinusoid = basis[:, :2] @ coef[:2]
-        out["periodic"] = _reduction(r[held] - coef[2], sinusoid[held])
-        out["frequency_Hz"] = f
+        periodic = _reduction(r[held] - coef[2], sinusoid[held])
+        frequency_Hz = f
         line = sinusoid[held]
         rest = r[held] - np.mean(r[held])
         scale = np.std(rest) * np.sqrt(np.sum(line**2))
-        out["periodic_z"] = float(np.sum(rest * line) / scale) if scale > 0 else 0.0
+        periodic_z = float(np.sum(rest * line) / scale) if scale > 0 else 0.0
         power = float(np.sum(line**2))
         beta = float(np.sum(rest * line)) / power if power > 0 else 0.0
-        out["periodic_rms"] = abs(beta) * math.sqrt(power / line.size)  # in the held-out part
+        periodic_rms = abs(beta) * math.sqrt(power / line.size)  # in the held-out part
     # Trend.
     slope, intercept = np.polyfit(t[train], r[train], 1)
-    out["trend"] = _reduction(r[held], slope * t[held] + intercept)
-    deterministic = max(out[test] for test in tests) >= PREDICTABLE
+    trend = _reduction(r[held], slope * t[held] + intercept)
+    out = Predictability(
+        input_locked, periodic, periodic_z, periodic_rms, trend, frequency_Hz, False
+    )
+    deterministic = max(out.removed(test) for test in tests) >= PREDICTABLE
     if line_z is not None and "periodic" in tests:
-        deterministic |= out["periodic_z"] >= line_z and out["periodic"] > 0
-    out["deterministic"] = bool(deterministic)
-    return out
+        deterministic |= periodic_z >= line_z and periodic > 0
+    return dataclasses.replace(out, deterministic=bool(deterministic))
 
 
 def decide(

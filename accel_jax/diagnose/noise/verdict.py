@@ -99,7 +99,7 @@ def evaluate(data: NoiseData, rec: NoiseRecord, effects, outputs) -> DiagnosisRe
             "whiteness": test,
             "variance_ratio": ratio,
             "predictable": line,
-            "explains": bool(test["white"] and consistent and not line["deterministic"]),
+            "explains": bool(test.white and consistent and not line.deterministic),
         }
     for entry in ranking:
         own = assessed[entry["effect"]]
@@ -114,15 +114,15 @@ def evaluate(data: NoiseData, rec: NoiseRecord, effects, outputs) -> DiagnosisRe
                 # exp-cosine fit of a near-undamped line reaches its tolerance within the
                 # step limit depended on the batch it ran in.)
                 "plausible": bool(np.isfinite(entry["evidence"])),
-                "one_step_whiteness": own["whiteness"],
+                "one_step_whiteness": own["whiteness"].to_dict(),
                 "variance_ratio": own["variance_ratio"],
-                "deterministic_misfit": own["predictable"]["deterministic"],
+                "deterministic_misfit": own["predictable"].deterministic,
                 "explained_fraction": openworld.explained_fraction(before, after),
             }
         )
     nominal_status = {
         "explains": assessed["nominal"]["explains"],
-        "white": assessed["nominal"]["whiteness"]["white"],
+        "white": assessed["nominal"]["whiteness"].white,
         "plausible": bool(converged[0]),
     }
     decision = openworld.decide(
@@ -158,15 +158,15 @@ def evaluate(data: NoiseData, rec: NoiseRecord, effects, outputs) -> DiagnosisRe
         "noise_floor_g": math.sqrt(floor),
         "over_floor": remaining / math.sqrt(floor) if floor > 0 else float("inf"),
         "model": chosen,
-        "whiteness_p_value": assessed[chosen]["whiteness"]["p_value"],
+        "whiteness_p_value": assessed[chosen]["whiteness"].p_value,
     }
     line = assessed[chosen]["predictable"]
-    if line["deterministic"]:
+    if line.deterministic:
         # A line is a gap the RMS hardly shows: its amplitude, in g, beside the RMS gap.
         remaining_gap["periodic_line"] = {
-            "frequency_Hz": line["frequency_Hz"],
-            "rms_g": line["periodic_rms"] * math.sqrt(floor),
-            "z": line["periodic_z"],
+            "frequency_Hz": line.frequency_Hz,
+            "rms_g": line.periodic_rms * math.sqrt(floor),
+            "z": line.periodic_z,
         }
     predictable = assessed[chosen]["predictable"]
     reason = _reason(decision, assessed, ranking, predictable, remaining, floor, chosen)
@@ -207,7 +207,7 @@ def evaluate(data: NoiseData, rec: NoiseRecord, effects, outputs) -> DiagnosisRe
         "best_name": chosen,
         "split": split,
     }
-    where["predictability"] = predictable
+    where["predictability"] = predictable.to_dict()
     return DiagnosisResult(
         kind="noise",
         verdict=verdict,
@@ -231,7 +231,7 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
     if verdict == "none":
         return (
             "the held-out record is white noise about its level (Ljung–Box p = "
-            f"{assessed['nominal']['whiteness']['p_value']:.2g}) and no effect is significant."
+            f"{assessed['nominal']['whiteness'].p_value:.2g}) and no effect is significant."
         )
     if verdict == "cannot_tell":
         a, b = decision.tied
@@ -242,32 +242,32 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
     if verdict != "unexplained":
         return (
             f"with {verdict} the held-out one-step prediction errors are white (Ljung–Box p = "
-            f"{assessed[verdict]['whiteness']['p_value']:.2g}) at the variance it predicts; "
+            f"{assessed[verdict]['whiteness'].p_value:.2g}) at the variance it predicts; "
             f"evidence 2 ln B = {entry[verdict]['evidence']:.1f} over white noise."
         )
     parts = []
-    if predictable["deterministic"]:
+    if predictable.deterministic:
         parts.append(
-            f"a periodic line at {predictable['frequency_Hz']:.4g} Hz continues from the "
+            f"a periodic line at {predictable.frequency_Hz:.4g} Hz continues from the "
             f"training part into the held-out one-step errors of {chosen} (projection "
-            f"{predictable['periodic_z']:.1f} standard errors, {predictable['periodic']:.1%} "
+            f"{predictable.periodic_z:.1f} standard errors, {predictable.periodic:.1%} "
             "of their mean square): deterministic, not one of the library's noises"
         )
-    elif abs(predictable["periodic_z"]) >= openworld.LINE_Z and predictable["frequency_Hz"]:
+    elif abs(predictable.periodic_z) >= openworld.LINE_Z and predictable.frequency_Hz:
         # A line of the training part whose continuation is anti-correlated (or far off)
         # with the held-out part: a real spectral line whose phase or frequency wanders.
         parts.append(
-            f"a spectral line at {predictable['frequency_Hz']:.4g} Hz in the training part "
+            f"a spectral line at {predictable.frequency_Hz:.4g} Hz in the training part "
             f"does not carry its phase into the held-out part (projection "
-            f"{predictable['periodic_z']:.1f} standard errors): a wandering line"
+            f"{predictable.periodic_z:.1f} standard errors): a wandering line"
         )
     if decision.best_partial:
         best = decision.best_partial
         own = assessed[best]
-        if not own["whiteness"]["white"]:
-            p_value = own["whiteness"]["p_value"]
+        if not own["whiteness"].white:
+            p_value = own["whiteness"].p_value
             short = f"its one-step errors are not white (Ljung–Box p = {p_value:.2g})"
-        elif own["predictable"]["deterministic"]:
+        elif own["predictable"].deterministic:
             short = "it leaves the line"
         else:
             short = (
@@ -281,10 +281,10 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
         )
     elif not any(e["significant"] for e in ranking):
         nominal = assessed["nominal"]
-        p_value = nominal["whiteness"]["p_value"]
-        if nominal["predictable"]["deterministic"]:
+        p_value = nominal["whiteness"].p_value
+        if nominal["predictable"].deterministic:
             why = "the line is not one of the library's noises"
-        elif nominal["whiteness"]["white"]:
+        elif nominal["whiteness"].white:
             why = (
                 f"the held-out record is white (Ljung–Box p = {p_value:.2g}) but its variance "
                 f"is {nominal['variance_ratio']:.3g}× the training part's"
@@ -292,12 +292,12 @@ def _reason(decision, assessed, ranking, predictable, remaining, floor, chosen) 
         else:
             why = (
                 "the record is not white noise (Ljung–Box p = "
-                f"{nominal['whiteness']['p_value']:.2g})"
+                f"{nominal['whiteness'].p_value:.2g})"
             )
         parts.append(why + " and no library effect is significant")
     else:
         parts.append(
             "no library noise leaves white one-step prediction errors (best: "
-            f"{chosen}, Ljung–Box p = {assessed[chosen]['whiteness']['p_value']:.2g})"
+            f"{chosen}, Ljung–Box p = {assessed[chosen]['whiteness'].p_value:.2g})"
         )
     return "; ".join(parts) + "."

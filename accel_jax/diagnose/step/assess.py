@@ -202,7 +202,7 @@ def assess_fit(fit: StepFit, rec: StepRecord) -> StepFit:
         one_step = openworld.whiteness(fit.innovations[held])
         ratios = [float(np.mean(part**2)) / max(floor_var, 1e-300) for part in (e[~held], e[held])]
         consistent = all(1 / NOISE_VARIANCE_FACTOR <= r <= NOISE_VARIANCE_FACTOR for r in ratios)
-        explains = one_step["white"] and consistent
+        explains = one_step.white and consistent
     out = [
         REFIT_FIELDS[i]
         for i in range(4)

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..._data import NominalDevice, StepData
+from ..._deprecated import LegacyItems
 from ..._servo import closed_loop_test_gain
 from ..._simulate.sequence import accel_moment
 from .joint import (
@@ -35,12 +37,53 @@ from .record import prior_sigma_of
 from .state import JointFit
 
 
-def experiment_menu(nominal: NominalDevice, sample_rate: float, noise_V: float) -> list[dict]:
-    """Experiments a user can run on the device, each as a record design (t, u_test, a_in)
-    at `sample_rate`, 8 ms long, in equal segments (`levels_V`, `accel_levels_g`):
-    stop-level test steps (±1.3 × the nominal stop voltage
-    over the test gain), a larger small step, an acceleration step of ±1 g, and the small
-    step sampled 4× faster."""
+@dataclasses.dataclass(frozen=True, eq=False)
+class ExperimentDesign(LegacyItems):
+    """An experiment a user can run on the device (`experiment_menu`).
+
+    - `description`: what to record, in words;
+    - `record`: the design as a `StepData` (t [s], u_test [V], a_in [g] or None; u_out
+        zeros, a placeholder);
+    - `noise_V` [V]: the noise per sample assumed for it;
+    - `levels_V` [V]: the test voltage of each equal segment;
+    - `accel_levels_g` [g]: the input acceleration of each segment (None: no `a_in`).
+
+    It was a plain dict; `design["record"]` still reads for one release, with a
+    `DeprecationWarning`.
+    """
+
+    description: str
+    record: StepData
+    noise_V: float
+    levels_V: list[float]
+    accel_levels_g: list[float] | None
+
+    @classmethod
+    def from_mapping(cls, design: Mapping) -> ExperimentDesign:
+        """From the plain dict `experiment_menu` returned before (keys as the fields)."""
+        return cls(**design)
+
+    def to_dict(self) -> dict:
+        return {
+            "description": self.description,
+            "record": self.record,
+            "noise_V": self.noise_V,
+            "levels_V": self.levels_V,
+            "accel_levels_g": self.accel_levels_g,
+        }
+
+    def _legacy(self) -> dict:
+        return self.to_dict()
+
+
+def experiment_menu(
+    nominal: NominalDevice, sample_rate: float, noise_V: float
+) -> list[ExperimentDesign]:
+    """Experiments a user can run on the device, each an `ExperimentDesign`: a record design
+    (t, u_test, a_in) at `sample_rate`, 8 ms long, in equal segments (`levels_V`,
+    `accel_levels_g`): stop-level test steps (±1.3 × the nominal stop voltage over the test
+    gain), a larger small step, an acceleration step of ±1 g, and the small step sampled 4×
+    faster."""
     params = nominal.params
     k_test = float(closed_loop_test_gain(params))
     v_stop = nominal_stop_voltage(params)
@@ -54,13 +97,13 @@ def experiment_menu(nominal: NominalDevice, sample_rate: float, noise_V: float) 
         index = np.searchsorted(edges, np.arange(n), side="right")
         u = np.asarray(levels, float)[index]
         a = None if accel is None else np.asarray(accel, float)[index]
-        return {
-            "description": description,
-            "record": StepData(t=t, u_test=u, u_out=np.zeros(n), a_in=a),
-            "noise_V": noise_V,
-            "levels_V": [float(x) for x in levels],
-            "accel_levels_g": None if accel is None else [float(x) for x in accel],
-        }
+        return ExperimentDesign(
+            description=description,
+            record=StepData(t=t, u_test=u, u_out=np.zeros(n), a_in=a),
+            noise_V=noise_V,
+            levels_V=[float(x) for x in levels],
+            accel_levels_g=None if accel is None else [float(x) for x in accel],
+        )
 
     menu.append(
         design(
@@ -96,11 +139,11 @@ def experiment_menu(nominal: NominalDevice, sample_rate: float, noise_V: float) 
 
 
 def _simulate_design(
-    fit: JointFit, prepared: PreparedSet, nominal, candidate, design
+    fit: JointFit, prepared: PreparedSet, nominal, candidate, design: ExperimentDesign
 ) -> StepData:
     """The design's record as the fitted `candidate` predicts it (noise-free): the set's
     shared values, polarity +1, no offset, at rest at the start."""
-    record = design["record"]
+    record = design.record
     probe = prepare_set([_with_output(record, nominal)], nominal)
     ctx = jax.tree_util.tree_map(lambda leaf: leaf[0], probe.ctx)
     shared = jnp.asarray(fit.x[:N_SHARED])
@@ -136,13 +179,21 @@ def _with_output(record: StepData, nominal) -> StepData:
 
 
 def expected_evidence(
-    prepared: PreparedSet, nominal, fits, truth: str, rival: str, design
+    prepared: PreparedSet,
+    nominal,
+    fits,
+    truth: str,
+    rival: str,
+    design: ExperimentDesign | Mapping,
 ) -> float:
     """Expected 2 ln B of `truth` over `rival` once `design` is added to the set: the fitted
     `truth` simulated noise-free on every record (the set's and the design's), `rival`
     refitted to all of them; its misfit Σ r²/σ² (σ each record's floor; the design's its
     `noise_V` per sample over √(samples per block)). Both models have the same number of
-    parameters, so no penalty enters."""
+    parameters, so no penalty enters. (`design`: an `ExperimentDesign`, or the dict of its
+    fields that `experiment_menu` returned before.)"""
+    if not isinstance(design, ExperimentDesign):
+        design = ExperimentDesign.from_mapping(design)
     truth_fit = fits[truth]
     new = prepare_set([_simulate_design(truth_fit, prepared, nominal, truth, design)], nominal)
     preps = []
@@ -151,7 +202,7 @@ def expected_evidence(
         u_out[: p.n] = truth_fit.prediction[r, : p.n]
         preps.append(dataclasses.replace(p, u_out=u_out))
     added = new.preps[0]
-    added = dataclasses.replace(added, sigma=design["noise_V"] / math.sqrt(added.block))
+    added = dataclasses.replace(added, sigma=design.noise_V / math.sqrt(added.block))
     combined = stack(preps + [added], prepared.stop_voltage, prepared.layout.lag_states)
     start = _transfer_start(fits[rival].x, prepared, combined)
     fit = fit_set(combined, nominal, candidates=[rival], starts={rival: start})[rival]
@@ -172,16 +223,17 @@ def next_experiments(prepared: PreparedSet, nominal, fits, tied) -> list[dict]:
     for design in experiment_menu(nominal, rate, noise):
         one = expected_evidence(prepared, nominal, fits, tied[0], tied[1], design)
         two = expected_evidence(prepared, nominal, fits, tied[1], tied[0], design)
+        record = design.record
         out.append(
             {
-                "description": design["description"],
+                "description": design.description,
                 "expected_2lnB": float(min(one, two)),
                 f"expected_2lnB_if_{tied[0]}": float(one),
                 f"expected_2lnB_if_{tied[1]}": float(two),
-                "levels_V": design["levels_V"],
-                "accel_levels_g": design["accel_levels_g"],
-                "sample_rate_Hz": float(1 / design["record"].sample_period),
-                "duration_s": float(design["record"].t[-1] + design["record"].sample_period),
+                "levels_V": design.levels_V,
+                "accel_levels_g": design.accel_levels_g,
+                "sample_rate_Hz": float(1 / record.sample_period),
+                "duration_s": float(record.t[-1] + record.sample_period),
             }
         )
     out.sort(key=lambda e: -e["expected_2lnB"])

@@ -19,6 +19,8 @@ white noise per sample (`sigma_white_per_sample_V`).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.signal import lfilter
 
@@ -35,10 +37,37 @@ NULL_DRAWS = 100
 NULL_QUANTILE = 0.99
 """A predictor's removal counts as deterministic above this quantile of its null."""
 
-TESTS = ("input_locked", "periodic", "trend")
+TESTS = openworld.PREDICTORS
 
 MAX_BURN = 20_000
 """The longest burn-in (blocks) of an output-noise realisation."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibratedPredictability(openworld.Predictability):
+    """A residual's `openworld.Predictability` judged against a noise candidate's own fitted
+    noise (`calibrated`): its fields, with `deterministic` re-judged, and
+
+    - `null_quantile`: {predictor (`TESTS`): the `NULL_QUANTILE` of the fraction it removes
+        from realisations of the fitted noise alone (dimensionless)};
+    - `null_draws`: how many realisations;
+    - `null_model`: the noise candidate whose noise was drawn.
+
+    `to_dict()` is the dict `calibrated` returned (the three after the predictability's);
+    its string-keyed access still reads for one release, with a `DeprecationWarning`.
+    """
+
+    null_quantile: dict[str, float] = dataclasses.field(default_factory=dict)
+    null_draws: int = 0
+    null_model: str = ""
+
+    def to_dict(self) -> dict:
+        return {
+            **super().to_dict(),
+            "null_quantile": self.null_quantile,
+            "null_draws": self.null_draws,
+            "null_model": self.null_model,
+        }
 
 
 def _sqrt_psd(matrix: np.ndarray) -> np.ndarray:
@@ -82,12 +111,18 @@ def noise_draws(fit: StepFit, rec: StepRecord, base, count: int, seed: int = 0) 
 
 
 def calibrated(
-    predictable: dict, fit: StepFit, rec: StepRecord, base, window: int, count: int = NULL_DRAWS
-) -> dict:
+    predictable: openworld.Predictability,
+    fit: StepFit,
+    rec: StepRecord,
+    base,
+    window: int,
+    count: int = NULL_DRAWS,
+) -> CalibratedPredictability:
     """`predictable` (the nominal residual's `openworld.predictability`) judged against
-    `fit`'s own noise: `null_quantile` {test: the NULL_QUANTILE of what the test removes
-    from the fitted noise alone}, `null_draws`, and `deterministic` re-judged (a test
-    removes at least `openworld.PREDICTABLE` and more than its null quantile)."""
+    `fit`'s own noise, a `CalibratedPredictability`: `null_quantile` {test: the
+    NULL_QUANTILE of what the test removes from the fitted noise alone}, `null_draws`, and
+    `deterministic` re-judged (a test removes at least `openworld.PREDICTABLE` and more than
+    its null quantile)."""
     draws = noise_draws(fit, rec, base, count)
     removed = {test: [] for test in TESTS}
     for draw in draws:
@@ -95,16 +130,16 @@ def calibrated(
             draw, rec.held, rec.dt, rec.change_block, rec.change_step, window
         )
         for test in TESTS:
-            removed[test].append(out[test])
+            removed[test].append(out.removed(test))
     quantile = {test: float(np.quantile(removed[test], NULL_QUANTILE)) for test in TESTS}
     deterministic = any(
-        predictable[test] >= openworld.PREDICTABLE and predictable[test] > quantile[test]
+        predictable.removed(test) >= openworld.PREDICTABLE
+        and predictable.removed(test) > quantile[test]
         for test in TESTS
     )
-    return {
-        **predictable,
-        "deterministic": bool(deterministic),
-        "null_quantile": quantile,
-        "null_draws": count,
-        "null_model": fit.effect,
-    }
+    plain = dataclasses.fields(openworld.Predictability)
+    fields = {f.name: getattr(predictable, f.name) for f in plain}
+    fields.update(deterministic=bool(deterministic))
+    return CalibratedPredictability(
+        **fields, null_quantile=quantile, null_draws=count, null_model=fit.effect
+    )

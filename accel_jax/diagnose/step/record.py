@@ -231,8 +231,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     for i in index // m:
         near_block[max(i - 1, 0) : i + 2] = True
     block_floor = openworld.noise_floor(yb, exclude=near_block, order=4)
-    q = full_floor["quantum"]
-    dithered = full_floor["sigma_differences"] >= 0.5 * q
+    q = full_floor.quantum
+    dithered = full_floor.sigma_differences >= 0.5 * q
     quantised = q / math.sqrt(12) / (math.sqrt(m) if dithered else 1.0)
     # A measured input's levels are known to their standard error only: each plateau's
     # output level is then uncertain by the test gain times it (added in quadrature).
@@ -242,20 +242,20 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     rms_sigma = 0.0 if plateau_sigmas is None else float(np.sqrt(np.mean(plateau_sigmas**2)))
     input_floor = abs(float(closed_loop_test_gain(base))) * rms_sigma
     sigma = max(
-        math.hypot(block_floor["sigma_differences"], input_floor),
+        math.hypot(block_floor.sigma_differences, input_floor),
         quantised,
         1e-12 * max(float(np.max(np.abs(y))), 1.0),
     )
     floor = NoiseFloor(
         sigma=sigma,
-        sigma_per_sample=full_floor["sigma"],
-        sigma_block_means=block_floor["sigma_differences"],
+        sigma_per_sample=full_floor.sigma,
+        sigma_block_means=block_floor.sigma_differences,
         adc_step=q,
         quantisation_floor_block=quantised,
         block_samples=m,
         input_levels=input_floor,
     )
-    problems, domain = check_domain(data, nominal, full_floor["sigma"])
+    problems, domain = check_domain(data, nominal, full_floor.sigma)
     held_samples, held_rule = held_out_samples(key)
     # A block is held out when any of its samples is.
     held = np.asarray(held_samples[: n_blocks * m].reshape(n_blocks, m).any(axis=1))

@@ -25,7 +25,7 @@ import equinox as eqx
 import numpy as np
 
 from ..._data import StepData
-from ..openworld import Candidate
+from ..openworld import Candidate, Whiteness
 
 if TYPE_CHECKING:
     from .effects import AbstractStepEffect
@@ -300,9 +300,10 @@ class StepFit:
     `explains_model_form` whether a deterministic effect explains it up to its model form
     (`openworld.MODEL_FORM`); `out_of_prior` the refitted values beyond
     `openworld.PRIOR_LIMIT`; `plausible` whether it is credible. A noise model's
-    `one_step_whiteness` (the held-out innovations' Ljung–Box test),
-    `free_run_over_noise_variance` (training, held-out) and `variance_consistent`; the
-    nominal model's `whiteness` (its held-out free-run errors'); None elsewhere.
+    `one_step_whiteness` (the held-out innovations' Ljung–Box test, an
+    `openworld.Whiteness`), `free_run_over_noise_variance` (training, held-out) and
+    `variance_consistent`; the nominal model's `whiteness` (its held-out free-run errors',
+    an `openworld.Whiteness`); None elsewhere.
     """
 
     effect: str
@@ -335,10 +336,10 @@ class StepFit:
     explains_model_form: bool = False
     out_of_prior: tuple[str, ...] = ()
     plausible: bool = False
-    one_step_whiteness: dict[str, Any] | None = None
+    one_step_whiteness: Whiteness | None = None
     free_run_over_noise_variance: list[float] | None = None
     variance_consistent: bool | None = None
-    whiteness: dict[str, Any] | None = None
+    whiteness: Whiteness | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -414,7 +415,8 @@ class RankingEntry(Candidate):
     - `params`: the effect's physical values; `converged`, `fit_steps` the solver's word
         and steps; `out_of_prior` the refitted values beyond `openworld.PRIOR_LIMIT`.
     - A noise model's (None for a deterministic effect, and left out of `to_dict`):
-        `one_step_whiteness` its held-out one-step errors' Ljung–Box test,
+        `one_step_whiteness` its held-out one-step errors' Ljung–Box test (an
+        `openworld.Whiteness`; its `to_dict()` in the row),
         `variance_consistent`, and `predictability_null_quantile` what each predictor
         removes from the fitted noise alone (`noise_null`; None where not computed).
     """
@@ -430,7 +432,7 @@ class RankingEntry(Candidate):
     converged: bool
     fit_steps: int
     out_of_prior: list[str]
-    one_step_whiteness: dict[str, Any] | None = None
+    one_step_whiteness: Whiteness | None = None
     variance_consistent: bool | None = None
     predictability_null_quantile: dict[str, Any] | None = None
 
@@ -456,10 +458,11 @@ class RankingEntry(Candidate):
             "out_of_prior": list(self.out_of_prior),
         }
         if self.stochastic:
+            white = self.one_step_whiteness
             out.update(
                 {
                     "deterministic_misfit": self.deterministic_misfit,
-                    "one_step_whiteness": self.one_step_whiteness,
+                    "one_step_whiteness": None if white is None else white.to_dict(),
                     "variance_consistent": self.variance_consistent,
                     "predictability_null_quantile": self.predictability_null_quantile,
                 }

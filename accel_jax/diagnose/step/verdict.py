@@ -63,7 +63,7 @@ def evaluate(
     own = {
         fit.effect: noise_null.calibrated(predictable, fit, rec, nominal.params, window)
         for fit in candidates
-        if fit.stochastic and fit.model is not None and predictable.get("deterministic")
+        if fit.stochastic and fit.model is not None and predictable.deterministic
     }
     entries = [
         ranking_entry(
@@ -73,7 +73,7 @@ def evaluate(
         for fit in candidates
     ]
     nominal_status = openworld.NominalStatus(
-        explains=nominal_fit.explains, white=whiteness["white"], plausible=nominal_fit.plausible
+        explains=nominal_fit.explains, white=whiteness.white, plausible=nominal_fit.plausible
     )
     decision = openworld.decide(nominal_status, entries, domain=list(rec.domain_problems))
     # The nuisances judged together: a record whose nominal refit needs strained nuisances
@@ -137,7 +137,7 @@ def evaluate(
     )
     where = {
         **_localise(rec.view, nominal_fit.error, sigma, rec),
-        "predictability": predictable,
+        "predictability": predictable.to_dict(),
         "noise_floor": rec.floor.to_dict(),
         "domain": rec.domain,
     }
@@ -205,14 +205,20 @@ def _hidden_lag_note(nuisances: nuisance.NuisanceTest, rec: StepRecord) -> str:
 
 
 def ranking_entry(
-    fit: StepFit, nominal_fit: StepFit, *, n_train: int, slack: float, predictable
+    fit: StepFit,
+    nominal_fit: StepFit,
+    *,
+    n_train: int,
+    slack: float,
+    predictable: openworld.Predictability,
 ) -> RankingEntry:
     """A candidate's entry in the diagnosis's ranking (`RankingEntry`; its `to_dict` is
     `DiagnosisResult.ranking`'s row): its evidence 2 ln B over the nominal model (Schwarz:
     ln n per parameter), whether it is significant (by `slack` more than `SIGNIFICANCE`,
     improving the held-out error, its nested fit not failed), explains and is credible, and
     what it closes of the nominal's held-out gap; a noise model's whiteness and whether the
-    misfit it absorbs is predictable (`predictable`: `openworld.predictability`)."""
+    misfit it absorbs is predictable (`predictable`: `openworld.predictability`, or
+    `noise_null.calibrated`'s against the candidate's own noise)."""
     evidence = 2 * (
         fit.log_likelihood - 0.5 * fit.k * math.log(n_train) - nominal_fit.log_likelihood
     )
@@ -227,7 +233,7 @@ def ranking_entry(
     # was restarted from the nominal optimum first): flagged, never an effect.
     failed = assess.nested_failed(fit, nominal_fit)
     # A noise that absorbs a predictable misfit explains none of it.
-    absorbed = fit.stochastic and bool(predictable.get("deterministic", False))
+    absorbed = fit.stochastic and bool(predictable.deterministic)
     noise = {}
     if fit.stochastic:
         noise = {
@@ -235,7 +241,11 @@ def ranking_entry(
             "variance_consistent": fit.variance_consistent,
             # What each predictor removes from the fitted noise alone (`noise_null`; None
             # where the fixed fraction did not call the misfit deterministic).
-            "predictability_null_quantile": predictable.get("null_quantile"),
+            "predictability_null_quantile": (
+                predictable.null_quantile
+                if isinstance(predictable, noise_null.CalibratedPredictability)
+                else None
+            ),
         }
     return RankingEntry(
         effect=fit.effect,
@@ -268,11 +278,11 @@ def _noise_not_credited(name: str, fit: StepFit, entry: RankingEntry) -> str:
     held-out one-step errors are not white, or its free-run errors are not of the size it
     predicts (`assess.assess_fit`)."""
     why = []
-    white = fit.one_step_whiteness or {}
-    if white and not white.get("white", True):
+    white = fit.one_step_whiteness
+    if white is not None and not white.white:
         why.append(
             "its one-step prediction errors on the held-out part are not white (Ljung–Box "
-            f"p = {white['p_value']:.2g} over {white['lags']} lags)"
+            f"p = {white.p_value:.2g} over {white.lags} lags)"
         )
     if fit.variance_consistent is False:
         ratios = ", ".join(f"{r:.2g}" for r in fit.free_run_over_noise_variance or ())
@@ -304,13 +314,14 @@ def _reason(
     by_name: dict[str, StepFit],
     entries,
     rec: StepRecord,
-    predictable,
+    predictable: openworld.Predictability,
     remaining,
     sigma,
     where,
     nuisances: nuisance.NuisanceTest,
 ):
-    whiteness = nominal_fit.whiteness or {}  # (the nominal fit's, set by `evaluate`)
+    whiteness = nominal_fit.whiteness  # (the nominal fit's, set by `evaluate`)
+    assert whiteness is not None
     path = decision.path
     verdict = decision.verdict
     floor = f"{sigma:.3g} V noise floor"
@@ -326,7 +337,7 @@ def _reason(
         return (
             "the refitted nominal model leaves the held-out residual at the noise floor "
             f"(excess {nominal_fit.gap_held / sigma:.2f}× the {floor}) and white "
-            f"(Ljung–Box p = {whiteness['p_value']:.2g}); no effect is significant."
+            f"(Ljung–Box p = {whiteness.p_value:.2g}); no effect is significant."
         )
     entry = {e.effect: e for e in entries}
     if verdict == "cannot_tell":
@@ -361,8 +372,8 @@ def _reason(
             text += (
                 "; the misfit is not predictable from the input changes, a periodic component "
                 "or a trend (held-out fractions removed: "
-                f"{predictable['input_locked']:.2f}, {predictable['periodic']:.2f}, "
-                f"{predictable['trend']:.2f}{beyond}), and with the correlated noise the "
+                f"{predictable.input_locked:.2f}, {predictable.periodic:.2f}, "
+                f"{predictable.trend:.2f}{beyond}), and with the correlated noise the "
                 "one-step prediction errors are white"
             )
         return text + "."
@@ -399,10 +410,10 @@ def _reason(
         )
     else:
         significant = [e for e in entries if e.significant]
-        if nominal_fit.explains and not whiteness["white"] and not significant:
+        if nominal_fit.explains and not whiteness.white and not significant:
             parts.append(
                 "the held-out residual is at the floor but not white (Ljung–Box p = "
-                f"{whiteness['p_value']:.2g}) and no library effect is significant"
+                f"{whiteness.p_value:.2g}) and no library effect is significant"
             )
         else:
             parts.append(
@@ -416,12 +427,13 @@ def _reason(
         if null:  # among the tests that beat the noise's own null
             tests = tuple(
                 k for k in tests
-                if predictable[k] >= openworld.PREDICTABLE and predictable[k] > null[k]
+                if predictable.removed(k) >= openworld.PREDICTABLE
+                and predictable.removed(k) > null[k]
             ) or tests
-        best = max(tests, key=lambda k: predictable[k])
+        best = max(tests, key=predictable.removed)
         what = {
             "input_locked": "locked to the input changes",
-            "periodic": f"periodic ({predictable['frequency_Hz']:.4g} Hz)",
+            "periodic": f"periodic ({predictable.frequency_Hz:.4g} Hz)",
             "trend": "a trend",
         }[best]
         beyond = (
@@ -432,7 +444,7 @@ def _reason(
         )
         parts.append(
             f"correlated noise would absorb it, but the misfit is {what} (a predictor fitted on "
-            f"the training part removes {predictable[best]:.0%} of the held-out residual"
+            f"the training part removes {predictable.removed(best):.0%} of the held-out residual"
             f"{beyond}): deterministic, not noise"
         )
     if where:
