@@ -165,8 +165,8 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
     prepared = sj.prepare_set([small], NOMINAL)
     fits = sj.fit_set(prepared, NOMINAL)
     design = sd.experiment_menu(NOMINAL, RATE, 0.0)[1]  # the acceleration steps
-    assert design["accel_levels_g"] is not None
-    design["noise_V"] = 0.2  # V per sample: an expected 2 ln B of tens
+    assert design.accel_levels_g is not None
+    design = dataclasses.replace(design, noise_V=0.2)  # V per sample: a 2 ln B of tens
     expected = sd.expected_evidence(prepared, NOMINAL, fits, "torquer_lag", "output_filter", design)
     assert 20 < expected < 500
     truth = sd._simulate_design(fits["torquer_lag"], prepared, NOMINAL, "torquer_lag", design)
