@@ -165,9 +165,11 @@ def test_excite_picks_the_barely_measured_terms():
     noise = cand(["pickoff_abs", "pickoff_cube"], [(0.01, 0.01), (0.1, 1e-4)])  # z = 1
     weak = excite.weak_terms(best, None, [best, pair, other, noise])
     assert [(c.terms, i) for c, i in weak] == [(("pickoff_square", "pickoff_cube"), 0)]
-    scale = {"factor": 2.0, "deflection_V": 3.2, "stop_V": 4.0}
+    scale = excite.StepScale(factor=2.0, deflection_V=3.2, stop_V=4.0)
     e = excite.entry("pickoff_square", pair, -0.12, 0.05, 0.01, scale)
     assert e["z_here"] == pytest.approx(2.4) and e["z_excited"] == pytest.approx(12.0)
     assert "beside pickoff_cube" in e["text"] and e["records_for_z5"] == 1
+    assert (e["step_factor"], e["deflection_V"], e["stop_voltage_V"]) == (2.0, 3.2, 4.0)
+    assert "the same steps ×2 (deflection to 3.2 V" in e["text"]
     slow = excite.entry("pickoff_square", pair, -0.12, 0.05, 0.048, scale)
     assert slow["records_for_z5"] == 4 and "4 such records" in slow["text"]  # (5/2.5)²

@@ -557,7 +557,7 @@ def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free,
             drive = model.gain * jnp.asarray(levels)
             deflection = float(jnp.max(jnp.abs(equilibrium(model.params, drive, model.moment)[0])))
             factor = max(1.0, excite.REACH * stop / max(deflection, 1e-12))
-            scale = {"factor": factor, "deflection_V": deflection * factor, "stop_V": stop}
+            scale = excite.StepScale(factor, deflection * factor, stop)
             errors = excite.standard_errors(
                 prediction, penalties, theta, jnp.asarray(params[n_free : n_free + n_cols]),
                 jnp.asarray(pick[:n_cols]), tuned, sigma, (1.0, factor),

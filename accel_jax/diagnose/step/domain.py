@@ -3,7 +3,7 @@ the step response of a DC-coupled servo accelerometer on the nominal device's ti
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -28,15 +28,25 @@ def _nominal_rise(base: ServoParams) -> float:
     return float(t[np.argmax(y >= 0.5)])
 
 
+class _Change(NamedTuple):
+    """One checked change: the output's settled change and its largest excursion from the
+    level before [V], and the time [s] it takes to reach half the settled change (None
+    where it does not)."""
+
+    settled_change_V: float
+    excursion_V: float
+    rise_s: float | None
+
+
 def check_domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[list[str], dict]:
     """Model-free checks that the record is a DC-coupled servo accelerometer's step
     response on the nominal device's time scale. Returns (problems, measurements)."""
-    u, y = np.asarray(data.u_test), np.asarray(data.u_out)
+    y = np.asarray(data.u_out)
     dt = data.sample_period
     edges = segments(sequence_key(data))
     period = float(time_constant(nominal.params))
     settle = max(int(4 * period / dt), 8)
-    rows = []
+    rows: list[_Change] = []
     for j in range(1, edges.size - 1):
         start, stop = edges[j], edges[j + 1]
         prev_start = edges[j - 1]
@@ -50,13 +60,11 @@ def check_domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[
         target = after - before
         crossed = np.flatnonzero(np.abs(y[start:stop] - before) >= 0.5 * abs(target))
         rows.append(
-            {
-                "index": int(start),
-                "step_V": float(u[start] - u[start - 1]),
-                "settled_change_V": target,
-                "excursion_V": excursion,
-                "rise_s": float(crossed[0] * dt) if crossed.size and abs(target) > 0 else None,
-            }
+            _Change(
+                settled_change_V=target,
+                excursion_V=excursion,
+                rise_s=float(crossed[0] * dt) if crossed.size and abs(target) > 0 else None,
+            )
         )
     measured: dict[str, Any] = {"changes_checked": len(rows)}
     problems = []
@@ -66,7 +74,7 @@ def check_domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[
             "device) and a response above the noise: the domain was not checked"
         )
         return problems, measured
-    ratio = float(np.median([abs(r["settled_change_V"]) / r["excursion_V"] for r in rows]))
+    ratio = float(np.median([abs(r.settled_change_V) / r.excursion_V for r in rows]))
     measured["settled_over_excursion"] = ratio
     if ratio < 0.4:
         problems.append(
@@ -75,7 +83,7 @@ def check_domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[
             "servo accelerometer (a velocity-output or AC-coupled sensor?)"
         )
         return problems, measured
-    rises = [r["rise_s"] for r in rows if r["rise_s"] is not None]
+    rises = [r.rise_s for r in rows if r.rise_s is not None]
     nominal_rise = _nominal_rise(nominal.params)
     measured["rise_time_s"] = float(np.median(rises)) if rises else None
     measured["nominal_rise_time_s"] = nominal_rise

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -100,8 +101,23 @@ def standard_errors(prediction, penalties, theta, coefficients, pick, scales, si
     return np.stack(out)
 
 
+class StepScale(NamedTuple):
+    """How far the record's steps are scaled to excite a term: `factor` the scale of the
+    steps, `deflection_V` [V] the largest deflection it reaches (k_dp k_y h), `stop_V` [V]
+    the stops' (`REACH` of it is the aim)."""
+
+    factor: float
+    deflection_V: float
+    stop_V: float
+
+
 def entry(
-    term: str, candidate: DiscoveryCandidate, coefficient: float, here: float, there: float, scale
+    term: str,
+    candidate: DiscoveryCandidate,
+    coefficient: float,
+    here: float,
+    there: float,
+    scale: StepScale,
 ) -> dict:
     """One `excite` entry (JSON-ready) and its summary text."""
     z_here, z_there = abs(coefficient) / here, abs(coefficient) / there
@@ -110,7 +126,7 @@ def entry(
     beside = f" (beside {', '.join(others)})" if others else ""
     text = (
         f"{term}{beside} barely excited: c = {coefficient:.3g} ± {here:.2g} (z = {z_here:.1f}); "
-        f"the same steps ×{scale['factor']:.2g} (deflection to {scale['deflection_V']:.3g} V, "
+        f"the same steps ×{scale.factor:.2g} (deflection to {scale.deflection_V:.3g} V, "
         f"{REACH:.0%} of the stops') would measure it to ±{there:.2g} (z ≈ {z_there:.1f})"
     )
     if z_there < WANTED_Z:
@@ -121,9 +137,9 @@ def entry(
         "coefficient": coefficient,
         "sigma_here": float(here),
         "z_here": float(z_here),
-        "step_factor": scale["factor"],
-        "deflection_V": scale["deflection_V"],
-        "stop_voltage_V": scale["stop_V"],
+        "step_factor": scale.factor,
+        "deflection_V": scale.deflection_V,
+        "stop_voltage_V": scale.stop_V,
         "sigma_excited": float(there),
         "z_excited": float(z_there),
         "records_for_z5": repeats,
