@@ -710,7 +710,8 @@ def lag_forced_choice(truths: list[dict], verdicts: list[dict]) -> dict:
     evidence is equal and the difference is the ±5 % prior alone. Returns the strict naming
     rate over the effect datasets under that forced rule (measured against the truth), the
     rate the evidence itself expects (each forced pick counted as its posterior probability
-    1/(1 + e^{−|Δ|/2}), Δ = 2 ln B between the two lags), and the evidence gaps."""
+    1/(1 + e^{−|Δ|/2}), Δ = 2 ln B between the two lags), and the evidence gaps. A verdict
+    of the truth's family (`stop_contact` for an inelastic stop) is named, as in `score`."""
     measured = expected = 0.0
     n_effect, gaps, forced = 0, [], 0
     for truth, verdict in zip(truths, verdicts, strict=True):
@@ -723,11 +724,12 @@ def lag_forced_choice(truths: list[dict], verdicts: list[dict]) -> dict:
             gaps.append(abs(delta))
             p_pick = 1 / (1 + np.exp(-abs(delta) / 2))
         else:
-            p_pick = float(v == t)
+            # named as `score` counts it: a member of the truth's family (`verdict_family`)
+            p_pick = float(v == t or family(v) == t)
         if t == "none":
             continue
         n_effect += 1
-        measured += v == t
+        measured += v == t or family(v) == t
         expected += p_pick
     return {
         "forced_datasets": forced,

@@ -547,19 +547,23 @@ def test_lag_forced_choice_ceiling():
         return {"verdict": name, "tied": list(tied), "ranking": ranking}
 
     pair = ("torquer_lag", "output_filter")
-    truths = [{"effect": e} for e in ("torquer_lag", "output_filter", "torquer_lag", "none", "k2")]
+    effects = ("torquer_lag", "output_filter", "torquer_lag", "none", "k2", "stop_saturation")
+    truths = [{"effect": e} for e in effects]
     verdicts = [
         verdict("cannot_tell", pair, tl=30.0, of=28.0),  # forced to torquer_lag: right
         verdict("cannot_tell", pair, tl=30.0, of=28.0),  # forced to torquer_lag: wrong
         verdict("torquer_lag"),  # named: right
         verdict("none"),  # no effect: not counted
         verdict("cannot_tell", ("k2", "k4")),  # another tie: left as it is (wrong)
+        # A member of the truth's family is named, as the confusion's scoring counts it (a
+        # compliant stop named for an inelastic one: 5 such records read as misses here).
+        verdict("stop_contact"),
     ]
     out = module.lag_forced_choice(truths, verdicts)
     assert out["forced_datasets"] == 2
-    assert out["accuracy_forced"] == pytest.approx(2 / 4)
+    assert out["accuracy_forced"] == pytest.approx(3 / 5)
     p = 1 / (1 + np.exp(-1.0))  # |Δ| = 2 on the 2 ln B scale
-    assert out["accuracy_expected_by_evidence"] == pytest.approx((2 * p + 1) / 4)
+    assert out["accuracy_expected_by_evidence"] == pytest.approx((2 * p + 2) / 5)
     assert out["evidence_gap_median"] == pytest.approx(2.0)
 
 
