@@ -79,21 +79,10 @@ class NuisanceTest(LegacyItems):
     method: str = NUISANCE_METHOD
 
     def to_dict(self) -> dict:
-        return {
-            "standardised": dict(self.standardised),
-            "largest": self.largest,
-            "largest_sigma": self.largest_sigma,
-            "count": self.count,
-            "family_p_value": self.family_p_value,
-            "alpha": self.alpha,
-            "strained": self.strained,
-            "input_delay_samples": self.input_delay_samples,
-            "known_input_delay_samples": self.known_input_delay_samples,
-            "sample_period_s": self.sample_period_s,
-            "hidden_lag_samples": self.hidden_lag_samples,
-            "hidden_lag_s": self.hidden_lag_s,
-            "method": self.method,
-        }
+        """The fields in order (`standardised` a copy): the dict `nuisance_test` returned."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["standardised"] = dict(self.standardised)
+        return out
 
     def _legacy(self) -> dict:
         return self.to_dict()
