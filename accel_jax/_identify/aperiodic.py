@@ -20,7 +20,6 @@ from .record import (
     SeriesLike,
     Values,
     ValuesLike,
-    _common_result,
     _fail_if,
     _parabolic_peak,
     _record_arguments,
@@ -232,7 +231,7 @@ def _identify_aperiodic(
 
     result = R.where(has_root, R.successful, R.no_root)
     result = R.where(overshoots, R.not_aperiodic, result)
-    common = _common_result(record)
+    common = record.common
     result = R.where(common == R.successful, result, common)
 
     estimate = AperiodicEstimate(

@@ -18,7 +18,6 @@ from .record import (
     Scalar,
     ScalarLike,
     SeriesLike,
-    _common_result,
     _fail_if,
     _first,
     _last,
@@ -394,7 +393,7 @@ def _oscillatory_estimate(
     result = R.where(decaying, R.successful, R.not_decaying)
     result = R.where(has_3, result, R.too_few_crossings)
     result = R.where(has_1, result, R.not_oscillatory)
-    common = _common_result(record)
+    common = record.common
     result = R.where(common == R.successful, result, common)
 
     estimate = OscillatoryEstimate(

@@ -145,9 +145,7 @@ class _Record(eqx.Module):
     amplitude: Scalar  # |U_ss − U(0)| [V]
     band: Scalar  # half-width of the noise band [V]
     finite: Array
-    settled: Array
-    saturated: Array
-    has_step: Array
+    common: IdentificationResult  # the failure codes every method shares (`_common_result`)
 
 
 def _maxima(left, right):
@@ -258,20 +256,18 @@ def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Rec
         amplitude=amplitude,
         band=band,
         finite=finite,
-        settled=settled,
-        saturated=saturated,
-        has_step=has_step,
+        common=_common_result(finite, settled, saturated, has_step),
     )
 
 
-def _common_result(record: _Record) -> IdentificationResult:
+def _common_result(finite, settled, saturated, has_step) -> IdentificationResult:
     """The failure codes every method shares; the most fundamental wins (applied last)."""
     R = IdentificationResult
-    result = R.where(record.has_step, R.successful, R.no_step)
-    result = R.where(record.settled, result, R.too_short)
+    result = R.where(has_step, R.successful, R.no_step)
+    result = R.where(settled, result, R.too_short)
     # A rail distorts the tail too, so it is reported ahead of "not settled".
-    result = R.where(record.saturated, R.saturated, result)
-    return R.where(record.finite, result, R.non_finite)
+    result = R.where(saturated, R.saturated, result)
+    return R.where(finite, result, R.non_finite)
 
 
 def _parabolic_peak(y_minus, y_zero, y_plus):
