@@ -48,23 +48,21 @@ import dataclasses
 import itertools
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..._data import NominalDevice
-from ..._simulate.sequence import SequenceInputs, equilibrium
+from ..._simulate.sequence import equilibrium
 from .. import openworld
 from ..discovery_result import DiscoveredColumn, Discovery, DiscoveryCandidate, DiscoveryScales
-from . import ceiling, excite, profile
+from . import ceiling, excite, profile, term_model
 from .consequence import consequence
 from .joint import nominal_stop_voltage
 from .layout import W
 from .local_model import LocalModel
 from .minpack import solve
-from .model import moment_jumps, unpack
 from .state import StepFit, StepRecord
-from .terms import N_COEFFICIENTS, TERMS, Scales, columns, term_record
+from .terms import N_COEFFICIENTS, TERMS, Scales, columns
 
 MAX_TERMS = 2
 CONFIRM = 3
@@ -79,42 +77,6 @@ TIE_BAND = 6.0
 # ----------------------------------------------------------------------------------------
 # The record's model with terms, at the nominal fit
 # ----------------------------------------------------------------------------------------
-
-
-def _model(rec: StepRecord, nominal: NominalDevice, w: np.ndarray, free: np.ndarray, effects):
-    """(prediction(θ, coefficients, scales) [V] of the record's blocks, penalties(θ)) with
-    θ = [w's `free` entries, an output offset in units of `ctx.scale`]; w's other entries
-    stay as given. The output offset is a nuisance of its own here (standard normal prior):
-    with the nominal loop it is the external moment's double, with a nonlinear term it is
-    not (a term acts on the deflection, not on the ADC's zero)."""
-    ctx = rec.ctx
-    n, m = len(rec.u_out), int(rec.block)
-    base, prior_sigma = nominal.params, jnp.asarray(rec.prior_sigma)
-    w_fixed = jnp.asarray(w)
-    index = jnp.asarray(np.flatnonzero(free))
-
-    def unpacked(theta):
-        return unpack(w_fixed.at[index].set(theta[:-1]), 0, effects, base, prior_sigma, ctx)
-
-    def prediction(theta, coefficients, scales, amplitude=1.0, network=None):
-        # (`amplitude`: the test steps scaled, for the record that would excite a term;
-        # `network`: the network reference's flat parameters, `ceiling`.)
-        model = unpacked(theta)
-        sequence = SequenceInputs(
-            ctx.first_level * amplitude, model.gain, model.moment, model.rate, model.dv,
-            model.dw, ctx.change_index, model.step * amplitude, model.shift,
-            moment_jumps(model.params, ctx),
-        )
-        residual = None if network is None else ceiling.residual(network, scales.half)
-        blocks = term_record(
-            model.params, ctx.dt, n, m, sequence, coefficients, scales, residual
-        )
-        return blocks + model.output_offset + ctx.scale * theta[-1]
-
-    def penalties(theta):
-        return jnp.concatenate([unpacked(theta).penalties, theta[-1:]])
-
-    return prediction, penalties, unpacked
 
 
 PAD = 16
@@ -197,22 +159,14 @@ def discover(
         half=jnp.asarray(float(rec.host.half)), period=jnp.asarray(float(rec.period)),
         duration=rec.ctx.duration, omega=jnp.asarray(omega),
     )
-    zero = jnp.zeros(N_COEFFICIENTS)
     u_out = jnp.asarray(rec.u_out)
 
     # 1. Screen: the first-order effect of every parameter of w and of every coefficient.
-    all_free = np.ones(w.size, bool)
-    prediction_all, penalties_all, _ = _model(rec, nominal, w, all_free, effects)
+    model_all = term_model.record_model(rec, nominal, w, np.ones(w.size, bool), effects)
     theta_w = jnp.concatenate([jnp.asarray(w), jnp.zeros(1)])
-
-    @jax.jit
-    def linearised(theta):
-        pred = prediction_all(theta, zero, scales)
-        j_theta = jax.jacfwd(prediction_all, argnums=0)(theta, zero, scales)
-        j_coef = jax.jacfwd(prediction_all, argnums=1)(theta, zero, scales)
-        return pred, j_theta, j_coef, penalties_all(theta), jax.jacfwd(penalties_all)(theta)
-
-    pred0, j_theta, j_coef, p0, j_pen = (np.asarray(v) for v in linearised(theta_w))
+    pred0, j_theta, j_coef, p0, j_pen = (
+        np.asarray(v) for v in term_model.linearised(model_all, theta_w, scales)
+    )
     # Free: every entry of w but the effect slot and those only the held-out part sees (its
     # segments' change times), and the output offset (the last of θ).
     # (An entry that neither part sees is free too: a change time the nominal fit pushed to
@@ -265,41 +219,32 @@ def discover(
     # 3. Confirm: one compiled refit for every subset (its columns chosen by `pick`, a
     # (MAX_COLUMNS, N_COEFFICIENTS) selection; unused columns pinned at 0), the sinusoid's
     # frequency free in units of the record's frequency resolution.
-    prediction, penalties, unpacked = _model(rec, nominal, w, free, effects)
+    with_terms = term_model.record_model(rec, nominal, w, free, effects)
+    prediction, penalties = with_terms.prediction, with_terms.penalties
+    unpacked = with_terms.unpacked
     train_j = jnp.asarray(train.astype(np.float64))
-    resolution = 2 * jnp.pi / scales.duration
-
-    def residuals(params, args):
-        pick, used, tone, fixed = args  # `fixed`: coefficients held (`profile`), else 0
-        theta, c, shift = params[:n_free], params[n_free:-1], params[-1]
-        tuned = scales._replace(omega=scales.omega + resolution * shift)
-        e = (u_out - prediction(theta, c @ pick + fixed, tuned)) * train_j / sigma
-        pinned = jnp.concatenate([c * (1 - used), shift * (1 - tone)[None]])
-        return jnp.concatenate([e, penalties(theta), pinned])
-
-    residuals_at = jax.jit(residuals)
-    jacobian_at = jax.jit(jax.jacfwd(residuals))
-
-    @jax.jit
-    def error_at(params, pick):
-        tuned = scales._replace(omega=scales.omega + resolution * params[-1])
-        return u_out - prediction(params[:n_free], params[n_free:-1] @ pick, tuned)
-
+    resolution = jnp.asarray(2 * jnp.pi / scales.duration)
     # The held-out part's own nuisances (`held_moved`) refitted there with the terms.
-    held_index = jnp.asarray(held_moved)
-    test_j = jnp.asarray(test.astype(np.float64))
+    data = term_model.Data(
+        u_out=u_out, train=train_j, test=jnp.asarray(test.astype(np.float64)),
+        sigma=jnp.asarray(sigma), scales=scales, resolution=resolution,
+        free=jnp.asarray(np.flatnonzero(free)), held=jnp.asarray(held_moved),
+    )
 
-    def held_residuals(x, args):
-        theta, coefficients, tuned, network = args
-        w_full = jnp.asarray(w).at[jnp.asarray(np.flatnonzero(free))].set(theta[:-1])
-        w_full = w_full.at[held_index].set(x)
-        full = jnp.concatenate([w_full, theta[-1:]])
-        predicted = prediction_all(full, coefficients, tuned, network=network)
-        e = (u_out - predicted) * test_j / sigma
-        return jnp.concatenate([e, penalties_all(full)])
+    def residuals_at(params, args):
+        return term_model.refit_at(with_terms, data, params, args)
 
-    held_at = jax.jit(held_residuals)
-    held_jacobian_at = jax.jit(jax.jacfwd(held_residuals))
+    def jacobian_at(params, args):
+        return term_model.refit_jacobian_at(with_terms, data, params, args)
+
+    def error_at(params, pick):
+        return term_model.error_at(with_terms, data, params, pick)
+
+    def held_at(x, args):
+        return term_model.held_at(model_all, data, x, args)
+
+    def held_jacobian_at(x, args):
+        return term_model.held_jacobian_at(model_all, data, x, args)
 
     def held_out_error(theta, coefficients, tuned, network=None):
         w_trained = np.asarray(w).copy()
@@ -308,9 +253,9 @@ def discover(
         args = (theta, coefficients, tuned, network)
         if held_moved.size:
             x = solve(held_at, held_jacobian_at, x, args).x
-        w_full = jnp.asarray(w).at[jnp.asarray(np.flatnonzero(free))].set(theta[:-1])
-        full = jnp.concatenate([w_full.at[held_index].set(jnp.asarray(x)), theta[-1:]])
-        return u_out - prediction_all(full, coefficients, tuned, network=network)
+        return term_model.held_error(
+            model_all, data, jnp.asarray(x), theta, coefficients, tuned, network
+        )
 
     cost0 = float(np.sum(r0[train] ** 2) + np.sum(p0**2))
     test_rows = np.flatnonzero(test)
