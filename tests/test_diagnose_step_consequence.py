@@ -130,26 +130,38 @@ def test_consequence_entries(settle):
 def test_excite_standard_errors_against_the_closed_form():
     # A model linear in everything: y = θ₀ + a² c x (x a fixed signal, a the step factor),
     # θ₀ under a unit normal prior, the floor σ: σ_c from the 2×2 information exactly.
+    import equinox as eqx
+
     from accel_jax.diagnose.step import excite
+
+    class Linear(eqx.Module):  # the record's model's interface (`term_model.RecordModel`)
+        x: jax.Array
+
+        def prediction(self, theta, c, scales, amplitude):
+            return theta[0] + amplitude**2 * c[0] * self.x
+
+        def penalties(self, theta):
+            return theta
 
     x = jnp.linspace(-1.0, 1.0, 50) ** 2
     sigma = 0.1
-
-    def prediction(theta, c, scales, amplitude):
-        return theta[0] + amplitude**2 * c[0] * x
-
-    def penalties(theta):
-        return theta
-
     pick = jnp.eye(1)
     errors = excite.standard_errors(
-        prediction, penalties, jnp.zeros(1), jnp.asarray([0.3]), pick, None, sigma, (1.0, 2.0)
+        Linear(x), jnp.zeros(1), jnp.asarray([0.3]), pick, None, sigma, (1.0, 2.0)
     )
     for row, a in zip(errors, (1.0, 2.0), strict=True):
         j = np.stack([np.ones(50), a**2 * np.asarray(x)], axis=1) / sigma
         info = j.T @ j + np.diag([1.0, 0.0])
         assert row[0] == pytest.approx(np.sqrt(np.linalg.inv(info)[1, 1]), rel=1e-10)
     assert errors[1, 0] == pytest.approx(errors[0, 0] / 4, rel=1e-10)
+    # A second model of the same shape runs the same compiled Jacobians (the model is an
+    # argument, not a constant of the program: records of one layout share it).
+    size = excite._jacobians._cached._cache_size()
+    again = excite.standard_errors(
+        Linear(2 * x), jnp.zeros(1), jnp.asarray([0.3]), pick, None, sigma, (1.0, 2.0)
+    )
+    assert excite._jacobians._cached._cache_size() == size
+    assert again[0, 0] == pytest.approx(errors[0, 0] / 2, rel=1e-10)
 
 
 def test_excite_picks_the_barely_measured_terms():

@@ -110,33 +110,32 @@ def outside_training(rec: StepRecord, unpacked, theta) -> bool:
 
 
 def fit_reference(
-    prediction, penalties, held_out_error, theta0, scales, record, *, extrapolates: bool
+    residuals, jacobian, held_out_error, theta0, scales, record, sigma, *, extrapolates: bool
 ) -> NetworkReference:
     """The discovery's `ceiling`: the network fitted on the training part with the device
-    and the record's nuisances from `theta0` (the nominal fit; `prediction` and `penalties`
-    are `discover`'s model of the record), then its held-out gap with the held-out part's
-    nuisances refitted (`held_out_error`), as for a term. `record`: (u_out, the training
-    mask, σ, the held-out rows, the gap before, the nominal cost); `extrapolates`: whether
-    the held-out part leaves the training part's levels (`outside_training`)."""
-    u_out, train_j, sigma, test_rows, gap_before, cost0 = record
+    and the record's nuisances from `theta0` (the nominal fit), then its held-out gap with
+    the held-out part's nuisances refitted (`held_out_error`), as for a term.
+    `residuals(params)` and `jacobian(params)`: the training residuals (whitened, then the
+    priors', the network's weights' last) at params = [θ, the network's flat weights] and
+    their Jacobian — `term_model.network_at` and `network_jacobian_at` on the record's
+    model, compiled once per record layout; `record`: (the held-out rows, the gap before,
+    the nominal cost); `sigma` [V] the floor; `extrapolates`: whether the held-out part
+    leaves the training part's levels (`outside_training`)."""
+    test_rows, gap_before, cost0 = record
     n_free = theta0.size
     zero = jnp.zeros(N_COEFFICIENTS)
-
-    def residuals(params, args):
-        theta, flat = params[:n_free], params[n_free:]
-        e = (u_out - prediction(theta, zero, scales, network=flat)) * train_j / sigma
-        return jnp.concatenate([e, penalties(theta), flat / PRIOR])
-
-    fun, jac = jax.jit(residuals), jax.jit(jax.jacfwd(residuals))
     solution = min(
         (
-            solve(fun, jac, np.r_[theta0, flat], None, REFERENCE_MAX_EVALUATIONS)
+            solve(
+                lambda p, _: residuals(p), lambda p, _: jacobian(p), np.r_[theta0, flat],
+                None, REFERENCE_MAX_EVALUATIONS,
+            )
             for flat in starts()
         ),
         key=lambda sol: sol.cost,
     )
     theta, flat = jnp.asarray(solution.x[:n_free]), jnp.asarray(solution.x[n_free:])
-    fitted = np.asarray(fun(jnp.asarray(solution.x), None))[: -flat.size]  # the prior's apart
+    fitted = np.asarray(residuals(jnp.asarray(solution.x)))[: -flat.size]  # the prior's apart
     error = np.asarray(held_out_error(theta, zero, scales, network=flat))
     gap_after = openworld.excess(float(np.mean(error[test_rows] ** 2)), sigma**2)
     return NetworkReference(

@@ -220,7 +220,6 @@ def discover(
     # (MAX_COLUMNS, N_COEFFICIENTS) selection; unused columns pinned at 0), the sinusoid's
     # frequency free in units of the record's frequency resolution.
     with_terms = term_model.record_model(rec, nominal, w, free, effects)
-    prediction, penalties = with_terms.prediction, with_terms.penalties
     unpacked = with_terms.unpacked
     train_j = jnp.asarray(train.astype(np.float64))
     resolution = jnp.asarray(2 * jnp.pi / scales.duration)
@@ -404,8 +403,10 @@ def discover(
     )
     if reference:
         reached = ceiling.fit_reference(
-            prediction, penalties, held_out_error, np.asarray(theta_w)[keep], scales,
-            (u_out, train_j, sigma, test_rows, gap_before, cost0),
+            lambda params: term_model.network_at(with_terms, data, params),
+            lambda params: term_model.network_jacobian_at(with_terms, data, params),
+            held_out_error, np.asarray(theta_w)[keep], scales, (test_rows, gap_before, cost0),
+            sigma,
             extrapolates=ceiling.outside_training(rec, unpacked, theta_w[keep]),
         )
         fraction = reached.explained_fraction
@@ -455,7 +456,7 @@ def discover(
     excited = None
     if weak:
         excited = _excite(
-            weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma
+            weak, fitted, with_terms, rec, nominal, n_free, sigma
         )
     return dataclasses.replace(
         result,
@@ -486,7 +487,7 @@ def _profiled(entry, fit, residuals_at, jacobian_at, n_free):
     return dataclasses.replace(entry, columns=columns)
 
 
-def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free, sigma):
+def _excite(weak, fitted, with_terms, rec, nominal, n_free, sigma):
     """`excite` entries (see `excite`) for the barely excited columns `weak`: one Fisher
     computation per candidate, however many of its columns are weak."""
     out, errors_of = [], {}
@@ -496,7 +497,7 @@ def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free,
         params, pick, n_cols, tuned, _ = fitted[key]
         theta = jnp.asarray(params[:n_free])
         if key not in errors_of:
-            model = unpacked(theta)
+            model = with_terms.unpacked(theta)
             steps = np.asarray(model.step)
             levels = float(rec.ctx.first_level) + np.concatenate([[0.0], np.cumsum(steps)])
             drive = model.gain * jnp.asarray(levels)
@@ -504,7 +505,7 @@ def _excite(weak, fitted, prediction, penalties, unpacked, rec, nominal, n_free,
             factor = max(1.0, excite.REACH * stop / max(deflection, 1e-12))
             scale = excite.StepScale(factor, deflection * factor, stop)
             errors = excite.standard_errors(
-                prediction, penalties, theta, jnp.asarray(params[n_free : n_free + n_cols]),
+                with_terms, theta, jnp.asarray(params[n_free : n_free + n_cols]),
                 jnp.asarray(pick[:n_cols]), tuned, sigma, (1.0, factor),
             )
             errors_of[key] = (errors, scale)

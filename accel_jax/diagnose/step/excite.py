@@ -22,6 +22,7 @@ import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -74,23 +75,34 @@ def weak_terms(
     return sorted(out, key=z, reverse=True)[:MAX_ENTRIES]
 
 
-def standard_errors(prediction, penalties, theta, coefficients, pick, scales, sigma, amplitudes):
+@eqx.filter_jit
+def _jacobians(model, p, pick, scales, sigma, amplitude):
+    """The Jacobians of the whitened block means (test steps × `amplitude`) and of the
+    priors with respect to p = [θ, the used coefficients]."""
+    n_free = p.shape[0] - pick.shape[0]
+
+    def blocks(q):
+        return model.prediction(q[:n_free], q[n_free:] @ pick, scales, amplitude) / sigma
+
+    return jax.jacfwd(blocks)(p), jax.jacfwd(lambda q: model.penalties(q[:n_free]))(p)
+
+
+def standard_errors(model, theta, coefficients, pick, scales, sigma, amplitudes):
     """σ of the coefficients (the used rows of `pick`) from the linearised Fisher
-    information of the whole record with its test steps × each of `amplitudes` (one
-    compiled Jacobian for all): shape (len(amplitudes), k)."""
+    information of the whole record with its test steps × each of `amplitudes`: shape
+    (len(amplitudes), k). `model`: the record's model with terms (`term_model.RecordModel`,
+    or any equinox module with `prediction(θ, coefficients, scales, amplitude)` [V] and
+    `penalties(θ)`), an argument of the one compiled Jacobian, so that records of one
+    layout share it."""
     n_free = theta.shape[0]
-
-    @jax.jit
-    def jacobians(p, amplitude):
-        def blocks(q):
-            return prediction(q[:n_free], q[n_free:] @ pick, scales, amplitude) / sigma
-
-        return jax.jacfwd(blocks)(p), jax.jacfwd(lambda q: penalties(q[:n_free]))(p)
-
     p0 = jnp.concatenate([theta, coefficients])
+    sigma = jnp.asarray(sigma, p0.dtype)
     out = []
     for amplitude in amplitudes:
-        j, jp = (np.asarray(v) for v in jacobians(p0, jnp.asarray(amplitude)))
+        j, jp = (
+            np.asarray(v)
+            for v in _jacobians(model, p0, pick, scales, sigma, jnp.asarray(amplitude, p0.dtype))
+        )
         information = j.T @ j + jp.T @ jp
         try:
             cov = np.linalg.inv(information)

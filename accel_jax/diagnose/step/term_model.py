@@ -1,6 +1,7 @@
 """The discovery's model of a step record with terms (`discover`), and its compiled
 programs: the screen's linearisation, the confirming refit's residuals and Jacobian, the
-held-out part's refit and free-run error. The record's model (`RecordModel`) and arrays
+held-out part's refit and free-run error, the network reference's residuals and Jacobian
+(`ceiling`). The record's model (`RecordModel`) and arrays
 (`Data`) are the programs' arguments, not constants baked into them, so that every record of
 one layout (its block count, block size, change count and free entries) reuses the programs
 compiled for the first. Float64 (the caller's `jax.enable_x64`)."""
@@ -119,6 +120,21 @@ def _refit_residuals(model: RecordModel, data: Data, params, args):
 
 refit_at = eqx.filter_jit(_refit_residuals)
 refit_jacobian_at = eqx.filter_jit(jax.jacfwd(_refit_residuals, argnums=2))
+
+
+def _network_residuals(model: RecordModel, data: Data, params):
+    """The network reference's training residuals (`ceiling`): params = [θ, the network's
+    flat weights], each weight under its normal prior."""
+    n_free = data.free.size + 1
+    theta, flat = params[:n_free], params[n_free:]
+    zero = jnp.zeros(N_COEFFICIENTS)
+    prediction = model.prediction(theta, zero, data.scales, network=flat)
+    e = (data.u_out - prediction) * data.train / data.sigma
+    return jnp.concatenate([e, model.penalties(theta), flat / ceiling.PRIOR])
+
+
+network_at = eqx.filter_jit(_network_residuals)
+network_jacobian_at = eqx.filter_jit(jax.jacfwd(_network_residuals, argnums=2))
 
 
 @eqx.filter_jit
