@@ -47,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from functools import partial
 
 import jax.numpy as jnp
 import numpy as np
@@ -230,24 +231,16 @@ def discover(
         free=jnp.asarray(np.flatnonzero(free)), held=jnp.asarray(held_moved),
     )
 
-    def residuals_at(params, args):
-        return term_model.refit_at(with_terms, data, params, args)
-
-    def jacobian_at(params, args):
-        return term_model.refit_jacobian_at(with_terms, data, params, args)
-
-    def error_at(params, pick):
-        return term_model.error_at(with_terms, data, params, pick)
-
-    def held_at(x, args):
-        return term_model.held_at(model_all, data, x, args)
-
-    def held_jacobian_at(x, args):
-        return term_model.held_jacobian_at(model_all, data, x, args)
+    # The programs with this record's model and arrays bound (compiled once per layout).
+    residuals_at = partial(term_model.refit_at, with_terms, data)
+    jacobian_at = partial(term_model.refit_jacobian_at, with_terms, data)
+    error_at = partial(term_model.error_at, with_terms, data)
+    held_at = partial(term_model.held_at, model_all, data)
+    held_jacobian_at = partial(term_model.held_jacobian_at, model_all, data)
 
     def held_out_error(theta, coefficients, tuned, network=None):
         w_trained = np.asarray(w).copy()
-        w_trained[np.flatnonzero(free)] = np.asarray(theta[:-1])
+        w_trained[np.asarray(data.free)] = np.asarray(theta[:-1])
         x = w_trained[held_moved]
         args = (theta, coefficients, tuned, network)
         if held_moved.size:
@@ -403,8 +396,8 @@ def discover(
     )
     if reference:
         reached = ceiling.fit_reference(
-            lambda params: term_model.network_at(with_terms, data, params),
-            lambda params: term_model.network_jacobian_at(with_terms, data, params),
+            partial(term_model.network_at, with_terms, data),
+            partial(term_model.network_jacobian_at, with_terms, data),
             held_out_error, np.asarray(theta_w)[keep], scales, (test_rows, gap_before, cost0),
             sigma,
             extrapolates=ceiling.outside_training(rec, unpacked, theta_w[keep]),

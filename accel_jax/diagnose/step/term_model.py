@@ -104,6 +104,12 @@ def linearised(model: RecordModel, theta, scales):
     return pred, j_theta, j_coef, model.penalties(theta), jax.jacfwd(model.penalties)(theta)
 
 
+def _whitened(data: Data, prediction, mask):
+    """The output's error on the blocks of `mask` (the training or held-out part's), in
+    units of the floor."""
+    return (data.u_out - prediction) * mask / data.sigma
+
+
 def _tuned(data: Data, shift):
     return data.scales._replace(omega=data.scales.omega + data.resolution * shift)
 
@@ -112,8 +118,7 @@ def _refit_residuals(model: RecordModel, data: Data, params, args):
     n_free = data.free.size + 1
     pick, used, tone, fixed = args  # `fixed`: coefficients held (`profile`), else 0
     theta, c, shift = params[:n_free], params[n_free:-1], params[-1]
-    prediction = model.prediction(theta, c @ pick + fixed, _tuned(data, shift))
-    e = (data.u_out - prediction) * data.train / data.sigma
+    e = _whitened(data, model.prediction(theta, c @ pick + fixed, _tuned(data, shift)), data.train)
     pinned = jnp.concatenate([c * (1 - used), shift * (1 - tone)[None]])
     return jnp.concatenate([e, model.penalties(theta), pinned])
 
@@ -128,8 +133,7 @@ def _network_residuals(model: RecordModel, data: Data, params):
     n_free = data.free.size + 1
     theta, flat = params[:n_free], params[n_free:]
     zero = jnp.zeros(N_COEFFICIENTS)
-    prediction = model.prediction(theta, zero, data.scales, network=flat)
-    e = (data.u_out - prediction) * data.train / data.sigma
+    e = _whitened(data, model.prediction(theta, zero, data.scales, network=flat), data.train)
     return jnp.concatenate([e, model.penalties(theta), flat / ceiling.PRIOR])
 
 
@@ -156,7 +160,7 @@ def _held_residuals(model_all: RecordModel, data: Data, x, args):
     theta, coefficients, tuned, network = args
     full = _held_full(model_all, data, x, theta)
     predicted = model_all.prediction(full, coefficients, tuned, network=network)
-    e = (data.u_out - predicted) * data.test / data.sigma
+    e = _whitened(data, predicted, data.test)
     return jnp.concatenate([e, model_all.penalties(full)])
 
 
