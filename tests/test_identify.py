@@ -692,3 +692,28 @@ def test_weighted_moments_match_plain_sums_and_differentiate():
     np.testing.assert_allclose(got, expected, rtol=1e-13, atol=1e-13)
     check_grads(_weighted_moments, (w[0], x[0], y[0]), order=1, modes=["fwd", "rev"])
     check_grads(jax.vmap(_weighted_moments), (w, x, y), order=1, modes=["fwd", "rev"])
+
+
+def test_index_searches_and_largest_between_match_their_definitions():
+    """`_first`/`_last` (masked min/max over float indices) and `_largest_between` (a masked
+    max) against NumPy's definitions: empty masks, an end sample, ties, no sample between."""
+    from accel_jax._identify.oscillatory import _largest_between
+    from accel_jax._identify.record import _first, _last
+
+    rng = np.random.default_rng(2)
+    masks = [rng.random(501) < p for p in (0.0, 0.002, 0.3, 1.0)]
+    masks.append(np.zeros(501, bool))
+    masks[-1][-1] = True
+    for mask in masks:
+        hits = np.flatnonzero(mask)
+        for search, expected in ((_first, hits[:1]), (_last, hits[-1:])):
+            k, found = jax.jit(search)(jnp.asarray(mask))
+            assert bool(found) == bool(hits.size)
+            assert int(k) == (int(expected[0]) if hits.size else 0)
+            assert k.dtype == jnp.int32
+    ts = jnp.arange(501) * 1e-3
+    values = jnp.asarray(np.round(rng.normal(size=501), 1))  # rounded: ties
+    for start, stop in ((0.1, 0.3), (-1.0, 1.0), (0.2005, 0.2009), (0.3, 0.1)):
+        inside = (np.asarray(ts) > start) & (np.asarray(ts) < stop)
+        expected = np.max(np.asarray(values)[inside]) if inside.any() else 0.0
+        assert float(_largest_between(ts, values, start, stop, "sample")) == expected

@@ -208,3 +208,35 @@ def test_monte_carlo_fast_path_and_its_fallback_match_identify_oscillatory(monke
             rtol=1e-12,
             err_msg=name,
         )
+
+
+def test_chunks_that_need_many_squarings_take_the_full_exponential():
+    """The kernel computes a chunk's ZOH exponentials with a short squaring loop when every
+    device in it needs few (`record_squarings` ≤ `_FEW_SQUARINGS`), else with the full one.
+    A stiff torquer lag (T_dm = 0.1 µs against a 4 µs sample step) needs more: its chunk
+    must give `identify_oscillatory` on `fast_step_response`'s record, as the plain chunks
+    do (the short loop would give NaN there, never a wrong record)."""
+    from accel_jax._identify.monte_carlo import _FEW_SQUARINGS
+    from accel_jax._simulate.blocked import record_squarings
+
+    lags = jnp.asarray([1e-5, 2e-5, 1e-7, 1e-5])  # chunks of 2: the second holds the stiff lag
+    devices = eqx.tree_at(lambda p: p.torquer_time_constant, drawn_devices(4, 8), lags)
+    needed = jax.vmap(record_squarings, in_axes=(0, None))(devices, TS)
+    assert np.all(np.asarray(needed)[[0, 1, 3]] <= _FEW_SQUARINGS)
+    assert float(needed[2]) > _FEW_SQUARINGS
+    keys = jax.random.split(jax.random.key(9), 4)
+    gamma = jax.vmap(aj.shape_factor)(devices)
+    fused = monte_carlo_oscillatory(
+        devices, keys, TS, pickoff_amplifier_gain=GAIN, shape_factor=gamma, chunk_size=2
+    )
+
+    def separate(device, key, gamma):
+        record = fast_step_response(device, TS, 1.0, key=key, noise_dtype=jnp.float32)
+        return aj.identify_oscillatory(
+            TS, record, pickoff_amplifier_gain=GAIN, shape_factor=gamma, throw=False
+        )
+
+    expected = jax.vmap(separate)(devices, keys, gamma)
+    assert bool(jnp.all(expected.result == aj.IdentificationResult.successful))
+    assert bool(jnp.all(fused.result == expected.result))
+    np.testing.assert_allclose(fused.scale_factor, expected.scale_factor, rtol=1e-12)

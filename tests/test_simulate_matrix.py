@@ -75,3 +75,24 @@ def test_power_sequences_match_explicit_powers():
     )
     np.testing.assert_allclose(power, powers[1] @ powers[63], rtol=1e-11)
     assert _block_size(5001) == 64 and _block_size(1) == 1
+
+
+def test_expm_short_loop_is_the_full_loop_or_nan():
+    """`_expm(X, k)` runs k masked squarings: bitwise the full loop's exponential when X
+    needs at most k (`expm_squarings`), NaN when it needs more — never a wrong exponential.
+    The Monte Carlo kernel relies on both (its short branch for chunks that need few)."""
+    from accel_jax._simulate.matrix import expm_squarings
+
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(7, 7))
+    x = jnp.asarray(x * 3.0 / np.max(np.sum(np.abs(x), axis=0)))  # ‖X‖₁ = 3: 4 squarings
+    assert float(expm_squarings(x)) == 4
+    full = _expm(x)
+    np.testing.assert_array_equal(_expm(x, 4), full)
+    np.testing.assert_array_equal(jax.vmap(lambda m: _expm(m, 4))(x[None]), full[None])
+    assert bool(jnp.all(jnp.isnan(_expm(x, 3))))
+    np.testing.assert_allclose(full, jax.scipy.linalg.expm(x), rtol=1e-13, atol=1e-14)
+    # Reverse mode through the short loop: the full loop's gradient.
+    grad_short = jax.grad(lambda m: jnp.sum(_expm(m, 4) ** 2))(x)
+    grad_full = jax.grad(lambda m: jnp.sum(_expm(m) ** 2))(x)
+    np.testing.assert_array_equal(grad_short, grad_full)

@@ -265,16 +265,24 @@ def _rising_crossing_window(
 
 
 def _largest_between(ts, signed_deviation, start, stop, extremum):
+    """The largest sample of `signed_deviation` strictly between times start and stop (its
+    parabolic vertex for "parabolic"), 0 when no sample lies between. The largest sample is
+    a max reduction, not an arg-max and a gather: XLA:CPU vectorises the first, and the
+    two gave ~3 µs against ~20 µs per 5 001-sample record (docs/performance.md)."""
     inside = (ts > start) & (ts < stop)
-    j = jnp.argmax(jnp.where(inside, signed_deviation, -jnp.inf))
-    peak = signed_deviation[j]
+    masked = jnp.where(inside, signed_deviation, -jnp.inf)
     if extremum == "parabolic":
         n = ts.shape[0]
+        j = jnp.argmax(masked)
         y_minus = signed_deviation[jnp.maximum(j - 1, 0)]
         y_plus = signed_deviation[jnp.minimum(j + 1, n - 1)]
-        _, peak = _parabolic_peak(y_minus, peak, y_plus)
-    # Some sample inside ⟺ the arg-max (of finite values inside, −∞ outside) is inside.
-    return jnp.where(inside[j], peak, 0.0)
+        _, peak = _parabolic_peak(y_minus, signed_deviation[j], y_plus)
+        # Some sample inside ⟺ the arg-max (of finite values inside, −∞ outside) is inside.
+        return jnp.where(inside[j], peak, 0.0)
+    # The deviations are finite (`_summarise` replaces a non-finite record), so the
+    # largest is −∞ exactly when no sample lies between.
+    peak = jnp.max(masked)
+    return jnp.where(peak > -jnp.inf, peak, 0.0)
 
 
 @eqx.filter_jit

@@ -148,32 +148,40 @@ class _Record(eqx.Module):
     common: IdentificationResult  # the failure codes every method shares (`_common_result`)
 
 
-def _maxima(left, right):
-    return tuple(jnp.maximum(a, b) for a, b in zip(left, right, strict=True))
-
-
 def _sums(left, right):
     return tuple(a + b for a, b in zip(left, right, strict=True))
+
+
+def _positions(n: int):
+    """Sample indices 0 … n − 1 as floats (exact), for index searches by min/max: XLA:CPU
+    vectorises a float min/max reduction but not an arg-max (a (value, index) pair
+    reduction), which took ~4× as long per 5 001-sample record (docs/performance.md).
+    float64 where JAX has it (exact to 2^53), else float32 up to 2^24 samples, else int32
+    (exact, slower)."""
+    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)  # float32 without jax_enable_x64
+    if dtype != jnp.float64 and n > 2**24:
+        dtype = jnp.int32
+    return jnp.arange(n, dtype=dtype)
 
 
 def _first(mask):
     """(index of the first True of a 1-D mask, whether there is one); index 0 when none.
 
-    One arg-max reduction: the flag is read back from the mask at that index (XLA:CPU
-    reduces each `jnp.any` in a pass of its own, ~4 µs per 5 001 samples)."""
-    k = jnp.argmax(mask)
-    return k, mask[k]
+    One min reduction over the masked indices; the flag is whether it found one."""
+    n = mask.shape[0]
+    k = jnp.min(jnp.where(mask, _positions(n), n))
+    found = k < n
+    return jnp.where(found, k, 0).astype(jnp.int32), found
 
 
 def _last(mask):
     """(index of the last True of a 1-D mask, whether there is one); index 0 when none.
 
-    The same as `jnp.max(jnp.where(mask, index, 0))`, as one arg-max over the reversed
-    mask (XLA:CPU's masked integer max took ~3× as long)."""
+    One max reduction over the masked indices (see `_first`)."""
     n = mask.shape[0]
-    k = n - 1 - jnp.argmax(mask[::-1])
-    found = mask[k]
-    return jnp.where(found, k, 0), found
+    k = jnp.max(jnp.where(mask, _positions(n), -1))
+    found = k >= 0
+    return jnp.where(found, k, 0).astype(jnp.int32), found
 
 
 def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Record:
@@ -199,20 +207,18 @@ def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Rec
     step = u_ss - initial
     direction = jnp.where(step >= 0, 1.0, -1.0).astype(dtype)
     amplitude = jnp.abs(step)
-    # The record's extremes, in one pass: the largest and the smallest sample before the
-    # tail (a rail's flat top) and the largest |U| (the rounding quantum, the saturation
-    # level). They only decide flags and the band's rounding floor, never a value that is
-    # differentiated, so they are taken of the record without its tangent (a variadic
-    # reduction has no JVP rule).
+    # The record's extremes: the largest and the smallest sample before the tail (a rail's
+    # flat top) and the largest |U| (the rounding quantum, the saturation level). They only
+    # decide flags and the band's rounding floor, never a value that is differentiated, so
+    # they are taken of the record without its tangent. Three max reductions: XLA:CPU
+    # fused them with the record's other passes, where one variadic reduction of the three
+    # (which does not vectorise) cost several times as much in the Monte Carlo kernel.
     region = (ts >= step_time) & (jnp.arange(n, dtype=jnp.int32) < n - n_tail)
     values = jax.lax.stop_gradient(u)
     low = jnp.asarray(-jnp.inf, dtype)
-    top, bottom, largest = jax.lax.reduce(
-        (jnp.where(region, values, low), jnp.where(region, -values, low), jnp.abs(values)),
-        (low, low, low),
-        _maxima,
-        (0,),
-    )
+    top = jnp.max(jnp.where(region, values, low))
+    bottom = jnp.max(jnp.where(region, -values, low))
+    largest = jnp.max(jnp.abs(values))
     quantum = 32 * jnp.finfo(dtype).eps * largest
     band = _NOISE_SIGMAS * sigma + jnp.maximum(_BAND_FLOOR * amplitude, quantum)
     has_step = amplitude > 2 * band

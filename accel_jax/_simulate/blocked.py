@@ -37,24 +37,42 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._params import ServoParams
 from .loop import _drive_before, _grid_step, _Loop, _prepare
-from .matrix import _block_size, _power_columns, _power_rows
-from .state_space import discretise, equilibrium_state
+from .matrix import _MAX_SQUARINGS, _block_size, _expm, _power_columns, _power_rows, expm_squarings
+from .state_space import equilibrium_state
 
 _Samples = Float[Array, " n"]
 _Affine = Float[Array, "5 5"]
 _Row = Float[Array, " 5"]
 
 
+def _augmented(params: ServoParams, ts: Array) -> Array:
+    """[[A, B], [0, 0]]·Δ of the loop (7×7): its exponential is the exact ZOH step (Van Loan)."""
+    loop = _Loop(params)
+    a, b = loop.a_matrix, loop.b_matrix
+    top = jnp.concatenate([a, b], axis=1)
+    bottom = jnp.zeros((b.shape[1], top.shape[1]), top.dtype)
+    return jnp.concatenate([top, bottom]) * _grid_step(ts)
+
+
+def record_squarings(params: ServoParams, ts: Array) -> Array:
+    """The squarings the record's ZOH exponential needs (see `_expm`)."""
+    return expm_squarings(_augmented(params, ts))
+
+
 def _affine_system(
-    params: ServoParams, ts: Array, inputs: Array
+    params: ServoParams, ts: Array, inputs: Array, max_squarings: int = _MAX_SQUARINGS
 ) -> tuple[_Affine, _Row, _Row, Array]:
     """(M, z_0, c, y_0) of the record in `_Loop`'s internal units (see the module docstring).
 
     `inputs` (n, 3) are constant in time (checked by the caller); only `inputs[0]` is used.
+    The ZOH exponential is `_expm`'s with a loop of `max_squarings` (static) squarings.
     """
     loop = _Loop(params)
     initial = equilibrium_state(params, 0.0, inputs[0, 1], inputs[0, 2]).astype(inputs.dtype)
-    transition, forcing = discretise(loop.a_matrix, loop.b_matrix, _grid_step(ts))
+    exponential = _expm(_augmented(params, ts), max_squarings)
+    n_states = loop.a_matrix.shape[0]
+    transition = exponential[:n_states, :n_states]
+    forcing = exponential[:n_states, n_states:]
     drive = forcing @ loop.scaled_inputs(inputs[0])
     dtype = inputs.dtype
     affine = jnp.zeros((5, 5), dtype).at[:4, :4].set(transition).at[:4, 4].set(drive)
@@ -82,11 +100,13 @@ def _affine_system(
     return affine, start, row, first
 
 
-def _blocked_record(params: ServoParams, ts: Array, inputs: Array) -> _Samples:
+def _blocked_record(
+    params: ServoParams, ts: Array, inputs: Array, max_squarings: int = _MAX_SQUARINGS
+) -> _Samples:
     n = ts.shape[0]
     block = _block_size(n)
     n_blocks = -(-n // block)
-    affine, start, row, first = _affine_system(params, ts, inputs)
+    affine, start, row, first = _affine_system(params, ts, inputs, max_squarings)
     columns, block_power = _power_columns(affine, start, block)  # M^j z_0, (B, 5)
     rows = _power_rows(block_power, row, n_blocks)[:n_blocks]  # c M^{mB}, (n/B, 5)
     record = (rows @ columns[:block].T).reshape(-1)[:n]
@@ -169,8 +189,24 @@ def fast_step_response(
     U_out at ts [V], shape (n,).
     """
     noise_dtype = _check_noise_dtype(noise_dtype)
+    return _step_record(params, ts, test_voltage, acceleration, external_moment, key, noise_dtype)
+
+
+def _step_record(
+    params,
+    ts,
+    test_voltage,
+    acceleration,
+    external_moment,
+    key,
+    noise_dtype,
+    max_squarings: int = _MAX_SQUARINGS,
+):
+    """`fast_step_response`'s record (`noise_dtype` checked) with a `max_squarings` loop for
+    its ZOH exponential: `monte_carlo_oscillatory` passes a short one to the chunks whose
+    devices need few (`record_squarings`), the same record to the bit."""
     ts, inputs = _constant_inputs(params, ts, test_voltage, acceleration, external_moment)
-    record = _blocked_record(params, ts, inputs)
+    record = _blocked_record(params, ts, inputs, max_squarings)
     if key is not None:
         deviates = _normal(key, record.shape, record.dtype, noise_dtype)
         record = record + params.noise_std * deviates

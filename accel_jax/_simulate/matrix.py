@@ -30,28 +30,38 @@ _Row = Float[Array, " 5"]
 _MAX_SQUARINGS = 64
 
 
-def _expm(matrix):
+def expm_squarings(matrix):
+    """The squarings `_expm` needs for `matrix`: s with ‖X‖₁/2^s ≤ 1/4 (a float, ≥ 0)."""
+    norm = jnp.max(jnp.sum(jnp.abs(matrix), axis=-2))
+    return jnp.maximum(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.25)), 0)
+
+
+def _expm(matrix, max_squarings: int = _MAX_SQUARINGS):
     """Matrix exponential of a small matrix: scaling and squaring of a Taylor polynomial.
 
     The matrix is scaled by 2^-s to 1-norm ≤ 1/4, where the degree-13 Taylor remainder is
     below 0.25^14/14! ≈ 2e-20, then squared s times. Cheaper to compile than the general
     `jax.scipy.linalg.expm` (which carries five Padé orders), and forward- and
     reverse-differentiable.
+
+    `max_squarings` (static) is the loop's length: every one of them is computed under
+    vmap (masked), so a caller that knows its matrices need few (`expm_squarings`) passes
+    that few; the result is then bitwise the one of the full loop. A matrix that needs
+    more than `max_squarings` gets NaN, never a silently wrong exponential.
     """
-    norm = jnp.max(jnp.sum(jnp.abs(matrix), axis=-2))
-    squarings = jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.25))
-    squarings = jax.lax.stop_gradient(jnp.clip(squarings, 0, _MAX_SQUARINGS))
-    scaled = matrix * 2.0**-squarings
+    squarings = jax.lax.stop_gradient(expm_squarings(matrix))
+    scaled = matrix * 2.0 ** -jnp.minimum(squarings, max_squarings)
     identity = jnp.eye(matrix.shape[-1], dtype=matrix.dtype)
     result = identity
     for degree in range(13, 0, -1):  # Horner: I + A(I + A/2(I + A/3(…)))
         result = identity + scaled @ result / degree
-    return jax.lax.fori_loop(
+    result = jax.lax.fori_loop(
         0,
-        _MAX_SQUARINGS,
+        max_squarings,
         lambda i, power: jnp.where(i < squarings, power @ power, power),
         result,
     )
+    return jnp.where(squarings <= max_squarings, result, jnp.nan)
 
 
 TAYLOR_TERMS = 8
