@@ -57,6 +57,7 @@ from accel_jax._identify import (  # noqa: E402
 from accel_jax._identify.monte_carlo import _FIT_WINDOW  # noqa: E402
 from accel_jax._identify.oscillatory import _oscillatory_estimate  # noqa: E402
 from accel_jax._simulate import fast_step_response  # noqa: E402
+from accel_jax._simulate.blocked import _normal_float32  # noqa: E402
 from accel_jax.report import provenance, write_json_atomic  # noqa: E402
 
 SAMPLE_RATE = 1e6  # Hz
@@ -149,6 +150,7 @@ def _profile(ts, size, impl, repeats):
     noise32 = jax.jit(
         jax.vmap(lambda k: jax.random.normal(k, (n,), jnp.float32).astype(jnp.float64))
     )
+    noise_kernel = jax.jit(jax.vmap(lambda k: _normal_float32(k, n).astype(jnp.float64)))
     bits = jax.jit(jax.vmap(lambda k: jax.random.bits(k, (n,), jnp.uint64)))
     # The Monte Carlo kernel with the identification left out: each noisy record (float32
     # deviates, as `monte_carlo_oscillatory` draws them) reduced to one number, in the
@@ -230,6 +232,10 @@ def _profile(ts, size, impl, repeats):
         f"noise (jax.random.normal, {impl}, float64)": (noise, keys),
         f"noise (jax.random.normal, {impl}, float32 widened)": (noise32, keys),
         f"  of which random bits ({impl}, uint64)": (bits, keys),
+        f"noise as the kernel draws it (float32 from both halves of 64-bit {impl} words)": (
+            noise_kernel,
+            keys,
+        ),
         "record + noise, chunked as the kernel, identification left out": (fused, in_chunks),
         "identify_oscillatory (whole-record passes)": (ident, records),
         f"  the kernel's fast path (crossing fits within ±{_FIT_WINDOW} samples)": (

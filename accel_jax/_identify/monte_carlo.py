@@ -16,7 +16,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from .._params import ServoParams, _concrete
-from .._simulate.blocked import _check_noise_dtype, _step_record, record_squarings
+from .._simulate.blocked import _check_noise_dtype, _noisy_record, record_squarings, step_system
 from .._simulate.matrix import _MAX_SQUARINGS
 from .._sweep import gather_processes
 from .oscillatory import OscillatoryEstimate, _check_options, _oscillatory_estimate
@@ -93,24 +93,23 @@ def _monte_carlo(
     options = dict(options)
     no_rail = jnp.asarray(jnp.inf, ts.dtype)
 
-    def record(device, key, max_squarings):
-        return _step_record(
-            device, ts, test_voltage, 0.0, None, key, noise_dtype, max_squarings
-        )
+    def systems(device, max_squarings):
+        return jax.vmap(lambda d: step_system(d, ts, test_voltage, max_squarings))(device)
 
     def records(device, key):
         # The ZOH exponential's squarings are computed masked under vmap, so a chunk whose
         # devices all need few runs a short loop (a real branch: one flag for the chunk);
-        # either branch gives the same record to the bit.
+        # either branch gives the same record to the bit. Only the small systems come out
+        # of the branch, not the chunk's records.
         needed = jnp.max(jax.vmap(record_squarings, in_axes=(0, None))(device, ts))
-        return jax.lax.cond(
+        system = jax.lax.cond(
             needed <= _FEW_SQUARINGS,
-            lambda: jax.vmap(functools.partial(record, max_squarings=_FEW_SQUARINGS))(
-                device, key
-            ),
-            lambda: jax.vmap(functools.partial(record, max_squarings=_MAX_SQUARINGS))(
-                device, key
-            ),
+            lambda: systems(device, _FEW_SQUARINGS),
+            lambda: systems(device, _MAX_SQUARINGS),
+        )
+        n = ts.shape[0]
+        return jax.vmap(lambda d, s, k: _noisy_record(d, s, n, k, noise_dtype))(
+            device, system, key
         )
 
     def identify(u, pickoff_amplifier_gain, shape_factor, window):
@@ -200,8 +199,9 @@ def monte_carlo_oscillatory(
     identification. The noise deviates are drawn in float32 by default and widened: ε is
     ~1e-4 of the step, float32 resolves each deviate to 6e-8 of itself, and the tails are
     cut at about 5.4 σ instead of 8 σ (a normal puts 1e-7 of its samples beyond). Half the
-    random bits and a cheaper Gaussian transform make the whole kernel faster
-    (`benchmarks/bench.py` measures both).
+    threefry work (two 32-bit words from each 64-bit draw, see `fast_step_response`) and
+    a cheaper Gaussian transform make the whole kernel faster (`benchmarks/bench.py`
+    measures both).
     `noise_dtype=jnp.float64` (or `None`) draws exactly what `simulate_linear(...,
     key=keys[i])` draws.
 

@@ -22,17 +22,17 @@ does). The record agrees with `simulate_linear` to ~1e-13 of the step in float64
 measure ~2e-14). `monte_carlo_oscillatory` draws the noise deviates in float32 by
 default (its docstring says why that suffices); `noise_dtype` chooses.
 
-Speed (`benchmarks/bench.py`, 2-core CPU, 5 001-sample records, chunks of 16, one core):
-the record costs ~1/8 of the `lax.scan` one: 42 µs per trajectory, ~29 of them the ZOH
-matrix exponential (`jax.scipy.linalg.expm` runs all 64 allowed squarings under vmap);
-`monte_carlo_oscillatory` adds 37 µs of float32 noise and 74 µs of identification (the
-docs/performance.md has the whole profile).
+The ZOH exponential is `_expm`'s (Taylor, scaling and squaring), whose squaring loop runs
+every allowed squaring under vmap (masked): `monte_carlo_oscillatory` gives the chunks
+whose devices need few a short loop (`record_squarings`), which cut the exponential from
+~25 to ~6 µs per trajectory (docs/performance.md has the kernel's profile).
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._params import ServoParams
@@ -103,10 +103,14 @@ def _affine_system(
 def _blocked_record(
     params: ServoParams, ts: Array, inputs: Array, max_squarings: int = _MAX_SQUARINGS
 ) -> _Samples:
-    n = ts.shape[0]
+    return _record_of_system(_affine_system(params, ts, inputs, max_squarings), ts.shape[0])
+
+
+def _record_of_system(system, n: int) -> _Samples:
+    """The n-sample record of `_affine_system`'s (M, z_0, c, y_0), by block powers."""
+    affine, start, row, first = system
     block = _block_size(n)
     n_blocks = -(-n // block)
-    affine, start, row, first = _affine_system(params, ts, inputs, max_squarings)
     columns, block_power = _power_columns(affine, start, block)  # M^j z_0, (B, 5)
     rows = _power_rows(block_power, row, n_blocks)[:n_blocks]  # c M^{mB}, (n/B, 5)
     record = (rows @ columns[:block].T).reshape(-1)[:n]
@@ -132,7 +136,35 @@ def _normal(key, shape, dtype, noise_dtype=None):
     """Standard normal deviates of `dtype`, drawn in `noise_dtype` (default `dtype`)."""
     if noise_dtype is None:
         return jax.random.normal(key, shape, dtype=dtype)
+    if jnp.dtype(noise_dtype) == jnp.float32 and len(shape) == 1:
+        return _normal_float32(key, shape[0]).astype(dtype)
     return jax.random.normal(key, shape, dtype=noise_dtype).astype(dtype)
+
+
+def _normal_float32(key, n: int):
+    """n float32 standard normal deviates: JAX's float32 transform (bitwise
+    `jax.random.normal(key, (n,), jnp.float32)` for the same 32-bit words) applied to the
+    two 32-bit halves of ⌈n/2⌉ 64-bit draws. JAX's threefry computes a whole threefry2x32
+    block (two words) for each 32-bit draw and XORs them; a 64-bit draw keeps both, so this
+    is half the hash work for full-quality words: other samples than `jax.random.normal`'s
+    for the same key, the same distribution (tests). Without 64-bit types (x64 disabled),
+    `jax.random.normal` itself."""
+    if jax.dtypes.canonicalize_dtype(jnp.uint64) != jnp.uint64:
+        return jax.random.normal(key, (n,), dtype=jnp.float32)
+    wide = jax.random.bits(key, (-(-n // 2),), jnp.uint64)
+    words = jnp.concatenate([(wide >> 32).astype(jnp.uint32), wide.astype(jnp.uint32)])[:n]
+    return _float32_normal_from_bits(words)
+
+
+def _float32_normal_from_bits(words):
+    """`jax.random.normal`'s float32 transform of 32-bit words: a uniform on
+    (−1, 1) from the top 23 bits (`jax.random.uniform`'s construction), then √2·erf⁻¹."""
+    one = np.array(1.0, np.float32)
+    mantissa = jax.lax.shift_right_logical(words, np.uint32(9)) | one.view(np.uint32)
+    floats = jax.lax.bitcast_convert_type(mantissa, jnp.float32) - one
+    low = np.nextafter(np.float32(-1.0), np.float32(0.0))
+    uniform = jax.lax.max(low, floats * (one - low) + low)
+    return np.float32(np.sqrt(2)) * jax.lax.erf_inv(uniform)
 
 
 def _check_noise_dtype(noise_dtype):
@@ -181,8 +213,9 @@ def fast_step_response(
         `simulate_linear` draws it), or `None`.
     - `noise_dtype`: `None` (default) draws the deviates in the record's dtype, as
         `simulate_linear` does; `jnp.float32` draws them in float32 and widens them
-        (other samples, the same distribution up to float32 resolution; half the random
-        bits and a cheaper transform).
+        (other samples, the same distribution up to float32 resolution; each 32-bit word
+        is half of a 64-bit draw, so half the threefry work of float64 deviates or of
+        `jax.random.normal` in float32, and the float32 transform is cheaper).
 
     **Returns:**
 
@@ -202,15 +235,29 @@ def _step_record(
     noise_dtype,
     max_squarings: int = _MAX_SQUARINGS,
 ):
-    """`fast_step_response`'s record (`noise_dtype` checked) with a `max_squarings` loop for
-    its ZOH exponential: `monte_carlo_oscillatory` passes a short one to the chunks whose
-    devices need few (`record_squarings`), the same record to the bit."""
+    """`fast_step_response`'s record (`noise_dtype` checked), its ZOH exponential with a
+    loop of `max_squarings` squarings (see `_expm`)."""
     ts, inputs = _constant_inputs(params, ts, test_voltage, acceleration, external_moment)
-    record = _blocked_record(params, ts, inputs, max_squarings)
+    system = _affine_system(params, ts, inputs, max_squarings)
+    return _noisy_record(params, system, ts.shape[0], key, noise_dtype)
+
+
+def _noisy_record(params, system, n: int, key, noise_dtype):
+    """The record of an `_affine_system` with the output noise of `params` drawn from `key`
+    (none for `None`). `monte_carlo_oscillatory` computes a chunk's systems with a short
+    squaring loop where every device in it needs few (`record_squarings`), then this."""
+    record = _record_of_system(system, n)
     if key is not None:
         deviates = _normal(key, record.shape, record.dtype, noise_dtype)
         record = record + params.noise_std * deviates
     return record
+
+
+def step_system(params: ServoParams, ts: Array, test_voltage, max_squarings: int):
+    """`_affine_system` of a constant `test_voltage` from the settled device (no
+    acceleration, the device's own external moment): the Monte Carlo kernel's records."""
+    ts, inputs = _constant_inputs(params, ts, test_voltage, 0.0, None)
+    return _affine_system(params, ts, inputs, max_squarings)
 
 
 # Trajectories per vmapped chunk. CPU: 16 records (16 × 5001 float64 = 640 kB) stay in a
