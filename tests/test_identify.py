@@ -717,3 +717,26 @@ def test_index_searches_and_largest_between_match_their_definitions():
         inside = (np.asarray(ts) > start) & (np.asarray(ts) < stop)
         expected = np.max(np.asarray(values)[inside]) if inside.any() else 0.0
         assert float(_largest_between(ts, values, start, stop, "sample")) == expected
+
+
+@pytest.mark.parametrize("finite", [True, False])
+def test_step_at_the_first_sample_given_statically_is_step_time_ts0(finite):
+    """`step_time=None` in the record summary and the oscillatory estimate (the Monte Carlo
+    kernel's records: the step at the first sample, known before tracing) gives what
+    `step_time=ts[0]` gives, field for field, for a noisy oscillatory record and for a
+    non-finite one (its placeholders)."""
+    from accel_jax._identify.oscillatory import _oscillatory_estimate
+
+    ts = jnp.arange(5001) * 2e-6  # 10 ms: settled
+    u = second_order_step(ts, T_REF, 0.52) + 1e-4 * jax.random.normal(jax.random.key(4), ts.shape)
+    if not finite:
+        u = u.at[700].set(jnp.nan)
+    args = (2.1e6, 0.75)
+    rest = (None, jnp.inf, 1000, "linear", "sample", "full", 128)
+    given, exact_given = _oscillatory_estimate(ts, u, *args, ts[0], *rest)
+    static, exact_static = _oscillatory_estimate(ts, u, *args, None, *rest)
+    assert bool(exact_given) == bool(exact_static)
+    for name in ("steady_state", "t1", "t2", "overshoot", "undershoot", "scale_factor"):
+        assert float(getattr(static, name)) == float(getattr(given, name)), name
+    assert static.result == given.result
+    assert (given.result == R.successful) == finite

@@ -113,14 +113,16 @@ def _monte_carlo(
         )
 
     def identify(u, pickoff_amplifier_gain, shape_factor, window):
-        # identify_oscillatory(ts, u, ..., throw=False) with the options: step at ts[0], U_ss
-        # from the tail, no saturation level (the arguments were checked by the caller).
+        # identify_oscillatory(ts, u, ..., throw=False) with the options: step at ts[0]
+        # (None: known to be the first sample, which skips the search for samples before
+        # it), U_ss from the tail, no saturation level (the arguments were checked by the
+        # caller).
         return _oscillatory_estimate(
             ts,
             u,
             pickoff_amplifier_gain,
             shape_factor,
-            ts[0],
+            None,
             None,
             no_rail,
             n_tail,

@@ -345,7 +345,9 @@ def _oscillatory_estimate(
     # below whatever the direction of the step: crossings 1 and 3 go up, crossing 2 down.
     deviation = record.direction * (record.u - record.steady_state)
     label = jnp.where(deviation > band, 1, jnp.where(deviation < -band, -1, 0))
-    label = jnp.where(ts >= record.step_time, label, -1).at[0].set(-1)
+    if step_time is not None:  # None: the step at the first sample (see `_summarise`)
+        label = jnp.where(ts >= record.step_time, label, -1)
+    label = label.at[0].set(-1)
     # Crossings inside the tail do not count: there the deviation is of the size of the
     # tail's own settling (a not-quite-settled aperiodic record crosses its tail mean
     # there), and U_ss is only defined by the tail.

@@ -185,8 +185,14 @@ def _last(mask):
 
 
 def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Record:
+    """The record's summary. `step_time=None` (static): the step at the first sample, as
+    `step_time=ts[0]` gives, without the passes that look for samples before it (the Monte
+    Carlo kernel's records)."""
     n = u.shape[0]
     dtype = u.dtype
+    at_start = step_time is None
+    if at_start:
+        step_time = ts[0]
     finite = jnp.all(jnp.isfinite(ts)) & jnp.all(jnp.isfinite(u)) & jnp.isfinite(step_time)
     if steady_state is not None:
         finite = finite & jnp.isfinite(steady_state)
@@ -197,9 +203,14 @@ def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Rec
     u = jnp.where(finite, u, jnp.zeros_like(u))
     step_time = jnp.where(finite, step_time, ts[0])
 
-    pre = ts < step_time
-    n_pre = jnp.sum(pre, dtype=jnp.int32)  # counts in int32: int64 sums are slow on XLA:CPU
-    initial = jnp.where(n_pre > 0, jnp.sum(jnp.where(pre, u, 0)) / jnp.maximum(n_pre, 1), u[0])
+    if at_start:
+        initial = u[0]  # no sample before the step
+    else:
+        pre = ts < step_time
+        n_pre = jnp.sum(pre, dtype=jnp.int32)  # counts in int32: int64 sums are slow on XLA:CPU
+        initial = jnp.where(
+            n_pre > 0, jnp.sum(jnp.where(pre, u, 0)) / jnp.maximum(n_pre, 1), u[0]
+        )
     tail = u[n - n_tail :]
     sigma = jnp.std(tail)
     tail_mean = jnp.mean(tail)
@@ -213,7 +224,9 @@ def _summarise(ts, u, step_time, steady_state, n_tail, saturation_level) -> _Rec
     # they are taken of the record without its tangent. Three max reductions: XLA:CPU
     # fused them with the record's other passes, where one variadic reduction of the three
     # (which does not vectorise) cost several times as much in the Monte Carlo kernel.
-    region = (ts >= step_time) & (jnp.arange(n, dtype=jnp.int32) < n - n_tail)
+    region = jnp.arange(n, dtype=jnp.int32) < n - n_tail
+    if not at_start:
+        region = region & (ts >= step_time)
     values = jax.lax.stop_gradient(u)
     low = jnp.asarray(-jnp.inf, dtype)
     top = jnp.max(jnp.where(region, values, low))
