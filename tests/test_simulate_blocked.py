@@ -173,3 +173,31 @@ def test_float32_noise_is_jax_normals_transform_of_full_threefry_words():
     assert abs(np.corrcoef(deviates[:-1], deviates[1:])[0, 1]) < 4 / np.sqrt(n)
     other = np.asarray(jax.random.normal(key, (n,), jnp.float32), np.float64)
     assert not np.array_equal(deviates, other)  # other samples for the same key
+
+
+@pytest.mark.parametrize("make_key", ["key", "raw", "rbg"])
+def test_float32_noise_words_are_jaxs_64_bit_draws(make_key):
+    """The float32 noise's words: for a threefry key the hash written out round by round
+    (`_threefry_words`) gives bitwise the two halves of `jax.random.bits(key, (m,),
+    uint64)` (JAX's default partitionable threefry; this test would catch a change of
+    JAX's counters); a raw uint32 key is the default implementation's; an `rbg` key's
+    words come from `jax.random.bits`. Under vmap, each threefry key's deviates are its own
+    (JAX's `rbg` under vmap draws a batch from one stream: see `monte_carlo_oscillatory`)."""
+    from accel_jax._simulate.blocked import _float32_normal_from_bits, _normal_float32
+
+    key = {
+        "key": jax.random.key(21),
+        "raw": jax.random.PRNGKey(21),
+        "rbg": jax.random.key(21, impl="rbg"),
+    }[make_key]
+    typed = key if make_key != "raw" else jax.random.wrap_key_data(key)
+    n = 1001
+    wide = jax.random.bits(typed, ((n + 1) // 2,), jnp.uint64)
+    words = jnp.concatenate([(wide >> 32).astype(jnp.uint32), wide.astype(jnp.uint32)])[:n]
+    np.testing.assert_array_equal(_normal_float32(key, n), _float32_normal_from_bits(words))
+    if make_key == "rbg":
+        return
+    keys = jax.random.split(typed, 3)
+    batch = jax.vmap(lambda k: _normal_float32(k, 11))(keys)
+    for i in range(3):
+        np.testing.assert_array_equal(batch[i], _normal_float32(keys[i], 11))

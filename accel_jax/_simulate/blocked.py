@@ -148,13 +148,46 @@ def _normal_float32(key, n: int):
     two 32-bit halves of ⌈n/2⌉ 64-bit draws. JAX's threefry computes a whole threefry2x32
     block (two words) for each 32-bit draw and XORs them; a 64-bit draw keeps both, so this
     is half the hash work for full-quality words: other samples than `jax.random.normal`'s
-    for the same key, the same distribution (tests). Without 64-bit types (x64 disabled),
-    `jax.random.normal` itself."""
-    if jax.dtypes.canonicalize_dtype(jnp.uint64) != jnp.uint64:
+    for the same key, the same distribution (tests). A threefry key's 64-bit draws are
+    hashed here (`_threefry_words`: the same words); another implementation's come from
+    `jax.random.bits`, and without 64-bit types (x64 disabled) it is `jax.random.normal`."""
+    m = -(-n // 2)
+    if not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jax.random.wrap_key_data(key)  # a raw uint32 key: the default implementation
+    if jax.random.key_impl(key) == "threefry2x32":
+        high, low = _threefry_words(jax.random.key_data(key), m)
+    elif jax.dtypes.canonicalize_dtype(jnp.uint64) == jnp.uint64:
+        wide = jax.random.bits(key, (m,), jnp.uint64)
+        high, low = (wide >> 32).astype(jnp.uint32), wide.astype(jnp.uint32)
+    else:
         return jax.random.normal(key, (n,), dtype=jnp.float32)
-    wide = jax.random.bits(key, (-(-n // 2),), jnp.uint64)
-    words = jnp.concatenate([(wide >> 32).astype(jnp.uint32), wide.astype(jnp.uint32)])[:n]
-    return _float32_normal_from_bits(words)
+    return _float32_normal_from_bits(jnp.concatenate([high, low])[:n])
+
+
+_THREEFRY_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
+
+
+def _threefry_words(key_words, m: int):
+    """Both output words of the threefry2x32 hash (20 rounds, Salmon et al. 2011) of the
+    counters (0, i), i < m, under the key (k₀, k₁): the high and low halves of
+    `jax.random.bits(key, (m,), jnp.uint64)` with JAX's default partitionable threefry
+    (test: bitwise). Written out round by round, where JAX's CPU lowering loops over its
+    five groups of four rounds (a `while` loop whose state goes through memory each time):
+    XLA fuses the unrolled hash into one elementwise pass."""
+    k0, k1 = key_words[0], key_words[1]
+    schedule = (k0, k1, k0 ^ k1 ^ np.uint32(0x1BD11BDA))
+    x0 = jnp.zeros((m,), jnp.uint32) + schedule[0]
+    x1 = jax.lax.iota(jnp.uint32, m) + schedule[1]
+    for group in range(5):
+        for rotation in _THREEFRY_ROTATIONS[group % 2]:
+            x0 = x0 + x1
+            x1 = jax.lax.shift_left(x1, np.uint32(rotation)) | jax.lax.shift_right_logical(
+                x1, np.uint32(32 - rotation)
+            )
+            x1 = x0 ^ x1
+        x0 = x0 + schedule[(group + 1) % 3]
+        x1 = x1 + schedule[(group + 2) % 3] + np.uint32(group + 1)
+    return x0, x1
 
 
 def _float32_normal_from_bits(words):
