@@ -740,3 +740,32 @@ def test_step_at_the_first_sample_given_statically_is_step_time_ts0(finite):
         assert float(getattr(static, name)) == float(getattr(given, name)), name
     assert static.result == given.result
     assert (given.result == R.successful) == finite
+
+
+def test_a_non_finite_sample_anywhere_is_flagged_under_vmap():
+    """One NaN, +inf or −inf at any position — first, last, inside a vector lane's
+    remainder — of any record in a vmapped batch of 16 (the Monte Carlo kernel's chunk)
+    gives `non_finite` for that record only, with finite placeholders. (A max reduction
+    does not propagate NaN on XLA:CPU: finiteness read from the largest |U| failed this.)"""
+    from accel_jax._identify.oscillatory import _oscillatory_estimate
+
+    ts = jnp.arange(5001) * 2e-6
+    clean = second_order_step(ts, T_REF, 0.52)
+    positions = [0, 1, 7, 15, 16, 2500, 4990, 4999, 5000]
+    bad = [jnp.nan, jnp.inf, -jnp.inf]
+    records = [clean]
+    for i, position in enumerate(positions):
+        records.append(clean.at[position].set(bad[i % 3]))
+    records += [clean] * (16 - len(records))
+    batch = jnp.stack(records[:16])
+    rest = (None, None, jnp.inf, 1000, "linear", "sample", "full", 128)
+    estimate, _ = jax.jit(jax.vmap(lambda u: _oscillatory_estimate(ts, u, 2.1e6, 0.75, *rest)))(
+        batch
+    )
+    flagged = np.asarray(estimate.result == R.non_finite)
+    successful = np.asarray(estimate.result == R.successful)
+    expected = np.array([1 <= i <= len(positions) for i in range(16)])
+    np.testing.assert_array_equal(flagged, expected)
+    np.testing.assert_array_equal(successful, ~expected)
+    for name in ("steady_state", "t1", "t2", "overshoot", "scale_factor"):
+        assert bool(jnp.all(jnp.isfinite(getattr(estimate, name)))), name
