@@ -20,8 +20,9 @@ when T_dm = 0 or T_f = 0, which make A singular).
 Precision: follows the dtype of the parameters (use float64; every test and benchmark
 does). The record agrees with `simulate_linear` to ~2e-13 of the step in float64 (measured
 on 64 drawn devices, 5 001 samples at 1 MHz; the two take the ZOH exponential by different
-methods, Taylor here and Padé there, and a ~1e-16 difference grows over the powers). `monte_carlo_oscillatory` draws the noise deviates in float32 by
-default (its docstring says why that suffices); `noise_dtype` chooses.
+methods, Taylor here and Padé there, and a ~1e-16 difference grows over the powers).
+`monte_carlo_oscillatory` draws the noise deviates in float32 by default (its docstring
+says why that suffices); `noise_dtype` chooses.
 
 The ZOH exponential is `_expm`'s (Taylor, scaling and squaring), whose squaring loop runs
 every allowed squaring under vmap (masked): `monte_carlo_oscillatory` gives the chunks
