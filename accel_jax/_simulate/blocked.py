@@ -150,8 +150,9 @@ def _normal_float32(key, n: int):
     block (two words) for each 32-bit draw and XORs them; a 64-bit draw keeps both, so this
     is half the hash work for full-quality words: other samples than `jax.random.normal`'s
     for the same key, the same distribution (tests). A threefry key's 64-bit draws are
-    hashed here (`_threefry_words`: the same words); another implementation's come from
-    `jax.random.bits`, and without 64-bit types (x64 disabled) it is `jax.random.normal`."""
+    hashed here (`_threefry_words`: the same words, with or without x64); another
+    implementation's come from `jax.random.bits`, or, without 64-bit types (x64
+    disabled), the deviates are `jax.random.normal`'s."""
     m = -(-n // 2)
     if not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         key = jax.random.wrap_key_data(key)  # a raw uint32 key: the default implementation
@@ -170,7 +171,7 @@ _THREEFRY_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 
 def _threefry_words(key_words, m: int):
     """Both output words of the threefry2x32 hash (20 rounds, Salmon et al. 2011) of the
-    counters (0, i), i < m, under the key (k₀, k₁): the high and low halves of
+    counters (0, i), i < m < 2³², under the key (k₀, k₁): the high and low halves of
     `jax.random.bits(key, (m,), jnp.uint64)` with JAX's default partitionable threefry
     (test: bitwise). Written out round by round, where JAX's CPU lowering loops over its
     five groups of four rounds (a `while` loop whose state goes through memory each time):
