@@ -102,12 +102,6 @@ def _affine_system(
     return affine, start, row, first
 
 
-def _blocked_record(
-    params: ServoParams, ts: Array, inputs: Array, max_squarings: int = _MAX_SQUARINGS
-) -> _Samples:
-    return _record_of_system(_affine_system(params, ts, inputs, max_squarings), ts.shape[0])
-
-
 def _record_of_system(system, n: int) -> _Samples:
     """The n-sample record of `_affine_system`'s (M, z_0, c, y_0), by block powers."""
     affine, start, row, first = system
@@ -258,23 +252,8 @@ def fast_step_response(
     U_out at ts [V], shape (n,).
     """
     noise_dtype = _check_noise_dtype(noise_dtype)
-    return _step_record(params, ts, test_voltage, acceleration, external_moment, key, noise_dtype)
-
-
-def _step_record(
-    params,
-    ts,
-    test_voltage,
-    acceleration,
-    external_moment,
-    key,
-    noise_dtype,
-    max_squarings: int = _MAX_SQUARINGS,
-):
-    """`fast_step_response`'s record (`noise_dtype` checked), its ZOH exponential with a
-    loop of `max_squarings` squarings (see `_expm`)."""
     ts, inputs = _constant_inputs(params, ts, test_voltage, acceleration, external_moment)
-    system = _affine_system(params, ts, inputs, max_squarings)
+    system = _affine_system(params, ts, inputs)
     return _noisy_record(params, system, ts.shape[0], key, noise_dtype)
 
 
