@@ -87,6 +87,23 @@ def test_every_weight_reaches_the_output_once_the_last_layer_moves():
         assert float(jnp.max(jnp.abs(jac[:, k] - central))) < 1e-5 * scale
 
 
+def test_no_terms_is_zero_coefficients_without_their_signals():
+    # The network's fit passes no coefficients (None): `term_record` leaves the terms'
+    # signals out. The same record and Jacobian as zero coefficients, bitwise, with a
+    # moved network and with both lags and an output filter in the loop.
+    params = NominalDevice.reference().params
+    moved = ceiling.starts()[1].at[-ceiling.OUTPUTS * (ceiling.WIDTH + 1) :].set(0.05)
+
+    def record(p, coefficients):
+        c = jnp.zeros(terms.N_COEFFICIENTS) if coefficients == "zeros" else None
+        residual = ceiling.residual(p, SCALES.half)
+        return terms.term_record(params, DT, N, M, SEQUENCE, c, SCALES, residual)
+
+    for f in (record, jax.jacfwd(record)):
+        zeros, none = (jax.jit(f, static_argnums=1)(moved, c) for c in ("zeros", None))
+        assert bool(jnp.all(zeros == none)) and float(jnp.max(jnp.abs(zeros))) > 0
+
+
 def test_a_ceiling_without_a_discovery_is_refused():
     with pytest.raises(ValueError, match="ceiling=True needs discover"):
         diagnose_step([], NominalDevice.reference(), ceiling=True)

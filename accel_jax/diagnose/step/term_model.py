@@ -49,8 +49,9 @@ class RecordModel(eqx.Module):
         return unpack(w, 0, self.effects, self.base, self.prior_sigma, self.ctx)
 
     def prediction(self, theta, coefficients, scales, amplitude=1.0, network=None):
-        # (`amplitude`: the test steps scaled, for the record that would excite a term;
-        # `network`: the network reference's flat parameters, `ceiling`.)
+        # (`coefficients` None: no terms; `amplitude`: the test steps scaled, for the record
+        # that would excite a term; `network`: the network reference's flat parameters,
+        # `ceiling`.)
         ctx, model = self.ctx, self.unpacked(theta)
         sequence = SequenceInputs(
             ctx.first_level * amplitude, model.gain, model.moment, model.rate, model.dv,
@@ -132,8 +133,9 @@ def _network_residuals(model: RecordModel, data: Data, params):
     flat weights], each weight under its normal prior."""
     n_free = data.free.size + 1
     theta, flat = params[:n_free], params[n_free:]
-    zero = jnp.zeros(N_COEFFICIENTS)
-    e = _whitened(data, model.prediction(theta, zero, data.scales, network=flat), data.train)
+    # (No terms: `term_record` then leaves their signals out of the Jacobian's ~120
+    # columns, the same residuals as zero coefficients.)
+    e = _whitened(data, model.prediction(theta, None, data.scales, network=flat), data.train)
     return jnp.concatenate([e, model.penalties(theta), flat / ceiling.PRIOR])
 
 

@@ -147,8 +147,10 @@ def term_record(
 ):
     """U_out [V] of the loop with the terms' `coefficients` (N_COEFFICIENTS,): the means of
     `n` blocks of `m` samples (static). At zero coefficients, `linear_record`'s record.
-    `residual`: None, or a function (v, w, m, g·U) [V] → (moment, output) [V] added as the
-    terms are (the network reference, `ceiling`)."""
+    `coefficients` None: no terms (the same record as zeros, without computing the terms'
+    signals: the network reference's fit, whose Jacobian would otherwise carry them
+    sample by sample). `residual`: None, or a function (v, w, m, g·U) [V] → (moment,
+    output) [V] added as the terms are (the network reference, `ceiling`)."""
     (first_level, gain, moment, rate, dv, dw, change_index, change_step, change_shift) = sequence[
         :9
     ]
@@ -191,7 +193,10 @@ def term_record(
     z0 = jnp.concatenate([start, jnp.asarray([gain * first_level], dtype)])
     ideal_torquer = params.torquer_time_constant == 0
     feed = c_out[0]  # the output's read of v (1 with no output filter, else 0)
-    coefficients = jnp.asarray(coefficients, dtype)
+    with_terms = coefficients is not None
+    coefficients = (
+        jnp.asarray(coefficients, dtype) if with_terms else jnp.zeros(N_COEFFICIENTS, dtype)
+    )
     # The two extra poles, exact for c > 0 (a first-order lag of time constant c·T, a state
     # of its own); for c < 0 a lead to first order, −c·T times the backward difference of
     # the torquer moment or the output over the sample step: the pole's own first-order
@@ -218,17 +223,21 @@ def term_record(
 
     def forces(z, time, lagged_torque, torque_before):
         x, drive = z[:N_STATES], z[N_STATES]
-        s_moment, s_pickoff, s_output = _signals(x, drive, c_out, time, ideal_torquer, scales)
+        if with_terms:
+            signals = _signals(x, drive, c_out, time, ideal_torquer, scales)
+            on_moment, on_pickoff, on_output = (lead @ s for s in signals)
+        else:
+            on_moment = on_pickoff = on_output = jnp.zeros((), dtype)
         torque_now = torque(z)
         moment_force = (
-            lead @ s_moment + (lagged_torque - torque_now)
+            on_moment + (lagged_torque - torque_now)
             + lead_torquer * (torque_now - torque_before)
         )
-        output = c_out @ x + feed * (lead @ s_pickoff) + lead @ s_output
+        output = c_out @ x + feed * on_pickoff + on_output
         if residual is not None:
             extra_moment, extra_output = residual(x[0], x[1], torque_now, drive)
             moment_force, output = moment_force + extra_moment, output + extra_output
-        return jnp.stack([moment_force, lead @ s_pickoff]), output
+        return jnp.stack([moment_force, on_pickoff]), output
 
     def padded(v):
         return jnp.concatenate([v, jnp.zeros(1, dtype)])
