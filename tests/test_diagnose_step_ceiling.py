@@ -94,13 +94,13 @@ def test_no_terms_is_zero_coefficients_without_their_signals():
     params = NominalDevice.reference().params
     moved = ceiling.starts()[1].at[-ceiling.OUTPUTS * (ceiling.WIDTH + 1) :].set(0.05)
 
-    def record(p, coefficients):
-        c = jnp.zeros(terms.N_COEFFICIENTS) if coefficients == "zeros" else None
+    def record(p, with_zeros: bool):
+        c = jnp.zeros(terms.N_COEFFICIENTS) if with_zeros else None
         residual = ceiling.residual(p, SCALES.half)
         return terms.term_record(params, DT, N, M, SEQUENCE, c, SCALES, residual)
 
     for f in (record, jax.jacfwd(record)):
-        zeros, none = (jax.jit(f, static_argnums=1)(moved, c) for c in ("zeros", None))
+        zeros, none = (jax.jit(f, static_argnums=1)(moved, z) for z in (True, False))
         assert bool(jnp.all(zeros == none)) and float(jnp.max(jnp.abs(zeros))) > 0
 
 
