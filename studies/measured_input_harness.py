@@ -50,6 +50,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402
+from shards import parse_shard, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
 CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT)
@@ -145,14 +146,6 @@ def write_twins(truths: list[dict], indices: list[int], folder: Path, seed: int)
         write_csv(folder / "measured" / f"{i:04d}.csv", StepData(t, measured, y))
         channels.append(info)
     return channels
-
-
-def shard_indices(count: int, shard: tuple[int, int]) -> list[int]:
-    """The record indices of shard k of n (`--shard k/n`): every n-th from k."""
-    k, n = shard
-    if not (n >= 1 and 0 <= k < n):
-        raise ValueError(f"--shard {k}/{n}: it must be k/n with 0 ≤ k < n")
-    return list(range(k, count, n))
 
 
 def record_indices(count: int, records: list[int]) -> list[int]:
@@ -456,16 +449,6 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
     }
 
 
-def _shard(text: str) -> tuple[int, int]:
-    try:
-        k, n = (int(x) for x in text.split("/"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give the shard as k/n, e.g. 0/4") from None
-    if not (n >= 1 and 0 <= k < n):
-        raise argparse.ArgumentTypeError(f"{text!r}: it must be k/n with 0 ≤ k < n")
-    return k, n
-
-
 def merge(results: list[dict], signal=effect_signal) -> dict:
     """Shards' results (`--shard k/n` runs of the same draw) as one: their rows joined and
     scored together. Refused (ValueError) when the shards drew differently or overlap."""
@@ -560,7 +543,7 @@ def main(argv=None) -> int:
         help="the first K truths of each class also driven by a PRBS (clean and measured)",
     )
     parser.add_argument(
-        "--shard", type=_shard, default=(0, 1), metavar="k/n",
+        "--shard", type=parse_shard, default=(0, 1), metavar="k/n",
         help="diagnose only records k, k+n, k+2n, … of the draw (spread a run over machines; "
         "join the shards' result.json files with --merge)",
     )

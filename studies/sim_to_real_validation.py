@@ -21,11 +21,14 @@ Truth simulators (none of them the diagnosis's own model code):
 
 Writes OUT/result.json, OUT/truth.json, the datasets and PNG figures. Run:
 `python studies/sim_to_real_validation.py [--out DIR] [--quick] [--kinds step,vibration,noise]`
-(float64).
+(float64). Spread over machines: every machine runs the same draw with `--shard k/n`
+(k = 0 … n−1; it diagnoses records k, k+n, … of each kind and writes them unscored), then
+`--merge OUT_0/result.json … OUT_n-1/result.json --out DIR` scores them as one run.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -60,6 +63,7 @@ from accel_jax.report import (  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402  (the independent truth simulator, beside this study)
+from shards import parse_shard, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
 STUDY = "sim_to_real_validation"
@@ -1145,6 +1149,32 @@ def _open_world_figure(out_dir, kind, section, truths, verdicts, gaps) -> dict:
     }
 
 
+def _counts(kind, quick, large, per_class) -> dict:
+    """Datasets per class of `kind` for a run's options."""
+    if per_class is not None:
+        return {c: per_class for c in CLASSES[kind]}
+    if large:
+        return PER_CLASS_LARGE[kind]
+    if quick:
+        return {c: PER_CLASS_QUICK[kind] for c in CLASSES[kind]}
+    return PER_CLASS_FULL[kind]
+
+
+def _per_class_stated(kind, quick, large, per_class):
+    """The datasets per class as the result's assumptions state them."""
+    if per_class is not None:
+        return per_class
+    if large:
+        return PER_CLASS_LARGE[kind]
+    return PER_CLASS_QUICK[kind] if quick else PER_CLASS_FULL[kind]
+
+
+def _as_json(payload):
+    """`payload` as it reads back from JSON (NumPy scalars and arrays as numbers and lists):
+    a run scores exactly what a merge of its shards reads from their files."""
+    return json.loads(json.dumps(payload, default=lambda x: np.asarray(x).tolist()))
+
+
 # A quick run is compile-bound throughout and compiles with most XLA optimisations off
 # (study_run(compile_bound_when_quick=True); measured on the 2-core CPU, quick, cache off: the dataset
 # simulation, ~55 programs, 13 → 9 CPU-s). The blind diagnosis, run-bound, runs in its own
@@ -1158,41 +1188,48 @@ def run(
     kinds=KINDS,
     per_class=None,
     large: bool = False,
+    shard: tuple[int, int] = (0, 1),
+    merge=None,
 ) -> dict:
     """Run the study; write OUT/result.json and figures; return the result dict.
 
     `kinds`: which kinds to validate; `per_class`: datasets per class (overrides the
     defaults, e.g. for a larger run); `large`: `PER_CLASS_LARGE` (≥ 100 per kind of
-    dataset, run by hand)."""
+    dataset, run by hand).
+
+    Spread over machines: `shard=(k, n)` diagnoses records k, k+n, k+2n, … of each kind's
+    draw (every shard draws and simulates the whole draw, then writes and diagnoses only
+    its own records) and writes a shard file (OUT/result.json: its rows, not scored);
+    `merge`: the shard files (paths) of one draw, every shard once, joined and scored as
+    one run — the result of the run without shards, but for the timings and the
+    provenance's date (`merge_shards`)."""
     out_dir = Path(out_dir)
+    if merge is not None:
+        joined = merge_shards([_read_shard(p) for p in merge])
+        write_json_atomic(out_dir / "truth.json", _truth_file(joined["rows"]))
+        return _score(out_dir, joined["draw"], joined["rows"], joined["timing"], None)
     started = time.perf_counter()
     timing = {}
     rng = np.random.default_rng(seed)
-    truths, names, folders, noises = {}, {}, [], {}
+    rows, folders, noises = {}, [], {}
     data_root = out_dir / "datasets"
     for kind in kinds:
-        if per_class is not None:
-            counts = {c: per_class for c in CLASSES[kind]}
-        elif large:
-            counts = PER_CLASS_LARGE[kind]
-        elif quick:
-            counts = {c: PER_CLASS_QUICK[kind] for c in CLASSES[kind]}
-        else:
-            counts = PER_CLASS_FULL[kind]
-        kind_truths = _kind_truths(kind, rng, counts)
+        kind_truths = _kind_truths(kind, rng, _counts(kind, quick, large, per_class))
         order = rng.permutation(len(kind_truths))  # file names carry no hint of the class
         kind_truths = [kind_truths[i] for i in order]
         t0 = time.perf_counter()
-        records, noises[kind] = _generate(kind, kind_truths, seed)
+        records, kind_noises = _generate(kind, kind_truths, seed)
+        keep = shard_indices(len(records), shard)
         folder = data_root / kind
         folder.mkdir(parents=True, exist_ok=True)
         for old in folder.glob("*.csv"):
             old.unlink()
-        kind_names = [f"{kind}_{i:04d}.csv" for i in range(len(records))]
-        for name, record in zip(kind_names, records, strict=True):
-            write_csv(folder / name, record)
+        names = [f"{kind}_{i:04d}.csv" for i in keep]
+        for name, i in zip(names, keep, strict=True):
+            write_csv(folder / name, records[i])
         timing[f"generate_{kind}"] = time.perf_counter() - t0
-        truths[kind], names[kind] = kind_truths, kind_names
+        rows[kind] = {"index": keep, "file": names, "truth": [kind_truths[i] for i in keep]}
+        noises[kind] = None if kind_noises is None else [kind_noises[i] for i in keep]
         folders.append(folder)
     t0 = time.perf_counter()
     answers = diagnose_blind(folders)
@@ -1200,23 +1237,132 @@ def run(
     for kind, seconds in answers.pop("_seconds", {}).items():
         timing[f"diagnose_{kind}"] = seconds
     for kind in kinds:
-        if [v["file"] for v in answers[kind]] != names[kind]:
+        verdicts = answers[kind]
+        if [v["file"] for v in verdicts] != rows[kind]["file"]:
             raise RuntimeError(
                 f"the diagnosis returned verdicts for other {kind} files than were written"
             )
-    write_json_atomic(
-        out_dir / "truth.json",
-        {kind: dict(zip(names[kind], truths[kind], strict=True)) for kind in kinds},
-    )
+        rows[kind]["verdict"] = verdicts
+        rows[kind]["true_gap"] = (
+            true_gaps(noises[kind], verdicts) if noises[kind] is not None else None
+        )
+    rows = _as_json(rows)
+    write_json_atomic(out_dir / "truth.json", _truth_file(rows))
+    draw = {
+        "seed": seed,
+        "kinds": list(kinds),
+        "per_class": {k: _per_class_stated(k, quick, large, per_class) for k in kinds},
+        "records": {k: sum(_counts(k, quick, large, per_class).values()) for k in kinds},
+    }
+    if shard[1] == 1:
+        return _score(out_dir, draw, rows, timing, started)
+    timing["total"] = time.perf_counter() - started
+    document = {
+        "title": f"Blind validation, shard {shard[0]}/{shard[1]} of one draw (not scored: "
+        "join every shard's result.json with --merge)",
+        "shard": list(shard),
+        "draw": draw,
+        "rows": rows,
+        "summary": [],
+        "figures": [],
+        "timing_s": timing,
+        "provenance": provenance(seeds={"study": seed}, precision="float64"),
+    }
+    write_json_atomic(out_dir / "result.json", document)
+    return document
 
+
+def _truth_file(rows: dict) -> dict:
+    """truth.json: each kind's truths by file name."""
+    return {kind: dict(zip(r["file"], r["truth"], strict=True)) for kind, r in rows.items()}
+
+
+def _read_shard(path) -> dict:
+    """A shard's result.json, or a ValueError that names the file."""
+    path = Path(path)
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: cannot read a shard's result ({error})") from None
+    if not isinstance(document, dict) or not {"shard", "draw", "rows"} <= set(document):
+        raise ValueError(f"{path}: not a shard's result (a run with --shard k/n writes one)")
+    return document
+
+
+def merge_shards(documents: list[dict]) -> dict:
+    """The shards of one draw (their result.json documents) joined: {"draw", "rows" (each
+    kind's rows in the draw's order), "timing" (each shard's)}. Refused (ValueError) unless
+    they are the n shards k/n of one draw, each once, run by one version of the package."""
+    if not documents:
+        raise ValueError("nothing to merge")
+    first = documents[0]
+    count = first["shard"][1]
+    version = first["provenance"]["accel_jax_version"]
+    for other in documents[1:]:
+        if other["draw"] != first["draw"] or other["shard"][1] != count:
+            raise ValueError("the shards are not of one draw (seed, kinds, datasets per class "
+                             "or shard count differ)")
+        if other["provenance"]["accel_jax_version"] != version:
+            raise ValueError("the shards were run by different versions of accel_jax")
+    given = sorted(d["shard"][0] for d in documents)
+    if given != list(range(count)):
+        twice = sorted({k for k in given if given.count(k) > 1})
+        missing = sorted(set(range(count)) - set(given))
+        raise ValueError(
+            f"a merge needs shards 0..{count - 1} of {count}, each once: "
+            + "; ".join(
+                part
+                for part in (
+                    f"given twice: {twice}" if twice else "",
+                    f"missing: {missing}" if missing else "",
+                )
+                if part
+            )
+        )
+    draw = first["draw"]
+    rows = {}
+    for kind in draw["kinds"]:
+        joined = sorted(
+            (
+                (i, d["rows"][kind], j)
+                for d in documents
+                for j, i in enumerate(d["rows"][kind]["index"])
+            ),
+            key=lambda row: row[0],
+        )
+        if [i for i, _, _ in joined] != list(range(draw["records"][kind])):
+            raise ValueError(f"the shards' {kind} records are not the draw's, each once")
+        rows[kind] = {
+            key: (
+                None
+                if any(r[key] is None for _, r, _ in joined)
+                else [r[key][j] for _, r, j in joined]
+            )
+            for key in ("index", "file", "truth", "verdict", "true_gap")
+        }
+    timing = {
+        f"shard_{d['shard'][0]}_of_{count}": d["timing_s"]["total"]
+        for d in sorted(documents, key=lambda d: d["shard"][0])
+    }
+    return {"draw": draw, "rows": rows, "timing": timing}
+
+
+def _score(out_dir: Path, draw: dict, rows: dict, timing: dict, started) -> dict:
+    """Score the blind verdicts of `rows` (each kind's files, truths, verdicts and true
+    gaps, in the draw's order) against their truths; write OUT/result.json and the
+    figures; return the result. `started`: the run's start (perf_counter), for its total
+    time; None for a merge (its shards' times are in `timing`)."""
     result = {
         "title": "Blind validation of the sim-to-real diagnosis — step, vibration, noise",
     }
     figures, summary, datasets, assumptions = [], [], {}, {}
     target = "target"
+    kinds = draw["kinds"]
+    truths = {kind: rows[kind]["truth"] for kind in kinds}
+    names = {kind: rows[kind]["file"] for kind in kinds}
     for kind in kinds:
-        verdicts = answers[kind]
-        gaps = true_gaps(noises[kind], verdicts) if noises[kind] is not None else None
+        verdicts = rows[kind]["verdict"]
+        gaps = rows[kind]["true_gap"]
         section = score(
             truths[kind], verdicts, CLASSES[kind], OUT_OF_LIBRARY.get(kind, ()), assurance=gaps
         )
@@ -1341,7 +1487,8 @@ def run(
             )
         ]
         assumptions[kind] = _assumptions(kind)
-    timing["total"] = time.perf_counter() - started
+    if started is not None:
+        timing["total"] = time.perf_counter() - started
     result.update(
         {
             "summary": summary,
@@ -1349,21 +1496,12 @@ def run(
             "figures": figures,
             "assumptions": {
                 **assumptions,
-                "per_class": {
-                    k: (
-                        per_class
-                        if per_class is not None
-                        else PER_CLASS_LARGE[k]
-                        if large
-                        else (PER_CLASS_QUICK[k] if quick else PER_CLASS_FULL[k])
-                    )
-                    for k in kinds
-                },
+                "per_class": draw["per_class"],
                 "blindness": "diagnosis in a separate process given only the CSV folders",
                 "precision": "float64",
             },
             "timing_s": timing,
-            "provenance": provenance(seeds={"study": seed}, precision="float64"),
+            "provenance": provenance(seeds={"study": draw["seed"]}, precision="float64"),
         }
     )
     result["overview"] = [_overview_table(result)]
@@ -1454,18 +1592,59 @@ def main(argv=None) -> int:
             "--kinds", default=",".join(KINDS), help="comma-separated subset of kinds"
         )
         parser.add_argument("--per-class", type=int, default=None, help="datasets per class")
+        parser.add_argument(
+            "--shard", type=parse_shard, default=(0, 1), metavar="k/n",
+            help="diagnose only records k, k+n, k+2n, … of each kind's draw (spread a run "
+            "over machines; join the shards' result.json files with --merge)",
+        )
+        parser.add_argument(
+            "--merge", nargs="+", type=Path, default=None, metavar="RESULT_JSON",
+            help="join the result.json files of shards 0/n … n-1/n of one draw and score "
+            "them as one run (the draw is theirs: no --kinds, --per-class, --large, "
+            "--quick or --shard with it)",
+        )
 
     def options(args):
+        if args.merge is not None:
+            given = [
+                flag
+                for flag, value, default in (
+                    ("--kinds", args.kinds, ",".join(KINDS)),
+                    ("--per-class", args.per_class, None),
+                    ("--large", args.large, False),
+                    ("--quick", args.quick, False),
+                    ("--shard", args.shard, (0, 1)),
+                )
+                if value != default
+            ]
+            if given:
+                raise ValueError(f"--merge takes the draw from the shards: not with {given}")
+            documents = [_read_shard(p) for p in args.merge]
+            merge_shards(documents)  # refused here, before anything is written
+            # The cache key: the shards' contents (a merge of other shard files is another
+            # run, whatever their paths).
+            digest = hashlib.sha256(
+                json.dumps(documents, sort_keys=True).encode()
+            ).hexdigest()[:16]
+            return {"merge": [str(p.resolve()) for p in args.merge]}, {"merge": digest}
         kinds = tuple(k for k in args.kinds.split(",") if k)
         unknown = [k for k in kinds if k not in KINDS]
         if unknown:
             raise ValueError(f"unknown kind(s) {unknown}; choose from {list(KINDS)}")
-        run_kwargs = {"kinds": kinds, "per_class": args.per_class, "large": args.large}
-        defaults = {"kinds": KINDS, "per_class": None, "large": False}
+        run_kwargs = {
+            "kinds": kinds, "per_class": args.per_class, "large": args.large, "shard": args.shard
+        }
+        defaults = {"kinds": KINDS, "per_class": None, "large": False, "shard": (0, 1)}
         key = {k: v for k, v in run_kwargs.items() if v != defaults[k]}
         return run_kwargs, key
 
     def summary(res):
+        if "shard" in res:
+            k, n = res["shard"]
+            counts = {kind: len(r["file"]) for kind, r in res["rows"].items()}
+            print(f"shard {k}/{n}: records diagnosed {counts} (not scored: --merge the "
+                  f"{n} shards' result.json files)")
+            return
         print(json.dumps({k: res[k] for k in ("summary", "timing_s")}, indent=1, default=float))
         for kind in res.get("kinds", KINDS):
             if kind in res:

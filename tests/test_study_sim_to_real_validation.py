@@ -107,3 +107,60 @@ def test_score_gives_every_verdict_a_column_in_every_row(tmp_path):
     gaps = [1.0] * len(truths)
     out = module._open_world_figure(tmp_path, kind, section, truths, verdicts, gaps)
     assert (tmp_path / out["file"]).stat().st_size > 0
+
+
+def test_shards_merged_are_the_run_without_shards(tmp_path):
+    # The blind validation spread over three "machines" (`shard=(k, 3)`) and merged: the
+    # same scores, rows, figures' list and truth file as one run of the same draw (the
+    # vibration kind, one dataset per class: 7 records, the cheapest kind to diagnose).
+    # The step kinds' true gaps take the same path (checked by hand on the step kind: see
+    # the CHANGELOG).
+    module = _load("sim_to_real_validation")
+    options = {"kinds": ("vibration",), "per_class": 1}
+    whole = module.run(tmp_path / "whole", **options)
+    paths = []
+    for k in range(3):
+        shard = module.run(tmp_path / f"s{k}", shard=(k, 3), **options)
+        assert shard["summary"] == [] and shard["shard"] == [k, 3]  # not scored alone
+        written = sorted(p.name for p in (tmp_path / f"s{k}" / "datasets" / "vibration").iterdir())
+        assert written == [f"vibration_{i:04d}.csv" for i in range(k, 7, 3)]
+        paths.append(tmp_path / f"s{k}" / "result.json")
+    merged = module.run(tmp_path / "merged", merge=paths[::-1])  # any order
+    for key in ("summary", "vibration", "datasets", "figures", "assumptions", "overview"):
+        assert merged[key] == whole[key], key
+    truth = [json.loads((tmp_path / f / "truth.json").read_text()) for f in ("whole", "merged")]
+    assert truth[0] == truth[1]
+    assert set(merged["timing_s"]) == {f"shard_{k}_of_3" for k in range(3)}
+    for figure in merged["figures"]:
+        assert (tmp_path / "merged" / figure["file"]).stat().st_size > 0
+
+    # Refused: a shard missing or given twice, shards of another draw, a file that is not
+    # a shard's — in the library (ValueError) and at the command line (one line, exit 2,
+    # nothing written).
+    documents = [json.loads(p.read_text()) for p in paths]
+    with pytest.raises(ValueError, match=r"missing: \[1\]"):
+        module.merge_shards([documents[0], documents[2]])
+    with pytest.raises(ValueError, match=r"given twice: \[2\]"):
+        module.merge_shards([*documents, documents[2]])
+    other = json.loads(json.dumps(documents[1]))
+    other["draw"]["seed"] += 1
+    with pytest.raises(ValueError, match="not of one draw"):
+        module.merge_shards([documents[0], other, documents[2]])
+    with pytest.raises(ValueError, match="not a shard's result"):
+        module.run(tmp_path / "bad", merge=[tmp_path / "whole" / "result.json"])
+    import subprocess
+    import sys
+
+    script = ROOT / "studies" / "sim_to_real_validation.py"
+    for extra, message in (
+        ([], "missing: [1]"),
+        (["--kinds", "noise"], "not with ['--kinds']"),
+    ):
+        out = subprocess.run(
+            [sys.executable, str(script), "--merge", str(paths[0]), str(paths[2]), *extra,
+             "--out", str(tmp_path / "refused")],
+            capture_output=True, text=True, timeout=300,
+        )
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        assert message in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+        assert not (tmp_path / "refused").exists()

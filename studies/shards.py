@@ -1,0 +1,29 @@
+"""A blind harness's run spread over machines (one definition: `sim_to_real_validation` and
+`measured_input_harness` read it).
+
+`--shard k/n` diagnoses records k, k+n, k+2n, … of the draw; every shard draws the same
+truths (same seed), so the shards of one draw are disjoint and together are the whole
+draw, and `--merge` joins their results and scores them as one run."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def shard_indices(count: int, shard: tuple[int, int]) -> list[int]:
+    """The record indices of shard k of n (`--shard k/n`): every n-th from k."""
+    k, n = shard
+    if not (n >= 1 and 0 <= k < n):
+        raise ValueError(f"--shard {k}/{n}: it must be k/n with 0 ≤ k < n")
+    return list(range(k, count, n))
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """`--shard`'s argparse type: "k/n" as (k, n), or one clear error."""
+    try:
+        k, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give the shard as k/n, e.g. 0/4") from None
+    if not (n >= 1 and 0 <= k < n):
+        raise argparse.ArgumentTypeError(f"{text!r}: it must be k/n with 0 ≤ k < n")
+    return k, n
