@@ -16,6 +16,7 @@ import optimistix as optx
 from .effects import step_effects
 from .innovations import innovation_terms, moment_noise_terms
 from .layout import SLOT, W
+from .solver import StallEnding
 from .model import (
     BARRIER as BARRIER,
     DELAY_LIMIT as DELAY_LIMIT,
@@ -61,7 +62,8 @@ the best left 0.0055 V (25× the noise floor), read `unexplained`; the start fro
 nominal's device with the levels as read, continued in rounds of 20, reached the floor in
 four (objective 5.4e6 → 1.1e5 → 835 → 827), and with 100 steps the record reads
 `stop_saturation` (gap 0, shrink 1.0). A fit that converges stops at its own step count
-(the starts are mapped, not vmapped), so the limit costs only where a start does not."""
+(the starts are mapped, not vmapped), so the limit costs only where a start does not; a
+start that has stalled ends as at the limit (`solver.StallEnding`)."""
 
 FIT_MAX_STEPS = 30
 """Levenberg–Marquardt steps per start. A batch runs until its slowest fit stops, and the
@@ -70,7 +72,8 @@ settled, so a fit that is not done by then is judged by its Newton decrement ins
 
 CONTACT_FIT_MAX_STEPS = 100
 """Levenberg–Marquardt steps of a compliant-stop fit: its stiffness and damping move the
-record far from where a start puts them (a soft, bouncing contact)."""
+record far from where a start puts them (a soft, bouncing contact). A start that has
+stalled ends as at the limit (`solver.StallEnding`)."""
 
 CONVERGED_DECREMENT = 0.5
 """A fit counts as converged when the solver says so or when a full Gauss–Newton step from
@@ -145,6 +148,8 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     solver = optx.LevenbergMarquardt(
         rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE, linear_solver=lx.Normal(lx.Cholesky())
     )
+    if mode in ("clamp", "contact"):  # dear steps, a high limit: a stalled fit ends early
+        solver = StallEnding(solver)
 
     dense_residuals = dense_jacobian(residuals)
 
