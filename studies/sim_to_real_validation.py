@@ -1308,16 +1308,9 @@ def merge_shards(documents: list[dict]) -> dict:
     if given != list(range(count)):
         twice = sorted({k for k in given if given.count(k) > 1})
         missing = sorted(set(range(count)) - set(given))
+        problems = [f"given twice: {twice}"] * bool(twice) + [f"missing: {missing}"] * bool(missing)
         raise ValueError(
-            f"a merge needs shards 0..{count - 1} of {count}, each once: "
-            + "; ".join(
-                part
-                for part in (
-                    f"given twice: {twice}" if twice else "",
-                    f"missing: {missing}" if missing else "",
-                )
-                if part
-            )
+            f"a merge needs shards 0..{count - 1} of {count}, each once: " + "; ".join(problems)
         )
     draw = first["draw"]
     rows = {}
