@@ -243,6 +243,8 @@ def test_outside_the_library_unexplained_with_a_reason(diagnosed):
         assert result.reason
     _, periodic = diagnosed["periodic_disturbance"]
     assert "periodic" in periodic.reason  # correlated noise would absorb it: refused
+    # Without `discover` (diagnose_many's default) no missing term is searched for.
+    assert periodic.discovery is None and "discovered" not in periodic.summary()
     assert _entry(periodic, "colored_noise")["deterministic_misfit"]
     _, bandpass = diagnosed["bandpass_sensor"]
     assert "returns to its previous level" in bandpass.reason  # the domain check
