@@ -157,7 +157,7 @@ def test_a_vibrating_stand_is_found_from_the_command_line(tmp_path, monkeypatch)
         assert best["ceiling_fraction"] == pytest.approx(ratio)
     assert "a network of the loop's states" in result.output
     # `--no-discover` reaches the library as discover=False. Checked on the call itself, not
-    # by a second diagnosis of the record (~60 s in CI for a flag).
+    # by a second full diagnosis of the record (its saving in CI not measured).
     import accel_jax.diagnose
 
     class Plain:
