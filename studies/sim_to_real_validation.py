@@ -549,7 +549,9 @@ for folder in map(pathlib.Path, sys.argv[2:]):
         {"file": f.name, "verdict": r.verdict, "tied": r.tied, "gap": r.gap,
          "reason": r.reason, "explained_fraction": r.explained_fraction,
          "remaining_gap": r.remaining_gap,
-         "ranking": [{k: e[k] for k in ("effect", "evidence", "significant", "gap_shrink", "params")}
+         "ranking": [{k: e[k] for k in ("effect", "evidence", "significant", "gap_shrink", "params",
+                                        "fit_failed", "objective_below_nominal",
+                                        "log_likelihood_below_nominal")}
                      for e in r.ranking],
          "refit": r.refit}
         for f, r in zip(files, results)]
@@ -669,6 +671,8 @@ def score(
         out["out_of_library_unexplained_rate"] = unexplained / max(n_outside, 1)
         out["out_of_library_unexplained_95ci"] = _wilson(unexplained, n_outside)
         out["n_out_of_library"] = n_outside
+    if any("fit_failed" in e for v in verdicts for e in v.get("ranking") or ()):
+        out["nested_fits"] = nested_failures(verdicts)
     if assurance is not None:
         false = [
             i
@@ -683,6 +687,32 @@ def score(
             default=None,
         )
     return out
+
+
+def nested_failures(verdicts: list[dict]) -> dict:
+    """The nested fits that ended below the nominal model they contain (the diagnosis flags
+    them `fit_failed`: a solver failure, never evidence for the effect), counted over the
+    datasets: how many fits in all, how many failed, by effect, the datasets with one, and
+    the largest shortfall (ln L units: the penalised objective's or the reported ln L's)."""
+    by_effect, datasets, n_fits, worst = {}, [], 0, 0.0
+    for i, verdict in enumerate(verdicts):
+        ranking = verdict.get("ranking") or ()
+        n_fits += len(ranking)
+        lost = [e for e in ranking if e.get("fit_failed")]
+        for e in lost:
+            by_effect[e["effect"]] = by_effect.get(e["effect"], 0) + 1
+            worst = max(
+                worst, e["objective_below_nominal"], e.get("log_likelihood_below_nominal", 0.0)
+            )
+        if lost:
+            datasets.append(i)
+    return {
+        "fits": n_fits,
+        "failed": sum(by_effect.values()),
+        "failed_by_effect": by_effect,
+        "datasets_with_a_failed_fit": datasets,
+        "largest_shortfall_lnL": worst,
+    }
 
 
 def true_gaps(noises: list[np.ndarray], verdicts: list[dict]) -> list[float | None]:
@@ -1080,6 +1110,23 @@ def _open_world_rows(kind: str, section: dict) -> list[dict]:
                 f"{_fmt_gap(worst)} floors.",
             }
         )
+    if "nested_fits" in section:
+        nested = section["nested_fits"]
+        effects = ", ".join(f"{e} {n}" for e, n in sorted(nested["failed_by_effect"].items()))
+        rows.append(
+            {
+                "quantity": f"{kind}: nested fits that ended below the nominal model they "
+                "contain (flagged fit_failed)",
+                "ours": nested["failed"],
+                "paper": 0,
+                "target": "≤",
+                "note": f"target 0: a solver failure, never an effect; {nested['failed']} of "
+                f"{nested['fits']} effect fits on "
+                f"{len(nested['datasets_with_a_failed_fit'])} datasets"
+                + (f" ({effects}); largest shortfall "
+                   f"{nested['largest_shortfall_lnL']:.3g} in ln L." if effects else "."),
+            }
+        )
     if "out_of_library_unexplained_rate" in section:
         rows.append(
             {
@@ -1467,6 +1514,9 @@ def _score(out_dir: Path, draw: dict, rows: dict, timing: dict, started) -> dict
                 "gap_shrink_std": verdict["gap"]["shrink_std"],
                 "explained_fraction": verdict.get("explained_fraction"),
                 "reason": verdict.get("reason"),
+                "failed_nested_fits": [
+                    e["effect"] for e in verdict.get("ranking") or () if e.get("fit_failed")
+                ],
                 "true_gap_over_floor": g,
                 "snr": s,
             }

@@ -27,6 +27,7 @@ from accel_jax.diagnose import (
     ljung_box,
     rank_candidates,
 )
+from accel_jax.diagnose.step.assess import NESTED_LNL_SLACK
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import colored_truth  # noqa: E402
@@ -263,6 +264,24 @@ def test_strong_output_noise_is_named_and_its_size_recovered(diagnosed):
     assert params["sigma_correlated_per_sample_V"] == pytest.approx(12 * SIGMA, rel=0.3)
     # The white part (0.14 % of a block mean's variance here) is not asserted: it read
     # 5.4e-4 V against the truth's 4e-4 V, and the fit gives no standard error for it.
+
+
+def test_a_nested_fit_below_the_nominal_is_flagged_not_ranked_by_its_evidence(diagnosed):
+    # The strong coloured noise's record: its stop fit's reported ln L ended ~1,800 below
+    # the nominal's (evidence −3,668 before `assess.reported_below`), though the stop at
+    # its no-effect value is the nominal model. Flagged, shown failed, ranked last.
+    _, result = diagnosed["colored_noise_strong"]
+    failed = [e for e in result.ranking if e["fit_failed"]]
+    stop = _entry(result, "stop_saturation")
+    assert stop in failed and stop["log_likelihood_below_nominal"] > 100, result.summary()
+    for e in failed:
+        assert not e["significant"] and not e["plausible"] and e["explained_fraction"] == 0
+        assert e["log_likelihood_below_nominal"] > NESTED_LNL_SLACK, e
+        assert f"{e['effect']:<18} fit failed (its ln L ended" in result.summary()
+    assert result.ranking[-len(failed) :] == failed
+    # No fit is flagged on the clean records (their shortfalls ≤ 0.8 ln L).
+    for name in ("clean", "clean_conventions"):
+        assert not any(e["fit_failed"] for e in diagnosed[name][1].ranking), name
 
 
 def test_moment_noise_inside_the_loop_is_named_at_its_place(diagnosed):

@@ -18,7 +18,15 @@ from accel_jax.cli import main
 from accel_jax.diagnose import diagnose_many
 from accel_jax.diagnose.step.fit import DELAY_LIMIT, GAIN_SIGMA
 from accel_jax.diagnose.step.layout import W
-from accel_jax.diagnose.step.assess import nested_failed, nested_losers, nested_shortfall
+from accel_jax.diagnose.step.assess import (
+    NESTED_ABSOLUTE,
+    NESTED_LNL_SLACK,
+    log_likelihood_shortfall,
+    nested_failed,
+    nested_losers,
+    nested_shortfall,
+    reported_below,
+)
 from accel_jax.diagnose.step.nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -54,8 +62,13 @@ def test_a_measured_input_gives_the_clean_records_verdict(twins):
         assert any(k.startswith("input_level_") for k in test["standardised"]), name
         if a.verdict == "none":
             assert not test["strained"], (name, test)
-        for entry in a.ranking + b.ranking:  # no nested fit ended below the nominal
-            assert not entry["fit_failed"], (name, entry["effect"])
+        for entry in a.ranking + b.ranking:
+            # No nested fit's solver ended below the nominal's penalised objective. A fit
+            # may be flagged for its reported ln L (`reported_below`: on the torquer-lag
+            # twin, the drift's), which the solver does not maximise.
+            assert entry["objective_below_nominal"] < NESTED_ABSOLUTE, (name, entry)
+            if entry["fit_failed"]:
+                assert entry["log_likelihood_below_nominal"] > NESTED_LNL_SLACK, (name, entry)
 
 
 @pytest.mark.slow
@@ -167,6 +180,18 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
     assert nested_failed(short, huge) and not nested_failed(
         SimpleNamespace(effect="torquer_lag", objective=2e10 + 1.0), huge
     )  # (½·1 ≤ 1e-10 of ½·2e10: round-off of the sum)
+
+
+def test_a_nested_fit_whose_reported_log_likelihood_is_below_the_nominals_is_flagged():
+    # The evidence compares the reported ln L, which the solver does not minimise (it
+    # leaves out some priors): a nested fit may end a little below the nominal's there
+    # (≤ 0.8 on the clean cases), but not by more than `NESTED_LNL_SLACK`.
+    nominal = SimpleNamespace(effect="nominal", log_likelihood=8000.0)
+    slight = SimpleNamespace(effect="colored_noise", log_likelihood=8000.0 - 0.8)
+    far = SimpleNamespace(effect="stop_saturation", log_likelihood=8000.0 - 4909.7)
+    assert log_likelihood_shortfall(far, nominal) == pytest.approx(4909.7)
+    assert not reported_below(slight, nominal) and reported_below(far, nominal)
+    assert NESTED_LNL_SLACK < 4909.7 and NESTED_LNL_SLACK > 0.8
 
 
 def test_a_measured_inputs_level_errors_count_in_the_log_likelihood():

@@ -36,6 +36,10 @@ def test_validation_study_quick(quick_report):
     independent = saved["step_independent"]
     assert independent["n_datasets"] == 9 and independent["false_assurance"] == 0
     assert independent["out_of_library_unexplained_rate"] >= 2 / 3
+    # The blind child passes each nested fit's flag: the failures are counted per kind.
+    for section in (step, independent):
+        assert section["nested_fits"]["fits"] > 0
+    assert any("nested fits that ended below" in row["quantity"] for row in saved["summary"])
     rows = {row["quantity"] for row in saved["summary"]}
     assert any("false assurance" in q for q in rows) and any("out-of-library" in q for q in rows)
     for figure in saved["figures"]:
@@ -107,6 +111,38 @@ def test_score_gives_every_verdict_a_column_in_every_row(tmp_path):
     gaps = [1.0] * len(truths)
     out = module._open_world_figure(tmp_path, kind, section, truths, verdicts, gaps)
     assert (tmp_path / out["file"]).stat().st_size > 0
+
+
+def test_score_counts_nested_fits_that_lost_to_the_nominal():
+    # The diagnosis flags a nested fit that ended below the nominal model it contains
+    # (`fit_failed`); the blind harness counts them per kind and names the datasets.
+    module = _load("sim_to_real_validation")
+    classes = module.CLASSES["step"]
+
+    def entry(effect, failed=False, below=0.0):
+        return {"effect": effect, "evidence": -1.0, "fit_failed": failed,
+                "objective_below_nominal": below}
+
+    truths = [{"effect": "none"}, {"effect": "none"}, {"effect": "none"}]
+    rankings = [
+        [entry("torquer_lag"), entry("stop_saturation", True, 4909.7)],
+        [entry("torquer_lag"), entry("stop_saturation")],
+        [entry("stop_contact", True, 12.0), entry("stop_saturation", True, 0.5)],
+    ]
+    verdicts = [
+        {"verdict": "none", "tied": [], "gap": {"shrink": 0.0}, "ranking": r} for r in rankings
+    ]
+    nested = module.score(truths, verdicts, classes, (), assurance=None)["nested_fits"]
+    assert nested["fits"] == 6 and nested["failed"] == 3
+    assert nested["failed_by_effect"] == {"stop_saturation": 2, "stop_contact": 1}
+    assert nested["datasets_with_a_failed_fit"] == [0, 2]
+    assert nested["largest_shortfall_lnL"] == 4909.7
+    row = module._open_world_rows("step", {"nested_fits": nested})[0]
+    assert row["ours"] == 3 and "3 of 6 effect fits on 2 datasets" in row["note"]
+    # Verdicts without the flag (an older child, the vibration and noise kinds): no count.
+    for v in verdicts:
+        v["ranking"] = [{"effect": e["effect"]} for e in v["ranking"]]
+    assert "nested_fits" not in module.score(truths, verdicts, classes, (), assurance=None)
 
 
 def test_shards_merged_are_the_run_without_shards(tmp_path):

@@ -168,6 +168,32 @@ def nested_failed(fit: StepFit, nominal_fit: StepFit) -> bool:
     return nested_shortfall(fit, nominal_fit) > max(NESTED_TOLERANCE * scale, NESTED_ABSOLUTE)
 
 
+NESTED_LNL_SLACK = 2.0
+"""How far an effect's reported ln L (the evidence's: `StepFit.log_likelihood`, the training
+residuals with their variance estimated, the device's, the test gain's and a measured
+input's levels' priors) may fall below the nominal's before the effect's fit counts as
+failed (`reported_below`). It is not the quantity the solver minimises (that is the
+objective, `nested_failed`): it leaves out the priors of the other nuisances, the change
+times and the effect, which a nested fit may trade for it. On the clean records of the
+test suite's cases it fell at most 0.80 below the nominal's (a coloured-noise fit). On
+records far outside every model it fell thousands below while the objective did not: a
+record misfitted by ~10⁴ σ, where the solver, the noise floor fixed, pushes the device
+~90σ further for a small share of the residual that the estimated variance does not
+value; and a stop fit whose training residuals grew once the held-out part's nuisances
+moved (the state carries across the segments). Such an entry's evidence is no evidence."""
+
+
+def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:
+    """How far `fit`'s reported ln L ends below the nominal fit's (≤ 0: not below)."""
+    return float(nominal_fit.log_likelihood) - float(fit.log_likelihood)
+
+
+def reported_below(fit: StepFit, nominal_fit: StepFit) -> bool:
+    """Whether a nested fit's reported ln L ended below the nominal's by more than
+    `NESTED_LNL_SLACK`."""
+    return log_likelihood_shortfall(fit, nominal_fit) > NESTED_LNL_SLACK
+
+
 def nested_losers(fits: list[StepFit]) -> list[str]:
     """The candidates of one record (`fits[0]` the nominal) whose fit lost to the nominal."""
     return [f.effect for f in fits[1:] if nested_failed(f, fits[0])]

@@ -404,8 +404,10 @@ class RankingEntry(Candidate):
     `openworld.decide` reads (`openworld.Candidate`) and what the diagnosis reports with
     them (`to_dict`: `DiagnosisResult.ranking`'s dict, key for key).
 
-    - `fit_failed`: its nested fit ended below the nominal's likelihood (a solver failure,
-        `assess.nested_failed`); `objective_below_nominal` by how much (≥ 0, ln L units).
+    - `fit_failed`: its nested fit ended below the nominal's likelihood: the penalised one
+        the solver maximised (a solver failure, `assess.nested_failed`;
+        `objective_below_nominal` by how much, ≥ 0, ln L units) or the reported ln L that
+        the evidence compares (`assess.reported_below`; `log_likelihood_below_nominal`).
     - `explains_up_to_model_form`: a deterministic effect that explains the record up to
         its model form (`openworld.MODEL_FORM`).
     - `gap_after_V` [V]: the held-out gap with the effect; `gap_shrink` the fraction of the
@@ -432,6 +434,7 @@ class RankingEntry(Candidate):
     converged: bool
     fit_steps: int
     out_of_prior: list[str]
+    log_likelihood_below_nominal: float = 0.0
     one_step_whiteness: Whiteness | None = None
     variance_consistent: bool | None = None
     predictability_null_quantile: dict[str, Any] | None = None
@@ -442,6 +445,7 @@ class RankingEntry(Candidate):
             "evidence": self.evidence,
             "fit_failed": self.fit_failed,
             "objective_below_nominal": self.objective_below_nominal,
+            "log_likelihood_below_nominal": self.log_likelihood_below_nominal,
             "significant": self.significant,
             "stochastic": self.stochastic,
             "explains": self.explains,

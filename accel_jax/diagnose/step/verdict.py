@@ -231,7 +231,9 @@ def ranking_entry(
     fraction = openworld.explained_fraction(nominal_fit.gap_held, fit.gap_held)
     # A nested fit that ended below the nominal's likelihood is a solver failure (it
     # was restarted from the nominal optimum first): flagged, never an effect.
-    failed = assess.nested_failed(fit, nominal_fit)
+    # And one whose reported ln L, which the evidence compares, ended below the nominal's
+    # (`assess.reported_below`): its evidence is no evidence.
+    failed = assess.nested_failed(fit, nominal_fit) or assess.reported_below(fit, nominal_fit)
     # A noise that absorbs a predictable misfit explains none of it.
     absorbed = fit.stochastic and bool(predictable.deterministic)
     noise = {}
@@ -252,6 +254,7 @@ def ranking_entry(
         evidence=float(evidence),
         fit_failed=failed,
         objective_below_nominal=max(assess.nested_shortfall(fit, nominal_fit), 0.0),
+        log_likelihood_below_nominal=max(assess.log_likelihood_shortfall(fit, nominal_fit), 0.0),
         significant=bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
         stochastic=fit.stochastic,
         explains=fit.explains,
