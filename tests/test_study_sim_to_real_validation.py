@@ -138,7 +138,8 @@ def test_score_counts_nested_fits_that_lost_to_the_nominal():
     assert nested["datasets_with_a_failed_fit"] == [0, 2]
     assert nested["largest_shortfall_lnL"] == 4909.7
     row = module._open_world_rows("step", {"nested_fits": nested})[0]
-    assert row["ours"] == 3 and "3 of 6 effect fits on 2 datasets" in row["note"]
+    assert nested["failed_objective"] == 3
+    assert row["ours"] == 3 and "3 of 6 effect fits on 2 datasets, 3 of them" in row["note"]
     # Verdicts without the flag (an older child, the vibration and noise kinds): no count.
     for v in verdicts:
         v["ranking"] = [{"effect": e["effect"]} for e in v["ranking"]]
