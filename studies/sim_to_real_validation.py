@@ -52,6 +52,7 @@ import numpy as np  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
 from accel_jax import NoiseData, StepData, VibrationData, write_csv  # noqa: E402
+from accel_jax.diagnose.step.assess import NESTED_ABSOLUTE  # noqa: E402
 from accel_jax.report import (  # noqa: E402
     Figures,
     provenance,
@@ -701,7 +702,7 @@ def nested_failures(verdicts: list[dict]) -> dict:
         lost = [e for e in ranking if e.get("fit_failed")]
         for e in lost:
             by_effect[e["effect"]] = by_effect.get(e["effect"], 0) + 1
-            solver += e["objective_below_nominal"] > 0
+            solver += e["objective_below_nominal"] > NESTED_ABSOLUTE
             worst = max(
                 worst, e["objective_below_nominal"], e.get("log_likelihood_below_nominal", 0.0)
             )
@@ -711,8 +712,9 @@ def nested_failures(verdicts: list[dict]) -> dict:
         "fits": n_fits,
         "failed": sum(by_effect.values()),
         "failed_by_effect": by_effect,
-        # of which below the nominal's penalised objective (the solver's); the rest only in
-        # the reported ln L, which the solver does not maximise
+        # of which below the nominal's penalised objective (the solver's) by more than the
+        # least shortfall that can count (`NESTED_ABSOLUTE`); the rest only in the reported
+        # ln L, which the solver does not maximise
         "failed_objective": solver,
         "datasets_with_a_failed_fit": datasets,
         "largest_shortfall_lnL": worst,

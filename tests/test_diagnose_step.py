@@ -277,7 +277,9 @@ def test_a_nested_fit_below_the_nominal_is_flagged_not_ranked_by_its_evidence(di
     for e in failed:
         assert not e["significant"] and not e["plausible"] and e["explained_fraction"] == 0
         assert e["log_likelihood_below_nominal"] > NESTED_LNL_SLACK, e
-        assert f"{e['effect']:<18} fit failed (its ln L ended" in result.summary()
+        below = f"{e['log_likelihood_below_nominal']:.3g} below its reported ln L"
+        assert f"{e['effect']:<18} fit failed (ended " in result.summary()
+        assert below in result.summary()
     assert result.ranking[-len(failed) :] == failed
     # No fit is flagged on the clean records (their shortfalls ≤ 0.8 ln L).
     for name in ("clean", "clean_conventions"):

@@ -458,17 +458,11 @@ class DiagnosisResult:
             if r.get("fit_failed"):  # a nested fit that lost to the nominal: no evidence
                 below = r["objective_below_nominal"]
                 reported = r.get("log_likelihood_below_nominal", 0.0)
-                if below > 0:
-                    how = (
-                        f"ended {below:.3g} below the nominal model's penalised ln L, after "
-                        "a restart from its optimum"
-                    )
-                else:
-                    how = (
-                        f"its ln L ended {reported:.3g} below the nominal model's, which it "
-                        "contains: no evidence either way"
-                    )
-                lines.append(f"   {r['effect']:<18} fit failed ({how})")
+                lines.append(
+                    f"   {r['effect']:<18} fit failed (ended {below:.3g} below the nominal "
+                    f"model's penalised ln L, {reported:.3g} below its reported ln L; the "
+                    "nominal is the effect switched off: no evidence either way)"
+                )
                 continue
             lines.append(
                 f" {mark} {r['effect']:<18} evidence {r['evidence']:>10.1f}  "
