@@ -550,9 +550,11 @@ for folder in map(pathlib.Path, sys.argv[2:]):
         {"file": f.name, "verdict": r.verdict, "tied": r.tied, "gap": r.gap,
          "reason": r.reason, "explained_fraction": r.explained_fraction,
          "remaining_gap": r.remaining_gap,
-         "ranking": [{k: e[k] for k in ("effect", "evidence", "significant", "gap_shrink", "params",
-                                        "fit_failed", "objective_below_nominal",
-                                        "log_likelihood_below_nominal")}
+         # (a step ranking's nested-fit flags; the vibration and noise rankings have none)
+         "ranking": [{**{k: e[k] for k in ("effect", "evidence", "significant", "gap_shrink",
+                                          "params")},
+                      **{k: e[k] for k in ("fit_failed", "objective_below_nominal",
+                                          "log_likelihood_below_nominal") if k in e}}
                      for e in r.ranking],
          "refit": r.refit}
         for f, r in zip(files, results)]
