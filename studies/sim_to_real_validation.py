@@ -694,7 +694,8 @@ def score(
 
 def nested_failures(verdicts: list[dict]) -> dict:
     """The nested fits that ended below the nominal model they contain (the diagnosis flags
-    them `fit_failed`: a solver failure, never evidence for the effect), counted over the
+    them `fit_failed`: below the solver's penalised objective, or below the nominal's
+    reported ln L; never evidence for the effect), counted over the
     datasets: how many fits in all, how many failed, by effect, the datasets with one, and
     the largest shortfall (ln L units: the penalised objective's or the reported ln L's)."""
     by_effect, datasets, n_fits, worst, solver = {}, [], 0, 0.0, 0
