@@ -4,6 +4,7 @@ records of the independent SciPy truth simulator (studies/step_truth.py: its own
 equations and conventions, never the diagnosis's model): every verdict, every nuisance,
 the domain check."""
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -266,21 +267,25 @@ def test_strong_output_noise_is_named_and_its_size_recovered(diagnosed):
     # 5.4e-4 V against the truth's 4e-4 V, and the fit gives no standard error for it.
 
 
-def test_a_nested_fit_below_the_nominal_is_flagged_not_ranked_by_its_evidence(diagnosed):
+def test_a_nested_fit_is_judged_on_its_training_likelihood_and_a_flag_is_shown(diagnosed):
     # The strong coloured noise's record: its stop fit's reported ln L ended ~1,800 below
-    # the nominal's (evidence −3,668 before `assess.reported_below`), though the stop at
-    # its no-effect value is the nominal model. Flagged, shown failed, ranked last.
+    # the nominal's (evidence −3,668) while the ln L read the training samples after the
+    # held-out change times had moved; the solver's objective, at the training optimum,
+    # was better than the nominal's. Read at the training optimum, no nested fit ends
+    # below the nominal model it contains, and the stop, which fits the training part
+    # better (evidence > 0) but predicts the held-out part worse, is not significant.
     _, result = diagnosed["colored_noise_strong"]
-    failed = [e for e in result.ranking if e["fit_failed"]]
+    assert result.verdict == "colored_noise", result.summary()
     stop = _entry(result, "stop_saturation")
-    assert stop in failed and stop["log_likelihood_below_nominal"] > 100, result.summary()
-    for e in failed:
-        assert not e["significant"] and not e["plausible"] and e["explained_fraction"] == 0
-        assert e["log_likelihood_below_nominal"] > NESTED_LNL_SLACK, e
-        below = f"{e['log_likelihood_below_nominal']:.3g} below its reported ln L"
-        assert f"{e['effect']:<18} fit failed (ended " in result.summary()
-        assert below in result.summary()
-    assert result.ranking[-len(failed) :] == failed
+    assert not stop["fit_failed"] and stop["evidence"] > 0, result.summary()
+    assert stop["gap_shrink"] < 0 and not stop["significant"], stop
+    assert all(e["log_likelihood_below_nominal"] <= NESTED_LNL_SLACK for e in result.ranking)
+    # A flagged entry (`assess.reported_below`, or the objective's `nested_failed`) is
+    # shown failed with both shortfalls and never ranked as evidence.
+    entry = {**stop, "fit_failed": True, "log_likelihood_below_nominal": 1830.0}
+    shown = dataclasses.replace(result, ranking=[*result.ranking, entry]).summary()
+    assert "stop_saturation    fit failed (ended 0 below the nominal model's" in shown
+    assert "1.83e+03 below its reported ln L" in shown
     # No fit is flagged on the clean records (their shortfalls ≤ 0.8 ln L).
     for name in ("clean", "clean_conventions"):
         assert not any(e["fit_failed"] for e in diagnosed[name][1].ranking), name

@@ -212,7 +212,8 @@ def test_a_measured_inputs_level_errors_count_in_the_log_likelihood():
     def log_likelihood(levels):
         w = np.concatenate([np.zeros(W.FIXED + n_changes), levels])
         fit = _fit_entry(
-            rec, [], 0, w, np.zeros(n), innovations, 0.0, True, np.zeros(n), np.zeros(n),
+            rec, [], 0, w, np.zeros(n), innovations, innovations, 0.0, True, np.zeros(n),
+            np.zeros(n),
             steps=1, decrement=0.0, objective=0.0, trained=w,
         )
         return fit.log_likelihood

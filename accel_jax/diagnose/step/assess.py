@@ -33,6 +33,7 @@ def _fit_entry(
     w,
     prediction,
     innovations,
+    train_innovations,
     log_v,
     converged,
     prior_prediction,
@@ -48,7 +49,9 @@ def _fit_entry(
     n_train = int(np.sum(train))
     z = np.asarray(w[W.REFIT])
     z_gain = float(w[W.GAIN])
-    rss = float(np.sum(innovations[train] ** 2))
+    # The training part's innovations at the training optimum (`train_innovations`); the
+    # held-out part's (`innovations`) after its nuisances moved.
+    rss = float(np.sum(train_innovations[train] ** 2))
     rss = max(rss, 1e-300)
     # A measured input's level errors (and its channel's drift) are terms of the record's
     # likelihood too (errors in variables: the input channel's plateau means, each with its
@@ -106,13 +109,13 @@ def fit_entries(
     """Each candidate's fit (`StepFit`) from the outputs of `fit._fit_record` for one
     record (its padding cut off); `base` the nominal device (`ServoParams`), which a
     moment noise's physical values need (its fitted loop)."""
-    w, prediction, innovations, log_v, converged, steps, prior, decrement, objective, trained = (
-        np.asarray(o) for o in outputs
-    )
+    (w, prediction, innovations, train_innovations, log_v, converged, steps, prior, decrement,
+     objective, trained) = (np.asarray(o) for o in outputs)  # fmt: skip
     n = rec.n  # the record's blocks, without the padding
-    prediction, innovations, prior, u_out = (
+    prediction, innovations, train_innovations, prior, u_out = (
         prediction[:, :n],
         innovations[:, :n],
+        train_innovations[:, :n],
         prior[:, :n],
         u_out[:n],
     )
@@ -124,6 +127,7 @@ def fit_entries(
             w[c],
             prediction[c],
             innovations[c],
+            train_innovations[c],
             log_v[c],
             converged[c],
             prior[c],

@@ -217,17 +217,29 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
             """A few Gauss–Newton steps of the held-out nuisances from `base`: the best
             step (one pass more than there are steps: the last only costs the last step's
             result), the training cost at `base` (from the first pass), the model's
-            prediction, innovations and ln V at the best step, and (one pass more) the
-            prediction there with the device at its prior values (`W.REFIT` zero: what the
-            refit changed). Every model evaluation of the fit after the training solve is
-            a pass of this one loop, so the simulation appears once here in the compiled
-            program instead of once per use (a compliant contact's fit of a 24,000-sample
-            record compiled in 62–63 s instead of 71–76 s on the 2-core CPU)."""
+            prediction and innovations at the best step, (one pass more) the prediction
+            there with the device at its prior values (`W.REFIT` zero: what the refit
+            changed), and the training part's innovations and ln V at `base` (from the
+            first pass) for the likelihood. Every model evaluation of the fit after the
+            training solve is a pass of this one loop, so the simulation appears once here
+            in the compiled program instead of once per use (a compliant contact's fit of a
+            24,000-sample record compiled in 62–63 s instead of 71–76 s on the 2-core
+            CPU)."""
             passes = HELD_OUT_ITERATIONS + 1
 
             def iterate(i, carry):
-                delta, best_delta, best_cost, train_at_base, best_terms, at_prior = carry
+                delta, best_delta, best_cost, train_at_base, best_terms, at_train, at_prior = (
+                    carry
+                )
                 last = i == passes  # the extra pass: the best step, the device at its prior
+                # The first pass, at `base` itself (the training optimum): the training
+                # part's innovations and ln V, the likelihood the evidence compares, at the
+                # parameters the training part chose. Not at the best step: the held-out
+                # refit moves every sample after a held-out change (the state carries
+                # across the segments) and an effect's own nuisances (a stop's output
+                # offset) move every sample; read there, a stop fit's training ln L ended
+                # thousands below the nominal it contains, its objective better.
+                training = i == 0
                 point = jnp.where(last, best_delta, delta)
                 origin = jnp.where(last, base.at[W.REFIT].set(0.0), base)
                 jac, (r, train, terms) = jax.jacfwd(held_out, has_aux=True)(point, origin)
@@ -237,19 +249,20 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
                     new,
                     jnp.where(better, delta, best_delta),
                     jnp.where(better, cost, best_cost),
-                    jnp.where(i == 0, train, train_at_base),
+                    jnp.where(training, train, train_at_base),
                     jax.tree_util.tree_map(partial(jnp.where, better), terms, best_terms),
+                    jax.tree_util.tree_map(partial(jnp.where, training), terms[1:], at_train),
                     jnp.where(last, terms[0], at_prior),
                 )
 
             zero = jnp.zeros_like(base[W.FROM_EFFECT])
             trace = jnp.zeros(n, base.dtype)  # a prediction's or the innovations' shape
             nothing = (trace, trace, jnp.zeros((), base.dtype))  # (prediction, a, ln V)
-            carry = (zero, zero, jnp.inf, jnp.inf, nothing, trace)
-            _, best_delta, _, train_at_base, terms, at_prior = jax.lax.fori_loop(
+            carry = (zero, zero, jnp.inf, jnp.inf, nothing, nothing[1:], trace)
+            _, best_delta, _, train_at_base, terms, at_train, at_prior = jax.lax.fori_loop(
                 0, passes + 1, iterate, carry
             )
-            return best_delta, train_at_base, terms, at_prior
+            return best_delta, train_at_base, terms, at_train, at_prior
 
         # From the fit and from its polished point at once (one batch of two, so the model
         # appears once in the program): the polished one is kept when it lowers the
@@ -260,7 +273,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
         def batch(f):
             return jax.vmap(f) if mode != "contact" else partial(jax.lax.map, f)
 
-        deltas, train_costs, terms, at_prior = batch(refine)(jnp.stack([w, polished]))
+        deltas, train_costs, terms, at_train, at_prior = batch(refine)(jnp.stack([w, polished]))
         better = train_costs[1] < 2 * cost
         w = jnp.where(better, polished, w)
         trained = w  # the training optimum, before the held-out nuisances move
@@ -268,8 +281,13 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
         w = moved(w, best_delta)
         # The fitted model (at `w`) and the same model with the device at its prior values
         # (what the refit changed), from the refine's passes of the start kept.
-        prediction, a, log_v = jax.tree_util.tree_map(
+        prediction, a, _ = jax.tree_util.tree_map(
             lambda x: jnp.where(better, x[1], x[0]), terms
+        )
+        # The training part's innovations and ln V (the likelihood the evidence compares;
+        # `refine`'s training pass).
+        a_train, log_v = jax.tree_util.tree_map(
+            lambda x: jnp.where(better, x[1], x[0]), at_train
         )
         prior_prediction = jnp.where(better, at_prior[1], at_prior[0])
         # The objective the solver minimised (Σ of the squared training residuals and of
@@ -281,6 +299,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
             w,
             prediction,
             a,
+            a_train,
             log_v,
             converged,
             steps[best],
