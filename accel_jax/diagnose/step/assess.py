@@ -183,8 +183,9 @@ test suite's cases it fell at most 0.80 below the nominal's (a coloured-noise fi
 records far outside every model it fell thousands below while the objective did not: a
 record misfitted by ~10⁴ σ, where the solver, the noise floor fixed, pushes the device
 ~90σ further for a small share of the residual that the estimated variance does not
-value; and a stop fit whose training residuals grew once the held-out part's nuisances
-moved (the state carries across the segments). Such an entry's evidence is no evidence."""
+value. (A stop fit's training residuals also grew once the held-out part's nuisances
+moved, the state carrying across the segments, while the ln L was read there; it is read
+at the training optimum since f90f1b4.) Such an entry's evidence is no evidence."""
 
 
 def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:
