@@ -279,12 +279,14 @@ class StepFit:
         `w_trained` the training optimum before they moved; `z` its refit part (4,) and
         `z_gain` the test winding's gain z; `gain` [V/V] the test winding's gain with its
         polarity.
-    - `log_likelihood`: the profiled ln L of the training part (with the refit's and the
-        gain's priors, and for a measured input its level errors' and drift's terms: errors
-        in variables); `innovation_variance` [V²] the one-step prediction variance there.
-    - `prediction`, `prior_prediction` (n,) [V]: the fitted model's block means and the
-        same model with the device at its prior values; `error` (n,) [V] the measured
-        block means less `prediction`; `innovations` (n,) [V] the one-step errors.
+    - `log_likelihood`: the profiled ln L of the training part at the training optimum
+        `w_trained`, where `objective` is (with the refit's and the gain's priors, and for
+        a measured input its level errors' and drift's terms: errors in variables);
+        `innovation_variance` [V²] the one-step prediction variance there.
+    - `prediction`, `prior_prediction` (n,) [V]: the fitted model's block means (at `w`)
+        and the same model with the device at its prior values; `error` (n,) [V] the
+        measured block means less `prediction`; `innovations` (n,) [V] the one-step
+        errors at `w`.
     - `converged`: the solver's or the Newton decrement's word (`fit.CONVERGED_DECREMENT`);
         `steps` the solver's steps; `decrement` the Newton decrement; `objective` the
         solver's penalised cost at `w_trained` (`assess.nested_failed`).
