@@ -140,6 +140,7 @@ def kalman_filter(
     observations: ArrayLike,
     initial_mean: ArrayLike,
     initial_covariance: ArrayLike,
+    observed: ArrayLike | None = None,
 ) -> FilterOutput:
     """Run the Kalman filter over a record, as one `jax.lax.scan`.
 
@@ -154,6 +155,11 @@ def kalman_filter(
     - `observations`: z, shape (T, m) or (T,) when m = 1.
     - `initial_mean`: x̂_{0|−1}, shape (n,).
     - `initial_covariance`: P_{0|−1}, shape (n, n).
+    - `observed`: optional, shape (T,): False where z_k is missing (a gap). There the
+        filter only predicts (no update: the gain is zero, so x̂_{k|k} = x̂_{k|k−1} and
+        P_{k|k} = P_{k|k−1}), ν_k and S_k are the prediction's error (0 where z_k is not
+        finite: a missing value may be NaN) and variance, and the step adds nothing to
+        the log-likelihood. Default: every step observed.
 
     **Returns:** a `FilterOutput`. Precision follows the inputs (float64 recommended for
     models whose variances span many decades, such as the INS channel).
@@ -175,21 +181,38 @@ def kalman_filter(
             f"kalman_filter: initial_mean must have shape ({n},) and initial_covariance "
             f"({n}, {n}), got {mean0.shape} and {cov0.shape}."
         )
-    concrete = _concrete(z)
-    if concrete is not None and not np.all(np.isfinite(concrete)):
-        bad = int(np.argmax(~np.all(np.isfinite(concrete), axis=1)))
-        raise ValueError(
-            f"kalman_filter: observation {bad} is {concrete[bad].tolist()}; the record must be "
-            "finite (drop or interpolate missing samples first)."
-        )
     dtype = jnp.result_type(z, mean0, cov0, model.transition)
     F, Q = model.transition.astype(dtype), model.process_covariance.astype(dtype)
     H, R = model.observation.astype(dtype), model.observation_covariance.astype(dtype)
     eye = jnp.eye(n, dtype=dtype)
     log_2pi = jnp.log(2 * jnp.pi).astype(dtype)
 
-    def step(carry, z_k):
+    if observed is None:
+        seen = jnp.ones(z.shape[0], bool)
+    else:
+        seen = jnp.asarray(observed).astype(bool)
+        if seen.shape != (z.shape[0],):
+            raise ValueError(
+                f"kalman_filter: observed must have shape ({z.shape[0]},), got {seen.shape}."
+            )
+    concrete = _concrete(z)
+    if concrete is not None:
+        seen_now = _concrete(seen)
+        check = concrete if seen_now is None else concrete[seen_now]
+        if not np.all(np.isfinite(check)):
+            index = np.flatnonzero(~np.all(np.isfinite(concrete), axis=1))
+            if seen_now is not None:
+                index = index[seen_now[index]]
+            bad = int(index[0])
+            raise ValueError(
+                f"kalman_filter: observation {bad} is {concrete[bad].tolist()}; the record "
+                "must be finite where it is observed (mark missing samples in `observed`)."
+            )
+
+    def step(carry, inputs):
+        z_k, seen_k = inputs
         mean, cov = carry
+        z_k = jnp.where(seen_k | jnp.isfinite(z_k), z_k, H @ mean)
         innovation = z_k - H @ mean
         s = _symmetrise(H @ cov @ H.T + R)
         if m == 1:
@@ -204,6 +227,8 @@ def kalman_filter(
             log_lik = -0.5 * (m * log_2pi + jnp.dot(white, white)) - jnp.sum(
                 jnp.log(jnp.diagonal(chol))
             )
+        gain = jnp.where(seen_k, gain, 0.0)
+        log_lik = jnp.where(seen_k, log_lik, 0.0)
         i_kh = eye - gain @ H
         cov_post = _symmetrise(i_kh @ cov @ i_kh.T + gain @ R @ gain.T)
         mean_post = mean + gain @ innovation
@@ -212,7 +237,7 @@ def kalman_filter(
         out = (mean_post, cov_post, mean, cov, innovation, s, log_lik)
         return (mean_next, cov_next), out
 
-    _, outs = jax.lax.scan(step, (mean0.astype(dtype), cov0.astype(dtype)), z)
+    _, outs = jax.lax.scan(step, (mean0.astype(dtype), cov0.astype(dtype)), (z, seen))
     return FilterOutput(*outs)
 
 

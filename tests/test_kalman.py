@@ -175,6 +175,24 @@ def test_bad_input_raises_clear_errors():
         scale_noise_coefficients(CHANNEL, drift_factor=0.0, diffusion_factor=1.0)
 
 
+def _dense_state_covariance(F, Q, P0, T):
+    """The covariance of x_0..x_{T−1} stacked (x_{k+1} = F x_k + w_k, w ~ N(0, Q),
+    x_0 ~ N(·, P0)), block by block from powers of F: none of the filter's recursions."""
+    n = F.shape[0]
+
+    def power(k):
+        return np.linalg.matrix_power(F, k)
+
+    cov_x = np.zeros((n * T, n * T))
+    for i in range(T):
+        for j in range(T):
+            block = power(i) @ P0 @ power(j).T
+            for l in range(min(i, j)):
+                block += power(i - 1 - l) @ Q @ power(j - 1 - l).T
+            cov_x[n * i : n * i + n, n * j : n * j + n] = block
+    return cov_x
+
+
 def test_rts_smoother_is_the_dense_gaussian_conditional():
     # Independent check: for a short record, stack x_0..x_{T−1} and z_0..z_{T−1} as one
     # Gaussian (NumPy) and condition on all z: E[x_k | z], Cov[x_k | z].
@@ -193,17 +211,8 @@ def test_rts_smoother_is_the_dense_gaussian_conditional():
     model = LinearGaussianModel(jnp.asarray(F), jnp.asarray(Q), jnp.asarray(H), jnp.asarray(R))
     z = rng.standard_normal(T)
 
-    def power(k):
-        return np.linalg.matrix_power(F, k)
-
-    cov_x = np.zeros((n * T, n * T))
-    for i in range(T):
-        for j in range(T):
-            block = power(i) @ P0 @ power(j).T
-            for l in range(min(i, j)):
-                block += power(i - 1 - l) @ Q @ power(j - 1 - l).T
-            cov_x[n * i : n * i + n, n * j : n * j + n] = block
-    mean_x = np.concatenate([power(k) @ m0 for k in range(T)])
+    cov_x = _dense_state_covariance(F, Q, P0, T)
+    mean_x = np.concatenate([np.linalg.matrix_power(F, k) @ m0 for k in range(T)])
     big_h = np.kron(np.eye(T), H)
     cov_z = big_h @ cov_x @ big_h.T + np.kron(np.eye(T), R)
     gain = cov_x @ big_h.T @ np.linalg.inv(cov_z)
@@ -224,6 +233,46 @@ def test_rts_smoother_is_the_dense_gaussian_conditional():
     # The last smoothed estimate is the filtered one.
     filtered = kalman_filter(model, jnp.asarray(z), jnp.asarray(m0), jnp.asarray(P0))
     np.testing.assert_array_equal(out.smoothed_means[-1], filtered.filtered_means[-1])
+
+
+def test_gaps_give_the_dense_gaussian_likelihood_of_the_observed_steps():
+    # Independent check: the joint Gaussian of z_0..z_{T−1} (NumPy), marginalised to the
+    # observed steps; a gap may hold NaN, the filter predicts across it.
+    rng = np.random.default_rng(8)
+    n, T = 2, 9
+    F = 0.8 * scipy.linalg.expm(rng.standard_normal((n, n)) * 0.3)
+    Q = 0.2 * np.eye(n) + 0.05
+    H = rng.standard_normal((1, n))
+    R = np.array([[0.3]])
+    m0, P0 = rng.standard_normal(n), np.eye(n)
+    model = LinearGaussianModel(jnp.asarray(F), jnp.asarray(Q), jnp.asarray(H), jnp.asarray(R))
+
+    cov_x = _dense_state_covariance(F, Q, P0, T)
+    mean_z = np.kron(np.eye(T), H) @ np.concatenate(
+        [np.linalg.matrix_power(F, k) @ m0 for k in range(T)]
+    )
+    cov_z = np.kron(np.eye(T), H) @ cov_x @ np.kron(np.eye(T), H).T + np.kron(np.eye(T), R)
+    seen = np.array([1, 1, 0, 0, 1, 0, 1, 1, 0], bool)
+    z = rng.standard_normal(T)
+    sub, d = cov_z[np.ix_(seen, seen)], (z - mean_z)[seen]
+    exact = -0.5 * (
+        d @ np.linalg.solve(sub, d) + np.linalg.slogdet(2 * np.pi * sub)[1]
+    )
+    z_gaps = np.where(seen, z, np.nan)
+    out = kalman_filter(model, jnp.asarray(z_gaps), jnp.asarray(m0), jnp.asarray(P0), seen)
+    assert float(out.log_likelihood) == pytest.approx(exact, rel=1e-10)
+    np.testing.assert_array_equal(out.log_likelihoods[~seen], 0.0)
+    np.testing.assert_array_equal(out.filtered_means[~seen], out.predicted_means[~seen])
+    # Every step observed is the plain filter; a NaN where a step is observed is refused.
+    plain = kalman_filter(model, jnp.asarray(z), jnp.asarray(m0), jnp.asarray(P0))
+    everything = kalman_filter(
+        model, jnp.asarray(z), jnp.asarray(m0), jnp.asarray(P0), np.ones(T, bool)
+    )
+    np.testing.assert_array_equal(everything.log_likelihoods, plain.log_likelihoods)
+    with pytest.raises(ValueError, match="observation 2 .*observed"):
+        kalman_filter(model, jnp.asarray(z_gaps), jnp.asarray(m0), jnp.asarray(P0), ~seen)
+    with pytest.raises(ValueError, match="observed must have shape"):
+        kalman_filter(model, jnp.asarray(z), jnp.asarray(m0), jnp.asarray(P0), seen[:4])
 
 
 def test_rts_smoother_on_an_ins_log_is_consistent_and_beats_the_filter():
