@@ -96,6 +96,42 @@ def test_the_profiled_likelihood_is_the_filter_s():
     assert profiled == pytest.approx(direct, abs=1e-10)
 
 
+def test_held_out_blocks_are_gaps_in_the_training_likelihood():
+    """With `observed` (the training mask), the held-out blocks are gaps: the profiled
+    likelihood of `moment_noise_terms` is the dense Gaussian likelihood of the training
+    blocks alone (their sub-matrix of the exact covariance), and the held-out errors,
+    whatever they are, change nothing."""
+    params = _params(LAGS[1])
+    dt, m, n, ratio, phi_block = float(time_constant(params)) / 20, 4, 40, 25.0, 0.8
+    cov, _ = _dense_covariance(params, dt, m, n, ratio, phi_block)
+    train = np.ones(n)
+    train[10:16] = train[27:31] = 0
+    seen = train > 0
+    e = np.random.default_rng(5).standard_normal(n) * np.sqrt(np.diag(cov))
+    scaled, log_v = moment_noise_terms(
+        jnp.asarray(e), params, dt, m, 8, ratio, phi_block, jnp.asarray(train), jnp.asarray(train)
+    )
+    scaled = np.asarray(scaled)
+    k = int(seen.sum())
+    profiled = -0.5 * (k * np.log(np.sum(scaled**2) / k) + float(log_v) + k)
+    # The dense likelihood of the training blocks with the scale profiled out.
+    sub = cov[np.ix_(seen, seen)]
+    chol = np.linalg.cholesky(sub)
+    z = np.linalg.solve(chol, e[seen])
+    scale = z @ z / k
+    exact = -0.5 * (k * np.log(scale) + 2 * np.sum(np.log(np.diag(chol))) + k)
+    assert profiled == pytest.approx(exact, abs=1e-9 * abs(exact))
+    assert np.all(scaled[~seen] == 0)
+    other = e.copy()
+    other[~seen] = 1e3 * np.random.default_rng(6).standard_normal(int((~seen).sum()))
+    again, log_again = moment_noise_terms(
+        jnp.asarray(other), params, dt, m, 8, ratio, phi_block, jnp.asarray(train),
+        jnp.asarray(train),
+    )
+    np.testing.assert_array_equal(np.asarray(again), scaled)
+    assert float(log_again) == float(log_v)
+
+
 def test_no_moment_is_white_noise_exactly():
     params = _params(LAGS[0])
     e = jnp.asarray(np.random.default_rng(4).standard_normal(30))

@@ -75,3 +75,42 @@ def test_innovations_are_white_with_the_exact_model():
     for k in range(1, 6):
         rho = np.mean(a[100 + k :] * a[100:-k])
         assert abs(rho) < 4 / np.sqrt(nb), k
+
+
+def test_a_training_mask_makes_the_held_out_blocks_gaps():
+    """`innovation_terms` with a training mask: each training segment's one-step errors
+    from its own start (a NumPy loop per segment: e/√V₀ first, then the ARMA(1,1)
+    recursion), ln V₀ once per segment, 0 on the held-out blocks, whose errors change
+    nothing; all-training is the plain recursion exactly."""
+    rng = np.random.default_rng(11)
+    phi, theta, first, _ = (float(v) for v in block_noise(30.0, 0.9, 10, 16))
+    n = 300
+    y = rng.standard_normal(n)
+    train = np.ones(n)
+    train[:7] = 0
+    train[60:100] = 0
+    train[101:130] = 0  # a one-block training segment between two gaps
+    a, log_v = innovation_terms(jnp.asarray(y), phi, theta, np.log(first), jnp.asarray(train))
+    expected = np.zeros(n)
+    segments = 0
+    for k in range(n):
+        if not train[k]:
+            continue
+        if k == 0 or not train[k - 1]:
+            expected[k] = y[k] / np.sqrt(first)
+            segments += 1
+        else:
+            expected[k] = y[k] - phi * y[k - 1] + theta * expected[k - 1]
+    np.testing.assert_allclose(np.asarray(a), expected, rtol=1e-10, atol=1e-12)
+    assert segments == 3
+    assert float(log_v) == pytest.approx(segments * np.log(first), rel=1e-12)
+    other = y.copy()
+    other[train == 0] = 1e4
+    again, _ = innovation_terms(jnp.asarray(other), phi, theta, np.log(first), jnp.asarray(train))
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(a))
+    plain, plain_v = innovation_terms(jnp.asarray(y), phi, theta, np.log(first))
+    whole, whole_v = innovation_terms(
+        jnp.asarray(y), phi, theta, np.log(first), jnp.ones(n)
+    )
+    np.testing.assert_array_equal(np.asarray(whole), np.asarray(plain))
+    assert float(whole_v) == float(plain_v)

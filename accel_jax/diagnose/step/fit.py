@@ -129,21 +129,33 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     n = u_out.shape[0]
     effects = step_effects()
 
-    def error_of(w, candidate):
+    def error_of(w, candidate, whole=True):
+        """The model at w, its prediction, and the innovations and ln V ((k, n), (k,)):
+        first of the training part alone (its own: the held-out blocks are gaps, so that
+        the training likelihood never reads the held-out errors; for white noise the same
+        as the whole record's), then, with `whole`, of the whole record (what the held-out
+        part is judged on). Both from one filter over a batch of masks, so that it appears
+        once in the program; the training solve asks for the training part's alone."""
         m = unpack(w, candidate, effects, base, prior_sigma, ctx)
         prediction = predict(m, ctx, n, mode)
+        error = u_out - prediction
+        masks = jnp.stack([ctx.train, jnp.ones_like(ctx.train)] if whole else [ctx.train])
         if mode == "moment":
-            a, log_v = moment_noise_terms(
-                u_out - prediction, m.params, ctx.dt, ctx.block, ctx.max_block,
-                m.moment_ratio, m.moment_phi, ctx.train,
-            )
+            a, log_v = jax.vmap(
+                lambda observed: moment_noise_terms(
+                    error, m.params, ctx.dt, ctx.block, ctx.max_block,
+                    m.moment_ratio, m.moment_phi, ctx.train, observed,
+                )
+            )(masks)
         else:
-            a, log_v = innovation_terms(u_out - prediction, m.phi, m.theta, m.log_first)
+            a, log_v = jax.vmap(
+                lambda train: innovation_terms(error, m.phi, m.theta, m.log_first, train)
+            )(masks)
         return m, prediction, a, log_v
 
     def residuals(w, candidate):
-        m, _, a, _ = error_of(w, candidate)
-        return jnp.concatenate([a * ctx.train / ctx.sigma_ref, m.penalties])
+        m, _, a, _ = error_of(w, candidate, whole=False)
+        return jnp.concatenate([a[0] * ctx.train / ctx.sigma_ref, m.penalties])
 
     solver = optx.LevenbergMarquardt(
         rtol=FIT_TOLERANCE, atol=FIT_TOLERANCE, linear_solver=lx.Normal(lx.Cholesky())
@@ -202,7 +214,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
             """The held-out residuals at `base` moved by `delta`, and (aux) the training
             cost Σr² of `residuals` there and the model's prediction, innovations and ln V
             (what the fit returns)."""
-            m, prediction, a, log_v = error_of(moved(base, delta), candidate)
+            m, prediction, (a_train, a), (log_v_train, log_v) = error_of(
+                moved(base, delta), candidate
+            )
             tail = moved(base, delta)[W.INPUT]
             n_t = n_timing(ctx)
             timing, levels = tail[:n_t], tail[n_t:]
@@ -210,8 +224,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
             if ctx.level_sigma is not None:  # a held-out level's error, under its prior
                 prior = jnp.concatenate([prior, ctx.held_out_level * levels])
             out = jnp.concatenate([a * ctx.test / ctx.sigma_ref, prior, 1e-3 * delta[:SLOT]])
-            train = jnp.sum((a * ctx.train / ctx.sigma_ref) ** 2) + jnp.sum(m.penalties**2)
-            return out, (out, train, (prediction, a, log_v))
+            train = jnp.sum((a_train * ctx.train / ctx.sigma_ref) ** 2)
+            train = train + jnp.sum(m.penalties**2)
+            return out, (out, train, (prediction, a, log_v), (a_train, log_v_train))
 
         def refine(base):
             """A few Gauss–Newton steps of the held-out nuisances from `base`: the best
@@ -242,7 +257,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
                 training = i == 0
                 point = jnp.where(last, best_delta, delta)
                 origin = jnp.where(last, base.at[W.REFIT].set(0.0), base)
-                jac, (r, train, terms) = jax.jacfwd(held_out, has_aux=True)(point, origin)
+                jac, (r, train, terms, own) = jax.jacfwd(held_out, has_aux=True)(
+                    point, origin
+                )
                 new, cost, _ = _newton_step(jac, r, delta)
                 better = (cost < best_cost) & ~last
                 return (
@@ -251,7 +268,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
                     jnp.where(better, cost, best_cost),
                     jnp.where(training, train, train_at_base),
                     jax.tree_util.tree_map(partial(jnp.where, better), terms, best_terms),
-                    jax.tree_util.tree_map(partial(jnp.where, training), terms[1:], at_train),
+                    jax.tree_util.tree_map(partial(jnp.where, training), own, at_train),
                     jnp.where(last, terms[0], at_prior),
                 )
 
@@ -277,24 +294,21 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
         better = train_costs[1] < 2 * cost
         w = jnp.where(better, polished, w)
         trained = w  # the training optimum, before the held-out nuisances move
-        best_delta = jnp.where(better, deltas[1], deltas[0])
+        # Of the start kept (one selection over every output of `refine`): the held-out
+        # nuisances' best step; the fitted model (at `w`: its prediction and innovations);
+        # the training part's innovations and ln V at the training optimum (the likelihood
+        # the evidence compares: `refine`'s training pass); the same model with the device
+        # at its prior values (what the refit changed); and the objective the solver
+        # minimised (Σ of the squared training residuals and of every prior and penalty:
+        # ½ of it is −ln of the penalised likelihood) at the training optimum: what a
+        # nested model can never end above the nominal's on (`nested_failed`).
+        best_delta, (prediction, a, _), (a_train, log_v), prior_prediction, objective = (
+            jax.tree_util.tree_map(
+                lambda x: jnp.where(better, x[1], x[0]),
+                (deltas, terms, at_train, at_prior, train_costs),
+            )
+        )
         w = moved(w, best_delta)
-        # The fitted model (at `w`) and the same model with the device at its prior values
-        # (what the refit changed), from the refine's passes of the start kept.
-        prediction, a, _ = jax.tree_util.tree_map(
-            lambda x: jnp.where(better, x[1], x[0]), terms
-        )
-        # The training part's innovations and ln V (the likelihood the evidence compares;
-        # `refine`'s training pass).
-        a_train, log_v = jax.tree_util.tree_map(
-            lambda x: jnp.where(better, x[1], x[0]), at_train
-        )
-        prior_prediction = jnp.where(better, at_prior[1], at_prior[0])
-        # The objective the solver minimised (Σ of the squared training residuals and of
-        # every prior and penalty: ½ of it is −ln of the penalised likelihood) at the
-        # training optimum kept, and that optimum: what a nested model can never end above
-        # the nominal's on (`nested_failed`), and where its restart begins.
-        objective = jnp.where(better, train_costs[1], train_costs[0])
         return (
             w,
             prediction,

@@ -18,18 +18,43 @@ from ..._simulate.matrix import expm_minus_identity
 from ..._simulate.sequence import loop_system
 
 
-def innovation_terms(error, phi, theta, log_first):
+def innovation_terms(error, phi, theta, log_first, train=None):
     """One-step prediction errors of ARMA(1,1) output noise on the block means
     (n_k − φ n_{k−1} = a_k − θ a_{k−1}: the recursion a_k = e_k − φ e_{k−1} + θ a_{k−1};
     `effects.block_noise`), scaled by σ_a, and ln V₀, V₀ the first block's stationary
     variance over σ_a² (the first error is e₀/√V₀). White noise: φ = θ = ln V₀ = 0.
 
+    With `train` (n,) (1 on the training part's blocks, 0 on the held-out part's), the
+    training part's own errors: a held-out block is a gap whose error is never used (its
+    innovation is 0), and each training segment starts afresh from the stationary state
+    (its first error e/√V₀, ln V₀ counted once per segment): the segments' likelihoods
+    taken as independent, exact when a gap is long against the noise's correlation time
+    and otherwise leaving out the little the segment before says about the next. Without
+    it the held-out part's errors, at the training optimum where its own nuisances are not
+    fitted, ran into the training innovations after each gap, where the solver fitted
+    them: the held-out data steered the training fit. For white noise the two are the
+    same.
+
     The recursion is a first-order linear filter, evaluated in two levels of matrix
     products (`_first_order_filter`): a small program, which matters because every fit
-    differentiates it many times over (a parallel scan compiled 4× slower)."""
-    first = error[:1] * jnp.exp(-0.5 * log_first)
-    b = jnp.concatenate([first, error[1:] - phi * error[:-1]])
-    return _first_order_filter(b, theta), log_first
+    differentiates it many times over (a parallel scan compiled 4× slower). The segments'
+    restarts are the unbroken filter's output less each restart's carry decayed to the
+    block, θ^(k−r+1)·u_{r−1} (exact: the gap's inputs are zero)."""
+    scale = jnp.exp(-0.5 * log_first)
+    if train is None:
+        b = jnp.concatenate([error[:1] * scale, error[1:] - phi * error[:-1]])
+        return _first_order_filter(b, theta), log_first
+    on = train > 0
+    restart = on & ~jnp.concatenate([jnp.zeros(1, bool), on[:-1]])
+    e = jnp.where(on, error, 0.0)
+    previous = jnp.concatenate([jnp.zeros(1, e.dtype), e[:-1]])
+    b = jnp.where(on, jnp.where(restart, e * scale, e - phi * previous), 0.0)
+    u = _first_order_filter(b, theta)
+    k = jnp.arange(error.shape[0])
+    start = jax.lax.cummax(jnp.where(restart, k, 0))  # each block's segment's restart
+    carry = jnp.where(start > 0, u[jnp.maximum(start - 1, 0)], 0.0)
+    a = u - jnp.power(theta, (k - start + 1).astype(u.dtype)) * carry
+    return jnp.where(on, a, 0.0), log_first * jnp.sum(restart)
 
 
 def _first_order_filter(b, theta):
@@ -119,25 +144,39 @@ def moment_noise_model(params, dt, m, max_block: int, ratio, phi_block):
     return power, total, p, joint[5, 5], c @ p @ c
 
 
-def moment_noise_terms(error, params, dt, m, max_block: int, ratio, phi_block, mask):
+def moment_noise_terms(
+    error, params, dt, m, max_block: int, ratio, phi_block, mask, observed=None
+):
     """One-step prediction errors of block means under white output noise plus a
     Gauss–Markov moment inside the loop (`moment_noise_model`), by a Kalman filter from
     the stationary state: (ã, ln V) with ã_k = a_k·√(S_∞/S_k), a_k the innovation, S_k its
     variance (per unit white variance; S_∞ the last block's) and ln V = Σ_k mask_k
     ln(S_k/S_∞) over the blocks `mask` counts, so that −½[n ln(Σ ã²/n) + ln V] is the
     exact profiled log-likelihood, as for `innovation_terms`. With `ratio` 0 it is white
-    noise exactly (S_k = 1/m, ã = e)."""
-    a, s = moment_kalman(error, params, dt, m, max_block, ratio, phi_block)
-    last = s[-1]
-    return a * jnp.sqrt(last / s), jnp.sum(mask * jnp.log(s / last))
+    noise exactly (S_k = 1/m, ã = e).
+
+    With `observed` (n,) (0 on a held-out block): the training part's own errors, the
+    held-out blocks gaps the filter predicts across (`kalman_filter`'s `observed`: the
+    exact likelihood of the observed blocks); S_∞ is then the least S_k observed (the
+    filter's steady state; any reference gives the same profiled ln L) and a gap's ã is 0.
+    """
+    a, s = moment_kalman(error, params, dt, m, max_block, ratio, phi_block, observed)
+    if observed is None:
+        last = s[-1]
+        return a * jnp.sqrt(last / s), jnp.sum(mask * jnp.log(s / last))
+    seen = observed > 0
+    last = jnp.min(jnp.where(seen, s, jnp.inf))
+    a = jnp.where(seen, a * jnp.sqrt(last / s), 0.0)
+    return a, jnp.sum(mask * jnp.log(s / last))
 
 
-def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block):
+def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block, observed=None):
     """The innovations a_k and their variances S_k (per unit white variance) of
     `moment_noise_terms`'s Kalman filter: the package's `kalman_filter` on the state
     ξ_k = [x at the end of block k; s_k, block k's loop part], ξ_{k+1} = [Gᵐ]₍:,:5₎ ξ_k[:5] +
     w_k (w ~ N(0, Σ)), observed as s_k + the white part's mean (variance 1/m); its prior is
-    the stationary joint of the first block (P through one block, plus Σ)."""
+    the stationary joint of the first block (P through one block, plus Σ). `observed`
+    (n,), optional: 0 where a block is a gap (predicted across, not used)."""
     power, total, p0, _, _ = moment_noise_model(params, dt, m, max_block, ratio, phi_block)
     dtype = error.dtype
     lead = power[:, :5].astype(dtype)
@@ -149,5 +188,6 @@ def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block):
         observation_covariance=jnp.reshape(1.0 / m, (1, 1)).astype(dtype),
     )
     prior = lead @ p0.astype(dtype) @ lead.T + total.astype(dtype)
-    out = kalman_filter(model, error, jnp.zeros(6, dtype), prior)
+    seen = None if observed is None else observed > 0
+    out = kalman_filter(model, error, jnp.zeros(6, dtype), prior, observed=seen)
     return out.innovations[:, 0], out.innovation_covariances[:, 0, 0]
