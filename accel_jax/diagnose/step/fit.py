@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
 
-from .effects import step_effects
+from .effects import AbstractStepEffect, step_effects
 from .innovations import innovation_terms, moment_noise_terms
 from .layout import SLOT, W
 from .solver import StallEnding
@@ -128,6 +128,11 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     on the held-out part (a few Gauss–Newton steps)."""
     n = u_out.shape[0]
     effects = step_effects()
+    # The stops' programs fit only the stop effects, which carry no noise model (white
+    # noise: the innovations are the errors themselves), so they need no filter at all.
+    white = mode in ("clamp", "contact") and all(
+        type(e).noise is AbstractStepEffect.noise for e in effects if e.nonlinear
+    )
 
     def error_of(w, candidate, whole=True):
         """The model at w, its prediction, and the innovations and ln V ((k, n), (k,)):
@@ -140,7 +145,10 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
         prediction = predict(m, ctx, n, mode)
         error = u_out - prediction
         masks = jnp.stack([ctx.train, jnp.ones_like(ctx.train)] if whole else [ctx.train])
-        if mode == "moment":
+        if white:  # what `innovation_terms` gives at φ = θ = ln V₀ = 0, exactly
+            a = jnp.where(masks > 0, error, 0.0)
+            log_v = jnp.zeros(masks.shape[0], error.dtype)
+        elif mode == "moment":
             a, log_v = jax.vmap(
                 lambda observed: moment_noise_terms(
                     error, m.params, ctx.dt, ctx.block, ctx.max_block,
