@@ -24,7 +24,8 @@ def innovation_terms(error, phi, theta, log_first, train=None):
     `effects.block_noise`), scaled by σ_a, and ln V₀, V₀ the first block's stationary
     variance over σ_a² (the first error is e₀/√V₀). White noise: φ = θ = ln V₀ = 0.
 
-    With `train` (n,) (1 on the training part's blocks, 0 on the held-out part's), the
+    With `train` (n,) (1 on the training part's blocks, 0 on the held-out part's;
+    default every block: the whole record, one segment), the
     training part's own errors: a held-out block is a gap whose error is never used (its
     innovation is 0), and each training segment starts afresh from the stationary state
     (its first error e/√V₀, ln V₀ counted once per segment): the segments' likelihoods
@@ -41,10 +42,7 @@ def innovation_terms(error, phi, theta, log_first, train=None):
     restarts are the unbroken filter's output less each restart's carry decayed to the
     block, θ^(k−r+1)·u_{r−1} (exact: the gap's inputs are zero)."""
     scale = jnp.exp(-0.5 * log_first)
-    if train is None:
-        b = jnp.concatenate([error[:1] * scale, error[1:] - phi * error[:-1]])
-        return _first_order_filter(b, theta), log_first
-    on = train > 0
+    on = jnp.ones(error.shape, bool) if train is None else train > 0
     restart = on & ~jnp.concatenate([jnp.zeros(1, bool), on[:-1]])
     e = jnp.where(on, error, 0.0)
     previous = jnp.concatenate([jnp.zeros(1, e.dtype), e[:-1]])
