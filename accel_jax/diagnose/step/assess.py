@@ -197,7 +197,10 @@ it tripped was misfitted by the nominal model by 256 to 1,302 times the noise fl
 the fixed floor makes a unit of residual weigh far more in the objective than in this
 ln L. Adding the change times' priors to this ln L (tried) did not close that: the flags
 moved to the lag fits of other such records, and on the strong coloured-noise case of the
-tests two lag fits ended ~23 below the nominal."""
+tests two lag fits ended ~23 below the nominal. Nor did a record-level rescale (tried, see
+docs/models.md §5): every linear candidate refitted at the nominal's residual RMS cleared
+the blind flags but strained the nuisances of a lag fit that explains its record to the
+floor; each candidate needs its own scale."""
 
 
 def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:
