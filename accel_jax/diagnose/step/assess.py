@@ -200,7 +200,7 @@ moved to the lag fits of other such records, and on the strong coloured-noise ca
 tests two lag fits ended ~23 below the nominal. Nor did a record-level rescale (tried, see
 docs/models.md §5): every linear candidate refitted at the nominal's residual RMS cleared
 the blind flags but strained the nuisances of a lag fit that explains its record to the
-floor; each candidate needs its own scale."""
+floor: one scale per record fails where one candidate explains the record."""
 
 
 def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:
