@@ -114,3 +114,17 @@ def test_a_training_mask_makes_the_held_out_blocks_gaps():
     )
     np.testing.assert_array_equal(np.asarray(whole), np.asarray(plain))
     assert float(whole_v) == float(plain_v)
+
+
+def test_the_stop_programs_white_shortcut_is_the_recursion_at_zero():
+    # `fit._fit_record` skips the filter for the stops' programs (no noise model among
+    # their candidates): ã = the training errors, 0 on the gaps, and ln V = 0. That is
+    # what the recursion gives at the default effect's noise (φ = θ = ln V₀ = 0), bit for
+    # bit, with and without a training mask.
+    rng = np.random.default_rng(5)
+    error = jnp.asarray(rng.normal(size=64))
+    train = jnp.asarray((np.arange(64) // 8) % 3 != 1, dtype=jnp.float64)
+    zero = jnp.zeros(())
+    for mask in (train, jnp.ones(64)):
+        a, log_v = innovation_terms(error, zero, zero, zero, mask)
+        assert bool(jnp.all(a == jnp.where(mask > 0, error, 0.0))) and float(log_v) == 0.0
