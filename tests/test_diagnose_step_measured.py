@@ -163,11 +163,16 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
         assert late["strained"] is True
 
 
+def _nested_fit(**fields):
+    """A fit's fields that the nested checks read (`state.StepFit`'s)."""
+    return SimpleNamespace(**{"nominal_objective": None, **fields})
+
+
 def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
-    nominal = SimpleNamespace(effect="nominal", objective=2000.0)
-    better = SimpleNamespace(effect="torquer_lag", objective=1990.0)
-    roundoff = SimpleNamespace(effect="output_filter", objective=2000.0 + 1e-4)
-    lost = SimpleNamespace(effect="stop_saturation", objective=2010.0)
+    nominal = _nested_fit(effect="nominal", objective=2000.0)
+    better = _nested_fit(effect="torquer_lag", objective=1990.0)
+    roundoff = _nested_fit(effect="output_filter", objective=2000.0 + 1e-4)
+    lost = _nested_fit(effect="stop_saturation", objective=2010.0)
     assert nested_shortfall(better, nominal) < 0 and not nested_failed(better, nominal)
     assert not nested_failed(roundoff, nominal)  # within round-off
     assert nested_shortfall(lost, nominal) == pytest.approx(5.0)  # ½ of the objective
@@ -175,11 +180,18 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
     assert nested_losers([nominal, better, roundoff, lost]) == ["stop_saturation"]
     # A record the nominal misfits by thousands of σ (objective ~1e10): a shortfall of
     # thousands is the solver's relative tolerance, not round-off, and is restarted.
-    huge = SimpleNamespace(effect="nominal", objective=2e10)
-    short = SimpleNamespace(effect="torquer_lag", objective=2e10 + 1e4)
+    huge = _nested_fit(effect="nominal", objective=2e10)
+    short = _nested_fit(effect="torquer_lag", objective=2e10 + 1e4)
     assert nested_failed(short, huge) and not nested_failed(
-        SimpleNamespace(effect="torquer_lag", objective=2e10 + 1.0), huge
+        _nested_fit(effect="torquer_lag", objective=2e10 + 1.0), huge
     )  # (½·1 ≤ 1e-10 of ½·2e10: round-off of the sum)
+    # A later fit (a stop's) of a record whose linear fits were made at its residual scale
+    # (`entry.REWEIGHT_ABOVE`): judged against the nominal's objective at its own scale.
+    stop = _nested_fit(effect="stop_saturation", objective=2010.0, nominal_objective=2020.0)
+    assert nested_shortfall(stop, nominal) == pytest.approx(-5.0)
+    assert not nested_failed(stop, nominal) and nested_losers([nominal, stop]) == []
+    stop = _nested_fit(effect="stop_saturation", objective=2010.0, nominal_objective=1990.0)
+    assert nested_failed(stop, nominal) and nested_losers([nominal, stop]) == ["stop_saturation"]
 
 
 def test_a_nested_fit_whose_reported_log_likelihood_is_below_the_nominals_is_flagged():
@@ -230,7 +242,7 @@ def test_the_last_restart_keeps_the_nominal_so_a_candidate_started_there_cannot_
     from accel_jax.diagnose.step import entry
 
     def fit(effect, objective):
-        return SimpleNamespace(effect=effect, objective=objective, w_trained=np.ones(W.FIXED + 3))
+        return _nested_fit(effect=effect, objective=objective, w_trained=np.ones(W.FIXED + 3))
 
     class Record(SimpleNamespace):
         def with_note(self, note):
@@ -277,6 +289,73 @@ def test_the_last_restart_keeps_the_nominal_so_a_candidate_started_there_cannot_
     # cannot end below it rests on Levenberg–Marquardt accepting only descending steps.)
     held = [n for n in records[0].notes if n.startswith("the nominal fit kept moving")]
     assert held and "2.5 higher in ln L" in held[0]
+
+
+def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monkeypatch):
+    """`entry._reweight_far_records`: only a record whose nominal fit leaves σ̂ above
+    `REWEIGHT_ABOVE` floors has its linear candidates fitted again, at σ_ref = σ̂, each
+    from its own optimum, the record's own start kept; its fits are replaced, the record
+    says so, and the floor's context and nominal objective are handed back."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from accel_jax.diagnose.step import entry
+
+    class Ctx(eqx.Module):
+        sigma_ref: jnp.ndarray
+
+    @dataclasses.dataclass(frozen=True)
+    class Record:
+        ctx: Ctx
+        guesses_linear: np.ndarray
+        notes: tuple = ()
+
+        def with_note(self, note):
+            return dataclasses.replace(self, notes=self.notes + (note,))
+
+    def fit(effect, variance, at):
+        at = np.full(width, at) if np.ndim(at) == 0 and at is not None else at
+        return SimpleNamespace(
+            effect=effect, innovation_variance=variance, w_trained=at, objective=7.0 * variance
+        )
+
+    sigma = 1e-3
+    width = W.FIXED + 3
+    near = 1.9 * sigma  # below the threshold: nothing changes
+    far = 30 * sigma
+    records = [
+        Record(Ctx(jnp.asarray(sigma)), np.zeros((2, 2, width))),
+        Record(Ctx(jnp.asarray(sigma)), np.zeros((2, 2, width))),
+    ]
+    fits = [
+        [fit("nominal", near**2, np.full(width, 1.0)), fit("torquer_lag", near**2, 2.0)],
+        [fit("nominal", far**2, np.full(width, 3.0)), fit("torquer_lag", far**2 / 2, 4.0)],
+    ]
+    seen = {}
+
+    def refit(fn, nominal, records_, starts, candidates, effects, desc):
+        seen.update(starts=starts, records=list(records_), fn=fn, desc=desc)
+        return {i: [fit("nominal", 1.0, None), fit("torquer_lag", 1.0, None)] for i in starts}
+
+    monkeypatch.setattr(entry, "_fit_grouped", refit)
+    untouched, at_floor = fits[0], records[1].ctx
+    floor = entry._reweight_far_records(fits, records, [], [0, 1], None)
+    # What the later fits (at the floor again) need: the context there and the nominal's
+    # fit at the floor, to start from and be judged against.
+    assert list(floor) == [1] and floor[1][0] is at_floor
+    assert floor[1][1].effect == "nominal" and floor[1][1].objective == 7.0 * far**2
+    assert entry.REWEIGHT_ABOVE == 2.0 and seen["fn"] is entry.fit_linear
+    assert list(seen["starts"]) == [1]  # only the far record
+    guesses = seen["starts"][1]
+    assert np.all(guesses[:, 0] == 0.0)  # its own start kept
+    assert np.all(guesses[0, 1] == 3.0) and np.all(guesses[1, 1] == 4.0)  # each its optimum
+    assert float(records[1].ctx.sigma_ref) == pytest.approx(far)
+    assert seen["records"][1] is records[1]  # the refit (and every later fit) at σ̂
+    assert float(records[0].ctx.sigma_ref) == sigma and records[0].notes == ()
+    assert fits[0] is untouched and [f.innovation_variance for f in fits[1]] == [1.0, 1.0]
+    assert records[1].notes == (
+        "linear models fitted at the record's residual scale (30 × the noise floor)",
+    )
 
 
 # Record 306 of the measured-input harness's draw (studies/measured_input_harness.py,
@@ -357,9 +436,11 @@ def test_a_stop_record_with_a_measured_input_names_the_stop(index, truth):
     # the stop fit converged).
     nominal = NominalDevice.reference(torquer_time_constant=0.0, filter_time_constant=0.0)
     result = diagnose_many([StepData(t, column, y)], nominal, recommend=False)[0]
-    # The nominal refit's levels are strained (what the stop fits must walk back) …
+    # The nominal refit's levels are strained (what the stop fits must walk back) … The
+    # refit reported is the one at the record's residual scale (`entry.REWEIGHT_ABOVE`):
+    # there its largest level moves 12σ (306) and 4.5σ (319), at the floor 1.1e4σ and 6.0e3σ.
     test = result.refit["nuisance_test"]
-    assert test["strained"] and abs(test["largest_sigma"]) > 100, test
+    assert test["strained"] and abs(test["largest_sigma"]) > 3, test
     # … and a stop model, fitted from the nominal's device with the input's levels where
     # the channel shows them, explains the record.
     assert result.verdict in ("stop_saturation", "stop_contact"), result.reason

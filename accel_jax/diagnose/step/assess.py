@@ -168,13 +168,19 @@ def nested_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:
     the nominal fit's (≤ 0: not below). The reported ln L, which estimates the noise
     variance instead of fixing it and leaves out the change times' and the effect's own
     priors, may differ from it by those."""
-    return 0.5 * (float(fit.objective) - float(nominal_fit.objective))
+    return 0.5 * (float(fit.objective) - _nominal_objective(fit, nominal_fit))
+
+
+def _nominal_objective(fit: StepFit, nominal_fit: StepFit) -> float:
+    if fit.nominal_objective is not None:
+        return float(fit.nominal_objective)
+    return float(nominal_fit.objective)
 
 
 def nested_failed(fit: StepFit, nominal_fit: StepFit) -> bool:
     """Whether a nested fit ended below the nominal's penalised likelihood beyond
     round-off (`NESTED_TOLERANCE`)."""
-    scale = 0.5 * abs(float(nominal_fit.objective))
+    scale = 0.5 * abs(_nominal_objective(fit, nominal_fit))
     return nested_shortfall(fit, nominal_fit) > max(NESTED_TOLERANCE * scale, NESTED_ABSOLUTE)
 
 
@@ -197,10 +203,11 @@ it tripped was misfitted by the nominal model by 256 to 1,302 times the noise fl
 the fixed floor makes a unit of residual weigh far more in the objective than in this
 ln L. Adding the change times' priors to this ln L (tried) did not close that: the flags
 moved to the lag fits of other such records, and on the strong coloured-noise case of the
-tests two lag fits ended ~23 below the nominal. Nor did a record-level rescale (tried, see
-docs/models.md §5): every linear candidate refitted at the nominal's residual RMS cleared
-the blind flags but strained the nuisances of a lag fit that explains its record to the
-floor: one scale per record fails where one candidate explains the record."""
+tests two lag fits ended ~23 below the nominal. What closes it on those records is the
+second solve of `entry.REWEIGHT_ABOVE`: where no linear candidate comes within twice the
+floor, they are all fitted again with the floor set to the nominal's residual RMS. (Done
+for every record far above the nominal's floor, it strained the nuisances of a lag fit that
+explains its record to the floor: docs/models.md §5.)"""
 
 
 def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:

@@ -289,7 +289,9 @@ class StepFit:
         errors at `w`.
     - `converged`: the solver's or the Newton decrement's word (`fit.CONVERGED_DECREMENT`);
         `steps` the solver's steps; `decrement` the Newton decrement; `objective` the
-        solver's penalised cost at `w_trained` (`assess.nested_failed`).
+        solver's penalised cost at `w_trained` (`assess.nested_failed`);
+        `nominal_objective` the nominal model's at the same noise scale where the record's
+        nominal fit was made at another (`entry.REWEIGHT_ABOVE`), else None.
     - `params`: the effect's physical values (`AbstractStepEffect.physical`; empty for the
         nominal model).
 
@@ -328,6 +330,7 @@ class StepFit:
     decrement: float
     objective: float
     params: dict[str, Any]
+    nominal_objective: float | None = None
     ms_train: float = math.nan
     ms_held: float = math.nan
     ms_held_one_step: float = math.nan
