@@ -361,6 +361,17 @@ def test_a_different_device_is_never_none(diagnosed):
     assert result.verdict != "none"
     if result.verdict == "unexplained":
         assert "moment_of_inertia" in result.reason or "remains" in result.reason
+    # Its refit rests past the bound (three times the moment of inertia): where a nested fit
+    # is flagged there, the record says why (`verdict._at_bound_note`); no other case, every
+    # refit within its bound, says so.
+    flagged = [e["effect"] for e in result.ranking if e["fit_failed"]]
+    said = [n for n in result.notes if "rests past its bound" in n]
+    assert bool(flagged) == bool(said)
+    if flagged:
+        assert "moment_of_inertia +" in said[0] and all(f in said[0] for f in flagged)
+    for name, (_, other) in diagnosed.items():
+        if name != "other_device":
+            assert not any("rests past its bound" in n for n in other.notes), name
 
 
 def test_time_scale_domain_check():

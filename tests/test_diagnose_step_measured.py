@@ -358,6 +358,51 @@ def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monk
     )
 
 
+def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_ones_at_sigma_hat():
+    """`entry._put_back_at_sigma_hat`, on the fits in the order `diagnose_step` appends
+    them (`entry._stages`): the nominal's fit at σ̂ back first; every linear candidate
+    (fitted at σ̂ with it, the last of them `colored_noise`) without a `nominal_objective`,
+    judged against it; every later fit (noise in the loop, stops: fitted at the floor)
+    judged against the floor's nominal."""
+    from accel_jax.diagnose.step import entry
+    from accel_jax.diagnose.step.assess import nested_failed
+    from accel_jax.diagnose.step.effects import step_effects
+
+    @dataclasses.dataclass(frozen=True)
+    class Fit:
+        effect: str
+        objective: float
+        nominal_objective: float | None = None
+
+    effects = step_effects()
+    linear, loop_noise, _, clamp, contact = entry._stages(effects)
+    names = ["nominal"] + [effects[i - 1].name for i in linear[1:] + loop_noise + clamp + contact]
+    assert names[len(linear) - 1] == "colored_noise" and names[len(linear)] == "moment_noise"
+    at_floor, at_sigma_hat = Fit("nominal", 5e6), Fit("nominal", 800.0)
+    # At σ̂ the linear candidates end below its nominal, all but `colored_noise` (a fit that
+    # lost: 810); the later fits end a little below the floor's nominal. Each is flagged
+    # exactly where it lost to the nominal it was fitted with.
+    def made(effect, k):
+        return Fit(effect, (810.0 if effect == "colored_noise" else 790.0) if k < len(linear)
+                   else 4.9e6)
+
+    for n_linear, expected in [
+        (len(linear), ["colored_noise"]),
+        # Stamped one too few, the linear `colored_noise` is judged at the floor and its
+        # loss hidden; one too many, `moment_noise` (at the floor) is judged at σ̂.
+        (len(linear) - 1, []),
+        (len(linear) + 1, ["colored_noise", "moment_noise"]),
+    ]:
+        fits = [[at_floor] + [made(name, k) for k, name in enumerate(names[1:], 1)]]
+        entry._put_back_at_sigma_hat(fits, {0: (None, at_floor)}, {0: at_sigma_hat}, n_linear)
+        assert fits[0][0] is at_sigma_hat and [f.effect for f in fits[0]] == names
+        flagged = [f.effect for f in fits[0][1:] if nested_failed(f, fits[0][0])]
+        assert flagged == expected, n_linear
+        if n_linear == len(linear):
+            assert all(f.nominal_objective is None for f in fits[0][1:n_linear])
+            assert all(f.nominal_objective == 5e6 for f in fits[0][n_linear:])
+
+
 # Record 306 of the measured-input harness's draw (studies/measured_input_harness.py,
 # 100 per class, seed 2027): stops at 0.90 of the largest test level, rate 0.5 MHz. With
 # its input measured, the nominal refit absorbs the clipping by moving the input's levels

@@ -207,7 +207,9 @@ tests two lag fits ended ~23 below the nominal. What closes it on those records 
 second solve of `entry.REWEIGHT_ABOVE`: where no linear candidate comes within twice the
 floor, they are all fitted again with the floor set to the nominal's residual RMS. (Done
 for every record far above the nominal's floor, it strained the nuisances of a lag fit that
-explains its record to the floor: docs/models.md §5.)"""
+explains its record to the floor: docs/models.md §5.) Where the nominal's refit rests past
+`model.REFIT_BOUND`, the bound's penalty (in the objective, not in this ln L) is traded too,
+and a flagged fit there is no solver failure (`verdict._at_bound_note` says so)."""
 
 
 def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:

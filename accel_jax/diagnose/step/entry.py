@@ -114,13 +114,7 @@ def diagnose_step(
     if ceiling and not discover:
         raise ValueError("ceiling=True needs discover: the reference is part of a discovery.")
     effects = step_effects()
-    linear = [0] + [
-        i for i, e in enumerate(effects, start=1) if not e.nonlinear and not e.loop_noise
-    ]
-    loop_noise = [i for i, e in enumerate(effects, start=1) if e.loop_noise]
-    nonlinear = [i for i, e in enumerate(effects, start=1) if e.nonlinear]
-    clamp = [i for i in nonlinear if not effects[i - 1].contact_stops]
-    contact = [i for i in nonlinear if effects[i - 1].contact_stops]
+    linear, loop_noise, nonlinear, clamp, contact = _stages(effects)
     records = [prepare(data, nominal, effects) for data in datasets]
     entries = _fit_grouped(
         fit_linear, nominal, records, {i: rec.guesses_linear for i, rec in enumerate(records)},
@@ -148,7 +142,7 @@ def diagnose_step(
     for i, (ctx, nominal_at_floor) in floor.items():
         records[i] = dataclasses.replace(records[i], ctx=ctx)
         at_sigma_hat[i], fits[i][0] = fits[i][0], nominal_at_floor
-    n_linear = len(linear)
+    n_linear = len(linear)  # the nominal (0) and the linear candidates: `fits[i][:n_linear]`
     # Noise inside the loop, for the records that no deterministic linear model explains:
     # from its own starts (the nominal fit's device and nuisances), from the output noise's
     # fit (its two parameters have the same meaning) and from the nominal optimum.
@@ -210,11 +204,7 @@ def diagnose_step(
     )
     for i, record_fits in entries.items():
         fits[i] = fits[i] + record_fits
-    for i, (_, nominal_at_floor) in floor.items():
-        fits[i] = [at_sigma_hat[i], *fits[i][1:n_linear]] + [
-            dataclasses.replace(f, nominal_objective=float(nominal_at_floor.objective))
-            for f in fits[i][n_linear:]
-        ]
+    _put_back_at_sigma_hat(fits, floor, at_sigma_hat, n_linear)
     results = []
     for rec, record_fits in zip(records, fits, strict=True):
         fitted = {f.effect for f in record_fits}
@@ -254,6 +244,20 @@ def diagnose_step(
                     continue
                 _recommend(result, data, nominal)
     return results
+
+
+def _stages(effects) -> tuple[list[int], list[int], list[int], list[int], list[int]]:
+    """The candidates (1-based indices into `effects`; 0 the nominal) of each stage, in
+    the order their fits are appended to a record's: the nominal and the linear effects,
+    noise in the loop, then the nonlinear ones (the clamp's, then the compliant stops')."""
+    linear = [0] + [
+        i for i, e in enumerate(effects, start=1) if not e.nonlinear and not e.loop_noise
+    ]
+    loop_noise = [i for i, e in enumerate(effects, start=1) if e.loop_noise]
+    nonlinear = [i for i, e in enumerate(effects, start=1) if e.nonlinear]
+    clamp = [i for i in nonlinear if not effects[i - 1].contact_stops]
+    contact = [i for i in nonlinear if effects[i - 1].contact_stops]
+    return linear, loop_noise, nonlinear, clamp, contact
 
 
 def _fit_loop_noise(fits, records: list[StepRecord], effects, loop_noise, nominal) -> None:
@@ -340,6 +344,19 @@ def _reweight_far_records(fits, records: list[StepRecord], effects, linear, nomi
     for i, again in entries.items():
         fits[i] = again
     return floor
+
+
+def _put_back_at_sigma_hat(fits, floor: dict, at_sigma_hat: dict, n_linear: int) -> None:
+    """On the rescaled records (`floor`: {i: (context, the nominal's fit at the floor)}), the
+    nominal's fit at σ̂ back in `fits[i][0]` for the verdict; the linear candidates
+    (`fits[i][1:n_linear]`, fitted at σ̂ with it) judged against it as they are; the later
+    fits (noise in the loop, stops: at the floor) judged against the floor's nominal
+    (`StepFit.nominal_objective`). `fits` updated in place."""
+    for i, (_, nominal_at_floor) in floor.items():
+        fits[i] = [at_sigma_hat[i], *fits[i][1:n_linear]] + [
+            dataclasses.replace(f, nominal_objective=float(nominal_at_floor.objective))
+            for f in fits[i][n_linear:]
+        ]
 
 
 def _restart_losers(
