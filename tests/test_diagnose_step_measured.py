@@ -199,8 +199,12 @@ def test_a_nested_fit_whose_reported_log_likelihood_is_below_the_nominals_is_fla
     # leaves out some priors): a nested fit may end a little below the nominal's there
     # (≤ 0.8 on the clean cases), but not by more than `NESTED_LNL_SLACK`.
     nominal = SimpleNamespace(effect="nominal", log_likelihood=8000.0)
-    slight = SimpleNamespace(effect="colored_noise", log_likelihood=8000.0 - 0.8)
-    far = SimpleNamespace(effect="stop_saturation", log_likelihood=8000.0 - 4909.7)
+    slight = SimpleNamespace(
+        effect="colored_noise", log_likelihood=8000.0 - 0.8, nominal_log_likelihood=None
+    )
+    far = SimpleNamespace(
+        effect="stop_saturation", log_likelihood=8000.0 - 4909.7, nominal_log_likelihood=None
+    )
     assert log_likelihood_shortfall(far, nominal) == pytest.approx(4909.7)
     assert not reported_below(slight, nominal) and reported_below(far, nominal)
     assert NESTED_LNL_SLACK < 4909.7 and NESTED_LNL_SLACK > 0.8
@@ -365,7 +369,7 @@ def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_on
     judged against it; every later fit (noise in the loop, stops: fitted at the floor)
     judged against the floor's nominal."""
     from accel_jax.diagnose.step import entry
-    from accel_jax.diagnose.step.assess import nested_failed
+    from accel_jax.diagnose.step.assess import nested_failed, nominal_log_likelihood
     from accel_jax.diagnose.step.effects import step_effects
 
     @dataclasses.dataclass(frozen=True)
@@ -373,12 +377,15 @@ def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_on
         effect: str
         objective: float
         nominal_objective: float | None = None
+        log_likelihood: float = 0.0
+        nominal_log_likelihood: float | None = None
 
     effects = step_effects()
     linear, loop_noise, _, clamp, contact = entry._stages(effects)
     names = ["nominal"] + [effects[i - 1].name for i in linear[1:] + loop_noise + clamp + contact]
     assert names[len(linear) - 1] == "colored_noise" and names[len(linear)] == "moment_noise"
-    at_floor, at_sigma_hat = Fit("nominal", 5e6), Fit("nominal", 800.0)
+    at_floor = Fit("nominal", 5e6, log_likelihood=-40.0)
+    at_sigma_hat = Fit("nominal", 800.0, log_likelihood=-10.0)
     # At σ̂ the linear candidates end below its nominal, all but `colored_noise` (a fit that
     # lost: 810); the later fits end a little below the floor's nominal. Each is flagged
     # exactly where it lost to the nominal it was fitted with.
@@ -401,6 +408,12 @@ def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_on
         if n_linear == len(linear):
             assert all(f.nominal_objective is None for f in fits[0][1:n_linear])
             assert all(f.nominal_objective == 5e6 for f in fits[0][n_linear:])
+            # And each one's evidence and reported-ln-L check from the nominal at its scale.
+            assert all(f.nominal_log_likelihood is None for f in fits[0][1:n_linear])
+            assert all(f.nominal_log_likelihood == -40.0 for f in fits[0][n_linear:])
+            assert [nominal_log_likelihood(f, fits[0][0]) for f in fits[0][1:]] == [
+                -10.0 if k < n_linear else -40.0 for k in range(1, len(names))
+            ]
 
 
 # Record 306 of the measured-input harness's draw (studies/measured_input_harness.py,

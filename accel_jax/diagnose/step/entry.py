@@ -350,11 +350,16 @@ def _put_back_at_sigma_hat(fits, floor: dict, at_sigma_hat: dict, n_linear: int)
     """On the rescaled records (`floor`: {i: (context, the nominal's fit at the floor)}), the
     nominal's fit at σ̂ back in `fits[i][0]` for the verdict; the linear candidates
     (`fits[i][1:n_linear]`, fitted at σ̂ with it) judged against it as they are; the later
-    fits (noise in the loop, stops: at the floor) judged against the floor's nominal
-    (`StepFit.nominal_objective`). `fits` updated in place."""
+    fits (noise in the loop, stops: at the floor) judged against the floor's nominal, and
+    their evidence measured from it (`StepFit.nominal_objective`, `nominal_log_likelihood`).
+    `fits` updated in place."""
     for i, (_, nominal_at_floor) in floor.items():
         fits[i] = [at_sigma_hat[i], *fits[i][1:n_linear]] + [
-            dataclasses.replace(f, nominal_objective=float(nominal_at_floor.objective))
+            dataclasses.replace(
+                f,
+                nominal_objective=float(nominal_at_floor.objective),
+                nominal_log_likelihood=float(nominal_at_floor.log_likelihood),
+            )
             for f in fits[i][n_linear:]
         ]
 

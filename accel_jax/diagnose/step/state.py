@@ -290,8 +290,10 @@ class StepFit:
     - `converged`: the solver's or the Newton decrement's word (`fit.CONVERGED_DECREMENT`);
         `steps` the solver's steps; `decrement` the Newton decrement; `objective` the
         solver's penalised cost at `w_trained` (`assess.nested_failed`);
-        `nominal_objective` the nominal model's at the same noise scale where the record's
-        nominal fit was made at another (`entry.REWEIGHT_ABOVE`), else None.
+        `nominal_objective` and `nominal_log_likelihood` the nominal model's objective and
+        reported ln L at the same noise scale where the record's nominal fit was made at
+        another (`entry.REWEIGHT_ABOVE`), else None: what the fit is judged against
+        (`assess.nested_failed`, `assess.reported_below`) and its evidence measured from.
     - `params`: the effect's physical values (`AbstractStepEffect.physical`; empty for the
         nominal model).
 
@@ -331,6 +333,7 @@ class StepFit:
     objective: float
     params: dict[str, Any]
     nominal_objective: float | None = None
+    nominal_log_likelihood: float | None = None
     ms_train: float = math.nan
     ms_held: float = math.nan
     ms_held_one_step: float = math.nan

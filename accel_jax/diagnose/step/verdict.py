@@ -245,7 +245,9 @@ def ranking_entry(
     misfit it absorbs is predictable (`predictable`: `openworld.predictability`, or
     `noise_null.calibrated`'s against the candidate's own noise)."""
     evidence = 2 * (
-        fit.log_likelihood - 0.5 * fit.k * math.log(n_train) - nominal_fit.log_likelihood
+        fit.log_likelihood
+        - 0.5 * fit.k * math.log(n_train)
+        - assess.nominal_log_likelihood(fit, nominal_fit)
     )
     if fit.stochastic:
         improves = fit.ms_held_one_step < nominal_fit.ms_held
