@@ -374,6 +374,26 @@ def test_a_different_device_is_never_none(diagnosed):
             assert not any("rests past its bound" in n for n in other.notes), name
 
 
+def test_the_bound_note_names_only_fits_flagged_by_their_reported_log_likelihood():
+    # `verdict._at_bound_note`: a refit past `REFIT_BOUND` explains a flag on the reported
+    # ln L (the bound's penalty traded for it); a fit whose objective also ended below the
+    # nominal's failed in the solver and is not explained away; within the bound, no note.
+    from accel_jax.diagnose.step.verdict import _at_bound_note
+
+    def entry(effect, failed, below):
+        return SimpleNamespace(effect=effect, fit_failed=failed, objective_below_nominal=below)
+
+    past = SimpleNamespace(z=np.array([13.1, -9.7, 0.0, 0.0]), z_gain=0.0)
+    within = SimpleNamespace(z=np.array([5.9, -5.0, 0.0, 0.0]), z_gain=-5.5)
+    entries = [entry("torquer_lag", True, 0.0), entry("output_filter", True, 40.0),
+               entry("colored_noise", False, 0.0)]
+    note = _at_bound_note(past, entries)
+    assert note is not None and "moment_of_inertia +13.1σ, damping -9.7σ" in note
+    assert "(torquer_lag)" in note and "output_filter" not in note
+    assert _at_bound_note(within, entries) is None
+    assert _at_bound_note(past, [entry("output_filter", True, 40.0)]) is None
+
+
 def test_time_scale_domain_check():
     # A slow sensor (seconds, not 0.3 ms) recorded at 1 kHz: refused with the time scales.
     t = np.arange(6000) * 1e-3
