@@ -383,8 +383,15 @@ def test_the_bound_note_names_only_fits_flagged_by_their_reported_log_likelihood
     def entry(effect, failed, below):
         return SimpleNamespace(effect=effect, fit_failed=failed, objective_below_nominal=below)
 
-    past = SimpleNamespace(z=np.array([13.1, -9.7, 0.0, 0.0]), z_gain=0.0)
-    within = SimpleNamespace(z=np.array([5.9, -5.0, 0.0, 0.0]), z_gain=-5.5)
+    from accel_jax.diagnose.step.state import StepFit
+
+    def nominal_fit(z, z_gain):  # what the note reads of a `StepFit`
+        fit = SimpleNamespace(z=np.array(z), z_gain=z_gain)
+        fit.device_shifts = lambda prior_sigma=None: StepFit.device_shifts(fit, prior_sigma)
+        return fit
+
+    past = nominal_fit([13.1, -9.7, 0.0, 0.0], 0.0)
+    within = nominal_fit([5.9, -5.0, 0.0, 0.0], -5.5)
     entries = [entry("torquer_lag", True, 0.0), entry("output_filter", True, 40.0),
                entry("colored_noise", False, 0.0)]
     note = _at_bound_note(past, entries)

@@ -28,6 +28,7 @@ from accel_jax.diagnose.step.assess import (
     reported_below,
 )
 from accel_jax.diagnose.step.nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
+from accel_jax.diagnose.step.state import Baseline
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
@@ -165,7 +166,7 @@ def test_nuisances_are_judged_together_and_a_common_delay_is_not_a_strain():
 
 def _nested_fit(**fields):
     """A fit's fields that the nested checks read (`state.StepFit`'s)."""
-    return SimpleNamespace(**{"nominal_objective": None, **fields})
+    return SimpleNamespace(**{"baseline": None, "log_likelihood": 0.0, **fields})
 
 
 def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
@@ -187,10 +188,14 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
     )  # (½·1 ≤ 1e-10 of ½·2e10: round-off of the sum)
     # A later fit (a stop's) of a record whose linear fits were made at its residual scale
     # (`entry.REWEIGHT_ABOVE`): judged against the nominal's objective at its own scale.
-    stop = _nested_fit(effect="stop_saturation", objective=2010.0, nominal_objective=2020.0)
+    stop = _nested_fit(
+        effect="stop_saturation", objective=2010.0, baseline=Baseline(2020.0, 0.0)
+    )
     assert nested_shortfall(stop, nominal) == pytest.approx(-5.0)
     assert not nested_failed(stop, nominal) and nested_losers([nominal, stop]) == []
-    stop = _nested_fit(effect="stop_saturation", objective=2010.0, nominal_objective=1990.0)
+    stop = _nested_fit(
+        effect="stop_saturation", objective=2010.0, baseline=Baseline(1990.0, 0.0)
+    )
     assert nested_failed(stop, nominal) and nested_losers([nominal, stop]) == ["stop_saturation"]
 
 
@@ -198,13 +203,9 @@ def test_a_nested_fit_whose_reported_log_likelihood_is_below_the_nominals_is_fla
     # The evidence compares the reported ln L, which the solver does not minimise (it
     # leaves out some priors): a nested fit may end a little below the nominal's there
     # (≤ 0.8 on the clean cases), but not by more than `NESTED_LNL_SLACK`.
-    nominal = SimpleNamespace(effect="nominal", log_likelihood=8000.0)
-    slight = SimpleNamespace(
-        effect="colored_noise", log_likelihood=8000.0 - 0.8, nominal_log_likelihood=None
-    )
-    far = SimpleNamespace(
-        effect="stop_saturation", log_likelihood=8000.0 - 4909.7, nominal_log_likelihood=None
-    )
+    nominal = SimpleNamespace(effect="nominal", objective=0.0, log_likelihood=8000.0)
+    slight = _nested_fit(effect="colored_noise", log_likelihood=8000.0 - 0.8)
+    far = _nested_fit(effect="stop_saturation", log_likelihood=8000.0 - 4909.7)
     assert log_likelihood_shortfall(far, nominal) == pytest.approx(4909.7)
     assert not reported_below(slight, nominal) and reported_below(far, nominal)
     assert NESTED_LNL_SLACK < 4909.7 and NESTED_LNL_SLACK > 0.8
@@ -365,20 +366,23 @@ def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monk
 def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_ones_at_sigma_hat():
     """`entry._put_back_at_sigma_hat`, on the fits in the order `diagnose_step` appends
     them (`entry._stages`): the nominal's fit at σ̂ back first; every linear candidate
-    (fitted at σ̂ with it, the last of them `colored_noise`) without a `nominal_objective`,
-    judged against it; every later fit (noise in the loop, stops: fitted at the floor)
-    judged against the floor's nominal."""
+    (fitted at σ̂ with it, the last of them `colored_noise`) without a `baseline`, judged
+    against it; every later fit (noise in the loop, stops: fitted at the floor) judged
+    against the floor's nominal. `entry._to_floor` before it swaps the floor's in."""
     from accel_jax.diagnose.step import entry
-    from accel_jax.diagnose.step.assess import nested_failed, nominal_log_likelihood
+    from accel_jax.diagnose.step.assess import baseline, nested_failed
     from accel_jax.diagnose.step.effects import step_effects
 
     @dataclasses.dataclass(frozen=True)
     class Fit:
         effect: str
         objective: float
-        nominal_objective: float | None = None
         log_likelihood: float = 0.0
-        nominal_log_likelihood: float | None = None
+        baseline: Baseline | None = None
+
+    @dataclasses.dataclass(frozen=True)
+    class Record:
+        ctx: str
 
     effects = step_effects()
     linear, loop_noise, _, clamp, contact = entry._stages(effects)
@@ -400,19 +404,24 @@ def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_on
         (len(linear) - 1, []),
         (len(linear) + 1, ["colored_noise", "moment_noise"]),
     ]:
-        fits = [[at_floor] + [made(name, k) for k, name in enumerate(names[1:], 1)]]
-        entry._put_back_at_sigma_hat(fits, {0: (None, at_floor)}, {0: at_sigma_hat}, n_linear)
+        # The linear stage's fits at σ̂, then the floor's context and nominal swapped in.
+        fits = [[at_sigma_hat] + [made(name, k) for k, name in enumerate(names[1:len(linear)], 1)]]
+        records = [Record("at σ̂")]
+        floor = {0: ("at the floor", at_floor)}
+        swapped = entry._to_floor(fits, records, floor)
+        assert swapped == {0: at_sigma_hat} and fits[0][0] is at_floor
+        assert records[0].ctx == "at the floor"
+        fits[0] += [made(name, k) for k, name in enumerate(names[len(linear):], len(linear))]
+        entry._put_back_at_sigma_hat(fits, floor, swapped, n_linear)
         assert fits[0][0] is at_sigma_hat and [f.effect for f in fits[0]] == names
         flagged = [f.effect for f in fits[0][1:] if nested_failed(f, fits[0][0])]
         assert flagged == expected, n_linear
         if n_linear == len(linear):
-            assert all(f.nominal_objective is None for f in fits[0][1:n_linear])
-            assert all(f.nominal_objective == 5e6 for f in fits[0][n_linear:])
+            assert all(f.baseline is None for f in fits[0][1:n_linear])
+            assert all(f.baseline == (5e6, -40.0) for f in fits[0][n_linear:])
             # And each one's evidence and reported-ln-L check from the nominal at its scale.
-            assert all(f.nominal_log_likelihood is None for f in fits[0][1:n_linear])
-            assert all(f.nominal_log_likelihood == -40.0 for f in fits[0][n_linear:])
-            assert [nominal_log_likelihood(f, fits[0][0]) for f in fits[0][1:]] == [
-                -10.0 if k < n_linear else -40.0 for k in range(1, len(names))
+            assert [baseline(f, fits[0][0]) for f in fits[0][1:]] == [
+                (800.0, -10.0) if k < n_linear else (5e6, -40.0) for k in range(1, len(names))
             ]
 
 

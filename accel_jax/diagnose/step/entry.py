@@ -23,7 +23,7 @@ from .effects import step_effects
 from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
 from .record import _guesses, prepare, prior_sigma_of, stack_on_host
-from .state import StepFit, RecordShape, StepRecord
+from .state import Baseline, RecordShape, StepFit, StepRecord
 from .verdict import evaluate
 
 
@@ -137,11 +137,8 @@ def diagnose_step(
     # explains the record leaves residuals at the floor, not at the nominal's σ̂. They
     # start from the nominal's fit at the floor (from its optimum, a nested
     # fit cannot end above its objective there), and are judged against it
-    # (`nominal_objective`); the nominal at σ̂ is put back for the verdict.
-    at_sigma_hat = {}
-    for i, (ctx, nominal_at_floor) in floor.items():
-        records[i] = dataclasses.replace(records[i], ctx=ctx)
-        at_sigma_hat[i], fits[i][0] = fits[i][0], nominal_at_floor
+    # (`StepFit.baseline`); the nominal at σ̂ is put back for the verdict.
+    at_sigma_hat = _to_floor(fits, records, floor)
     n_linear = len(linear)  # the nominal (0) and the linear candidates: `fits[i][:n_linear]`
     # Noise inside the loop, for the records that no deterministic linear model explains:
     # from its own starts (the nominal fit's device and nuisances), from the output noise's
@@ -304,7 +301,7 @@ record pull its nuisances (an output-filter record then read `torquer_lag`). The
 (noise in the loop, stops) stay at the floor, where a model that explains the record leaves
 its residuals (at σ̂ a stop fit stopped short, its device 6σ out, and a stop record read
 `unexplained`), each judged against the nominal's fit at the floor
-(`StepFit.nominal_objective`)."""
+(`StepFit.baseline`)."""
 
 NESTED_RESTARTS = 2
 """Rounds of restarts from the nominal optimum for candidates that lost to it, each taking
@@ -346,21 +343,31 @@ def _reweight_far_records(fits, records: list[StepRecord], effects, linear, nomi
     return floor
 
 
+def _to_floor(fits, records: list[StepRecord], floor: dict) -> dict:
+    """On the rescaled records (`floor`, `_reweight_far_records`'s), the context at the
+    floor and the nominal's fit there in place of those at σ̂, for the later fits (noise in
+    the loop, stops); returns {i: the nominal's fit at σ̂} for `_put_back_at_sigma_hat`.
+    `fits` and `records` updated in place."""
+    at_sigma_hat = {}
+    for i, (ctx, nominal_at_floor) in floor.items():
+        records[i] = dataclasses.replace(records[i], ctx=ctx)
+        at_sigma_hat[i], fits[i][0] = fits[i][0], nominal_at_floor
+    return at_sigma_hat
+
+
 def _put_back_at_sigma_hat(fits, floor: dict, at_sigma_hat: dict, n_linear: int) -> None:
-    """On the rescaled records (`floor`: {i: (context, the nominal's fit at the floor)}), the
-    nominal's fit at σ̂ back in `fits[i][0]` for the verdict; the linear candidates
-    (`fits[i][1:n_linear]`, fitted at σ̂ with it) judged against it as they are; the later
-    fits (noise in the loop, stops: at the floor) judged against the floor's nominal, and
-    their evidence measured from it (`StepFit.nominal_objective`, `nominal_log_likelihood`).
-    `fits` updated in place."""
+    """`_to_floor` undone for the verdict: on the rescaled records (`floor`: {i: (context,
+    the nominal's fit at the floor)}), the nominal's fit at σ̂ back in `fits[i][0]`; the
+    linear candidates (`fits[i][1:n_linear]`, fitted at σ̂ with it) judged against it as
+    they are; the later fits (noise in the loop, stops: at the floor) judged against the
+    floor's nominal, and their evidence measured from it (`StepFit.baseline`). `fits`
+    updated in place."""
     for i, (_, nominal_at_floor) in floor.items():
+        at_floor = Baseline(
+            float(nominal_at_floor.objective), float(nominal_at_floor.log_likelihood)
+        )
         fits[i] = [at_sigma_hat[i], *fits[i][1:n_linear]] + [
-            dataclasses.replace(
-                f,
-                nominal_objective=float(nominal_at_floor.objective),
-                nominal_log_likelihood=float(nominal_at_floor.log_likelihood),
-            )
-            for f in fits[i][n_linear:]
+            dataclasses.replace(f, baseline=at_floor) for f in fits[i][n_linear:]
         ]
 
 

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import equinox as eqx
 import numpy as np
 
 from ..._data import StepData
 from ..openworld import Candidate, Whiteness
+from .model import REFIT_FIELDS
 
 if TYPE_CHECKING:
     from .effects import AbstractStepEffect
@@ -265,6 +266,15 @@ class StepRecord:
         return dataclasses.replace(self, notes=self.notes + (note,))
 
 
+class Baseline(NamedTuple):
+    """The nominal model's fit that a later fit is judged against where it is not the
+    record's nominal fit (`StepFit.baseline`): its solver objective (`StepFit.objective`)
+    and reported ln L (`StepFit.log_likelihood`)."""
+
+    objective: float
+    log_likelihood: float
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class StepFit:
     """One candidate model's fit to one record (`assess.fit_entries`, host side) and, once
@@ -290,10 +300,9 @@ class StepFit:
     - `converged`: the solver's or the Newton decrement's word (`fit.CONVERGED_DECREMENT`);
         `steps` the solver's steps; `decrement` the Newton decrement; `objective` the
         solver's penalised cost at `w_trained` (`assess.nested_failed`);
-        `nominal_objective` and `nominal_log_likelihood` the nominal model's objective and
-        reported ln L at the same noise scale where the record's nominal fit was made at
-        another (`entry.REWEIGHT_ABOVE`), else None: what the fit is judged against
-        (`assess.nested_failed`, `assess.reported_below`) and its evidence measured from.
+        `baseline` the nominal model's fit at the same noise scale where the record's
+        nominal fit was made at another (`entry.REWEIGHT_ABOVE`), else None: what the fit
+        is judged against (`assess.baseline`) and its evidence measured from.
     - `params`: the effect's physical values (`AbstractStepEffect.physical`; empty for the
         nominal model).
 
@@ -332,8 +341,7 @@ class StepFit:
     decrement: float
     objective: float
     params: dict[str, Any]
-    nominal_objective: float | None = None
-    nominal_log_likelihood: float | None = None
+    baseline: Baseline | None = None
     ms_train: float = math.nan
     ms_held: float = math.nan
     ms_held_one_step: float = math.nan
@@ -348,6 +356,17 @@ class StepFit:
     free_run_over_noise_variance: list[float] | None = None
     variance_consistent: bool | None = None
     whiteness: Whiteness | None = None
+
+    def device_shifts(self, prior_sigma=None) -> list[tuple[str, float]]:
+        """(name, shift in σ of its prior) of each refitted device parameter
+        (`model.REFIT_FIELDS`; with `prior_sigma`, those whose prior σ is not 0: the others
+        are held) and of the test winding's gain."""
+        shifts = [
+            (name, float(z))
+            for j, (name, z) in enumerate(zip(REFIT_FIELDS, self.z, strict=True))
+            if prior_sigma is None or prior_sigma[j] > 0
+        ]
+        return shifts + [("test_winding_gain", float(self.z_gain))]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

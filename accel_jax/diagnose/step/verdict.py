@@ -193,8 +193,7 @@ def _at_bound_note(nominal_fit: StepFit, entries: list[RankingEntry]) -> str | N
         e.effect for e in entries
         if e.fit_failed and e.objective_below_nominal <= assess.NESTED_ABSOLUTE
     ]
-    shifts = [(name, float(z)) for name, z in zip(REFIT_FIELDS, nominal_fit.z, strict=True)]
-    shifts.append(("test_winding_gain", float(nominal_fit.z_gain)))
+    shifts = nominal_fit.device_shifts()
     past = [f"{name} {z:+.1f}σ" for name, z in shifts if abs(z) > REFIT_BOUND]
     if not flagged or not past:
         return None
@@ -252,7 +251,7 @@ def ranking_entry(
     evidence = 2 * (
         fit.log_likelihood
         - 0.5 * fit.k * math.log(n_train)
-        - assess.nominal_log_likelihood(fit, nominal_fit)
+        - assess.baseline(fit, nominal_fit).log_likelihood
     )
     if fit.stochastic:
         improves = fit.ms_held_one_step < nominal_fit.ms_held
