@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import json
 import os
@@ -42,6 +43,30 @@ def _jsonable(value: Any) -> Any:
         return array.item() if array.ndim == 0 else array.tolist()
     if isinstance(value, float) and not np.isfinite(value):
         return None if np.isnan(value) else ("inf" if value > 0 else "-inf")
+    return value
+
+
+def field_dict(result, *, unless_none: tuple[str, ...] = ()) -> dict:
+    """A typed result (a dataclass) as the plain dict its `to_dict()` returns: every field
+    in its order, a value with a `to_dict` as that dict, a tuple or list as a list (each
+    item so too), a dict as a copy, anything else as it is; a field named in `unless_none`
+    left out when it is None. (JSON-ready once `write_json_atomic` converts arrays.)"""
+    out = {}
+    for field in dataclasses.fields(result):
+        value = getattr(result, field.name)
+        if value is None and field.name in unless_none:
+            continue
+        out[field.name] = _plain(value)
+    return out
+
+
+def _plain(value: Any) -> Any:
+    if hasattr(value, "to_dict"):
+        return value.to_dict()
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return dict(value)
     return value
 
 

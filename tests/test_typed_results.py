@@ -370,3 +370,55 @@ def test_the_experiment_menu_is_typed_and_its_old_dicts_warn():
     assert ExperimentDesign.from_mapping(accel.to_dict()).to_dict() == accel.to_dict()
     with pytest.warns(DeprecationWarning, match="use result.levels_V"):
         assert accel["levels_V"] == accel.levels_V
+
+
+def test_field_dict_is_every_field_in_order_json_ready():
+    # `_io.field_dict`, the `to_dict()` of the typed results that hold their fields as they
+    # are (`Decision`, `Whiteness`, `Predictability` and its calibrated subclass,
+    # `NuisanceTest`, `ExperimentDesign`, the discovery's).
+    import dataclasses
+
+    from accel_jax._io import field_dict
+
+    @dataclasses.dataclass(frozen=True)
+    class Inner:
+        a: int
+
+        def to_dict(self):
+            return {"a": self.a}
+
+    @dataclasses.dataclass(frozen=True)
+    class Outer:
+        name: str
+        tied: tuple
+        parts: tuple
+        inner: Inner | None
+        table: dict
+        extra: float | None = None
+        last: float | None = None
+
+    table = {"k": 1.0}
+    out = field_dict(Outer("x", ("p", "q"), (Inner(1),), Inner(2), table), unless_none=("extra",))
+    assert out == {
+        "name": "x", "tied": ["p", "q"], "parts": [{"a": 1}], "inner": {"a": 2},
+        "table": {"k": 1.0}, "last": None,
+    }
+    assert list(out) == ["name", "tied", "parts", "inner", "table", "last"]
+    assert out["table"] is not table  # a copy: the caller may change it
+    assert "extra" in field_dict(Outer("x", (), (), None, {}, extra=2.0), unless_none=("extra",))
+
+
+def test_a_subclass_of_a_typed_result_reports_its_fields_after_its_parents():
+    from accel_jax.diagnose.openworld import Predictability
+    from accel_jax.diagnose.step.noise_null import CalibratedPredictability
+
+    base = dict(input_locked=0.1, periodic=0.2, periodic_z=1.5, periodic_rms=1e-4,
+                trend=0.0, frequency_Hz=None, deterministic=False)
+    calibrated = CalibratedPredictability(
+        **base, null_quantile={"trend": 0.3}, null_draws=100, null_model="colored_noise"
+    )
+    assert Predictability(**base).to_dict() == base
+    assert calibrated.to_dict() == {
+        **base, "null_quantile": {"trend": 0.3}, "null_draws": 100,
+        "null_model": "colored_noise",
+    }

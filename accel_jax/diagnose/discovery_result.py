@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 
 from .._deprecated import LegacyItems
+from .._io import field_dict
 
 
 class _Fields:
@@ -28,7 +29,7 @@ class _Fields:
 
     def to_dict(self) -> dict:
         """The JSON-ready dict: one key per field, in the fields' order."""
-        return dict(vars(self))
+        return field_dict(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,20 +209,7 @@ class Discovery(LegacyItems):
     def to_dict(self) -> dict:
         """The JSON-ready dict: the fields in their order (`best` and `tie` as their
         candidates' dicts); `ceiling` and `excite` only when set."""
-        out = {
-            "method": self.method,
-            "sinusoid_start_Hz": self.sinusoid_start_Hz,
-            "scales": self.scales.to_dict(),
-            "candidates": [candidate.to_dict() for candidate in self.candidates],
-            "best": None if self.best is None else self.best.to_dict(),
-            "tie": None if self.tie is None else self.tie.to_dict(),
-            "rating": self.rating,
-        }
-        if self.ceiling is not None:
-            out["ceiling"] = self.ceiling.to_dict()
-        if self.excite is not None:
-            out["excite"] = list(self.excite)
-        return out
+        return field_dict(self, unless_none=("ceiling", "excite"))
 
     def _legacy(self) -> dict:
         return self.to_dict()

@@ -33,6 +33,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from .._deprecated import LegacyItems
+from .._io import field_dict
 from .._noise.mean_models import PeriodicLine
 from .base import INDISTINCT, ljung_box
 
@@ -96,13 +97,7 @@ class Decision(LegacyItems):
     path: str = ""
 
     def to_dict(self) -> dict:
-        return {
-            "verdict": self.verdict,
-            "tied": list(self.tied),
-            "chosen": self.chosen,
-            "best_partial": self.best_partial,
-            "path": self.path,
-        }
+        return field_dict(self)
 
     def _legacy(self) -> dict:
         return self.to_dict()
@@ -185,11 +180,7 @@ class NoiseFloorEstimate(LegacyItems):
     quantum: float
 
     def to_dict(self) -> dict:
-        return {
-            "sigma": self.sigma,
-            "sigma_differences": self.sigma_differences,
-            "quantum": self.quantum,
-        }
+        return field_dict(self)
 
     def _legacy(self) -> dict:
         return self.to_dict()
@@ -216,13 +207,7 @@ class Whiteness(LegacyItems):
     level: float
 
     def to_dict(self) -> dict:
-        return {
-            "statistic": self.statistic,
-            "lags": self.lags,
-            "p_value": self.p_value,
-            "white": self.white,
-            "level": self.level,
-        }
+        return field_dict(self)
 
     def _legacy(self) -> dict:
         return self.to_dict()
@@ -265,15 +250,8 @@ class Predictability(LegacyItems):
         return getattr(self, test)
 
     def to_dict(self) -> dict:
-        return {
-            "input_locked": self.input_locked,
-            "periodic": self.periodic,
-            "periodic_z": self.periodic_z,
-            "periodic_rms": self.periodic_rms,
-            "trend": self.trend,
-            "frequency_Hz": self.frequency_Hz,
-            "deterministic": self.deterministic,
-        }
+        """The fields in their order (a subclass's after them)."""
+        return field_dict(self)
 
     def _legacy(self) -> dict:
         return self.to_dict()

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..._data import NominalDevice, StepData
 from ..._deprecated import LegacyItems
+from ..._io import field_dict
 from ..._servo import closed_loop_test_gain
 from ..._simulate.sequence import accel_moment
 from .joint import (
@@ -64,13 +65,7 @@ class ExperimentDesign(LegacyItems):
         return cls(**design)
 
     def to_dict(self) -> dict:
-        return {
-            "description": self.description,
-            "record": self.record,
-            "noise_V": self.noise_V,
-            "levels_V": self.levels_V,
-            "accel_levels_g": self.accel_levels_g,
-        }
+        return field_dict(self)
 
     def _legacy(self) -> dict:
         return self.to_dict()

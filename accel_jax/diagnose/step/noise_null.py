@@ -61,14 +61,6 @@ class CalibratedPredictability(openworld.Predictability):
     null_draws: int = 0
     null_model: str = ""
 
-    def to_dict(self) -> dict:
-        return {
-            **super().to_dict(),
-            "null_quantile": self.null_quantile,
-            "null_draws": self.null_draws,
-            "null_model": self.null_model,
-        }
-
 
 def _sqrt_psd(matrix: np.ndarray) -> np.ndarray:
     values, vectors = np.linalg.eigh(0.5 * (matrix + matrix.T))

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._deprecated import LegacyItems
+from ..._io import field_dict
 from .model import DELAY_LIMIT, GAIN_SIGMA, n_timing, timing_terms
 from .layout import W
 from .state import StepFit, StepRecord
@@ -80,9 +81,7 @@ class NuisanceTest(LegacyItems):
 
     def to_dict(self) -> dict:
         """The fields in order (`standardised` a copy): the dict `nuisance_test` returned."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["standardised"] = dict(self.standardised)
-        return out
+        return field_dict(self)
 
     def _legacy(self) -> dict:
         return self.to_dict()

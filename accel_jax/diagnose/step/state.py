@@ -25,6 +25,7 @@ import equinox as eqx
 import numpy as np
 
 from ..._data import StepData
+from ..._io import field_dict
 from ..openworld import Candidate, Whiteness
 from .model import REFIT_FIELDS
 
@@ -406,12 +407,7 @@ class RecordScore:
     def to_dict(self) -> dict[str, Any]:
         """The score as the diagnosis reports it (`SetDiagnosis.records`, with the record's
         name, `on_stops` and `has_accel` before it)."""
-        return {
-            "rms_V": self.rms_V,
-            "noise_floor_V": self.noise_floor_V,
-            "excess_over_floor": self.excess_over_floor,
-            "at_floor": self.at_floor,
-        }
+        return field_dict(self)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -523,11 +519,4 @@ class SetRankingEntry:
 
     def to_dict(self) -> dict[str, Any]:
         """The entry as the diagnosis reports it (`SetDiagnosis.ranking`)."""
-        return {
-            "effect": self.effect,
-            "evidence": self.evidence,
-            "all_at_floor": self.all_at_floor,
-            "worst_excess_over_floor": self.worst_excess_over_floor,
-            "converged": self.converged,
-            "shared": self.shared,
-        }
+        return field_dict(self)
