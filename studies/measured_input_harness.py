@@ -53,6 +53,8 @@ import step_truth  # noqa: E402
 from shards import parse_shard, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
+from accel_jax.diagnose.step.assess import NESTED_ABSOLUTE  # noqa: E402  (the scorer's, not the blind diagnosis's)
+
 CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT)
 NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
 
@@ -356,7 +358,8 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
     within the stated lag against what the true channel leaves ambiguous."""
     per_class = {}
     absent, within = {}, {}
-    failed_fits = rankings = 0
+    failed_fits = rankings = below_objective = 0
+    largest_below = 0.0
     indices = sorted(int(key.split("/")[1]) for key in rows if key.startswith("clean/"))
     for i in indices:
         truth = truths[i]
@@ -371,6 +374,9 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
             if "refused" not in row:
                 rankings += 1
                 failed_fits += len(row["fit_failed"])
+                below = [float(b) for b in row.get("below_nominal", {}).values()]
+                below_objective += sum(b > NESTED_ABSOLUTE for b in below)
+                largest_below = max([largest_below, *below])
         if "refused" in measured:
             entry["refused"] += 1
             entry["verdicts"].append([clean.get("verdict"), "refused"])
@@ -416,6 +422,12 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
         "records": total,
         "refused_measured": sum(e["refused"] for e in per_class.values()),
         "nested_fit_failures": failed_fits,
+        # Of every ranking's fits, those whose maximised penalised log-likelihood (the
+        # solver's objective) ended below the nominal's beyond `NESTED_ABSOLUTE`, and the
+        # largest shortfall there: the issue's criterion. A fit flagged by its reported ln L
+        # alone (`NESTED_LNL_SLACK`) is in `nested_fit_failures`, not here.
+        "nested_below_on_objective": below_objective,
+        "largest_objective_below_nominal": largest_below,
         "rankings": rankings,
         "false_assurance": false_assurance,
         "false_assurance_excludes": {

@@ -226,3 +226,19 @@ def test_prbs_twins_are_scored_on_their_own_world():
     assert list(out["none_effect_absent"]) == ["prbs_clean/0367"]
     assert all(w["duration_s"] == world["duration_s"] for w in asked) and len(asked) == 3
     assert (out["agree_clean"], out["agree_measured"]) == (2, 1)
+
+
+def test_nested_fits_below_the_nominal_are_counted_on_the_objective_apart_from_the_flags():
+    # A fit flagged by its reported ln L alone (objective not below: 0 or round-off) counts
+    # in `nested_fit_failures` only; one whose objective ended below counts in both.
+    truths = [{"effect": "none"}, {"effect": "none"}]
+    flagged = {**_row("none"), "fit_failed": ["disturbance_drift"],
+               "below_nominal": {"torquer_lag": 0.0, "disturbance_drift": 7.8e-10}}
+    lost = {**_row("none"), "fit_failed": ["stop_saturation"],
+            "below_nominal": {"stop_saturation": 12.5}}
+    rows = {"clean/0000": _row("none"), "measured/0000": flagged,
+            "clean/0001": _row("none"), "measured/0001": lost}
+    s = harness.score(truths, rows, _acts)
+    assert s["nested_fit_failures"] == 2 and s["rankings"] == 4
+    assert s["nested_below_on_objective"] == 1
+    assert s["largest_objective_below_nominal"] == 12.5
