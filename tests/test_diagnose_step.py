@@ -280,12 +280,18 @@ def test_a_nested_fit_is_judged_on_its_training_likelihood_and_a_flag_is_shown(d
     assert not stop["fit_failed"] and stop["evidence"] > 0, result.summary()
     assert stop["gap_shrink"] < 0 and not stop["significant"], stop
     assert all(e["log_likelihood_below_nominal"] <= NESTED_LNL_SLACK for e in result.ranking)
-    # A flagged entry (`assess.reported_below`, or the objective's `nested_failed`) is
-    # shown failed with both shortfalls and never ranked as evidence.
-    entry = {**stop, "fit_failed": True, "log_likelihood_below_nominal": 1830.0}
+    # A flagged entry is never ranked as evidence: failed in the solver (the objective's
+    # `nested_failed`), shown failed with both shortfalls; flagged by its reported ln L
+    # alone (`assess.reported_below`), shown as no evidence, not as a failed fit.
+    entry = {**stop, "fit_failed": True, "solver_failed": True, "objective_below_nominal": 4.2,
+             "log_likelihood_below_nominal": 1830.0}
     shown = dataclasses.replace(result, ranking=[*result.ranking, entry]).summary()
-    assert "stop_saturation    fit failed (ended 0 below the nominal model's" in shown
+    assert "stop_saturation    fit failed (ended 4.2 below the nominal model's" in shown
     assert "1.83e+03 below its reported ln L" in shown
+    entry = {**entry, "solver_failed": False, "objective_below_nominal": 0.0}
+    shown = dataclasses.replace(result, ranking=[*result.ranking, entry]).summary()
+    assert "stop_saturation    no evidence (its reported ln L ended 1.83e+03 below" in shown
+    assert "fit failed" not in shown
     # No fit is flagged on the clean records (their shortfalls ≤ 0.8 ln L).
     for name in ("clean", "clean_conventions"):
         assert not any(e["fit_failed"] for e in diagnosed[name][1].ranking), name
@@ -381,7 +387,10 @@ def test_the_bound_note_names_only_fits_flagged_by_their_reported_log_likelihood
     from accel_jax.diagnose.step.verdict import _at_bound_note
 
     def entry(effect, failed, below):
-        return SimpleNamespace(effect=effect, fit_failed=failed, objective_below_nominal=below)
+        return SimpleNamespace(
+            effect=effect, fit_failed=failed, objective_below_nominal=below,
+            solver_failed=failed and below > 1e-3,  # (`assess.nested_failed` on this scale)
+        )
 
     from accel_jax.diagnose.step.state import StepFit
 

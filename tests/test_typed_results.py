@@ -325,7 +325,7 @@ def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
         converged=True, fit_steps=7, out_of_prior=["J"],
     )
     old_keys = [
-        "effect", "evidence", "fit_failed", "objective_below_nominal",
+        "effect", "evidence", "fit_failed", "solver_failed", "objective_below_nominal",
         "log_likelihood_below_nominal", "significant",
         "stochastic", "explains", "explains_up_to_model_form", "plausible",
         "explained_fraction", "gap_after_V", "gap_shrink", "held_out_mean_square",

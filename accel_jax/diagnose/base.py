@@ -458,11 +458,19 @@ class DiagnosisResult:
             if r.get("fit_failed"):  # a nested fit that lost to the nominal: no evidence
                 below = r["objective_below_nominal"]
                 reported = r.get("log_likelihood_below_nominal", 0.0)
-                lines.append(
-                    f"   {r['effect']:<18} fit failed (ended {below:.3g} below the nominal "
-                    f"model's penalised ln L, {reported:.3g} below its reported ln L; the "
-                    "nominal is the effect switched off: no evidence either way)"
-                )
+                if r.get("solver_failed", True):
+                    lines.append(
+                        f"   {r['effect']:<18} fit failed (ended {below:.3g} below the nominal "
+                        f"model's penalised ln L, {reported:.3g} below its reported ln L; the "
+                        "nominal is the effect switched off: no evidence either way)"
+                    )
+                else:
+                    lines.append(
+                        f"   {r['effect']:<18} no evidence (its reported ln L ended "
+                        f"{reported:.3g} below the nominal model's, its penalised ln L, which "
+                        "the fit maximised, did not: the two weigh the residual against the "
+                        "priors differently on this record)"
+                    )
                 continue
             lines.append(
                 f" {mark} {r['effect']:<18} evidence {r['evidence']:>10.1f}  "

@@ -430,7 +430,10 @@ class RankingEntry(Candidate):
     - `fit_failed`: its nested fit ended below the nominal's likelihood: the penalised one
         the solver maximised (a solver failure, `assess.nested_failed`;
         `objective_below_nominal` by how much, ≥ 0, ln L units) or the reported ln L that
-        the evidence compares (`assess.reported_below`; `log_likelihood_below_nominal`).
+        the evidence compares (`assess.reported_below`; `log_likelihood_below_nominal`);
+        `solver_failed` whether the former (a fit flagged by its reported ln L alone did
+        not fail in the solver: the two likelihoods weigh the residual against the priors
+        differently, `assess.NESTED_LNL_SLACK`).
     - `explains_up_to_model_form`: a deterministic effect that explains the record up to
         its model form (`openworld.MODEL_FORM`).
     - `gap_after_V` [V]: the held-out gap with the effect; `gap_shrink` the fraction of the
@@ -458,6 +461,7 @@ class RankingEntry(Candidate):
     fit_steps: int
     out_of_prior: list[str]
     log_likelihood_below_nominal: float = 0.0
+    solver_failed: bool = False
     one_step_whiteness: Whiteness | None = None
     variance_consistent: bool | None = None
     predictability_null_quantile: dict[str, Any] | None = None
@@ -467,6 +471,7 @@ class RankingEntry(Candidate):
             "effect": self.effect,
             "evidence": self.evidence,
             "fit_failed": self.fit_failed,
+            "solver_failed": self.solver_failed,
             "objective_below_nominal": self.objective_below_nominal,
             "log_likelihood_below_nominal": self.log_likelihood_below_nominal,
             "significant": self.significant,

@@ -189,10 +189,7 @@ def _at_bound_note(nominal_fit: StepFit, entries: list[RankingEntry]) -> str | N
     read evidence −216 and −1,368)."""
     # (Only the fits flagged by their reported ln L alone: one whose objective also ended
     # below the nominal's did fail in the solver.)
-    flagged = [
-        e.effect for e in entries
-        if e.fit_failed and e.objective_below_nominal <= assess.NESTED_ABSOLUTE
-    ]
+    flagged = [e.effect for e in entries if e.fit_failed and not e.solver_failed]
     shifts = nominal_fit.device_shifts()
     past = [f"{name} {z:+.1f}σ" for name, z in shifts if abs(z) > REFIT_BOUND]
     if not flagged or not past:
@@ -264,7 +261,8 @@ def ranking_entry(
     # was restarted from the nominal optimum first): flagged, never an effect.
     # And one whose reported ln L, which the evidence compares, ended below the nominal's
     # (`assess.reported_below`): its evidence is no evidence.
-    failed = assess.nested_failed(fit, nominal_fit) or assess.reported_below(fit, nominal_fit)
+    solver_failed = assess.nested_failed(fit, nominal_fit)
+    failed = solver_failed or assess.reported_below(fit, nominal_fit)
     # A noise that absorbs a predictable misfit explains none of it.
     absorbed = fit.stochastic and bool(predictable.deterministic)
     noise = {}
@@ -284,6 +282,7 @@ def ranking_entry(
         effect=fit.effect,
         evidence=float(evidence),
         fit_failed=failed,
+        solver_failed=solver_failed,
         objective_below_nominal=max(assess.nested_shortfall(fit, nominal_fit), 0.0),
         log_likelihood_below_nominal=max(assess.log_likelihood_shortfall(fit, nominal_fit), 0.0),
         significant=bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
