@@ -531,3 +531,72 @@ def test_the_summary_shows_the_named_effects_fitted_values():
         "fitted output_filter: T_f_s = 2.5e-05",
     ]
     assert _fitted_lines(SimpleNamespace(verdict="none", tied=[], ranking=ranking)) == []
+
+
+def test_a_linear_fit_far_above_the_best_is_refitted_from_the_best_fits_nuisances(monkeypatch):
+    """`entry._restart_from_best`: a candidate (the nominal included) whose objective ended
+    more than `RESTART_FROM_BEST` above the best one's gets one start at the best fit's
+    device and nuisances with its own effect's values; every other start, and every other
+    candidate, at its own optimum; a lower fit replaces the old one and the record notes
+    the candidates that fell by more than the threshold."""
+    from accel_jax.diagnose.step import entry
+
+    size = W.FIXED + 3
+
+    @dataclasses.dataclass(frozen=True)
+    class Fit:
+        effect: str
+        objective: float
+        w_trained: np.ndarray
+
+    @dataclasses.dataclass(frozen=True)
+    class Record:
+        guesses_linear: np.ndarray
+        notes: tuple = ()
+
+        def with_note(self, note):
+            return dataclasses.replace(self, notes=(*self.notes, note))
+
+    def w(nuisance, effect):
+        out = np.full(size, float(nuisance))
+        out[W.EFFECT] = 0.0
+        out[W.EFFECT.start] = effect
+        return out
+
+    # The nominal and the drift stuck with bent nuisances (9), the noise fit at clean ones
+    # (1), the lag 5 above the best (within the threshold).
+    fits = [[
+        Fit("nominal", 5262.0, w(9, 0.0)), Fit("torquer_lag", 1038.0, w(2, 0.2)),
+        Fit("disturbance_drift", 4334.0, w(9, 0.35)), Fit("colored_noise", 1033.0, w(1, 3.3)),
+    ]]
+    records = [Record(np.zeros((4, 3, size)))]
+    seen = {}
+
+    def fit_grouped(fn, nominal, records_, starts, candidates, effects, desc):
+        seen.update(starts)
+        again = [
+            Fit("nominal", 2670.0, w(1, 0.0)), Fit("torquer_lag", 1040.0, w(2, 0.2)),
+            Fit("disturbance_drift", 899.7, w(1, 0.37)), Fit("colored_noise", 1033.0, w(1, 3.3)),
+        ]
+        return {i: again for i in starts}
+
+    monkeypatch.setattr(entry, "_fit_grouped", fit_grouped)
+    entry._restart_from_best(fits, records, (), [0, 1, 2, 3], None)
+    starts = seen[0]
+    # Behind: the first start at the best's nuisances with its own effect's value there,
+    # the others at its own optimum.
+    assert np.array_equal(starts[0, 0], w(1, 0.0)) and np.array_equal(starts[0, 1], w(9, 0.0))
+    assert np.array_equal(starts[2, 0], w(1, 0.35)) and np.array_equal(starts[2, 1], w(9, 0.35))
+    for k in (1, 3):
+        assert all(np.array_equal(s, w(2 if k == 1 else 1, 0.2 if k == 1 else 3.3))
+                   for s in starts[k])
+    assert [f.objective for f in fits[0]] == [2670.0, 1038.0, 899.7, 1033.0]  # lower kept
+    assert records[0].notes == (
+        "nominal, disturbance_drift refitted from the best linear fit's device and "
+        "nuisances (objective lower by up to 3.43e+03)",
+    )
+    # Nothing far behind: no refit at all.
+    seen.clear()
+    close = [[Fit("nominal", 1040.0, w(1, 0.0)), Fit("colored_noise", 1033.0, w(1, 3.3))]]
+    entry._restart_from_best(close, [Record(np.zeros((2, 3, size)))], (), [0, 1], None)
+    assert seen == {}
