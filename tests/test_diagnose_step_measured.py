@@ -534,11 +534,13 @@ def test_the_summary_shows_the_named_effects_fitted_values():
 
 
 def test_a_linear_fit_far_above_the_best_is_refitted_from_the_best_fits_nuisances(monkeypatch):
-    """`entry._restart_from_best`: a candidate (the nominal included) whose objective ended
-    more than `RESTART_FROM_BEST` above the best one's gets one start at the best fit's
+    """`entry._restart_from_best`: on a measured input's record, a candidate (the nominal
+    included) whose objective ended more than `RESTART_FROM_BEST` above the best one's, its
+    priors costing more than the best's by as much, gets one start at the best fit's
     device and nuisances with its own effect's values; every other start, and every other
     candidate, at its own optimum; a lower fit replaces the old one and the record notes
-    the candidates that fell by more than the threshold."""
+    the candidates that fell by more than the threshold. A record with a clean input, or a
+    fit behind by its residual alone, is not refitted."""
     from accel_jax.diagnose.step import entry
 
     size = W.FIXED + 3
@@ -548,11 +550,16 @@ def test_a_linear_fit_far_above_the_best_is_refitted_from_the_best_fits_nuisance
         effect: str
         objective: float
         w_trained: np.ndarray
+        innovation_variance: float = 0.0  # (one training block, σ_ref 1: the residual's χ²)
+
+    measured = SimpleNamespace(level_sigma=1.0, sigma_ref=1.0)
 
     @dataclasses.dataclass(frozen=True)
     class Record:
         guesses_linear: np.ndarray
         notes: tuple = ()
+        ctx: SimpleNamespace = dataclasses.field(default_factory=lambda: measured)
+        held: np.ndarray = dataclasses.field(default_factory=lambda: np.array([False]))
 
         def with_note(self, note):
             return dataclasses.replace(self, notes=(*self.notes, note))
@@ -566,8 +573,9 @@ def test_a_linear_fit_far_above_the_best_is_refitted_from_the_best_fits_nuisance
     # The nominal and the drift stuck with bent nuisances (9), the noise fit at clean ones
     # (1), the lag 5 above the best (within the threshold).
     fits = [[
-        Fit("nominal", 5262.0, w(9, 0.0)), Fit("torquer_lag", 1038.0, w(2, 0.2)),
-        Fit("disturbance_drift", 4334.0, w(9, 0.35)), Fit("colored_noise", 1033.0, w(1, 3.3)),
+        Fit("nominal", 5262.0, w(9, 0.0), 1415.0), Fit("torquer_lag", 1038.0, w(2, 0.2), 1030.0),
+        Fit("disturbance_drift", 4334.0, w(9, 0.35), 2912.0),
+        Fit("colored_noise", 1033.0, w(1, 3.3), 1028.0),
     ]]
     records = [Record(np.zeros((4, 3, size)))]
     seen = {}
@@ -595,8 +603,11 @@ def test_a_linear_fit_far_above_the_best_is_refitted_from_the_best_fits_nuisance
         "nominal, disturbance_drift refitted from the best linear fit's device and "
         "nuisances (objective lower by up to 3.43e+03)",
     )
-    # Nothing far behind: no refit at all.
-    seen.clear()
-    close = [[Fit("nominal", 1040.0, w(1, 0.0)), Fit("colored_noise", 1033.0, w(1, 3.3))]]
-    entry._restart_from_best(close, [Record(np.zeros((2, 3, size)))], (), [0, 1], None)
-    assert seen == {}
+    # Nothing far behind, behind by its residual alone, or a clean input: no refit at all.
+    for far, variance, ctx in [(1040.0, 1035.0, measured), (5262.0, 5257.0, measured),
+                               (5262.0, 1415.0, SimpleNamespace(level_sigma=None))]:
+        seen.clear()
+        pair = [[Fit("nominal", far, w(9, 0.0), variance),
+                 Fit("colored_noise", 1033.0, w(1, 3.3), 1028.0)]]
+        entry._restart_from_best(pair, [Record(np.zeros((2, 3, size)), ctx=ctx)], (), [0, 1], None)
+        assert seen == {} and pair[0][0].objective == far
