@@ -53,7 +53,8 @@ import step_truth  # noqa: E402
 from shards import parse_shard, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
-from accel_jax.diagnose.step.assess import NESTED_ABSOLUTE  # noqa: E402  (the scorer's, not the blind diagnosis's)
+# (The scorer's tolerance, not the blind diagnosis's process.)
+from accel_jax.diagnose.step.assess import NESTED_ABSOLUTE  # noqa: E402
 
 CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT)
 NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
