@@ -404,7 +404,7 @@ def _restart_from_best(fits, records: list[StepRecord], effects, linear, nominal
     costing more than the best's by as much, fit it again with one start at the
     best fit's device and nuisances (the record's offset, initial state, test gain, change
     times and a measured input's levels and drift) and its own effect's values there (the
-    nominal's: none); the other starts at its own optimum (a step or two). A fit that ends
+    nominal's: none); the other starts at its own optimum. A fit that ends
     lower replaces the old one, and the record says so in its notes.
 
     Seen on a measured-input record of a drifting disturbance (record 450 of the
