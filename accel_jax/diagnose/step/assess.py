@@ -184,7 +184,7 @@ def baseline(fit: StepFit, nominal_fit: StepFit) -> Baseline:
     it started from."""
     if fit.baseline is not None:
         return fit.baseline
-    return Baseline(float(nominal_fit.objective), float(nominal_fit.log_likelihood))
+    return Baseline.of(nominal_fit)
 
 
 def nested_failed(fit: StepFit, nominal_fit: StepFit) -> bool:

@@ -365,9 +365,7 @@ def _put_back_at_sigma_hat(fits, floor: dict, at_sigma_hat: dict, n_linear: int)
     floor's nominal, and their evidence measured from it (`StepFit.baseline`). `fits`
     updated in place."""
     for i, (_, nominal_at_floor) in floor.items():
-        at_floor = Baseline(
-            float(nominal_at_floor.objective), float(nominal_at_floor.log_likelihood)
-        )
+        at_floor = Baseline.of(nominal_at_floor)
         fits[i] = [at_sigma_hat[i], *fits[i][1:n_linear]] + [
             dataclasses.replace(f, baseline=at_floor) for f in fits[i][n_linear:]
         ]
@@ -447,16 +445,22 @@ def _restart_from_best(fits, records: list[StepRecord], effects, linear, nominal
             new.effect: float(old.objective) - float(new.objective)
             for old, new in zip(fits[i], again, strict=True)
         }
-        fits[i] = [
-            new if new.objective < old.objective else old
-            for old, new in zip(fits[i], again, strict=True)
-        ]
+        fits[i] = _lower_of(fits[i], again)
         lower = [name for name, drop in drops.items() if drop > RESTART_FROM_BEST]
         if lower:
             records[i] = records[i].with_note(
                 f"{', '.join(lower)} refitted from the best linear fit's device and nuisances"
                 f" (objective lower by up to {max(drops[n] for n in lower):.3g})"
             )
+
+
+def _lower_of(fits: list[StepFit], again: list[StepFit], hold_nominal: bool = False):
+    """Each candidate's fit of `fits` or of `again` (a refit of the same candidates), the
+    one with the lower objective; with `hold_nominal`, the nominal's (first) as it was."""
+    return [
+        new if new.objective < old.objective and not (hold_nominal and k == 0) else old
+        for k, (old, new) in enumerate(zip(fits, again, strict=True))
+    ]
 
 
 def _penalties(fits: list[StepFit], rec: StepRecord) -> list[float]:
@@ -491,10 +495,7 @@ def _restart_from_nominal(
         # solver's tolerance on this record, by which every candidate's evidence is
         # uncertain; stated, not hidden.)
         held_short = 0.5 * (float(fits[i][0].objective) - float(again[0].objective))
-        fits[i] = [
-            new if new.objective < old.objective and not (keep_nominal and k == 0) else old
-            for k, (old, new) in enumerate(zip(fits[i], again, strict=True))
-        ]
+        fits[i] = _lower_of(fits[i], again, hold_nominal=keep_nominal)
         note = (
             "a candidate's fit ended below the nominal model's likelihood; refitted from "
             "the nominal optimum"

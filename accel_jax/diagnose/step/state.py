@@ -275,6 +275,11 @@ class Baseline(NamedTuple):
     objective: float
     log_likelihood: float
 
+    @classmethod
+    def of(cls, fit: StepFit) -> Baseline:
+        """`fit`'s objective and reported ln L."""
+        return cls(float(fit.objective), float(fit.log_likelihood))
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class StepFit:
