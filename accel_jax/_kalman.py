@@ -34,7 +34,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._params import _as_float, _concrete
+from ._params import _as_float, _concrete, _shown
 from ._static import STANDARD_GRAVITY
 
 Scalar = Float[Array, ""]
@@ -205,7 +205,7 @@ def kalman_filter(
                 index = index[seen_now[index]]
             bad = int(index[0])
             raise ValueError(
-                f"kalman_filter: observation {bad} is {concrete[bad].tolist()}; the record "
+                f"kalman_filter: observation {bad} is {_shown(concrete[bad])}; the record "
                 "must be finite where it is observed (mark missing samples in `observed`)."
             )
 
@@ -357,7 +357,7 @@ def _positive(name: str, unit: str):
         if value is not None and not (np.all(np.isfinite(value)) and np.all(value > 0)):
             raise ValueError(
                 f"{type(self).__name__}.{name} must be positive and finite, got "
-                f"{np.asarray(value).tolist()} {unit}."
+                f"{_shown(value)} {unit}."
             )
 
     return check
@@ -379,7 +379,7 @@ def _check_interval(owner: str, sample_interval) -> None:
     if concrete is not None and not (np.isfinite(concrete) and concrete > 0):
         raise ValueError(
             f"{owner}.discretise: sample_interval must be positive, got "
-            f"{np.asarray(concrete).tolist()} s."
+            f"{_shown(concrete)} s."
         )
 
 

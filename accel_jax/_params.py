@@ -54,10 +54,20 @@ def _concrete(value) -> np.ndarray | None:
         return None
 
 
+_SHOWN_AT_MOST = 8  # values a message lists; a larger array is named by its shape
+
+
 def _shown(value: np.ndarray) -> str:
-    """A concrete value as a message shows it: `-1.0`, or `[1.0, -2.0]`, not `array(-1.)`."""
+    """A concrete value as a message shows it: `-1.0`, or `[1.0, -2.0]`, not `array(-1.)`;
+    an array of more than `_SHOWN_AT_MOST` values by its shape and first values (a record
+    passed where a number belongs must not put a million numbers in the message)."""
     value = np.asarray(value)
-    return repr(value.item()) if value.ndim == 0 else repr(value.tolist())
+    if value.ndim == 0:
+        return repr(value.item())
+    if value.size <= _SHOWN_AT_MOST:
+        return repr(value.tolist())
+    first = ", ".join(repr(v) for v in value.ravel()[:3].tolist())
+    return f"an array of shape {value.shape} ([{first}, ...])"
 
 
 def _as_float(value: ArrayLike) -> Array:

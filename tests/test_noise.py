@@ -320,6 +320,12 @@ def test_allan_deviation_intervals_bad_input():
         aj.noise.allan_deviation_intervals(
             np.random.default_rng(0).normal(size=1000), 0.01, confidence=1.5
         )
+    # The time vector passed where the sample interval belongs (analyse_static_record(t, y)
+    # turned around): one short message naming the array's shape, not its 1e5 values.
+    t = np.arange(100_000) * 0.005
+    with pytest.raises(ValueError, match=r"an array of shape \(100000,\)") as caught:
+        aj.noise.allan_deviation_intervals(np.sin(t), t)
+    assert len(str(caught.value)) < 200
 
 
 def test_ljung_box_refuses_non_finite_or_tiny_residuals():

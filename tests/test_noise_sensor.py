@@ -224,6 +224,48 @@ def test_startup_transient_judged_in_the_time_domain_and_checked_backward():
         assert fitted["time_constant_s"] == pytest.approx(tau, rel=0.35)
 
 
+def test_a_slow_warm_up_is_named_not_taken_for_a_low_pass():
+    """A thermal warm-up of 20 s (4,000 samples at 200 Hz: four times the reach of a
+    4,096-sample window) on white noise: named, amplitude and τ recovered, found at a
+    scale of block means (`_transient_scales`). With the window alone it was named
+    `bandlimit` with a corner at 9 µHz and a white σ of 3,574 (a 130,000-sample record)."""
+    from accel_jax._noise import sensor_model
+
+    n, dt = 40_000, 0.005
+    truth = {"white": 1e-3, "transient": (2e-3, 20.0), "level": 9.81}
+    x = noise_truth.record(np.random.default_rng(88), n, dt, truth)
+    assert sensor_model._transient_scales(n * 2 // 3) == [1, 7]
+    found = aj.noise.select_sensor_noise(x, dt)
+    assert found.effects == ("startup_transient",), found.steps
+    fitted = found.parameters["startup_transient"]
+    assert fitted["amplitude"] == pytest.approx(2e-3, rel=0.15)
+    assert fitted["time_constant_s"] == pytest.approx(20.0, rel=0.35)
+
+
+def test_block_means_autocovariance_is_the_time_domain_sum():
+    """γ of the differenced block means of m samples (`_differenced_autocovariance` with
+    `block`, from the spectrum by aliasing) against the time-domain sum over the differenced
+    record's own γ_y: x̄_j − x̄_{j−1} = Σ_s c_s y_{(j−1)m+s}, c_s = min(s, 2m − s)/m,
+    s = 1..2m−1, so γ(h) = Σ_s Σ_s' c_s c_s' γ_y(hm + s' − s)."""
+    from accel_jax._noise import sensor_model
+
+    dt = 0.01
+    truth = {"white": 1e-3, "gauss_markov": (2e-3, 0.4), "random_walk": 1e-7}
+    x = noise_truth.record(np.random.default_rng(5), 6000, dt, truth)
+    rec = sensor_model._Record(x, dt)
+    model = sensor_model._evaluate(rec, 1e-12, ("gauss_markov", "random_walk"), (), None)
+    for m in (4, 13):
+        size = 40
+        fine = sensor_model._differenced_autocovariance(model, 1e-12, 4096)
+        c = np.minimum(np.arange(1, 2 * m), 2 * m - np.arange(1, 2 * m)) / m
+        lags = np.arange(size)[:, None, None] * m + np.arange(2 * m - 1)[None, None, :]
+        lags = lags - np.arange(2 * m - 1)[None, :, None]
+        expected = np.einsum("s,hst,t->h", c, fine[np.abs(lags)], c)
+        blocks = sensor_model._differenced_autocovariance(model, 1e-12, size, m)
+        np.testing.assert_allclose(blocks, expected, rtol=1e-7, atol=1e-9 * expected[0])
+        assert blocks[0] > 0 and abs(blocks[1]) > 1e-3 * blocks[0]  # not a white sequence
+
+
 def test_backward_check_removes_an_effect_the_data_do_not_hold():
     """A white record fitted with a random walk and a Gauss–Markov noise it does not have:
     the backward check drops both (each below the bar against the model without it), and

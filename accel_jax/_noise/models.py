@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .._params import _as_float, _concrete
+from .._params import _as_float, _concrete, _shown
 from .record import Scalar, Series, _sample_interval
 
 
@@ -50,7 +50,7 @@ def _positive_fields(self, units: dict[str, str]):
         if value is not None and not (np.all(np.isfinite(value)) and np.all(value > 0)):
             raise ValueError(
                 f"{type(self).__name__}.{name} must be positive and finite, got "
-                f"{np.asarray(value).tolist()} {unit}."
+                f"{_shown(value)} {unit}."
             )
 
 

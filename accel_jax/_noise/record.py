@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._params import _concrete
+from .._params import _concrete, _shown
 
 Scalar = Float[Array, ""]
 Series = Float[Array, " n"]
@@ -96,7 +96,7 @@ def _sample_interval(name: str, sample_interval):
     ):
         raise ValueError(
             f"{name}: sample_interval must be a positive number, got "
-            f"{np.asarray(concrete).tolist()} s."
+            f"{_shown(concrete)} s."
         )
     return sample_interval
 
