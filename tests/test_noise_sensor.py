@@ -242,6 +242,29 @@ def test_a_slow_warm_up_is_named_not_taken_for_a_low_pass():
     assert fitted["time_constant_s"] == pytest.approx(20.0, rel=0.35)
 
 
+def test_a_warm_up_longer_than_the_longest_tau_tried_is_reported_as_a_bound():
+    """τ = 200 s in a 200 s record: the fit stops at the longest τ tried (a quarter of the
+    training part), and the parameters and the command's text say that τ is a lower bound."""
+    from accel_jax._noise import sensor_model
+    from accel_jax.report.text.noise import _selection_lines
+
+    n, dt = 40_000, 0.005
+    truth = {"white": 1e-3, "transient": (3e-3, 200.0), "level": 9.81}
+    x = noise_truth.record(np.random.default_rng(89), n, dt, truth)
+    found = aj.noise.select_sensor_noise(x, dt)
+    fitted = found.parameters["startup_transient"]
+    limit = sensor_model._transient_tau_limit(sensor_model._Record(x, dt).split, dt)
+    assert fitted["time_constant_s"] == pytest.approx(limit) and limit < 40.0
+    assert fitted["time_constant_at_limit"] is True
+    line = next(t for t in _selection_lines(found) if "start-up transient" in t)
+    assert "lower bound" in line, line
+    # Within the grid, the same record's shorter warm-up is an estimate, not a bound.
+    x = noise_truth.record(np.random.default_rng(89), n, dt, {**truth, "transient": (3e-3, 5.0)})
+    shorter = aj.noise.select_sensor_noise(x, dt).parameters["startup_transient"]
+    assert shorter["time_constant_at_limit"] is False
+    assert shorter["time_constant_s"] == pytest.approx(5.0, rel=0.35)
+
+
 def test_block_means_autocovariance_is_the_time_domain_sum():
     """γ of the differenced block means of m samples (`_differenced_autocovariance` with
     `block`, from the spectrum by aliasing) against the time-domain sum over the differenced

@@ -263,6 +263,13 @@ def _transient_scales(n: int) -> list[int]:
     return scales
 
 
+def _transient_tau_limit(n: int, dt: float) -> float:
+    """The longest time constant `_transient_test` tries on n samples (its last scale's)."""
+    m = _transient_scales(n)[-1]
+    size = min(TRANSIENT_WINDOW + 1, n // m) - 1
+    return max(size * m * dt / 4, 3 * m * dt)
+
+
 def _differenced_autocovariance(
     model: _Model, floor: float, size: int, block: int = 1
 ) -> np.ndarray:

@@ -102,6 +102,18 @@ def _selection_lines(selection: SensorNoiseSelection) -> list[str]:
             f"({held.drift['t']:.0f} standard errors), which no named effect makes"
         )
     lines += [f"  unexplained: {sentence}" for sentence in unexplained]
+    transient = selection.parameters.get("startup_transient")
+    if transient is not None:
+        line = (
+            f"  start-up transient: {transient['amplitude']:.4g} g, "
+            f"τ {transient['time_constant_s']:.4g} s"
+        )
+        if transient.get("time_constant_at_limit"):
+            line += (
+                " (the longest τ tried, a quarter of the training part: τ is a lower bound "
+                "and the amplitude is fitted with it)"
+            )
+        lines.append(line)
     after = selection.parameters.get("bandlimit", {}).get("white_after_filter_sigma")
     if after is not None:
         lines.append(f"  white noise after the low-pass (the signal chain's own): σ {after:.4g} g")
