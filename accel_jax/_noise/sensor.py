@@ -67,7 +67,6 @@ from .sensor_model import (
     _physical,
     _Record,
     _standardised_peak,
-    _transient_tau_limit,
     _transient_test,
     _variogram,
 )
@@ -436,13 +435,7 @@ def _select(
         }
     final = _held_out_deviance(rec, floor, model)
     effects = [e for e in _named(model) if e != "filter_floor"]  # a part of `bandlimit`'s
-    params = _physical(model, dt, floor)
-    if model.transient is not None:
-        # At the longest τ tried, the fit is a bound, not an estimate: said, not hidden.
-        at_limit = float(model.transient.time_constant) >= _transient_tau_limit(rec.split, dt) * (
-            1 - 1e-9
-        )
-        params["startup_transient"]["time_constant_at_limit"] = bool(at_limit)
+    params = _physical(model, dt, floor, rec.split)
     quantization = None
     share = grid["step"] ** 2 / 12 / rec.variance if grid is not None else 0.0
     if grid is not None:

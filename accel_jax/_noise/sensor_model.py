@@ -420,7 +420,7 @@ def _standardised_peak(record, floor, model: _Model):
     return float(np.asarray(gram.omega)[j] / (2 * np.pi * record.dt)), 1 / (m * record.dt)
 
 
-def _physical(model: _Model, dt: float, floor: float) -> dict:
+def _physical(model: _Model, dt: float, floor: float, n_train: int | None = None) -> dict:
     z = model.z
     out: dict[str, Any] = {"white_sigma": math.sqrt(math.exp(z[0]))}
     if "gauss_markov" in model.names:
@@ -461,6 +461,10 @@ def _physical(model: _Model, dt: float, floor: float) -> dict:
         out["sinusoid"] = [line.to_dict() for line in model.lines]
     if model.transient is not None:
         out["startup_transient"] = model.transient.to_dict()
+        if n_train is not None:  # at the longest τ tried, a bound, not an estimate: said
+            limit = _transient_tau_limit(n_train, dt)
+            at_limit = float(model.transient.time_constant) >= limit * (1 - 1e-9)
+            out["startup_transient"]["time_constant_at_limit"] = at_limit
     # the white variance after the filter: the output grid's (or a negligible floor) and
     # the fitted `filter_floor`
     out["post_filter_floor_variance"] = floor + (
