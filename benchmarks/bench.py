@@ -992,35 +992,31 @@ def main(argv=None):
         print(json.dumps(_kernel_rate(args.mc_rate)))
         return None
     started = time.perf_counter()
-    if args.only_mc:
-        result = {"device": _device(), "precision": "float64", "quick": args.quick}
-        result["monte_carlo_identification"] = _monte_carlo_section(args.quick)
+    # A section run alone: its result (keys and files as before) and its one-line summary.
+    alone = {
+        "only_mc": (
+            "monte_carlo_identification",
+            _monte_carlo_section,
+            {"draws": [0, 1, 2, 3, 4]},
+            "mc.json",
+            _mc_summary,
+        ),
+        "only_diagnose": (
+            "diagnose_batch", bench_diagnose_batch, {"draws": 2027}, "diagnose.json", _diagnose_line
+        ),
+        "only_noise": ("noise", bench_noise_cli, {"record": 7}, "noise.json", _noise_line),
+        "only_cli": ("cli", bench_cli, {"record": 0}, "cli.json", _cli_table),
+    }
+    for flag, (key, section, seeds, name, summary) in alone.items():
+        if not getattr(args, flag):
+            continue
+        precision = {"precision": "float64"} if flag == "only_mc" else {}
+        result = {"device": _device(), **precision, "quick": args.quick}
+        result[key] = section(args.quick)
         result["wall_s"] = time.perf_counter() - started
-        result["provenance"] = provenance(seeds={"draws": [0, 1, 2, 3, 4]}, precision="float64")
-        write_json_atomic(Path(args.out) / "mc.json", result)
-        print(_mc_summary(result["monte_carlo_identification"]))
-        return result
-    if args.only_diagnose:
-        result = {"device": _device(), "quick": args.quick}
-        result["diagnose_batch"] = bench_diagnose_batch(args.quick)
-        result["wall_s"] = time.perf_counter() - started
-        result["provenance"] = provenance(seeds={"draws": 2027}, precision="float64")
-        write_json_atomic(Path(args.out) / "diagnose.json", result)
-        print(_diagnose_line(result["diagnose_batch"]))
-        return result
-    if args.only_noise:
-        result = {"device": _device(), "quick": args.quick, "noise": bench_noise_cli(args.quick)}
-        result["wall_s"] = time.perf_counter() - started
-        result["provenance"] = provenance(seeds={"record": 7}, precision="float64")
-        write_json_atomic(Path(args.out) / "noise.json", result)
-        print(_noise_line(result["noise"]))
-        return result
-    if args.only_cli:
-        result = {"device": _device(), "quick": args.quick, "cli": bench_cli(args.quick)}
-        result["wall_s"] = time.perf_counter() - started
-        result["provenance"] = provenance(seeds={"record": 0}, precision="float64")
-        write_json_atomic(Path(args.out) / "cli.json", result)
-        print(_cli_table(result["cli"]))
+        result["provenance"] = provenance(seeds=seeds, precision="float64")
+        write_json_atomic(Path(args.out) / name, result)
+        print(summary(result[key]))
         return result
     result = {"device": _device(), "precision": "float64", "quick": args.quick}
     print("machine limits…", flush=True)

@@ -263,11 +263,16 @@ def _transient_scales(n: int) -> list[int]:
     return scales
 
 
+def _transient_grid(n: int, dt: float, m: int) -> np.ndarray:
+    """The time constants `_transient_test` tries on n samples at block length m: from 2
+    blocks to a quarter of the window of differences, `TRANSIENT_TAUS` of them."""
+    size = min(TRANSIENT_WINDOW + 1, n // m) - 1
+    return np.geomspace(2 * m * dt, max(size * m * dt / 4, 3 * m * dt), TRANSIENT_TAUS)
+
+
 def _transient_tau_limit(n: int, dt: float) -> float:
     """The longest time constant `_transient_test` tries on n samples (its last scale's)."""
-    m = _transient_scales(n)[-1]
-    size = min(TRANSIENT_WINDOW + 1, n // m) - 1
-    return max(size * m * dt / 4, 3 * m * dt)
+    return float(_transient_grid(n, dt, _transient_scales(n)[-1])[-1])
 
 
 def _differenced_autocovariance(
@@ -283,7 +288,7 @@ def _differenced_autocovariance(
         f_ȳ(ω) = sin⁴(ω/2)/m³ · Σ_k f_y(ν_k) / sin⁴(ν_k/2)   (the k = 0 term at ω = 0: m f_y(0))
 
     (f_x = f_y / (4 sin²(ν/2)), f_x̄(ω) = Σ_k f_x(ν_k) |H(ν_k)|² / m, f_ȳ = 4 sin²(ω/2) f_x̄.
-    Checked against simulated block means in tests/test_noise_sensor.py.)"""
+    Checked against the time-domain sum over γ_y in tests/test_noise_sensor.py.)"""
     grid = 8 * size
     m = block
     w = 2 * np.pi * np.arange(grid) / grid
@@ -370,7 +375,7 @@ def _transient_test_at(r: np.ndarray, dt: float, model: _Model, floor: float, m:
     blocks = min(TRANSIENT_WINDOW + 1, r.size // m)
     y = np.diff(r[: blocks * m].reshape(blocks, m).mean(axis=1))
     size = y.size
-    taus = np.geomspace(2 * m * dt, max(size * m * dt / 4, 3 * m * dt), TRANSIENT_TAUS)
+    taus = _transient_grid(r.size, dt, m)
     # A block's mean of e^{−t/τ}: its first sample's value times the mean of e^{−i dt/τ},
     # i < m (exactly 1 for m = 1).
     spread = -np.expm1(-m * dt / taus) / (m * -np.expm1(-dt / taus))
