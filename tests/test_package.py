@@ -93,6 +93,7 @@ def test_studies_and_notebooks_use_only_the_public_api():
 _LAYERS = {
     "foundations": (
         "_params", "_checks", "_data", "_format", "_io", "_progress", "_runtime", "_deprecated",
+        "_solvers",
     ),
     "models": ("_servo", "_static", "_pendulum"),
     "simulation": ("_simulate",),
