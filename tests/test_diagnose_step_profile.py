@@ -73,3 +73,52 @@ def test_a_failed_refit_gives_a_finite_end_not_called_found():
     assert not found.found
     assert math.isfinite(found.upper) and math.isfinite(found.sigma)
     assert found.lower == pytest.approx(-1.0, rel=0.06)
+
+
+def test_profile_refits_at_their_tolerance_give_the_tight_refits_intervals():
+    # MINPACK's refits stopped at `profile.FTOL` against the same refits run to 1e-12, on a
+    # nonlinear fit (two exponentials sharing a rate, refitted with each coefficient held):
+    # from a cold start the refit's χ² is within FTOL·χ² of the minimum, and so each
+    # interval end within FTOL·χ²·σ/2 of the tight one's (Δχ² ≈ 2(x − end)/σ there);
+    # `profile`'s claim, checked with a factor 2 to spare.
+    from functools import partial
+
+    import jax
+    import jax.numpy as jnp
+
+    from accel_jax.diagnose.step import profile
+    from accel_jax.diagnose.step.minpack import solve
+
+    with jax.enable_x64(True):
+        t = jnp.linspace(0.0, 4.0, 400)
+        rng = np.random.default_rng(3)
+        noise = 0.05
+        truth = 1.3 * jnp.exp(-0.8 * t) + 0.6 * jnp.exp(-1.6 * t) - 0.2 * jnp.sin(3.0 * t)
+        y = truth + noise * jnp.asarray(rng.standard_normal(t.size))
+
+        def residuals(params, args):
+            pick, used, _, fixed = args
+            c = params[2:] @ pick + fixed
+            decay = jnp.exp(-params[1] * t)
+            model = params[0] * decay + c[0] * decay**2 + c[1] * jnp.sin(3.0 * t)
+            pins = 1e3 * (1.0 - used) * params[2:]  # a held coefficient's own slot at 0
+            return jnp.concatenate([(y - model) / noise, pins])
+
+        jacobian = jax.jacfwd(residuals)
+        pick, used = np.eye(2), np.ones(2)
+        args = tuple(jnp.asarray(a) for a in (pick, used, 0.0, np.zeros(2)))
+        cold = np.array([1.0, 1.0, 0.0, 0.0])
+        fit = solve(residuals, jacobian, cold, args, ftol=1e-12)
+        chi2 = 2 * fit.cost
+        stopped = 2 * solve(residuals, jacobian, cold, args, ftol=profile.FTOL).cost
+        assert 0 <= stopped - chi2 < 2 * profile.FTOL * chi2
+        jac = np.asarray(jacobian(jnp.asarray(fit.x), args))[:400]
+        sigmas = np.sqrt(np.diag(np.linalg.inv(jac.T @ jac)))[2:]
+        run = partial(profile.column_intervals, residuals_at=residuals, jacobian_at=jacobian,
+                      params=fit.x, args=(pick, used, 0.0), n_free=2, n_cols=2,
+                      sigmas=sigmas, level=1.0)  # fmt: skip
+        loose, tight = run(solve), run(solve, ftol=1e-12)
+    for a, b in zip(loose, tight, strict=True):
+        assert a.found and b.found
+        bound = profile.FTOL * chi2 * b.sigma  # twice FTOL·χ²·σ/2
+        assert abs(a.lower - b.lower) < bound and abs(a.upper - b.upper) < bound

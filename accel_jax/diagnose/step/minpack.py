@@ -9,9 +9,11 @@ import numpy as np
 from scipy.optimize import least_squares
 
 MAX_EVALUATIONS = 200
+FTOL = 1e-10
+"""MINPACK's relative tolerance on the sum of squares, unless a caller asks otherwise."""
 
 
-def solve(fun, jac, x0, args, max_evaluations: int = MAX_EVALUATIONS):
+def solve(fun, jac, x0, args, max_evaluations: int = MAX_EVALUATIONS, ftol: float = FTOL):
     """MINPACK's Levenberg–Marquardt (SciPy) on a compiled residual and Jacobian: its
     scaling by the Jacobian's column norms converges in tens of evaluations where the
     terms' coefficients and the nominal parameters differ in scale by 10⁴ (optimistix's
@@ -22,6 +24,6 @@ def solve(fun, jac, x0, args, max_evaluations: int = MAX_EVALUATIONS):
         jac=lambda p: np.asarray(jac(jnp.asarray(p), args)),  # pyright: ignore[reportArgumentType]  # SciPy's stubs take a callable too
         method="lm",
         xtol=1e-10,
-        ftol=1e-10,
+        ftol=ftol,
         max_nfev=max_evaluations,
     )

@@ -36,6 +36,15 @@ MAX_REFITS = 4
 TOLERANCE = 0.1
 """A side is found when Δχ² is within this fraction of the level."""
 
+FTOL = 1e-6
+"""The profile refits' relative tolerance on the sum of squares (MINPACK's `ftol`; the
+discovery's other refits keep `minpack.FTOL`). A refit stops once the predicted and actual
+relative reductions of χ² are below it, so its χ² is within about FTOL·χ² of its minimum:
+on a record of 10⁴ blocks 0.01, ten times below what the secant needs (`TOLERANCE` × the
+level ≥ 0.1). Measured on the unit tests' 1300 Hz forcing record (`discover="all"`,
+eleven intervals): the same ends to 2e-6 of their σ, 145 Jacobians instead of 209
+and the discovery 21 s faster warm (138.4 → 117.4 s with the diagnosis)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class ProfileInterval:
@@ -107,7 +116,9 @@ def interval(
     )
 
 
-def column_intervals(solve, residuals_at, jacobian_at, params, args, n_free, n_cols, sigmas, level):
+def column_intervals(
+    solve, residuals_at, jacobian_at, params, args, n_free, n_cols, sigmas, level, ftol=FTOL
+):
     """`interval` of each of a refitted subset's `n_cols` coefficients.
 
     **Arguments:** `solve(fun, jac, x0, args)` (`minpack.solve`); `residuals_at(params,
@@ -115,7 +126,7 @@ def column_intervals(solve, residuals_at, jacobian_at, params, args, n_free, n_c
     residuals, priors and pins, with the coefficients entering as `c @ pick + fixed`;
     `params` the subset's optimum (`n_free` device and nuisance entries, then the
     coefficients); `args` its `(pick, used, tone)`; `sigmas` the linearised σ; `level`
-    the Δχ² bound.
+    the Δχ² bound; `ftol` the refits' tolerance (`FTOL`).
 
     A coefficient is held at v by taking its row out of `pick` (its entry pinned at 0,
     where the pin costs nothing) and adding v times that row to `fixed`; every other
@@ -135,7 +146,7 @@ def column_intervals(solve, residuals_at, jacobian_at, params, args, n_free, n_c
 
         def delta(v, i=i, held_pick=held_pick, held_used=held_used, start=start):
             held = _args(held_pick, held_used, tone, v * pick[i])
-            return 2.0 * float(solve(residuals_at, jacobian_at, start, held).cost) - cost
+            return 2.0 * float(solve(residuals_at, jacobian_at, start, held, ftol=ftol).cost) - cost
 
         out.append(interval(delta, float(params[n_free + i]), float(sigmas[i]), level))
     return out
