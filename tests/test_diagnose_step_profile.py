@@ -96,6 +96,7 @@ def test_profile_refits_at_their_tolerance_give_the_tight_refits_intervals():
         truth = 1.3 * jnp.exp(-0.8 * t) + 0.6 * jnp.exp(-1.6 * t) - 0.2 * jnp.sin(3.0 * t)
         y = truth + noise * jnp.asarray(rng.standard_normal(t.size))
 
+        @jax.jit
         def residuals(params, args):
             pick, used, _, fixed = args
             c = params[2:] @ pick + fixed
@@ -104,7 +105,7 @@ def test_profile_refits_at_their_tolerance_give_the_tight_refits_intervals():
             pins = 1e3 * (1.0 - used) * params[2:]  # a held coefficient's own slot at 0
             return jnp.concatenate([(y - model) / noise, pins])
 
-        jacobian = jax.jacfwd(residuals)
+        jacobian = jax.jit(jax.jacfwd(residuals))
         pick, used = np.eye(2), np.ones(2)
         args = tuple(jnp.asarray(a) for a in (pick, used, 0.0, np.zeros(2)))
         cold = np.array([1.0, 1.0, 0.0, 0.0])

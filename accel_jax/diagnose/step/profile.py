@@ -121,7 +121,7 @@ def column_intervals(
 ):
     """`interval` of each of a refitted subset's `n_cols` coefficients.
 
-    **Arguments:** `solve(fun, jac, x0, args)` (`minpack.solve`); `residuals_at(params,
+    **Arguments:** `solve(fun, jac, x0, args, ftol=)` (`minpack.solve`); `residuals_at(params,
     (pick, used, tone, fixed))` and its Jacobian: the discovery's whitened training
     residuals, priors and pins, with the coefficients entering as `c @ pick + fixed`;
     `params` the subset's optimum (`n_free` device and nuisance entries, then the
