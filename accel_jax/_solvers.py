@@ -25,7 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 STALL_WINDOW = 10
 """Accepted steps over which a fit's progress is judged."""
@@ -91,6 +91,53 @@ class StallEnding(optx.AbstractLeastSquaresSolver):
     def terminate(self, fn, y, args, options, state, tags):
         done, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
         return _ended(done, result, state.costs, self.relative, self.absolute)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
+
+
+class _CountedState(eqx.Module):
+    inner: Any
+    steps: Int[Array, ""]  # steps taken: the linearisation is the accepted point's once ≥ 1
+
+    @property
+    def f_info(self):
+        """The inner solver's linearisation at the accepted point (as its state has it)."""
+        return self.inner.f_info
+
+
+class MinimumEnding(optx.AbstractLeastSquaresSolver):
+    """`inner` (a least-squares solver whose state holds `f_info`, the residuals and
+    Jacobian at the accepted point: `optx.LevenbergMarquardt` or a `StallEnding` of it),
+    ended as converged (`RESULTS.successful`) once `at_minimum(J, r)` holds at the accepted
+    point (J the Jacobian as a matrix, r the residuals): the test by which the caller would
+    judge the result converged anyway, applied at every step instead of only at the end. A
+    fit that never meets it takes exactly the steps and values it took before."""
+
+    inner: optx.AbstractLeastSquaresSolver
+    rtol: float
+    atol: float
+    norm: Callable
+    at_minimum: Callable = eqx.field(static=True)
+
+    def __init__(self, inner, at_minimum: Callable):
+        self.inner, self.at_minimum = inner, at_minimum
+        self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm  # the inner's
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return _CountedState(inner, jnp.array(0))
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
+        return y, _CountedState(inner, state.steps + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
+        info = state.inner.f_info
+        met = (state.steps > 0) & self.at_minimum(info.jac.as_matrix(), info.residual)
+        result = optx.RESULTS.where(met & ~done, optx.RESULTS.successful, result)
+        return done | met, result
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)

@@ -60,3 +60,49 @@ def test_the_solvers_state_holds_the_residuals_and_jacobian_at_its_value(max_ste
         fresh = _gauss_newton_step(lambda v: _residuals(v, 2.0), value)
         for a, b in zip(from_state, fresh, strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+
+
+def _fit_steps(solver, w0, scale):
+    @jax.jit
+    def fit(w0):
+        solution = optx.least_squares(
+            dense_jacobian(_residuals), solver, w0, args=scale, max_steps=200, throw=False
+        )
+        return solution.value, solution.result, solution.stats["num_steps"]
+
+    return fit(w0)
+
+
+def test_a_fit_ends_once_it_would_count_as_converged():
+    # `MinimumEnding` ends a fit at the first accepted point where the test that `fit_one`
+    # applies to its result holds (`_at_minimum`), instead of at the solver's own tolerance.
+    from accel_jax.diagnose.step.fit import CONVERGED_DECREMENT, _at_minimum
+    from accel_jax.diagnose.step.solver import MinimumEnding
+
+    with jax.enable_x64(True):
+        plain = optx.LevenbergMarquardt(
+            rtol=1e-14, atol=1e-14, linear_solver=lx.Normal(lx.Cholesky())
+        )
+        w0, scale = jnp.array([1.0, 0.5, 2.0]), 30.0  # the cost ½Σr² from 165 to ~1e-2
+        full, full_result, full_steps = _fit_steps(plain, w0, scale)
+        ended, result, steps = _fit_steps(MinimumEnding(plain, _at_minimum), w0, scale)
+        assert full_result == optx.RESULTS.successful and result == optx.RESULTS.successful
+        assert int(steps) < int(full_steps), (steps, full_steps)
+
+        def cost(w):
+            return 0.5 * float(jnp.sum(_residuals(w, scale) ** 2))
+
+        jac = jax.jacfwd(_residuals)(ended, scale)
+        assert bool(_at_minimum(jac, _residuals(ended, scale)))
+        # What ending there costs: within the decrement's bound of the minimum (the
+        # quadratic model's remaining decrease is half the decrement).
+        assert 0.0 <= cost(ended) - cost(full) <= 0.5 * CONVERGED_DECREMENT + 1e-12
+        # A test that never holds leaves the solver's steps and values as they were.
+        never, never_result, never_steps = _fit_steps(
+            MinimumEnding(plain, lambda jac, r: jnp.array(False)), w0, scale
+        )
+        assert int(never_steps) == int(full_steps) and never_result == full_result
+        np.testing.assert_array_equal(never, full)
+        # From the minimum itself it ends at once: the first step's linearisation.
+        _, again_result, again_steps = _fit_steps(MinimumEnding(plain, _at_minimum), full, scale)
+        assert again_result == optx.RESULTS.successful and int(again_steps) <= 1

@@ -16,7 +16,7 @@ import optimistix as optx
 from .effects import AbstractStepEffect, step_effects
 from .innovations import innovation_terms, moment_noise_terms
 from .layout import SLOT, W
-from .solver import StallEnding
+from .solver import MinimumEnding, StallEnding
 from .model import (
     BARRIER as BARRIER,
     DELAY_LIMIT as DELAY_LIMIT,
@@ -122,6 +122,14 @@ def _newton_step(jac, r, x):
     return x - step, 0.5 * jnp.sum(r**2), gradient @ step
 
 
+def _at_minimum(jac, r):
+    """Whether a full Gauss–Newton step from the point of Jacobian `jac` and residuals `r`
+    would lower ½Σr² by less than `CONVERGED_DECREMENT` (+ 1e-8 of it): the test by which
+    `fit_one` counts a fit converged."""
+    _, cost, decrement = _newton_step(jac, r, jnp.zeros(jac.shape[1], r.dtype))
+    return decrement <= CONVERGED_DECREMENT + 1e-8 * cost
+
+
 def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     """Fit every candidate (vmapped) to one record: from each start on the training part
     (Levenberg–Marquardt, optimistix), then, from the best start, the held-out change times
@@ -170,6 +178,9 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     )
     if mode in ("clamp", "contact"):  # dear steps, a high limit: a stalled fit ends early
         solver = StallEnding(solver)
+    # A fit ends once its point would count as converged (`_at_minimum`, as `fit_one`
+    # judges it), not only when its steps' and cost's changes fall below FIT_TOLERANCE.
+    solver = MinimumEnding(solver, _at_minimum)
 
     dense_residuals = dense_jacobian(residuals)
 
