@@ -1,7 +1,8 @@
-"""Solvers that end a fit which has stalled: optimistix's solvers, wrapped, ended as at
-their step limit (`RESULTS.nonlinear_max_steps_reached`) once the accepted point's cost has
-stopped falling, only earlier; a fit that still makes progress, or that converges, takes
-exactly the steps and values it took before (the inner solver's state is untouched).
+"""Solvers that end a fit early: optimistix's solvers, wrapped, ended as at their step
+limit (`RESULTS.nonlinear_max_steps_reached`) once the accepted point's cost has stopped
+falling, or (`MinimumEnding`) as converged once the accepted point passes the caller's own
+convergence test; a fit that never meets the wrapper's test takes exactly the steps and
+values it took before (the inner solver's state is untouched).
 
 - `StallEnding`: a Gauss–Newton-type least-squares solver (Levenberg–Marquardt), for the
   step diagnosis's fits whose steps are dear (a stop's or a compliant contact's
@@ -14,6 +15,13 @@ exactly the steps and values it took before (the inner solver's state is untouch
   fits (`_noise.spectral`), where a parameter the record does not identify (an absent
   flicker's level, a β → 0) keeps the step test of the tolerance from firing after the
   likelihood has settled: 14 of 21 single-start fits of one record ran all 128 steps.
+- `MinimumEnding`: a least-squares solver whose state holds the accepted point's residuals
+  and Jacobian, for every fit of the step diagnosis: optimistix's tolerance (steps and cost
+  changes below 1e-6) keeps a fit going long after a Gauss–Newton step from its point
+  would lower the cost by less than the diagnosis needs. On the quick report's 18 step
+  records, the linear candidates' kept starts took a median of 19.5 Levenberg–Marquardt
+  steps (1,772 in all) without it, 5 (1,013) with it; a fit that never passes the test
+  still runs to its limit.
 """
 
 from __future__ import annotations
