@@ -131,6 +131,11 @@ def _at_minimum(jac, r):
     would lower ½Σr² by less than `CONVERGED_DECREMENT` (+ 1e-8 of it): the test by which
     `fit_one` counts a fit converged."""
     _, cost, decrement = _newton_step(jac, r, jnp.zeros(jac.shape[1], r.dtype))
+    return _decrement_small(decrement, cost)
+
+
+def _decrement_small(decrement, cost):
+    """The test of `CONVERGED_DECREMENT` on a Newton decrement at cost ½Σr² = `cost`."""
     return decrement <= CONVERGED_DECREMENT + 1e-8 * cost
 
 
@@ -218,7 +223,7 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
         # One Gauss–Newton step from the result: its predicted decrease (the Newton
         # decrement) tells whether the fit is at a minimum; taken when it lowers the cost.
         polished, cost, decrement = _newton_step(jacs[best], rs[best], w)
-        converged = solved[best] | (decrement <= CONVERGED_DECREMENT + 1e-8 * cost)
+        converged = solved[best] | _decrement_small(decrement, cost)
 
         # The held-out nuisances: the times of the held-out changes, and parameters that an
         # effect declares nuisances (`held_out_nuisance`: e.g. the output offset that only
