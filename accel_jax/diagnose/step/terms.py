@@ -258,10 +258,10 @@ def term_record(
 
     y0 = c_out @ z0[:N_STATES]
     carry = (z0, torque(z0), torque(z0), y0, y0)
-    # Two samples per loop iteration: the same arithmetic, the loop's overhead halved. In one
-    # process on the 2-core CPU (a 6,400-sample discovery refit, 15 alternated calls each):
-    # the residuals 28.8 → 17.7 ms (median), the Jacobian 81.6 → 82.4 ms (unchanged); 3 and
-    # 4 samples were no faster. The same Jacobian to the bit, the same discoveries.
+    # Two samples per loop iteration (the same arithmetic per sample). In one process on the
+    # 2-core CPU (a 6,400-sample discovery refit, 15 alternated calls each): the residuals
+    # 28.8 → 17.7 ms (median), the Jacobian 81.6 → 82.4 ms (unchanged, equal to the bit);
+    # 3 and 4 samples per iteration were no faster (docs/performance.md).
     _, samples = jax.lax.scan(
         step, carry, (jnp.arange(total, dtype=dtype), entering), unroll=2
     )
