@@ -21,6 +21,7 @@ from accel_jax.diagnose.step.layout import W
 from accel_jax.diagnose.step.assess import (
     NESTED_ABSOLUTE,
     NESTED_LNL_SLACK,
+    NESTED_RESTART_ABOVE,
     log_likelihood_shortfall,
     nested_failed,
     nested_losers,
@@ -179,6 +180,14 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
     assert nested_shortfall(lost, nominal) == pytest.approx(5.0)  # ½ of the objective
     assert nested_failed(lost, nominal)
     assert nested_losers([nominal, better, roundoff, lost]) == ["stop_saturation"]
+    # Below the flag's threshold but above round-off (½·1e-4 short on an objective of 2e3):
+    # not a failed fit, but its record is restarted from the nominal optimum.
+    assert nested_losers([nominal, better, roundoff, lost], NESTED_RESTART_ABOVE) == [
+        "output_filter", "stop_saturation"
+    ]
+    assert not nested_failed(
+        _nested_fit(effect="torquer_lag", objective=2000.0 + 1e-7), nominal, NESTED_RESTART_ABOVE
+    )  # (½·1e-7: below the restart's threshold)
     # A record the nominal misfits by thousands of σ (objective ~1e10): a shortfall of
     # thousands is the solver's relative tolerance, not round-off, and is restarted.
     huge = _nested_fit(effect="nominal", objective=2e10)

@@ -18,7 +18,13 @@ import numpy as np
 from ..._data import NominalDevice, StepData
 from ..._sweep import even_chunk_size, sweep
 from ..base import DiagnosisResult, require_float64
-from .assess import NESTED_ABSOLUTE, explains_deterministically, fit_entries, nested_losers
+from .assess import (
+    NESTED_ABSOLUTE,
+    NESTED_RESTART_ABOVE,
+    explains_deterministically,
+    fit_entries,
+    nested_losers,
+)
 from .effects import step_effects
 from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
@@ -375,12 +381,12 @@ def _restart_losers(
     fits, records: list[StepRecord], effects, linear, nominal, among: set[int] | None = None
 ) -> None:
     """Restart the records (of `among`, default all) whose linear candidates lost to the
-    nominal fit (`NESTED_RESTARTS` rounds, then one holding the nominal); `fits` and
-    `records` are updated in place."""
+    nominal fit by more than `NESTED_RESTART_ABOVE` (`NESTED_RESTARTS` rounds, then one
+    holding the nominal); `fits` and `records` are updated in place."""
     for round_ in range(NESTED_RESTARTS + 1):
         losing = [
             i for i in range(len(records))
-            if (among is None or i in among) and nested_losers(fits[i])
+            if (among is None or i in among) and nested_losers(fits[i], NESTED_RESTART_ABOVE)
         ]
         if not losing:
             return
