@@ -280,6 +280,11 @@ def test_the_last_restart_keeps_the_nominal_so_a_candidate_started_there_cannot_
         assert nested_losers(fits[0]) == ([] if keep else ["torquer_lag", "output_filter"])
         assert np.all(seen["starts"][:, 1, W.EFFECT] == 0.0)  # the second start: z = 0
         assert records[0].notes and "nominal optimum" in records[0].notes[0]
+        # The note says what each candidate lost by before its restart: torquer_lag's
+        # objective 120 against the nominal's 100, ½ · 20 = 10 in ln L; output_filter's
+        # 98 lies above the nominal's likelihood and is not named.
+        assert "(torquer_lag by 10 in ln L; restarted above 1e-06)" in records[0].notes[0]
+        assert "output_filter" not in records[0].notes[0]
     # The rounds: the nominal's refit taken while it keeps moving on (100 → 90 → 80), then
     # held (the third round), where the candidate started at its optimum cannot lose.
     nominals = iter([90.0, 80.0, 75.0])

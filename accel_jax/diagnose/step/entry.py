@@ -23,7 +23,9 @@ from .assess import (
     NESTED_RESTART_ABOVE,
     explains_deterministically,
     fit_entries,
+    nested_failed,
     nested_losers,
+    nested_shortfall,
 )
 from .effects import step_effects
 from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
@@ -377,6 +379,11 @@ def _put_back_at_sigma_hat(fits, floor: dict, at_sigma_hat: dict, n_linear: int)
         ]
 
 
+RESTART_NOTE = "a candidate's fit ended below the nominal model's likelihood"
+"""The start of the record's note when its linear candidates were refitted from the nominal
+optimum (`_restart_from_nominal`); the note goes on with each candidate's shortfall."""
+
+
 def _restart_losers(
     fits, records: list[StepRecord], effects, linear, nominal, among: set[int] | None = None
 ) -> None:
@@ -487,6 +494,14 @@ def _restart_from_nominal(
     fit (lower objective), and note it on the record (`records[i]` replaced). With
     `keep_nominal`, the nominal fit (`fits[i][0]`) stays as it was, the reference the
     others started from."""
+    # What each candidate lost by before its restart (in ln L), for the record's note.
+    lost = {
+        i: [
+            (f.effect, nested_shortfall(f, fits[i][0])) for f in fits[i][1:]
+            if nested_failed(f, fits[i][0], NESTED_RESTART_ABOVE)
+        ]
+        for i in losing
+    }
     again_starts = {}
     for i in losing:
         guesses = np.array(records[i].guesses_linear)
@@ -502,12 +517,12 @@ def _restart_from_nominal(
         # uncertain; stated, not hidden.)
         held_short = 0.5 * (float(fits[i][0].objective) - float(again[0].objective))
         fits[i] = _lower_of(fits[i], again, hold_nominal=keep_nominal)
-        note = (
-            "a candidate's fit ended below the nominal model's likelihood; refitted from "
-            "the nominal optimum"
-        )
-        if note not in records[i].notes:
-            records[i] = records[i].with_note(note)
+        if not any(n.startswith(RESTART_NOTE) for n in records[i].notes):
+            sizes = ", ".join(f"{name} by {short:.3g}" for name, short in lost[i])
+            sizes = f" ({sizes} in ln L; restarted above {NESTED_RESTART_ABOVE:g})" * bool(sizes)
+            records[i] = records[i].with_note(
+                f"{RESTART_NOTE}{sizes}; refitted from the nominal optimum"
+            )
         if keep_nominal and held_short > NESTED_ABSOLUTE:
             records[i] = records[i].with_note(
                 f"the nominal fit kept moving on over {NESTED_RESTARTS} restarts and was held "
