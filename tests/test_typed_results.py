@@ -313,7 +313,7 @@ def test_held_out_check_keeps_the_old_keys_present_only_where_they_were():
 def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
     # The step verdict decides on `RankingEntry`s (an `openworld.Candidate` each) and
     # reports their `to_dict`: the row `DiagnosisResult.ranking` held before, key for key
-    # and in order, a noise model's four keys only on a noise model's row.
+    # and in order (with `objective_round_off`, added since), a noise model's four keys only on a noise model's row.
     from accel_jax.diagnose.openworld import Candidate, Whiteness
     from accel_jax.diagnose.step.state import RankingEntry
 
@@ -326,7 +326,7 @@ def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
     )
     old_keys = [
         "effect", "evidence", "fit_failed", "solver_failed", "objective_below_nominal",
-        "log_likelihood_below_nominal", "significant",
+        "objective_round_off", "log_likelihood_below_nominal", "significant",
         "stochastic", "explains", "explains_up_to_model_form", "plausible",
         "explained_fraction", "gap_after_V", "gap_shrink", "held_out_mean_square",
         "held_out_one_step_mean_square", "params", "converged", "fit_steps", "out_of_prior",

@@ -198,13 +198,18 @@ def baseline(fit: StepFit, nominal_fit: StepFit) -> Baseline:
     return Baseline.of(nominal_fit)
 
 
+def nested_round_off(fit: StepFit, nominal_fit: StepFit) -> float:
+    """The round-off share [ln L] of the penalised likelihood `fit` is compared with:
+    `NESTED_TOLERANCE` × the baseline's (½ objective). A shortfall within it is round-off."""
+    return NESTED_TOLERANCE * 0.5 * abs(baseline(fit, nominal_fit).objective)
+
+
 def nested_failed(
     fit: StepFit, nominal_fit: StepFit, absolute: float = NESTED_ABSOLUTE
 ) -> bool:
     """Whether a nested fit ended below the nominal's penalised likelihood beyond
-    round-off (`NESTED_TOLERANCE`) and by more than `absolute` [ln L]."""
-    scale = 0.5 * abs(baseline(fit, nominal_fit).objective)
-    return nested_shortfall(fit, nominal_fit) > max(NESTED_TOLERANCE * scale, absolute)
+    round-off (`nested_round_off`) and by more than `absolute` [ln L]."""
+    return nested_shortfall(fit, nominal_fit) > max(nested_round_off(fit, nominal_fit), absolute)
 
 
 NESTED_LNL_SLACK = 2.0

@@ -434,7 +434,9 @@ class RankingEntry(Candidate):
 
     - `fit_failed`: its nested fit ended below the nominal's likelihood: the penalised one
         the solver maximised (a solver failure, `assess.nested_failed`;
-        `objective_below_nominal` by how much, ≥ 0, ln L units) or the reported ln L that
+        `objective_below_nominal` by how much, ≥ 0, ln L units, and `objective_round_off`
+        the round-off share of that comparison, `assess.nested_round_off`: a shortfall
+        within it, or within `assess.NESTED_RESTART_ABOVE`, is not one) or the reported ln L that
         the evidence compares (`assess.reported_below`; `log_likelihood_below_nominal`);
         `solver_failed` whether the former (a fit flagged by its reported ln L alone did
         not fail in the solver: the two likelihoods weigh the residual against the priors
@@ -467,6 +469,7 @@ class RankingEntry(Candidate):
     out_of_prior: list[str]
     log_likelihood_below_nominal: float = 0.0
     solver_failed: bool = False
+    objective_round_off: float = 0.0
     one_step_whiteness: Whiteness | None = None
     variance_consistent: bool | None = None
     predictability_null_quantile: dict[str, Any] | None = None
@@ -478,6 +481,7 @@ class RankingEntry(Candidate):
             "fit_failed": self.fit_failed,
             "solver_failed": self.solver_failed,
             "objective_below_nominal": self.objective_below_nominal,
+            "objective_round_off": self.objective_round_off,
             "log_likelihood_below_nominal": self.log_likelihood_below_nominal,
             "significant": self.significant,
             "stochastic": self.stochastic,

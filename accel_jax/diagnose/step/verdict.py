@@ -284,6 +284,7 @@ def ranking_entry(
         fit_failed=failed,
         solver_failed=solver_failed,
         objective_below_nominal=max(assess.nested_shortfall(fit, nominal_fit), 0.0),
+        objective_round_off=assess.nested_round_off(fit, nominal_fit),
         log_likelihood_below_nominal=max(assess.log_likelihood_shortfall(fit, nominal_fit), 0.0),
         significant=bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
         stochastic=fit.stochastic,
