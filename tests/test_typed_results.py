@@ -313,7 +313,8 @@ def test_held_out_check_keeps_the_old_keys_present_only_where_they_were():
 def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
     # The step verdict decides on `RankingEntry`s (an `openworld.Candidate` each) and
     # reports their `to_dict`: the row `DiagnosisResult.ranking` held before, key for key
-    # and in order (with `objective_round_off`, added since), a noise model's four keys only on a noise model's row.
+    # and in order (with `objective_round_off`, added since), a noise model's four keys only
+    # on a noise model's row.
     from accel_jax.diagnose.openworld import Candidate, Whiteness
     from accel_jax.diagnose.step.state import RankingEntry
 
