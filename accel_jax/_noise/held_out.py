@@ -25,7 +25,11 @@ class HeldOutCheck(LegacyItems):
         "evidence"}`; their steps then name the substitute, with `replaced` the effect
         whose evidence they show.
     - `ties`: each named low-frequency effect another fits as well, within the bar,
-        `{"effect", "alternative", "evidence", "bar"}`.
+        `{"effect", "alternative", "evidence", "bar"}` (2 ln B of the effect over the
+        alternative); with `"judged_by": "time_domain"`, an alternative of another
+        low-frequency effect and a start-up transient, weighed in the time domain after
+        the selection dropped a transient (`sensor_arbiter`; its 2 ln B may lie below
+        −bar too: that likelihood then prefers what the spectral steps did not take).
     - `bursts`: impulsive events, `{"start_s", "end_s", "peak"}`.
     - `non_gaussian`: the residual's skewness and excess kurtosis and their z
         (`_non_gaussian`; `significant` makes the record unexplained).

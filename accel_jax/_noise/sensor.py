@@ -70,6 +70,7 @@ from .sensor_model import (
     _transient_test,
     _variogram,
 )
+from .sensor_arbiter import transient_ties
 from .sensor_refine import _backward, _exchanges
 from .sensor_screens import (
     DRIFT_T,
@@ -275,14 +276,11 @@ def _select(
 ):
     """The forward selection on x, whose output grid is `grid` (`detect_quantization`;
     a step taken out is a whole number of its steps); returns (selection, final model,
-    floor, residual).
-
-    With `transient_first`, a start-up transient that clears the bar is added before a
-    noise component that scores higher; should the backward check then remove it (the
-    start of a random walk looks like a decay against white noise alone, and the noise
-    fitted after a false transient is not the one fitted first: harness record
-    128256395, a walk, was named Gauss–Markov), the selection is run again in the
-    order of the evidence alone."""
+    floor, residual). With `transient_first`, a start-up transient that clears the bar is
+    added before a noise component that scores higher; should the backward check remove
+    it (harness record 128256395, a walk, was named Gauss–Markov after a false one), the
+    selection is run again in the order of the evidence alone, and the transient weighed
+    in the time domain against the final low-frequency effect (`transient_ties`)."""
     rec = _Record(x, dt, fits)
     if not rec.variance > (1e-10 * float(np.max(np.abs(x)))) ** 2:
         raise ValueError(
@@ -353,12 +351,10 @@ def _select(
                 refit = _evaluate(rec, floor, model.names, model.lines, transient, refit)
             scored.append((score, "startup_transient", refit))
         scored.sort(key=lambda s: -s[0])
-        # A start-up transient that clears the bar goes in first: its decay puts power
-        # in the lowest periodogram bins, where a random walk or flicker fitted before it
-        # takes that power for its own and leaves the transient under the bar (harness
-        # record 1079240685: flicker 0.38 mg + an 11 mg, τ 4.5 s warm-up was named a
-        # random walk alone). The backward check removes it again should the noise
-        # added after it explain it.
+        # A start-up transient that clears the bar goes in first: a random walk or flicker
+        # fitted before it takes its power in the lowest bins and leaves it under the bar
+        # (harness record 1079240685: flicker 0.38 mg + an 11 mg, τ 4.5 s warm-up was
+        # named a walk alone). The backward check removes it should later noise explain it.
         top = scored[0][1] if scored else None
         if transient_first:
             scored.sort(key=lambda s: not (s[1] == "startup_transient" and s[0] >= evidence))
@@ -395,7 +391,10 @@ def _select(
         model = new
     model, removed = _backward(rec, floor, model, log_j, evidence)
     if promoted and model.transient is None:
-        return _select(x, dt, evidence, max_lines, grid, fits, transient_first=False)
+        again, model, floor, r = _select(x, dt, evidence, max_lines, grid, fits, False)
+        ties = list(again.held_out.ties)  # (the rerun may have weighed it too)
+        ties += [t for t in transient_ties(rec, floor, model, evidence, removed) if t not in ties]
+        return _with_held_out(again, ties=ties), model, floor, r
     kept_before = set(_named(model))
     model, exchanged, ties = _exchanges(rec, floor, model, log_j, evidence)
     if exchanged:  # the substitute may leave another effect without evidence
@@ -406,6 +405,7 @@ def _select(
         removed += dropped
         model, again = _backward(rec, floor, reordered, log_j, evidence)
         removed += again
+    ties += transient_ties(rec, floor, model, evidence, removed)
     if removed or exchanged:
         swap = {}  # the effect the forward path added → the one now in its place
         for e in exchanged:

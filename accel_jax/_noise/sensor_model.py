@@ -19,6 +19,7 @@ Float64, NumPy on the host; one jitted, vmapped Whittle fit per record length.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import math
 from concurrent.futures import ThreadPoolExecutor
@@ -275,8 +276,33 @@ def _transient_tau_limit(n: int, dt: float) -> float:
     return float(_transient_grid(n, dt, _transient_scales(n)[-1])[-1])
 
 
+@functools.lru_cache(maxsize=4)
+def _aliasing(size: int, block: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The frequencies `_differenced_autocovariance` evaluates f_y at (the m = `block`
+    frequencies ν_k folded onto [0, π], for each ω of its grid of 8·size) and the weights
+    sin⁴(ω/2) / sin⁴(ν_k/2) of their sum (None for m = 1); fixed by (size, block)."""
+    grid = 8 * size
+    m = block
+    w = 2 * np.pi * np.arange(grid) / grid
+    nu = (w[:, None] + 2 * np.pi * np.arange(m)) / m  # in [0, 2π)
+    folded = np.minimum(nu, 2 * np.pi - nu).ravel()
+    if m == 1:
+        folded.setflags(write=False)
+        return folded, None
+    below = np.sin(nu / 2) ** 4
+    ratio = np.sin(w / 2)[:, None] ** 4 / np.where(below > 0, below, 1.0)
+    ratio[0, 0] = float(m) ** 4
+    folded.setflags(write=False)  # shared by every call of the same (size, block)
+    ratio.setflags(write=False)
+    return folded, ratio
+
+
 def _differenced_autocovariance(
-    model: _Model, floor: float, size: int, block: int = 1
+    model: _Model,
+    floor: float,
+    size: int,
+    block: int = 1,
+    spectrum=spectral.spectrum,
 ) -> np.ndarray:
     """γ(h), h = 0..size−1, of the differenced block means ȳ_j = x̄_j − x̄_{j−1} of the
     model's record x over blocks of `block` samples (`block` = 1: y = Δx): the inverse
@@ -288,21 +314,16 @@ def _differenced_autocovariance(
         f_ȳ(ω) = sin⁴(ω/2)/m³ · Σ_k f_y(ν_k) / sin⁴(ν_k/2)   (the k = 0 term at ω = 0: m f_y(0))
 
     (f_x = f_y / (4 sin²(ν/2)), f_x̄(ω) = Σ_k f_x(ν_k) |H(ν_k)|² / m, f_ȳ = 4 sin²(ω/2) f_x̄.
-    Checked against the time-domain sum over γ_y in tests/test_noise_sensor.py.)"""
+    Checked against the time-domain sum over γ_y in tests/test_noise_sensor.py.)
+    `spectrum`: f_y's function (`spectral.spectrum`, or a compiled one of the same
+    arguments)."""
     grid = 8 * size
     m = block
-    w = 2 * np.pi * np.arange(grid) / grid
-    nu = (w[:, None] + 2 * np.pi * np.arange(m)) / m  # in [0, 2π)
-    folded = np.minimum(nu, 2 * np.pi - nu).ravel()
+    folded, ratio = _aliasing(size, block)
     f = np.asarray(
-        spectral.spectrum(
-            jnp.asarray(model.z), jnp.asarray(spectral._mask(model.names)), folded, floor
-        )
+        spectrum(jnp.asarray(model.z), jnp.asarray(spectral._mask(model.names)), folded, floor)
     ).reshape(grid, m)
-    if m > 1:
-        below = np.sin(nu / 2) ** 4
-        ratio = np.sin(w / 2)[:, None] ** 4 / np.where(below > 0, below, 1.0)
-        ratio[0, 0] = float(m) ** 4
+    if ratio is not None:
         f = np.sum(ratio * f, axis=1, keepdims=True) / float(m) ** 3
     return np.real(np.fft.ifft(f[:, 0]))[:size]
 
@@ -370,17 +391,22 @@ def _transient_test(r: np.ndarray, dt: float, model: _Model, floor: float) -> di
     return max(found, key=lambda f: f["evidence"])
 
 
+def _transient_templates(size: int, m: int, dt: float, taus: np.ndarray) -> np.ndarray:
+    """The first differences of the block means (m samples) of e^{−t/τ}, one column per τ
+    of `taus`, `size` rows: a block's mean is its first sample's value times the mean of
+    e^{−i dt/τ}, i < m (exactly 1 for m = 1)."""
+    spread = -np.expm1(-m * dt / taus) / (m * -np.expm1(-dt / taus))
+    starts = np.arange(size + 1) * m * dt
+    return np.diff(StartupTransient(1.0, taus).signal(starts[:, None]) * spread, axis=0)
+
+
 def _transient_test_at(r: np.ndarray, dt: float, model: _Model, floor: float, m: int) -> dict:
     """`_transient_test` on the block means of r over blocks of m samples."""
     blocks = min(TRANSIENT_WINDOW + 1, r.size // m)
     y = np.diff(r[: blocks * m].reshape(blocks, m).mean(axis=1))
     size = y.size
     taus = _transient_grid(r.size, dt, m)
-    # A block's mean of e^{−t/τ}: its first sample's value times the mean of e^{−i dt/τ},
-    # i < m (exactly 1 for m = 1).
-    spread = -np.expm1(-m * dt / taus) / (m * -np.expm1(-dt / taus))
-    starts = np.arange(size + 1) * m * dt
-    templates = np.diff(StartupTransient(1.0, taus).signal(starts[:, None]) * spread, axis=0)
+    templates = _transient_templates(size, m, dt, taus)
     gamma = _differenced_autocovariance(model, floor, size, m)
     columns = np.concatenate([y[:, None], np.ones((size, 1)), templates], axis=1)
     e, d = _innovations(gamma, columns)

@@ -74,10 +74,22 @@ def _selection_lines(selection: SensorNoiseSelection) -> list[str]:
             f"2 ln B = {entry['evidence']:.1f} in its favour"
         )
     for entry in held.ties:
-        lines.append(
-            f"  ? {entry['effect']} or {entry['alternative']}: the record cannot tell them "
-            f"apart (2 ln B = {entry['evidence']:.1f}, < {entry['bar']:g})"
-        )
+        pair = f"  ? {entry['effect']} or {entry['alternative']}"
+        if entry.get("judged_by") != "time_domain":
+            lines.append(
+                f"{pair}: the record cannot tell them apart (2 ln B = {entry['evidence']:.1f}"
+                f", < {entry['bar']:g})"
+            )
+        elif entry["evidence"] > -entry["bar"]:
+            lines.append(
+                f"{pair}: weighed in the time domain, the record cannot tell them apart "
+                f"(2 ln B = {entry['evidence']:.1f}, within ±{entry['bar']:g})"
+            )
+        else:
+            lines.append(
+                f"{pair}: the time-domain likelihood prefers the second (2 ln B = "
+                f"{entry['evidence']:.1f}), the spectral steps took the first: not settled"
+            )
     unexplained = [level_shift_sentence(shift) for shift in held.level_shifts]
     if held.more_level_shifts:
         unexplained.append("more steps in the level than were taken out")
