@@ -233,8 +233,9 @@ def test_a_warm_up_over_a_gauss_markov_bias_is_named_and_the_walk_tie_said():
 
     Where the warm-up is too small to be told from the bias's own wander it is not named:
     the noise benchmark's record (1 mg, τ 60 s, under 150 µg and 30 s) reads
-    `random_walk`. There the time-domain test gives the warm-up 2 ln Λ = 12–23 against the
-    Gauss–Markov refit (two records), below its bar of 10 + 2 ln J = 32."""
+    `random_walk`, with "gauss_markov+startup_transient" as its time-domain tie
+    (tests/test_noise_arbiter.py). There the transient's test gives the warm-up 2 ln Λ =
+    12–23 against the Gauss–Markov refit (two records), below its bar of 10 + 2 ln J = 32."""
     n, dt = 40_000, 0.005
     truth = {"white": 5e-4, "gauss_markov": (1.5e-4, 10.0), "transient": (5e-3, 20.0)}
     truth["level"] = 1.0
