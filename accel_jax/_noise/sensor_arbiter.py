@@ -32,6 +32,8 @@ from . import spectral
 from .sensor_model import (
     PARAMETER_COUNT,
     _differenced_autocovariance,
+    _differenced_block_means,
+    _drift_profiled,
     _evaluate,
     _innovations,
     _Model,
@@ -63,8 +65,7 @@ record some hundred times (eagerly, op by op, each evaluation took 4 times as lo
 def _block_differences(r: np.ndarray) -> tuple[np.ndarray, int]:
     """The differenced means of blocks of m samples of r, at most `ARBITER_BLOCKS`; m."""
     m = max(1, -(-r.size // (ARBITER_BLOCKS + 1)))
-    blocks = r.size // m
-    return np.diff(r[: blocks * m].reshape(blocks, m).mean(axis=1)), m
+    return _differenced_block_means(r, m, r.size // m), m
 
 
 def _two_log_likelihood(y, m, model: _Model, floor: float, templates) -> float:
@@ -78,12 +79,9 @@ def _two_log_likelihood(y, m, model: _Model, floor: float, templates) -> float:
     e, d = _innovations(gamma, np.concatenate(columns, axis=1))
     if e.shape[0] < y.size:  # the autocovariance not positive definite: no likelihood
         return -math.inf
-    gram = (e / d[:, None]).T @ e
-    two = -(gram[0, 0] - gram[0, 1] ** 2 / gram[1, 1] + float(np.sum(np.log(d))))
+    quad, _, _, z2 = _drift_profiled((e / d[:, None]).T @ e)
+    two = -(quad + float(np.sum(np.log(d))))
     if templates is not None:
-        cross = gram[2:, 0] - gram[2:, 1] * gram[1, 0] / gram[1, 1]
-        energy = np.diag(gram)[2:] - gram[2:, 1] ** 2 / gram[1, 1]
-        z2 = np.where(energy > 0, cross**2 / np.where(energy > 0, energy, 1.0), 0.0)
         two += float(np.max(z2))
     return float(two) if math.isfinite(two) else -math.inf
 
@@ -100,14 +98,13 @@ def _maximised(y, m, model: _Model, floor: float, name: str, templates) -> float
         value = _two_log_likelihood(y, m, dataclasses.replace(model, z=z), floor, templates)
         return -value if math.isfinite(value) else 1e300
 
-    start = cost(z0[slots])
     found = optimize.minimize(
         cost,
         z0[slots],
         method="Nelder-Mead",
         options={"maxfev": ARBITER_EVALUATIONS, "xatol": 1e-2, "fatol": 0.05},
     )
-    return -min(float(found.fun), start)
+    return -float(found.fun)  # (the start is a vertex of the first simplex: never worse)
 
 
 def transient_ties(rec, floor, model: _Model, evidence: float, removed: list) -> list:

@@ -400,10 +400,27 @@ def _transient_templates(size: int, m: int, dt: float, taus: np.ndarray) -> np.n
     return np.diff(StartupTransient(1.0, taus).signal(starts[:, None]) * spread, axis=0)
 
 
+def _differenced_block_means(r: np.ndarray, m: int, blocks: int) -> np.ndarray:
+    """The first differences of the means of the first `blocks` blocks of m samples of r."""
+    return np.diff(r[: blocks * m].reshape(blocks, m).mean(axis=1))
+
+
+def _drift_profiled(gram: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """From the C⁻¹ inner products `gram` of the columns (y, 1, templates…): y's quadratic
+    form with the level's drift (a constant mean of y) profiled out, and each template's
+    cross product with y, its energy and its 2 ln Λ, the drift projected out of both (a
+    ramp is not a transient)."""
+    drift = gram[1, 1]
+    quad = gram[0, 0] - gram[0, 1] ** 2 / drift
+    cross = gram[2:, 0] - gram[2:, 1] * gram[1, 0] / drift
+    energy = np.diag(gram)[2:] - gram[2:, 1] ** 2 / drift
+    z2 = np.where(energy > 0, cross**2 / np.where(energy > 0, energy, 1.0), 0.0)
+    return float(quad), cross, energy, z2
+
+
 def _transient_test_at(r: np.ndarray, dt: float, model: _Model, floor: float, m: int) -> dict:
     """`_transient_test` on the block means of r over blocks of m samples."""
-    blocks = min(TRANSIENT_WINDOW + 1, r.size // m)
-    y = np.diff(r[: blocks * m].reshape(blocks, m).mean(axis=1))
+    y = _differenced_block_means(r, m, min(TRANSIENT_WINDOW + 1, r.size // m))
     size = y.size
     taus = _transient_grid(r.size, dt, m)
     templates = _transient_templates(size, m, dt, taus)
@@ -412,11 +429,7 @@ def _transient_test_at(r: np.ndarray, dt: float, model: _Model, floor: float, m:
     e, d = _innovations(gamma, columns)
     weighted = e / d[:, None]
     gram = weighted.T @ e  # the C⁻¹ inner products of every pair of columns
-    # the level's drift (a constant mean of y) taken out: a ramp is not a transient
-    drift = gram[1, 1]
-    cross = gram[2:, 0] - gram[2:, 1] * gram[1, 0] / drift
-    energy = np.diag(gram)[2:] - gram[2:, 1] ** 2 / drift
-    z2 = np.where(energy > 0, cross**2 / np.where(energy > 0, energy, 1.0), 0.0)
+    _, cross, energy, z2 = _drift_profiled(gram)
     i = int(np.argmax(z2))
     amplitude = float(cross[i] / energy[i]) if energy[i] > 0 else 0.0
     return {"evidence": float(z2[i]), "transient": StartupTransient(amplitude, float(taus[i]))}
