@@ -24,7 +24,8 @@ def diagnose_many(
     """Diagnose several records (same kind) against one nominal device, each on its own;
     records of one length are fitted as one batch (one compilation). See `diagnose`.
     `recommend` (step records): compute the next experiment for a lag tie; `discover`
-    (step records): look for the missing term of an unexplained record
+    (step records): look for the missing term of an unexplained record (or of a noise
+    verdict in question, `step.verdict.noise_in_question`)
     (`step.discover`), with `ceiling` the network reference of what a term of the states
     could remove (`step.ceiling`). Several step
     records of one device diagnosed *together*: `step.joint_verdict.diagnose_step_set`."""
@@ -76,7 +77,9 @@ def diagnose(
     **Returns:** a `DiagnosisResult` (`.verdict`, `.ranking`, `.gap`, `.where`, `.refit`,
     `.to_dict()`, `.summary()`). Computed in float64 (x64 must be enabled). With
     `discover` (step records), an unexplained record also gets `.discovery`: the missing
-    term found in the term library, a hypothesis (`step.discover`); with `ceiling` too,
+    term found in the term library, a hypothesis (`step.discover`); so does a noise
+    verdict in question (`step.verdict.noise_in_question`), which a credible term far
+    above the noise makes `unexplained` (`step.verdict.weigh_discovery`); with `ceiling` too,
     the share of the held-out gap a network of the loop's states removes (`step.ceiling`).
     """
     return diagnose_many([data], nominal, discover=discover, ceiling=ceiling)[0]

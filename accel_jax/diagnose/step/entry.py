@@ -32,7 +32,7 @@ from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
 from .record import _guesses, prepare, prior_sigma_of, stack_on_host
 from .state import Baseline, RecordShape, StepFit, StepRecord
-from .verdict import evaluate
+from .verdict import evaluate, noise_in_question, weigh_discovery
 
 
 def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candidates, desc):
@@ -106,8 +106,12 @@ def diagnose_step(
         fit of `joint`: ~10–60 s per such record on a CPU).
     - `discover`: True: for an `unexplained` record that passed the domain check, look for
         the missing term in the term library (`discover`: `result.discovery`, a typed
-        `Discovery`, a hypothesis; the verdict stays `unexplained`); "all": for every
-        record that passed it (a check that nothing is found where nothing is missing).
+        `Discovery`, a hypothesis; the verdict stays `unexplained`), and for a noise
+        verdict in question (`verdict.noise_in_question`: its misfit partly predictable,
+        kept only by the noise's own null), where a credible term that brings the held-out
+        gap to the floor with evidence `SIGNIFICANCE` above the noise's makes the verdict
+        `unexplained` (`verdict.weigh_discovery`); "all": for every record that passed it
+        (a check that nothing is found where nothing is missing).
     - `ceiling`: with `discover`, also fit the network reference of what a term of the
         loop's states could remove of the held-out gap (`ceiling`: the discovery's
         `ceiling` and each candidate's `ceiling_fraction`; an estimate, never a
@@ -232,7 +236,8 @@ def diagnose_step(
         from .discover import discover as discover_term
 
         for i, (rec, record_fits, result) in enumerate(zip(records, fits, results, strict=True)):
-            wanted = discover == "all" or result.verdict == "unexplained"
+            in_question = noise_in_question(result) is not None
+            wanted = discover == "all" or result.verdict == "unexplained" or in_question
             if wanted and not rec.domain_problems:
                 # From the nominal's fit at the floor, the scale its refits weigh the
                 # residual at: from the fit at σ̂ (`REWEIGHT_ABOVE`) the vibrating stand's
@@ -240,6 +245,7 @@ def diagnose_step(
                 # existed; one run each on the 2-core CPU).
                 start = floor[i][1] if i in floor else record_fits[0]
                 result.discovery = discover_term(rec, nominal, start, effects, reference=ceiling)
+                weigh_discovery(result)  # a noise verdict in question against the term
     if recommend:
         for data, rec, result in zip(datasets, records, results, strict=True):
             if result.verdict == "cannot_tell" and set(result.tied) == LAG_PAIR:

@@ -164,6 +164,9 @@ def evaluate(
     at_bound = _at_bound_note(nominal_fit, entries)
     if at_bound:
         notes.append(at_bound)
+    questioned = next((e for e in entries if e.effect == verdict), None)
+    if questioned is not None and _in_question(questioned.to_dict()):
+        notes.append(_in_question_note(questioned, predictable))
     return DiagnosisResult(
         kind="step",
         verdict=verdict,
@@ -178,6 +181,80 @@ def evaluate(
         remaining_gap=remaining_gap,
         reason=reason,
     )
+
+
+def _in_question(entry: dict) -> bool:
+    """Whether a noise verdict's ranking entry leaves its misfit in question: the fixed
+    fraction (`openworld.PREDICTABLE`) called the misfit deterministic, and only the noise's
+    own null (`noise_null`) kept the noise (its quantiles recorded)."""
+    return bool(
+        entry.get("stochastic")
+        and entry.get("predictability_null_quantile")
+        and not entry.get("deterministic_misfit")
+    )
+
+
+def noise_in_question(result: DiagnosisResult) -> dict | None:
+    """The ranking entry of `result`'s verdict where it is a noise effect whose misfit is in
+    question (`_in_question`): the records on which discovery (`step.discover`) also runs,
+    to weigh a deterministic term outside the library against the noise
+    (`weigh_discovery`). None elsewhere."""
+    entry = next((e for e in result.ranking if e["effect"] == result.verdict), None)
+    return entry if entry is not None and _in_question(entry) else None
+
+
+def _in_question_note(entry: RankingEntry, predictable) -> str:
+    null = entry.predictability_null_quantile or {}
+    best = max(null, key=lambda k: predictable.removed(k) - null[k])
+    return (
+        f"{entry.effect} is named, but a predictor fitted on the training part removes "
+        f"{predictable.removed(best):.2f} of the held-out residual ({best}), against up to "
+        f"{null[best]:.2f} from the fitted noise alone in {noise_null.NULL_QUANTILE:.0%} of "
+        f"{noise_null.NULL_DRAWS} draws: a deterministic term outside the library may "
+        "describe the record better (a disturbance near the loop's resonance is one); the "
+        "discovery (`--discover`, the command's default) weighs one against the noise"
+    )
+
+
+def weigh_discovery(result: DiagnosisResult) -> None:
+    """A noise verdict in question (`noise_in_question`) against the discovery's best
+    subset of terms (`result.discovery`), in place: where the subset is credible, brings
+    the held-out gap to the floor, and its evidence (2 ln B against the same nominal fit,
+    BIC-penalised) exceeds the noise's by `SIGNIFICANCE`, the verdict becomes `unexplained`
+    (the library holds no effect for what a deterministic term outside it describes),
+    with the noise as the best library effect; within `SIGNIFICANCE` it is stated, the
+    verdict kept. Seen on a blind record of a 382 Hz disturbance on a loop of f₀ = 549 Hz
+    (docs/findings.md): `moment_noise` at 2 ln B = 3,762, a discovered `forcing_sinusoid`
+    at 94,984 with the held-out gap at the floor."""
+    entry = noise_in_question(result)
+    discovery = result.discovery
+    if entry is None or discovery is None or discovery.best is None:
+        return
+    best = discovery.best
+    terms = " + ".join(best.terms)
+    margin = best.evidence - entry["evidence"]
+    if discovery.rating != "credible" or not best.held_out_at_floor:
+        return
+    if margin < SIGNIFICANCE:
+        result.notes.append(
+            f"the discovered {terms} (evidence 2 ln B = {best.evidence:.1f}) does not outdo "
+            f"{entry['effect']} ({entry['evidence']:.1f}) by {SIGNIFICANCE:.0f}: the noise "
+            "is kept"
+        )
+        return
+    noise = entry["effect"]
+    result.reason = (
+        f"{noise} (evidence 2 ln B = {entry['evidence']:.1f}) is outdone by a term outside "
+        f"the library: the discovered {terms} brings the held-out gap to the floor with "
+        f"evidence {best.evidence:.1f} (both against the nominal model): a deterministic "
+        f"term describes the record better than the noise, and the library has no effect "
+        f"for it. Before the discovery, {noise} was named: {result.reason}"
+    )
+    result.verdict = "unexplained"
+    result.tied = []
+    # (the note that put the noise in question is now the reason's)
+    asked = f"{noise} is named, but a predictor"
+    result.notes = [note for note in result.notes if not note.startswith(asked)]
 
 
 def _at_bound_note(nominal_fit: StepFit, entries: list[RankingEntry]) -> str | None:

@@ -1,0 +1,114 @@
+"""A noise verdict whose misfit is in question (the fixed predictability fraction called it
+deterministic, only the noise's own null kept the noise) weighed against the discovery's
+deterministic term (`step.verdict.noise_in_question`, `weigh_discovery`). The whole path,
+a blind record of a 382 Hz disturbance read `moment_noise` and then `unexplained` with a
+discovered `forcing_sinusoid`, takes ~3 min on the 2-core CPU and is not run here; its
+figures are in docs/findings.md."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+from accel_jax.diagnose.base import SIGNIFICANCE, DiagnosisResult
+from accel_jax.diagnose.openworld import Predictability
+from accel_jax.diagnose.step import verdict
+
+NULL = {"input_locked": 0.44, "periodic": 0.50, "trend": 0.85}
+
+
+def _entry(**changes) -> dict:
+    entry = dict(
+        effect="moment_noise", evidence=3762.1, stochastic=True, deterministic_misfit=False,
+        predictability_null_quantile=NULL,
+    )
+    return {**entry, **changes}
+
+
+def _result(entry: dict, discovery=None) -> DiagnosisResult:
+    other = _entry(effect="colored_noise", evidence=3498.2)
+    return DiagnosisResult(
+        kind="step", verdict=entry["effect"], tied=[], ranking=[entry, other], gap={},
+        where={}, refit={}, reason="moment_noise brings the held-out gap from 0.00919 V",
+        discovery=discovery,
+    )
+
+
+def _discovery(evidence=94984.1, rating="credible", at_floor=True):
+    best = SimpleNamespace(
+        terms=("forcing_sinusoid",), evidence=evidence, held_out_at_floor=at_floor
+    )
+    return SimpleNamespace(best=best, rating=rating)
+
+
+def test_only_a_noise_verdict_kept_by_its_own_null_is_in_question():
+    assert verdict.noise_in_question(_result(_entry())) is not None
+    # the fixed fraction did not call the misfit deterministic: no null was drawn
+    assert verdict.noise_in_question(_result(_entry(predictability_null_quantile=None))) is None
+    # the null called it deterministic: the noise is not named (checked upstream), and not
+    # in question here
+    assert verdict.noise_in_question(_result(_entry(deterministic_misfit=True))) is None
+    # a deterministic effect's verdict
+    assert verdict.noise_in_question(_result(_entry(stochastic=False))) is None
+
+
+def test_a_credible_term_far_above_the_noise_makes_the_record_unexplained():
+    result = _result(_entry(), _discovery())
+    result.notes = [
+        "moment_noise is named, but a predictor fitted on the training part removes …",
+        "another note",
+    ]
+    verdict.weigh_discovery(result)
+    assert result.verdict == "unexplained" and result.tied == []
+    assert "outdone by a term outside the library" in result.reason
+    assert "forcing_sinusoid" in result.reason and "94984.1" in result.reason
+    assert "3762.1" in result.reason
+    assert result.reason.endswith("moment_noise brings the held-out gap from 0.00919 V")
+    assert result.notes == ["another note"]  # the question's own note is now the reason
+
+
+def test_the_note_that_puts_the_noise_in_question_is_written_by_the_same_verdict_module():
+    # weigh_discovery drops the note it finds by its opening words: they must be the note's
+    entry = SimpleNamespace(effect="moment_noise", predictability_null_quantile=NULL)
+    predictable = Predictability(-0.37, 0.47, 0.0, 0.0, 0.01, 390.6, True)
+    result = _result(_entry(), _discovery())
+    result.notes = [verdict._in_question_note(entry, predictable)]
+    verdict.weigh_discovery(result)
+    assert result.notes == []
+
+
+@pytest.mark.parametrize(
+    "discovery",
+    [
+        _discovery(evidence=3762.1 + SIGNIFICANCE - 0.5),  # within the significance margin
+        _discovery(rating="tentative"),
+        _discovery(at_floor=False),  # the term leaves the gap above the floor
+        SimpleNamespace(best=None, rating="nothing found"),
+        None,
+    ],
+)
+def test_the_noise_is_kept_unless_the_term_is_credible_at_the_floor_and_clearly_better(
+    discovery,
+):
+    result = _result(_entry(), discovery)
+    before = result.reason
+    verdict.weigh_discovery(result)
+    assert result.verdict == "moment_noise" and result.reason == before
+    if discovery is not None and discovery.best is not None and discovery.rating == "credible":
+        if discovery.best.held_out_at_floor:
+            assert any("does not outdo moment_noise" in n for n in result.notes), result.notes
+
+
+def test_a_noise_not_in_question_is_never_overturned():
+    result = _result(_entry(predictability_null_quantile=None), _discovery())
+    verdict.weigh_discovery(result)
+    assert result.verdict == "moment_noise"
+
+
+def test_the_note_names_the_predictor_that_came_closest_to_beating_the_null():
+    entry = SimpleNamespace(effect="moment_noise", predictability_null_quantile=NULL)
+    predictable = Predictability(-0.37, 0.47, 0.0, 0.0, 0.01, 390.6, True)
+    note = verdict._in_question_note(entry, predictable)
+    assert "removes 0.47 of the held-out residual (periodic)" in note
+    assert "up to 0.50 from the fitted noise alone" in note
