@@ -112,3 +112,9 @@ def test_the_note_names_the_predictor_that_came_closest_to_beating_the_null():
     note = verdict._in_question_note(entry, predictable)
     assert "removes 0.47 of the held-out residual (periodic)" in note
     assert "up to 0.50 from the fitted noise alone" in note
+    # a predictor nearer its null that did not remove the fixed fraction is not the one named
+    close = Predictability(0.19, 0.21, 0.0, 0.0, 0.01, 390.6, True)  # −0.25, −0.29
+    assert "(periodic)" in verdict._in_question_note(entry, close)
+    assert "(input_locked)" in verdict._in_question_note(
+        entry, Predictability(0.43, 0.15, 0.0, 0.0, 0.01, 390.6, True)
+    )

@@ -205,7 +205,9 @@ def noise_in_question(result: DiagnosisResult) -> dict | None:
 
 def _in_question_note(entry: RankingEntry, predictable) -> str:
     null = entry.predictability_null_quantile or {}
-    best = max(null, key=lambda k: predictable.removed(k) - null[k])
+    # among the predictors that removed the fixed fraction (one did: else no null was drawn)
+    fired = [k for k in null if predictable.removed(k) >= openworld.PREDICTABLE] or list(null)
+    best = max(fired, key=lambda k: predictable.removed(k) - null[k])
     return (
         f"{entry.effect} is named, but a predictor fitted on the training part removes "
         f"{predictable.removed(best):.2f} of the held-out residual ({best}), against up to "
