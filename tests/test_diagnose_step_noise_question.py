@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from accel_jax.diagnose.base import SIGNIFICANCE, DiagnosisResult
+from accel_jax.diagnose.base import DiagnosisResult
 from accel_jax.diagnose.openworld import Predictability
 from accel_jax.diagnose.step import verdict
 
@@ -21,7 +21,7 @@ NULL = {"input_locked": 0.44, "periodic": 0.50, "trend": 0.85}
 def _entry(**changes) -> dict:
     entry = dict(
         effect="moment_noise", evidence=3762.1, stochastic=True, deterministic_misfit=False,
-        predictability_null_quantile=NULL,
+        predictability_null_quantile=NULL, gap_after_V=0.00416,
     )
     return {**entry, **changes}
 
@@ -31,13 +31,15 @@ def _result(entry: dict, discovery=None) -> DiagnosisResult:
     return DiagnosisResult(
         kind="step", verdict=entry["effect"], tied=[], ranking=[entry, other], gap={},
         where={}, refit={}, reason="moment_noise brings the held-out gap from 0.00919 V",
-        discovery=discovery,
+        discovery=discovery, explained_fraction=0.79,
+        remaining_gap={"V": 0.00416, "noise_floor_V": 0.000432},
     )
 
 
 def _discovery(evidence=94984.1, rating="credible", at_floor=True):
     best = SimpleNamespace(
-        terms=("forcing_sinusoid",), evidence=evidence, held_out_at_floor=at_floor
+        terms=("forcing_sinusoid",), evidence=evidence, held_out_at_floor=at_floor,
+        held_out_gap_before_V=0.00919, held_out_gap_after_V=8.38e-5 if at_floor else 0.002,
     )
     return SimpleNamespace(best=best, rating=rating)
 
@@ -53,7 +55,7 @@ def test_only_a_noise_verdict_kept_by_its_own_null_is_in_question():
     assert verdict.noise_in_question(_result(_entry(stochastic=False))) is None
 
 
-def test_a_credible_term_far_above_the_noise_makes_the_record_unexplained():
+def test_a_credible_term_at_the_floor_where_the_noise_is_not_makes_the_record_unexplained():
     result = _result(_entry(), _discovery())
     result.notes = [
         "moment_noise is named, but a predictor fitted on the training part removes …",
@@ -61,9 +63,11 @@ def test_a_credible_term_far_above_the_noise_makes_the_record_unexplained():
     ]
     verdict.weigh_discovery(result)
     assert result.verdict == "unexplained" and result.tied == []
-    assert "outdone by a term outside the library" in result.reason
-    assert "forcing_sinusoid" in result.reason and "94984.1" in result.reason
-    assert "3762.1" in result.reason
+    assert result.explained_fraction == 0.0  # an absorbed noise explains none of the misfit
+    assert "a term outside the library describes the record" in result.reason
+    assert "forcing_sinusoid" in result.reason and "from 0.00919 V to 8.38e-05 V" in result.reason
+    assert "moment_noise leaves 0.00416 V (9.6× the 0.000432 V floor)" in result.reason
+    assert "not on one scale" in result.reason  # the two evidences are not compared
     assert result.reason.endswith("moment_noise brings the held-out gap from 0.00919 V")
     assert result.notes == ["another note"]  # the question's own note is now the reason
 
@@ -79,25 +83,36 @@ def test_the_note_that_puts_the_noise_in_question_is_written_by_the_same_verdict
 
 
 @pytest.mark.parametrize(
-    "discovery",
+    "discovery, said",
     [
-        _discovery(evidence=3762.1 + SIGNIFICANCE - 0.5),  # within the significance margin
-        _discovery(rating="tentative"),
-        _discovery(at_floor=False),  # the term leaves the gap above the floor
-        SimpleNamespace(best=None, rating="nothing found"),
-        None,
+        (_discovery(rating="tentative"), "found forcing_sinusoid (tentative)"),
+        (_discovery(at_floor=False), "found forcing_sinusoid (credible)"),
+        (SimpleNamespace(best=None, rating="nothing found"), "found nothing"),
     ],
 )
-def test_the_noise_is_kept_unless_the_term_is_credible_at_the_floor_and_clearly_better(
-    discovery,
+def test_the_noise_is_kept_unless_a_credible_term_brings_the_held_out_gap_to_the_floor(
+    discovery, said
 ):
     result = _result(_entry(), discovery)
     before = result.reason
     verdict.weigh_discovery(result)
     assert result.verdict == "moment_noise" and result.reason == before
-    if discovery is not None and discovery.best is not None and discovery.rating == "credible":
-        if discovery.best.held_out_at_floor:
-            assert any("does not outdo moment_noise" in n for n in result.notes), result.notes
+    assert result.explained_fraction == 0.79
+    assert len(result.notes) == 1 and said in result.notes[0], result.notes
+    assert result.notes[0].endswith("moment_noise is kept")
+
+
+def test_the_noise_is_kept_where_it_too_leaves_the_held_out_gap_at_the_floor():
+    result = _result(_entry(gap_after_V=0.0004), _discovery())
+    verdict.weigh_discovery(result)
+    assert result.verdict == "moment_noise"
+    assert "and so does moment_noise" in result.notes[0]
+
+
+def test_without_a_discovery_nothing_is_weighed():
+    result = _result(_entry())
+    verdict.weigh_discovery(result)
+    assert result.verdict == "moment_noise" and result.notes == []
 
 
 def test_a_noise_not_in_question_is_never_overturned():

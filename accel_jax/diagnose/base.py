@@ -345,7 +345,9 @@ class DiagnosisResult:
         kind's two lags), the experiments a user can run, best first, each with its
         expected 2 ln B (`step.design.next_experiments`); else empty.
     - `discovery`: for a step record searched for a missing term, the `Discovery`
-        (`step.discover`: a hypothesis, never a verdict; `to_dict()` its JSON block);
+        (`step.discover`: a hypothesis, never a verdict — though it can show that a noise
+        verdict in question explains nothing, `step.verdict.weigh_discovery`; `to_dict()`
+        its JSON block);
         else None.
     """
 

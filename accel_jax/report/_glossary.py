@@ -62,7 +62,10 @@ GLOSSARY: tuple[tuple[str, str], ...] = (
         "for an unexplained step record, the missing term found in a library of terms at "
         "named places in the loop (pickoff, spring, damping, torquer, output, forcing): a "
         "hypothesis, rated credible (held-out gap at the noise floor, stable, evidence ≥ "
-        "10), tentative or nothing found; the verdict stays unexplained. Each term comes "
+        "10), tentative or nothing found; the verdict stays unexplained. A record named a "
+        "noise effect whose misfit a predictor partly foresees is searched too, and becomes "
+        "unexplained where a credible term brings the held-out gap to the floor and the "
+        "noise does not. Each term comes "
         "with what it means for a designer (the static transfer function's coefficient it "
         "implies, its vibration error against the paper's limit) and, when the record "
         "barely measures it, the record that would excite it.",

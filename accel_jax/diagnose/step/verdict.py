@@ -220,40 +220,57 @@ def _in_question_note(entry: RankingEntry, predictable) -> str:
 
 def weigh_discovery(result: DiagnosisResult) -> None:
     """A noise verdict in question (`noise_in_question`) against the discovery's best
-    subset of terms (`result.discovery`), in place: where the subset is credible, brings
-    the held-out gap to the floor, and its evidence (2 ln B against the same nominal fit,
-    BIC-penalised) exceeds the noise's by `SIGNIFICANCE`, the verdict becomes `unexplained`
-    (the library holds no effect for what a deterministic term outside it describes),
-    with the noise as the best library effect; within `SIGNIFICANCE` it is stated, the
-    verdict kept. Seen on a blind record of a 382 Hz disturbance on a loop of f₀ = 549 Hz
-    (docs/findings.md): `moment_noise` at 2 ln B = 3,762, a discovered `forcing_sinusoid`
-    at 94,984 with the held-out gap at the floor."""
+    subset of terms (`result.discovery`), in place, on the held-out part: where the subset
+    is credible and brings the held-out free-run gap to the floor
+    (`held_out_at_floor`), and the noise leaves its own free-run gap above the floor
+    (`openworld.FLOOR_FACTOR`), the verdict becomes `unexplained` — a deterministic term
+    outside the library predicts the held-out part and the noise does not — with the
+    noise's explained fraction 0 (a noise that absorbed a predictable misfit explains none
+    of it, as `ranking_entry` counts one); otherwise the noise is kept and a note says
+    what the discovery found. Both gaps are the held-out RMS in excess of the same noise
+    floor. The two evidences are not compared: the discovery's is a BIC at the floor's σ
+    with the change times' priors, the noise's a likelihood ratio with the variance
+    fitted, and far above the floor the first grows as n(σ̂²/σ² − 1), the second as
+    n ln(σ̂²/σ²). Seen on a blind record of a 382 Hz disturbance on a loop of f₀ = 549 Hz
+    (docs/findings.md): `moment_noise` leaves 0.00416 V (9.6× the floor), the discovered
+    `forcing_sinusoid` 8.4e-5 V, at the floor."""
     entry = noise_in_question(result)
     discovery = result.discovery
-    if entry is None or discovery is None or discovery.best is None:
-        return
-    best = discovery.best
-    terms = " + ".join(best.terms)
-    margin = best.evidence - entry["evidence"]
-    if discovery.rating != "credible" or not best.held_out_at_floor:
-        return
-    if margin < SIGNIFICANCE:
-        result.notes.append(
-            f"the discovered {terms} (evidence 2 ln B = {best.evidence:.1f}) does not outdo "
-            f"{entry['effect']} ({entry['evidence']:.1f}) by {SIGNIFICANCE:.0f}: the noise "
-            "is kept"
-        )
+    if entry is None or discovery is None:
         return
     noise = entry["effect"]
+    best = discovery.best
+    if best is None or discovery.rating != "credible" or not best.held_out_at_floor:
+        found = (
+            "nothing" if best is None else f"{' + '.join(best.terms)} ({discovery.rating})"
+        )
+        result.notes.append(
+            f"the discovery weighed against {noise} found {found}, no credible term that "
+            f"brings the held-out gap to the floor: {noise} is kept"
+        )
+        return
+    terms = " + ".join(best.terms)
+    floor = float(result.remaining_gap.get("noise_floor_V", 0.0))
+    left = float(entry["gap_after_V"])
+    if not left > openworld.FLOOR_FACTOR * floor:
+        result.notes.append(
+            f"the discovered {terms} brings the held-out gap to the floor, and so does "
+            f"{noise} ({left:.3g} V against the {floor:.3g} V floor): {noise} is kept"
+        )
+        return
     result.reason = (
-        f"{noise} (evidence 2 ln B = {entry['evidence']:.1f}) is outdone by a term outside "
-        f"the library: the discovered {terms} brings the held-out gap to the floor with "
-        f"evidence {best.evidence:.1f} (both against the nominal model): a deterministic "
-        f"term describes the record better than the noise, and the library has no effect "
-        f"for it. Before the discovery, {noise} was named: {result.reason}"
+        f"a term outside the library describes the record where {noise} does not: the "
+        f"discovered {terms} brings the held-out free-run gap from "
+        f"{best.held_out_gap_before_V:.3g} V to {best.held_out_gap_after_V:.3g} V above "
+        f"the floor (at the floor), {noise} leaves {left:.3g} V "
+        f"({left / floor:.1f}× the {floor:.3g} V floor); the library has no effect for "
+        f"the term (its evidence {best.evidence:.1f}, a BIC at the floor; {noise}'s "
+        f"{entry['evidence']:.1f}, a likelihood ratio: not on one scale). Before the "
+        f"discovery, {noise} was named: {result.reason}"
     )
     result.verdict = "unexplained"
     result.tied = []
+    result.explained_fraction = 0.0
     # (the note that put the noise in question is now the reason's)
     asked = f"{noise} is named, but a predictor"
     result.notes = [note for note in result.notes if not note.startswith(asked)]

@@ -113,7 +113,9 @@ OPTIONS = {
         "the loop (pickoff, spring, damping, torquer, output, forcing) and report it as a "
         "hypothesis: the term, its coefficient ± σ, the held-out gap it closes, its "
         "evidence and stability (on by default; about 1.8× a cold diagnosis of such a "
-        "record on a CPU).",
+        "record on a CPU). Also for a record named a noise effect whose misfit a predictor "
+        "partly foresees: a credible term that brings the held-out gap to the floor, where "
+        "the noise does not, makes it unexplained.",
         "--ceiling": "Step records, with --discover: also fit a small network of the loop's "
         "states as a residual moment and output, and report how much of the held-out gap it "
         "removes and how much of that the discovered term reaches (an estimate of what a "
