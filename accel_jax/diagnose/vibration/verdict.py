@@ -215,8 +215,9 @@ test conditions) below this p-value."""
 
 
 def pure_error(data: VibrationData, target: np.ndarray) -> dict:
-    """Pure-error sum of squares and its degrees of freedom from rows with the same test
-    condition (a_in, amplitudes, random level; the frequency does not enter the model)."""
+    """Pure-error sum of squares [ppm², as `target`, (a_out − a_in) in ppm of 1 g] and its
+    degrees of freedom from rows with the same test condition (a_in, amplitudes, random
+    level; the frequency does not enter the model)."""
     columns = [data.a_in, data.vib_amp, data.vib_rms]
     columns += [c for c in (data.vib_amp_oa, data.vib_amp_pa) if c is not None]
     keys = np.round(np.stack([np.asarray(c) for c in columns], 1), 12)
@@ -224,7 +225,7 @@ def pure_error(data: VibrationData, target: np.ndarray) -> dict:
     group = np.asarray(group).ravel()
     ss, dof = 0.0, 0
     for g in np.unique(group):
-        values = target[group == g] / PPM
+        values = target[group == g]  # ppm of 1 g, as the fits' RSS
         if values.size > 1:
             ss += float(np.sum((values - values.mean()) ** 2))
             dof += values.size - 1
