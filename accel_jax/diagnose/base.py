@@ -30,7 +30,7 @@ import numpy as np
 
 from .._checks import require_float64 as _require_float64
 from .._noise.whiteness import ljung_box as ljung_box
-from .discovery_result import Discovery
+from .discovery_result import Discovery, VibrationDiscovery
 from .discovery_text import discovery_lines as discovery_lines
 
 SIGNIFICANCE = 10.0
@@ -347,8 +347,9 @@ class DiagnosisResult:
     - `discovery`: for a step record searched for a missing term, the `Discovery`
         (`step.discover`: a hypothesis, never a verdict — though it can show that a noise
         verdict in question explains nothing, `step.verdict.weigh_discovery`; `to_dict()`
-        its JSON block);
-        else None.
+        its JSON block); for a vibration table, the `VibrationDiscovery`
+        (`vibration.discover`, which makes a verdict `unexplained` where terms beyond the
+        library beat it); else None.
     """
 
     kind: str
@@ -364,7 +365,7 @@ class DiagnosisResult:
     remaining_gap: dict = dataclasses.field(default_factory=dict)
     reason: str = ""
     next_experiment: list = dataclasses.field(default_factory=list)
-    discovery: Discovery | None = None
+    discovery: Discovery | VibrationDiscovery | None = None
 
     def to_dict(self) -> dict:
         """The JSON document of docs/models.md §5's CLI contract (plain numbers and strings)."""

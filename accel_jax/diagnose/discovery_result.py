@@ -1,5 +1,6 @@
 """The typed result of the discovery of a missing term in a step record
-(`step.discover`; `DiagnosisResult.discovery`): frozen dataclasses whose attributes carry
+(`step.discover`; `DiagnosisResult.discovery`) or a vibration table (`vibration.discover`:
+`VibrationDiscovery`, at the end): frozen dataclasses whose attributes carry
 the names of the keys of the `discovery` block of the JSON.
 
 `to_dict()` gives that block key for key, in the same order and with the same keys present
@@ -213,3 +214,85 @@ class Discovery(LegacyItems):
 
     def _legacy(self) -> dict:
         return self.to_dict()
+
+
+# --- the vibration kind's discovery (`vibration.discover`) -------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class VibrationColumn(_Fields):
+    """One coefficient of a discovered subset of a vibration table's terms.
+
+    **Fields:** `term` the term's name (`vibration.terms.TERMS`); `formula` its form;
+    `unit` its coefficient's unit; `library` the effect library's coefficient it is (None:
+    outside the library's static transfer function); `coefficient` its least-squares value
+    and `sigma` its standard error (σ² the fit's residual variance per degree of freedom);
+    `rectified_ug` its vibration error at a reference condition [µg] and `condition` that
+    condition in words (the papers' Table 5 condition, 1 g with a 2 g sinusoid on the input
+    axis, for an input-axis term; with 4 g in phase on the term's cross axis for the
+    others)."""
+
+    term: str
+    formula: str
+    unit: str
+    library: str | None
+    coefficient: float
+    sigma: float
+    rectified_ug: float
+    condition: str
+
+
+@dataclasses.dataclass(frozen=True)
+class VibrationCandidate(_Fields):
+    """One subset of a vibration table's terms fitted with the nominal bias and scale
+    factor (a linear least-squares fit: exact).
+
+    **Fields:** `terms` their names; `columns` their coefficients (`VibrationColumn`);
+    `evidence` 2 ln B = n ln(RSS₀/RSS) − k ln n against the nominal fit (the kind's
+    ranking's scale); `criterion` the extended BIC relative to the nominal fit, n ln(RSS/RSS₀)
+    + k ln n + 2 ln C(m, k) over the m terms the table can show (lower is better);
+    `cv_gap_before_g`, `cv_gap_after_g` the cross-validated gap above the noise floor
+    without and with the terms [g]; `explained_fraction` the fraction of its square
+    removed; `at_floor` whether the fit leaves no lack of fit against the pure error of the
+    table's repeated conditions (None where the table has none: untestable);
+    `lack_of_fit_p` that test's p-value (None where untestable); `stability` the fraction of
+    bootstrap resamples of the rows whose pick contains every term of the subset."""
+
+    terms: tuple[str, ...]
+    columns: tuple[VibrationColumn, ...]
+    evidence: float
+    criterion: float
+    cv_gap_before_g: float
+    cv_gap_after_g: float
+    explained_fraction: float
+    at_floor: bool | None
+    lack_of_fit_p: float | None
+    stability: float
+
+
+@dataclasses.dataclass(frozen=True)
+class VibrationDiscovery(_Fields):
+    """The discovery of a missing term in one vibration table (`vibration.discover`).
+
+    **Fields:**
+
+    - `method`: the method in words; `searched`: the terms the table can show (the others
+        need conditions it lacks); `candidates`: the fitted subsets with evidence, best
+        (lowest criterion) first, at most `vibration.discover.SHOWN`.
+    - `best`, `tie`: the discovered subset and one that cannot be told from it (the same
+        objects as their entries of `candidates`; None where nothing was found / no tie).
+    - `rating`: `"credible"` (evidence ≥ 10, stable in ≥ 80 % of resamples, at the floor of
+        the repeated conditions), `"tentative"` or `"nothing found"`.
+    - `separate`: with a tie, the test condition that separates the two most, in words
+        (None otherwise).
+    - `overturned`: the verdict the discovery replaced by `unexplained` (None: kept).
+    """
+
+    method: str
+    searched: tuple[str, ...]
+    candidates: tuple[VibrationCandidate, ...]
+    best: VibrationCandidate | None = None
+    tie: VibrationCandidate | None = None
+    rating: str = "nothing found"
+    separate: str | None = None
+    overturned: str | None = None

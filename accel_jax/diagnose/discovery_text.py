@@ -1,16 +1,25 @@
 """The summary's "discovered (hypothesis)" block of a step record's discovery
-(`step.discover`; the network reference's line, `step.ceiling`): presentation only, from
-the typed `Discovery` (`discovery_result`)."""
+(`step.discover`; the network reference's line, `step.ceiling`) or a vibration table's
+(`vibration.discover`): presentation only, from the typed `Discovery` or
+`VibrationDiscovery` (`discovery_result`)."""
 
 from __future__ import annotations
 
-from .discovery_result import Discovery, DiscoveryCandidate
+from .discovery_result import (
+    Discovery,
+    DiscoveryCandidate,
+    VibrationCandidate,
+    VibrationDiscovery,
+)
 
 
-def discovery_lines(discovery: Discovery | None) -> list[str]:
-    """The summary's "discovered (hypothesis)" block (`step.discover`); none without one."""
+def discovery_lines(discovery: Discovery | VibrationDiscovery | None) -> list[str]:
+    """The summary's "discovered (hypothesis)" block (`step.discover`,
+    `vibration.discover`); none without one."""
     if discovery is None:
         return []
+    if isinstance(discovery, VibrationDiscovery):
+        return _vibration_lines(discovery)
     best = discovery.best
     reference = discovery.ceiling
     reached = []
@@ -57,4 +66,45 @@ def discovery_lines(discovery: Discovery | None) -> list[str]:
         lines.append(
             f"   cannot tell it from: {term_text(tie)} (evidence {tie.evidence:.1f})"
         )
+    return lines
+
+
+def _vibration_terms(d: VibrationCandidate) -> str:
+    return " + ".join(
+        f"{c.formula} ({c.term} = {c.coefficient:.3g} ± {c.sigma:.2g} {c.unit}"
+        + ("" if c.library is None else ", a library coefficient")
+        + f"; at {c.condition}: {c.rectified_ug:.3g} µg)"
+        for c in d.columns
+    )
+
+
+def _vibration_lines(discovery: VibrationDiscovery) -> list[str]:
+    best = discovery.best
+    if best is None:
+        return [
+            "discovered (hypothesis): nothing found in the term library "
+            f"({len(discovery.searched)} terms the table can show)"
+        ]
+    if best.at_floor is None:
+        floor = "the table repeats no condition: whether it reaches the noise floor is untested"
+    else:
+        floor = (
+            f"{'at' if best.at_floor else 'not at'} the floor of the repeated conditions "
+            f"(lack of fit p = {best.lack_of_fit_p:.2g})"
+        )
+    lines = [
+        f"discovered (hypothesis, {discovery.rating}): {_vibration_terms(best)}",
+        f"   cross-validated gap {best.cv_gap_before_g:.3g} → {best.cv_gap_after_g:.3g} g "
+        f"above the floor ({best.explained_fraction:.0%} explained), evidence "
+        f"{best.evidence:.1f}, stable in {best.stability:.0%} of resamples; {floor}",
+    ]
+    if discovery.tie is not None:
+        lines.append(
+            f"   cannot tell it from: {_vibration_terms(discovery.tie)} (evidence "
+            f"{discovery.tie.evidence:.1f})"
+        )
+        if discovery.separate:
+            lines.append(f"   to separate them: {discovery.separate}")
+    if discovery.overturned:
+        lines.append(f"   before the discovery the verdict was {discovery.overturned}")
     return lines

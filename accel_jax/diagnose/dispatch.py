@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import cast
 
-from .._data import DataError, Dataset, NominalDevice, StepData
+from .._data import DataError, Dataset, NominalDevice, StepData, VibrationData
 from .base import DiagnosisResult
 from .noise import diagnose_noise
 from .step import diagnose_step
@@ -43,11 +43,15 @@ def diagnose_many(
         return diagnose_step(
             steps, nominal, recommend=recommend, discover=discover, ceiling=ceiling
         )
+    if kind == "vibration":
+        tables = cast(list[VibrationData], list(datasets))  # every record of kind "vibration"
+        return diagnose_vibration(tables, nominal, discover=discover)
     results = _KINDS[kind](list(datasets), nominal)
     if discover:
         for result in results:
             result.notes.append(
-                f"no discovery: the search for a missing term covers step records, not {kind}"
+                f"no discovery: the search for a missing term covers step records and "
+                f"vibration tables, not {kind}"
             )
     return results
 

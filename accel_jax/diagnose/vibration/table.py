@@ -28,6 +28,13 @@ projection on the nominal columns cannot be seen in the table (e.g. k3 with no v
 and a_in = ±1 g only, where a³ = a)."""
 
 
+def padded_rows(n: int) -> int:
+    """The row count a table's fits are compiled for: a power of two, at least 16 (the
+    padding rows have weight 0 in every fit), so that tables of several sizes share one
+    program."""
+    return max(16, 1 << max(n - 1, 0).bit_length())
+
+
 def _unexplained(columns: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """Per column of `columns`, |residual after projection on `basis`| / |column|."""
     if basis.shape[1] == 0:

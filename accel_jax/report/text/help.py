@@ -115,7 +115,10 @@ OPTIONS = {
         "evidence and stability (on by default; about 1.8× a cold diagnosis of such a "
         "record on a CPU). Also for a record named a noise effect whose misfit a predictor "
         "partly foresees: a credible term that brings the held-out gap to the floor, where "
-        "the noise does not, makes it unexplained.",
+        "the noise does not, makes it unexplained. Vibration tables: the same search in a "
+        "library of static terms (the library's k2…k5, A1, m31, m32 and k6, k7, |a3|a3, "
+        "a1², a2², a1a2, a3a1²), which makes the verdict unexplained where such terms fit "
+        "the table better than the named effect (well under a second a table).",
         "--ceiling": "Step records, with --discover: also fit a small network of the loop's "
         "states as a residual moment and output, and report how much of the held-out gap it "
         "removes and how much of that the discovered term reaches (an estimate of what a "
