@@ -286,3 +286,42 @@ def test_tables_of_several_sizes_fitted_together_as_each_alone(discovered):
         for a, b in zip(result.ranking, alone.ranking, strict=True):
             assert a["effect"] == b["effect"]
             assert a["evidence"] == pytest.approx(b["evidence"], rel=1e-9, abs=1e-9)
+
+
+def _judged(verdict, terms, evidence, ranking_evidence=5.0, stability=0.95):
+    """A kept verdict and a discovery whose best subset is `terms` (for `weigh` alone)."""
+    from accel_jax.diagnose.base import DiagnosisResult
+    from accel_jax.diagnose.discovery_result import VibrationCandidate, VibrationDiscovery
+
+    best = VibrationCandidate(
+        terms=tuple(terms), columns=(), evidence=evidence, criterion=-evidence,
+        cv_gap_before_g=1e-5, cv_gap_after_g=1e-6, explained_fraction=0.99, at_floor=True,
+        lack_of_fit_p=0.5, stability=stability,
+    )
+    discovery = VibrationDiscovery(
+        method="", searched=(), candidates=(best,), best=best, rating="credible"
+    )
+    result = DiagnosisResult(
+        kind="vibration", verdict=verdict, tied=[],
+        ranking=[{"effect": "cross_coupling", "evidence": ranking_evidence}],
+        gap={}, where={}, refit={"parameter_error": True}, reason="before",
+    )
+    discover_module.weigh(result, discovery, vibration_effects())
+    return result
+
+
+def test_a_part_of_a_library_effect_never_overturns_and_an_overturn_clears_the_refit():
+    # m31 alone lies within cross_coupling's (m31, m32): the ranking weighed that effect,
+    # even where m31 alone passes the evidence the pair missed (with PA rows: one ln n).
+    kept = _judged("none", ["m31"], 30.0)
+    assert kept.verdict == "none" and kept.discovery.overturned is None
+    assert kept.refit["parameter_error"] is True
+    beaten = _judged("none", ["k6"], 30.0)
+    assert beaten.verdict == "unexplained" and beaten.discovery.overturned == "none"
+    assert beaten.refit["parameter_error"] is False  # a term is missing, not a parameter
+    assert beaten.reason.startswith("terms beyond the effect library")
+    pair = _judged("cross_coupling", ["k2", "k4"], 30.0, ranking_evidence=12.0)
+    assert pair.verdict == "unexplained"
+    assert pair.reason.startswith("library effects together")
+    unstable = _judged("none", ["k6"], 30.0, stability=0.5)
+    assert unstable.verdict == "none"

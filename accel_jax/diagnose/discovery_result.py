@@ -229,8 +229,8 @@ class VibrationColumn(_Fields):
     and `sigma` its standard error (σ² the fit's residual variance per degree of freedom);
     `rectified_ug` its vibration error at a reference condition [µg] and `condition` that
     condition in words (the papers' Table 5 condition, 1 g with a 2 g sinusoid on the input
-    axis, for an input-axis term; with 4 g in phase on the term's cross axis for the
-    others)."""
+    axis, for an input-axis term; 1 g with 4 g in phase on the input axis and on the term's
+    cross axis for the others)."""
 
     term: str
     formula: str

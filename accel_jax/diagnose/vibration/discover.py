@@ -6,24 +6,28 @@ for the verdict (`weigh`).
    the library's coefficients and the terms beyond them. A term the table cannot show (its
    column a combination of the bias and scale-factor columns, or zero: cross-axis terms
    without cross-axis rows) is left out of the search (`searched`).
-2. **Subsets.** Every subset of up to `MAX_TERMS` terms, each fitted with the nominal bias
-   and scale factor on all rows, on every cross-validation fold of the table and on
-   `N_BOOT` bootstrap resamples of the rows — one vmapped least-squares call
-   (`fit.fit_tables`, as the effects' fits). Scored by the extended BIC relative to the
-   nominal fit, n ln(RSS/RSS₀) + k ln n + 2γ ln C(m, k) (γ = `EBIC_GAMMA`, m the terms
-   searched: the price of looking through the library), and by the cross-validated gap.
+2. **Subsets.** Every subset of up to `MAX_TERMS` terms, fitted with the nominal bias and
+   scale factor on all rows by least squares on its own columns (`_subset_fits`:
+   `jnp.linalg.lstsq`, vmapped), scored by the extended BIC relative to the nominal fit,
+   n ln(RSS/RSS₀) + k ln n + 2γ ln C(m, k) (γ = `EBIC_GAMMA`, m the terms searched: the
+   price of looking through the library). The nominal and the `RIVALS` best subsets, and
+   the `RIVALS` best with evidence, are fitted again on every cross-validation fold and on
+   `N_BOOT` bootstrap resamples of the rows (a second vmapped call).
 3. **The discovered subset**: the lowest criterion among the subsets with evidence
-   (n ln(RSS₀/RSS) − k ln n, the ranking's 2 ln B) ≥ `base.SIGNIFICANCE` that also lower the
-   cross-validated mean square; `stability` the share of resamples whose own pick contains
-   every one of its terms; `at_floor` the lack-of-fit F-test against the pure error of the
-   repeated conditions (`verdict.lack_of_fit`; untestable without them). Rated credible
+   (n ln(RSS₀/RSS) − k ln n, the ranking's 2 ln B) ≥ `base.SIGNIFICANCE` that also lower
+   the cross-validated mean square; `stability` the share of resamples whose own pick
+   (among the nominal and the `RIVALS` best) contains every one of its terms; `at_floor`
+   the lack-of-fit F-test against the pure error of the repeated conditions
+   (`verdict.lack_of_fit`; untestable without them). Rated credible
    (evidence ≥ 10, stable in ≥ `STABLE`, at the floor), tentative, or nothing found. A
    second subset within `base.INDISTINCT` of its criterion that is not the best plus a term
    is a tie: the test condition that separates the two most is named.
-4. **The verdict** (`weigh`): a stable subset that is not a library effect's own
+4. **The verdict** (`weigh`): a stable subset that is not within one library effect's
    coefficients and whose evidence beats the named effect's (0 for `none`) by at least
    `base.INDISTINCT` makes the verdict `unexplained` — the library's answer is beaten by a
-   term it lacks (or by two of its effects together). Unlike the step kind's, this
+   term it lacks (or by two of its effects together); the refit's `parameter_error` is
+   then cleared, and the explained fraction stays the named effect's (the best partial
+   effect's, as for the kind's own `unexplained`; 0 after `none`). Unlike the step kind's, this
    discovery is linear least squares and costs well under a second once compiled, so it
    runs on every table asked for (`diagnose(..., discover=True)`, the CLI's default).
 
@@ -335,10 +339,13 @@ def _separating_row(design, thetas, masks, best, tie, table) -> str:
 
 
 def weigh(result: DiagnosisResult, discovery: VibrationDiscovery, effects) -> None:
-    """The verdict in the light of the discovery (module docstring, 4), in place. Where the
-    verdict is kept but a subset with a term outside the library fits about as well as the
-    named effect (within `base.INDISTINCT`), a note says that the table cannot tell them
-    apart (and, for the discovery's tie, which row would)."""
+    """The verdict in the light of the discovery (module docstring, 4), in place. A subset
+    within one library effect's coefficients (m31 alone is within `cross_coupling`) never
+    overturns: the ranking has weighed that effect. Where the verdict is kept but a subset
+    with a term outside the library fits about as well as the named effect (within
+    `base.INDISTINCT`), a note says that the table cannot tell them apart, with the row
+    that separates them where the discovery's best is the named effect's own and the rival
+    its tie."""
     result.discovery = discovery
     best = discovery.best
     if best is None or result.verdict == "unexplained":
@@ -348,13 +355,19 @@ def weigh(result: DiagnosisResult, discovery: VibrationDiscovery, effects) -> No
     named = [result.verdict] if result.verdict in own else list(result.tied)
     against = max((ranked.get(e, 0.0) for e in named), default=0.0)
     before = " / ".join(named) if named else result.verdict
+    library = {t.name for t in TERMS if t.library is not None}
     if (
         best.stability >= STABLE
-        and set(best.terms) not in own.values()
+        and not any(set(best.terms) <= c for c in own.values())
         and best.evidence - against >= INDISTINCT
     ):
+        what = (
+            "library effects together, which the library names one at a time"
+            if set(best.terms) <= library
+            else "terms beyond the effect library"
+        )
         result.reason = (
-            f"terms beyond the effect library fit the table: {' + '.join(best.terms)} "
+            f"{what} fit the table: {' + '.join(best.terms)} "
             f"(evidence {best.evidence:.1f} against {against:.1f} for {before}; the "
             f"cross-validated gap {best.cv_gap_before_g:.3g} → {best.cv_gap_after_g:.3g} g "
             f"above the floor; stable in {best.stability:.0%} of resamples). Before the "
@@ -364,11 +377,12 @@ def weigh(result: DiagnosisResult, discovery: VibrationDiscovery, effects) -> No
         result.tied = []
         if not named:
             result.explained_fraction = 0.0
+        # (the refit closing the gap no longer means a parameter error: a term is missing)
+        result.refit["parameter_error"] = False
         result.discovery = dataclasses.replace(discovery, overturned=before)
         return
     if not named:
         return
-    library = {t.name for t in TERMS if t.library is not None}
     rival = next(
         (
             c
@@ -378,7 +392,8 @@ def weigh(result: DiagnosisResult, discovery: VibrationDiscovery, effects) -> No
         None,
     )
     if rival is not None:
-        separate = discovery.separate if rival is discovery.tie else None
+        mine = any(set(best.terms) <= own[e] for e in named)
+        separate = discovery.separate if rival is discovery.tie and mine else None
         result.notes.append(
             f"the table cannot tell {before} from {' + '.join(rival.terms)}, outside the "
             f"effect library (evidence {rival.evidence:.1f} against {against:.1f})"
