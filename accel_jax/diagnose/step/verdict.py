@@ -13,7 +13,7 @@ import numpy as np
 from ..._data import NominalDevice
 from .. import openworld
 from ..base import SIGNIFICANCE, DiagnosisResult, held_out_gap
-from ..discovery_result import Discovery
+from ..discovery_result import VibrationDiscovery
 from . import assess, noise_null, nuisance
 from .assess import assess_fit
 from .model import DELAY_LIMIT, REFIT_BOUND, REFIT_FIELDS
@@ -237,7 +237,7 @@ def weigh_discovery(result: DiagnosisResult) -> None:
     `forcing_sinusoid` 8.4e-5 V, at the floor."""
     entry = noise_in_question(result)
     discovery = result.discovery
-    if entry is None or not isinstance(discovery, Discovery):
+    if entry is None or discovery is None or isinstance(discovery, VibrationDiscovery):
         return
     noise = entry["effect"]
     best = discovery.best
