@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -43,6 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import colored_truth  # noqa: E402
 from measured_input_harness import _commit  # noqa: E402
+from shards import run_blind  # noqa: E402
 
 from accel_jax.report import write_json_atomic  # noqa: E402
 
@@ -111,14 +111,8 @@ def write_records(per_class: int, seed: int, folder: Path, classes=CLASSES) -> d
 
 
 def diagnose_blind(folder: Path) -> dict:
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "rows.json"
-        subprocess.run(
-            [sys.executable, "-c", _BLIND, str(out), str(folder)],
-            check=True,
-            cwd=Path(__file__).resolve().parent.parent,
-        )
-        return json.loads(out.read_text())
+    """The diagnosis of every CSV in `folder`, in a fresh process that sees only them."""
+    return run_blind(_BLIND, str(folder))
 
 
 RIGHT = {"none": "none", "output_gm": "colored_noise", "moment_gm": "moment_noise"}

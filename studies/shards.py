@@ -1,5 +1,6 @@
 """A blind harness's run spread over machines (one definition: `sim_to_real_validation` and
-`measured_input_harness` read it).
+`measured_input_harness` read it), and its diagnosis in a fresh process (`run_blind`: the
+coloured-noise and vibration-discovery harnesses).
 
 `--shard k/n` diagnoses records k, k+n, k+2n, … of the draw; every shard draws the same
 truths (same seed), so the shards of one draw are disjoint and together are the whole
@@ -8,6 +9,11 @@ draw, and `--merge` joins their results and scores them as one run."""
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
 
 
 def shard_indices(count: int, shard: tuple[int, int]) -> list[int]:
@@ -27,3 +33,18 @@ def parse_shard(text: str) -> tuple[int, int]:
     if not (n >= 1 and 0 <= k < n):
         raise argparse.ArgumentTypeError(f"{text!r}: it must be k/n with 0 ≤ k < n")
     return k, n
+
+
+def run_blind(code: str, *args: str) -> dict:
+    """Run `code` (a harness's diagnosing script) in a fresh Python process, in the
+    repository root, as `python -c code OUT *args`, and return the JSON it writes to OUT.
+    The child sees only what `args` name (the records' files), never the truth; a failure
+    in it raises `subprocess.CalledProcessError`."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "rows.json"
+        subprocess.run(
+            [sys.executable, "-c", code, str(out), *args],
+            check=True,
+            cwd=Path(__file__).resolve().parent.parent,
+        )
+        return json.loads(out.read_text())

@@ -30,9 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -64,7 +62,7 @@ from accel_jax.report import (  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402  (the independent truth simulator, beside this study)
-from shards import parse_shard, shard_indices  # noqa: E402
+from shards import parse_shard, run_blind, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
 STUDY = "sim_to_real_validation"
@@ -569,22 +567,9 @@ out.write_text(json.dumps(answer, default=float))
 def diagnose_blind(folders: list[Path]) -> dict[str, list[dict]]:
     """Run the diagnosis on every CSV of each folder in one fresh Python process (it sees
     only the files), and return its verdicts by folder name."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "verdicts.json"
-        subprocess.run(
-            # Absolute paths: the child runs in the repository root, which need not be the
-            # caller's working folder (e.g. `accel-jax report --out` from elsewhere).
-            [
-                sys.executable,
-                "-c",
-                _DIAGNOSE_CODE,
-                str(out),
-                *(str(Path(f).resolve()) for f in folders),
-            ],
-            check=True,
-            cwd=Path(__file__).resolve().parent.parent,
-        )
-        return json.loads(out.read_text())
+    # Absolute paths: the child runs in the repository root, which need not be the caller's
+    # working folder (e.g. `accel-jax report --out` from elsewhere).
+    return run_blind(_DIAGNOSE_CODE, *(str(Path(f).resolve()) for f in folders))
 
 
 def _wilson(successes: int, n: int, z: float = 1.96) -> list[float] | None:

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,6 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import vibration_truth  # noqa: E402
 from measured_input_harness import _commit  # noqa: E402
+from shards import run_blind  # noqa: E402
 
 from accel_jax.report import write_json_atomic  # noqa: E402
 
@@ -125,14 +125,8 @@ out.write_text(json.dumps(rows, default=float))
 
 
 def diagnose_blind(folder: Path) -> dict:
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "rows.json"
-        subprocess.run(
-            [sys.executable, "-c", _BLIND, str(out), str(folder)],
-            check=True,
-            cwd=Path(__file__).resolve().parent.parent,
-        )
-        return json.loads(out.read_text())
+    """The diagnosis of every CSV in `folder`, in a fresh process that sees only them."""
+    return run_blind(_BLIND, str(folder))
 
 
 def judge(truth: dict, row: dict) -> dict:
