@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -39,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import discovery_truth  # noqa: E402
 import step_truth  # noqa: E402
 from measured_input_harness import _commit  # noqa: E402
+from shards import run_blind  # noqa: E402
 
 from accel_jax.report import write_json_atomic  # noqa: E402
 
@@ -119,14 +119,9 @@ def write_records(per_class: int, seed: int, folder: Path, classes, first: int =
 
 
 def diagnose_blind(folder: Path, left_out: str) -> dict:
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "rows.json"
-        subprocess.run(
-            [sys.executable, "-c", _BLIND, str(out), str(folder), left_out],
-            check=True,
-            cwd=Path(__file__).resolve().parent.parent,
-        )
-        return json.loads(out.read_text())
+    """The diagnosis of every CSV in `folder` with `left_out` taken out of the library, in a
+    fresh process that sees only the files."""
+    return run_blind(_BLIND, str(folder), left_out)
 
 
 def judge(effect: str, row: dict) -> dict:

@@ -50,7 +50,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402
-from shards import parse_shard, shard_indices  # noqa: E402
+from shards import parse_shard, run_blind, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
 # (The scorer's tolerance, not the blind diagnosis's process.)
@@ -261,14 +261,8 @@ def score_prbs(
 
 
 def diagnose_blind(folders: list[Path]) -> dict:
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "rows.json"
-        subprocess.run(
-            [sys.executable, "-c", _BLIND, str(out), *map(str, folders)],
-            check=True,
-            cwd=Path(__file__).resolve().parent.parent,
-        )
-        return json.loads(out.read_text())
+    """The diagnosis of every CSV in `folders`, in a fresh process that sees only them."""
+    return run_blind(_BLIND, *map(str, folders))
 
 
 

@@ -1,6 +1,7 @@
 """A blind harness's run spread over machines (one definition: `sim_to_real_validation` and
-`measured_input_harness` read it), and its diagnosis in a fresh process (`run_blind`: the
-coloured-noise and vibration-discovery harnesses).
+`measured_input_harness` read it), and its diagnosis in a fresh process (`run_blind`, one
+definition: `sim_to_real_validation` and the measured-input, discovery, coloured-noise and
+vibration-discovery harnesses read it).
 
 `--shard k/n` diagnoses records k, k+n, k+2n, … of the draw; every shard draws the same
 truths (same seed), so the shards of one draw are disjoint and together are the whole
