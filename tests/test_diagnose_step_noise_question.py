@@ -7,6 +7,7 @@ figures are in docs/findings.md."""
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import pytest
@@ -21,7 +22,7 @@ NULL = {"input_locked": 0.44, "periodic": 0.50, "trend": 0.85}
 def _entry(**changes) -> dict:
     entry = dict(
         effect="moment_noise", evidence=3762.1, stochastic=True, deterministic_misfit=False,
-        predictability_null_quantile=NULL, gap_after_V=0.00416,
+        predictability_null_quantile=NULL, gap_after_V=0.00416, gap_shrink=0.547,
     )
     return {**entry, **changes}
 
@@ -32,8 +33,19 @@ def _result(entry: dict, discovery=None) -> DiagnosisResult:
         kind="step", verdict=entry["effect"], tied=[], ranking=[entry, other], gap={},
         where={}, refit={}, reason="moment_noise brings the held-out gap from 0.00919 V",
         discovery=discovery, explained_fraction=0.79,
-        remaining_gap={"V": 0.00416, "noise_floor_V": 0.000432},
+        remaining_gap={"V": 0.00416, "noise_floor_V": 0.000432, "model": "moment_noise"},
     )
+
+
+def _with_gap(result: DiagnosisResult) -> DiagnosisResult:
+    # the gap block as `evaluate` writes it for the noise (its free run leaves 0.00416 V)
+    result.gap = {
+        "before": 0.00919, "after": 0.00416, "shrink": 0.547, "shrink_std": 0.03,
+        "shrink_p16": 0.52, "shrink_p84": 0.58, "rms_before": 0.0093, "rms_after": 0.0043,
+        "one_step_before_rms_V": 0.0093, "one_step_after_rms_V": 0.0005,
+        "model_after": "moment_noise", "unit": "V",
+    }
+    return result
 
 
 def _discovery(evidence=94984.1, rating="credible", at_floor=True):
@@ -70,6 +82,27 @@ def test_a_credible_term_at_the_floor_where_the_noise_is_not_makes_the_record_un
     assert "not on one scale" in result.reason  # the two evidences are not compared
     assert result.reason.endswith("moment_noise brings the held-out gap from 0.00919 V")
     assert result.notes == ["another note"]  # the question's own note is now the reason
+
+
+def test_an_overturned_noise_leaves_the_nominals_gap_not_its_own_shrink():
+    # Overturned, no library model is kept: the gap blocks are the nominal's (the noise's
+    # shrink beside an explained fraction of 0 contradicted it); a kept noise keeps its own.
+    result = _with_gap(_result(_entry(), _discovery()))
+    verdict.weigh_discovery(result)
+    assert result.verdict == "unexplained"
+    gap, remaining = result.gap, result.remaining_gap
+    assert gap["model_after"] == "nominal" and gap["after"] == gap["before"] == 0.00919
+    assert gap["shrink"] == gap["shrink_std"] == gap["shrink_p16"] == gap["shrink_p84"] == 0.0
+    assert gap["rms_after"] == gap["rms_before"]
+    assert gap["one_step_after_rms_V"] == gap["one_step_before_rms_V"]
+    assert remaining["model"] == "nominal" and remaining["V"] == 0.00919
+    assert remaining["over_floor"] == pytest.approx(0.00919 / 0.000432)
+    # the printed gap line (the stand-in discovery has no summary of its own)
+    assert "(nominal), shrink 0.00" in dataclasses.replace(result, discovery=None).summary()
+    kept = _with_gap(_result(_entry(), _discovery(rating="tentative")))
+    verdict.weigh_discovery(kept)
+    assert kept.verdict == "moment_noise" and kept.gap["model_after"] == "moment_noise"
+    assert kept.remaining_gap["V"] == 0.00416
 
 
 def test_the_note_that_puts_the_noise_in_question_is_written_by_the_same_verdict_module():

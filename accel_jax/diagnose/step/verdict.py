@@ -128,7 +128,7 @@ def evaluate(
     )
     if effect_nuisances is not None and effect_nuisances.strained:
         reason = (
-            reason.rstrip(".") + f". Its own fit needs strained nuisances: "
+            reason.rstrip(".") + ". Its own fit needs strained nuisances: "
             + nuisance.strained_sentence(effect_nuisances, by_name[verdict])
             + f"; {verdict} may stand in for an effect they complete."
         )
@@ -272,9 +272,39 @@ def weigh_discovery(result: DiagnosisResult) -> None:
     result.verdict = "unexplained"
     result.tied = []
     result.explained_fraction = 0.0
+    _gap_of_the_nominal(result)
     # (the note that put the noise in question is now the reason's)
     asked = f"{noise} is named, but a predictor"
     result.notes = [note for note in result.notes if not note.startswith(asked)]
+
+
+def _gap_of_the_nominal(result: DiagnosisResult) -> None:
+    """The gap blocks of an overturned noise verdict (`weigh_discovery`), in place: no
+    library model is kept, so the held-out gap after is the nominal's, as the explained
+    fraction 0 says. Before, they still showed the noise's shrink (e.g. 0.79) beside an
+    explained fraction of 0 and the verdict `unexplained`; the discovered term's own gaps
+    are the discovery's (`result.discovery.best`), a hypothesis, not the diagnosis's."""
+    gap = result.gap
+    if "before" in gap:
+        gap.update(
+            after=gap["before"], shrink=0.0, shrink_std=0.0, shrink_p16=0.0, shrink_p84=0.0,
+            model_after="nominal",
+        )
+        for before, after in (("rms_before", "rms_after"),
+                              ("one_step_before_rms_V", "one_step_after_rms_V")):
+            if before in gap:
+                gap[after] = gap[before]
+    remaining = result.remaining_gap
+    if "before" in gap and remaining:
+        floor = float(remaining.get("noise_floor_V", 0.0))
+        remaining.update(
+            V=gap["before"], model="nominal",
+            over_floor=gap["before"] / floor if floor > 0 else float("inf"),
+        )
+        # (its `where` was read off the noise's free-run error, which is the deterministic
+        # part's: the noise predicts nothing in a free run)
+    if result.refit.get("parameter_error"):
+        result.refit["parameter_error"] = False
 
 
 def _at_bound_note(nominal_fit: StepFit, entries: list[RankingEntry]) -> str | None:
