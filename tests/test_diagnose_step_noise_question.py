@@ -14,7 +14,7 @@ import pytest
 
 from accel_jax.diagnose.base import DiagnosisResult
 from accel_jax.diagnose.openworld import Predictability
-from accel_jax.diagnose.step import verdict
+from accel_jax.diagnose.step import question, verdict
 
 NULL = {"input_locked": 0.44, "periodic": 0.50, "trend": 0.85}
 
@@ -73,7 +73,7 @@ def test_a_credible_term_at_the_floor_where_the_noise_is_not_makes_the_record_un
         "moment_noise is named, but a predictor fitted on the training part removes …",
         "another note",
     ]
-    verdict.weigh_discovery(result)
+    question.weigh_discovery(result)
     assert result.verdict == "unexplained" and result.tied == []
     assert result.explained_fraction == 0.0  # an absorbed noise explains none of the misfit
     assert "a term outside the library describes the record" in result.reason
@@ -88,7 +88,7 @@ def test_an_overturned_noise_leaves_the_nominals_gap_not_its_own_shrink():
     # Overturned, no library model is kept: the gap blocks are the nominal's (the noise's
     # shrink beside an explained fraction of 0 contradicted it); a kept noise keeps its own.
     result = _with_gap(_result(_entry(), _discovery()))
-    verdict.weigh_discovery(result)
+    question.weigh_discovery(result)
     assert result.verdict == "unexplained"
     gap, remaining = result.gap, result.remaining_gap
     assert gap["model_after"] == "nominal" and gap["after"] == gap["before"] == 0.00919
@@ -100,7 +100,7 @@ def test_an_overturned_noise_leaves_the_nominals_gap_not_its_own_shrink():
     # the printed gap line (the stand-in discovery has no summary of its own)
     assert "(nominal), shrink 0.00" in dataclasses.replace(result, discovery=None).summary()
     kept = _with_gap(_result(_entry(), _discovery(rating="tentative")))
-    verdict.weigh_discovery(kept)
+    question.weigh_discovery(kept)
     assert kept.verdict == "moment_noise" and kept.gap["model_after"] == "moment_noise"
     assert kept.remaining_gap["V"] == 0.00416
 
@@ -111,7 +111,7 @@ def test_the_note_that_puts_the_noise_in_question_is_written_by_the_same_verdict
     predictable = Predictability(-0.37, 0.47, 0.0, 0.0, 0.01, 390.6, True)
     result = _result(_entry(), _discovery())
     result.notes = [verdict._in_question_note(entry, predictable)]
-    verdict.weigh_discovery(result)
+    question.weigh_discovery(result)
     assert result.notes == []
 
 
@@ -128,7 +128,7 @@ def test_the_noise_is_kept_unless_a_credible_term_brings_the_held_out_gap_to_the
 ):
     result = _result(_entry(), discovery)
     before = result.reason
-    verdict.weigh_discovery(result)
+    question.weigh_discovery(result)
     assert result.verdict == "moment_noise" and result.reason == before
     assert result.explained_fraction == 0.79
     assert len(result.notes) == 1 and said in result.notes[0], result.notes
@@ -137,20 +137,20 @@ def test_the_noise_is_kept_unless_a_credible_term_brings_the_held_out_gap_to_the
 
 def test_the_noise_is_kept_where_it_too_leaves_the_held_out_gap_at_the_floor():
     result = _result(_entry(gap_after_V=0.0004), _discovery())
-    verdict.weigh_discovery(result)
+    question.weigh_discovery(result)
     assert result.verdict == "moment_noise"
     assert "and so does moment_noise" in result.notes[0]
 
 
 def test_without_a_discovery_nothing_is_weighed():
     result = _result(_entry())
-    verdict.weigh_discovery(result)
+    question.weigh_discovery(result)
     assert result.verdict == "moment_noise" and result.notes == []
 
 
 def test_a_noise_not_in_question_is_never_overturned():
     result = _result(_entry(predictability_null_quantile=None), _discovery())
-    verdict.weigh_discovery(result)
+    question.weigh_discovery(result)
     assert result.verdict == "moment_noise"
 
 

@@ -64,7 +64,7 @@ def test_the_low_pass_order_is_found(order):
     fitted to them left an exp_cosine companion). Order 1 read exp_cosine+bandlimit
     (order 1, corner 35 Hz, the white noise collapsed) until the order's trial without
     the companion was also fitted from its own starts, not only from the optimum whose
-    white slot the companion had emptied (`sensor._low_pass_order`)."""
+    white slot the companion had emptied (`sensor_refine._low_pass_order`)."""
     rng = np.random.default_rng(30 + order)
     n = 20000
     sos = signal.butter(order, CORNER, fs=1 / DT, output="sos")

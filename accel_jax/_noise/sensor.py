@@ -71,7 +71,7 @@ from .sensor_model import (
     _variogram,
 )
 from .sensor_arbiter import transient_ties
-from .sensor_refine import _backward, _exchanges
+from .sensor_refine import _backward, _exchanges, _low_pass_order
 from .sensor_screens import (
     DRIFT_T,
     QUANTIZATION_SHARE,
@@ -224,45 +224,6 @@ def select_sensor_noise(
         if shifts or selection.held_out.more_level_shifts or rails:
             selection = dataclasses.replace(selection, unexplained=True)
         return selection
-
-
-def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
-    """The final model with its low-pass of another order (1, 3 or 4 of
-    `spectral.LOW_PASS_ORDERS`), where that fits the whole record better by `evidence` in 2
-    ln B: in its place, the rest of the model refitted from its optimum, and also without
-    each process beside it (a second-order low-pass on a steeper or gentler roll-off leaves
-    a misfit that such a companion takes up in the forward steps; without one, refitted
-    from its optimum and from the structure's own starts). Tried once the selection
-    is done: in the forward steps a gentler roll-off takes up a Gauss–Markov process beside
-    the low-pass instead (harness records). Returns (model, the companions dropped:
-    [{"effect", "evidence"}], the evidence 2 ln B of the model before against the one
-    returned)."""
-    if "bandlimit" not in model.names:
-        return model, []
-    companions = [n for n in model.names if n in ("gauss_markov", "exp_cosine")]
-    orders = [o for o in spectral.LOW_PASS_ORDERS if o != "bandlimit"]
-    trials = []  # (order, the names dropped beside the low-pass)
-    for o in orders:
-        for dropped in ((), *((c,) for c in companions)):
-            trials.append((o, dropped))
-    specs, tried = [], []
-    for o, dropped in trials:
-        names = tuple(o if n == "bandlimit" else n for n in model.names if n not in dropped)
-        rest = tuple(n for n in names if n != o)
-        specs.append((names, model.lines, model.transient, dataclasses.replace(model, names=rest)))
-        tried.append((o, dropped))
-        if dropped:
-            # also from its own starts: the companion may hold the white noise, whose slot
-            # the refit from the optimum inherits collapsed (docs/findings.md, signal chain)
-            specs.append((names, model.lines, model.transient, None))
-            tried.append((o, dropped))
-    best, gone, top = model, (), evidence
-    for (_, dropped), alt in zip(tried, _evaluate_many(rec, floor, specs), strict=True):
-        k = sum(PARAMETER_COUNT[n] for n in dropped)  # the parameters it saves
-        score = 2 * ((alt.train + alt.held) - (model.train + model.held)) + k * log_j
-        if score >= top:
-            best, gone, top = alt, dropped, score
-    return best, [{"effect": c, "evidence": float(-top)} for c in gone]
 
 
 def _with_held_out(selection: SensorNoiseSelection, **changes) -> SensorNoiseSelection:

@@ -8,6 +8,8 @@ a low-pass with the white noise after it against the best of a Gauss–Markov pr
 random walk or flicker in its place (a Gauss–Markov process against the low-pass too; the
 low-pass stays only where it is better by the bar); a better one by the bar replaces it,
 one within the bar either way is a tie. Both judge by `sensor_model`'s evidence and held-out check.
+`_low_pass_order`: the low-pass of another order in its place, with and without each
+process beside it, once the selection is done.
 """
 
 from __future__ import annotations
@@ -177,3 +179,42 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     named = {spectral.effect_name(n) for n in model.names}
     ties = [t for t in ties if t["effect"] in named and t["alternative"] not in named]
     return model, exchanged, ties
+
+
+def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
+    """The final model with its low-pass of another order (1, 3 or 4 of
+    `spectral.LOW_PASS_ORDERS`), where that fits the whole record better by `evidence` in 2
+    ln B: in its place, the rest of the model refitted from its optimum, and also without
+    each process beside it (a second-order low-pass on a steeper or gentler roll-off leaves
+    a misfit that such a companion takes up in the forward steps; without one, refitted
+    from its optimum and from the structure's own starts). Tried once the selection
+    is done: in the forward steps a gentler roll-off takes up a Gauss–Markov process beside
+    the low-pass instead (harness records). Returns (model, the companions dropped:
+    [{"effect", "evidence"}], the evidence 2 ln B of the model before against the one
+    returned)."""
+    if "bandlimit" not in model.names:
+        return model, []
+    companions = [n for n in model.names if n in ("gauss_markov", "exp_cosine")]
+    orders = [o for o in spectral.LOW_PASS_ORDERS if o != "bandlimit"]
+    trials = []  # (order, the names dropped beside the low-pass)
+    for o in orders:
+        for dropped in ((), *((c,) for c in companions)):
+            trials.append((o, dropped))
+    specs, tried = [], []
+    for o, dropped in trials:
+        names = tuple(o if n == "bandlimit" else n for n in model.names if n not in dropped)
+        rest = tuple(n for n in names if n != o)
+        specs.append((names, model.lines, model.transient, dataclasses.replace(model, names=rest)))
+        tried.append((o, dropped))
+        if dropped:
+            # also from its own starts: the companion may hold the white noise, whose slot
+            # the refit from the optimum inherits collapsed (docs/findings.md, signal chain)
+            specs.append((names, model.lines, model.transient, None))
+            tried.append((o, dropped))
+    best, gone, top = model, (), evidence
+    for (_, dropped), alt in zip(tried, _evaluate_many(rec, floor, specs), strict=True):
+        k = sum(PARAMETER_COUNT[n] for n in dropped)  # the parameters it saves
+        score = 2 * ((alt.train + alt.held) - (model.train + model.held)) + k * log_j
+        if score >= top:
+            best, gone, top = alt, dropped, score
+    return best, [{"effect": c, "evidence": float(-top)} for c in gone]

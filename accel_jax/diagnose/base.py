@@ -346,7 +346,7 @@ class DiagnosisResult:
         expected 2 ln B (`step.design.next_experiments`); else empty.
     - `discovery`: for a step record searched for a missing term, the `Discovery`
         (`step.discover`: a hypothesis, never a verdict — though it can show that a noise
-        verdict in question explains nothing, `step.verdict.weigh_discovery`; `to_dict()`
+        verdict in question explains nothing, `step.question.weigh_discovery`; `to_dict()`
         its JSON block); for a vibration table, the `VibrationDiscovery`
         (`vibration.discover`, which makes a verdict `unexplained` where terms beyond the
         library beat it); else None.

@@ -84,7 +84,7 @@ def diagnose(
     term found in the term library, a hypothesis (`step.discover`); so does a noise
     verdict in question (`step.verdict.noise_in_question`), which a credible term that
     brings the held-out gap to the floor, where the noise does not, makes `unexplained`
-    (`step.verdict.weigh_discovery`); with `ceiling` too,
+    (`step.question.weigh_discovery`); with `ceiling` too,
     the share of the held-out gap a network of the loop's states removes (`step.ceiling`).
     """
     return diagnose_many([data], nominal, discover=discover, ceiling=ceiling)[0]

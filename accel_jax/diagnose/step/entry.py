@@ -32,7 +32,8 @@ from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
 from .record import _guesses, prepare, prior_sigma_of, stack_on_host
 from .state import Baseline, RecordShape, StepFit, StepRecord
-from .verdict import evaluate, noise_in_question, weigh_discovery
+from .question import weigh_discovery
+from .verdict import evaluate, noise_in_question
 
 
 def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candidates, desc):
@@ -110,7 +111,7 @@ def diagnose_step(
         verdict in question (`verdict.noise_in_question`: its misfit partly predictable,
         kept only by the noise's own null), where a credible term that brings the held-out
         gap to the floor, while the noise leaves its own above it, makes the verdict
-        `unexplained` (`verdict.weigh_discovery`); "all": for every record that passed it
+        `unexplained` (`question.weigh_discovery`); "all": for every record that passed it
         (a check that nothing is found where nothing is missing).
     - `ceiling`: with `discover`, also fit the network reference of what a term of the
         loop's states could remove of the held-out gap (`ceiling`: the discovery's
