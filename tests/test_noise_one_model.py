@@ -566,3 +566,36 @@ def test_selection_fits_evaluates_and_reports_lines_and_transients_through_the_c
     # the line search (`_training_line`) fits each candidate frequency, then the predictor
     # regresses on the chosen one: every sinusoid it builds is `basis`, none of its own
     assert len(calls) > 1 and set(calls) == {"PeriodicLine.basis"}
+
+
+@pytest.mark.parametrize(
+    "names",
+    [
+        ("bandlimit_bessel3", "filter_floor", "gauss_markov"),
+        ("bandlimit_taps5", "filter_floor"),
+        ("bandlimit_order1", "exp_cosine", "random_walk"),
+    ],
+    ids="+".join,
+)
+def test_other_low_pass_shapes_are_the_models(names):
+    """A Bessel low-pass and a moving average in the low-pass slot (`chain_filters`): the
+    sensor analysis's spectrum is the difference spectrum built from the modules that
+    `component_models` gives (`BesselLowPass`, `MovingAverage`, `ButterworthLowPass`)."""
+    from accel_jax._noise.chain_filters import BesselLowPass, MovingAverage
+
+    rng = np.random.default_rng(7)
+    mask = spectral._mask(names)
+    kinds = {"bandlimit_bessel3": BesselLowPass, "bandlimit_taps5": MovingAverage}
+    for _ in range(DRAWS):
+        z = _spectral_draw(rng)
+        floor = rng.uniform(0, 0.1)
+        noise, low_pass, after = spectral.component_models(z, mask, DT)
+        assert isinstance(low_pass, kinds.get(names[0], ButterworthLowPass))
+        if isinstance(low_pass, MovingAverage):
+            assert low_pass.taps == 5
+        else:
+            assert low_pass.order == {"bandlimit_bessel3": 3, "bandlimit_order1": 1}[names[0]]
+            _close(low_pass.corner_frequency, 1 / (1 + math.exp(-z[8])) / (2 * DT))
+        after_variance = 0.0 if after is None else after.sigma**2
+        path = spectral.spectrum(jnp.asarray(z), jnp.asarray(mask), OMEGA, floor)
+        _close(path, _model_difference_spectrum(noise, low_pass, floor + after_variance))

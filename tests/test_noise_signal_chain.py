@@ -10,12 +10,16 @@ import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import signal
 
 import accel_jax as aj
+from accel_jax._noise import chain_filters
+from accel_jax._noise.chain_filters import BesselLowPass, MovingAverage
 from accel_jax._noise.models import ButterworthLowPass, HighFrequencyNoise
+from accel_jax.diagnose.noise.sensor import _describe
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import noise_truth  # noqa: E402
@@ -57,6 +61,94 @@ def test_butterworth_order_is_checked():
         ButterworthLowPass(18.0, order=5)
 
 
+@pytest.mark.parametrize("order", [2, 3, 4])
+def test_bessel_gain_is_scipys(order):
+    """`BesselLowPass`'s power gain of order N at its −3 dB point f_b is |H|² of
+    `scipy.signal.bessel(N, f_b, norm="mag")` (the bilinear design, prewarped), to 1e-9."""
+    f = np.linspace(0.0, 0.5 / DT, 2001)
+    for corner in (3.0, 18.0, 45.0):
+        sos = signal.bessel(order, corner, norm="mag", fs=1 / DT, output="sos")
+        _, h = signal.sosfreqz(sos, worN=f, fs=1 / DT)
+        ours = BesselLowPass(corner, order=order).gain(2 * np.pi * f * DT, DT)
+        np.testing.assert_allclose(np.asarray(ours), np.abs(h) ** 2, rtol=1e-9, atol=1e-14)
+
+
+@pytest.mark.parametrize("taps", [2, 5, 8, 33])
+def test_moving_average_gain_and_corner_are_scipys(taps):
+    """`MovingAverage`'s power gain is |H|² of the boxcar FIR (`scipy.signal.freqz`), and its
+    −3 dB point is where that gain is one half."""
+    f = np.linspace(0.0, 0.5 / DT, 4001)
+    _, h = signal.freqz(np.ones(taps) / taps, 1.0, worN=f, fs=1 / DT)
+    ours = MovingAverage(taps).gain(2 * np.pi * f * DT, DT)
+    np.testing.assert_allclose(np.asarray(ours), np.abs(h) ** 2, rtol=1e-9, atol=1e-14)
+    corner = chain_filters.moving_average_corner(taps)
+    _, at = signal.freqz(np.ones(taps) / taps, 1.0, worN=[corner], fs=1.0)
+    assert abs(at[0]) ** 2 == pytest.approx(0.5, abs=1e-9)
+    assert chain_filters.nearest_taps(corner * 1.01) == taps
+
+
+def test_the_low_pass_code_selects_its_shape():
+    """`low_pass_gain` of a traced code is the gain of the shape it names, and its corner
+    derivative (the fits' gradient) matches a central difference."""
+    omega = np.linspace(0.0, np.pi, 501)
+    cases = {
+        2: ButterworthLowPass.discrete_gain(omega, 0.4, 2),
+        chain_filters.BESSEL_CODE + 3: BesselLowPass.discrete_gain(omega, 0.4, 3),
+        chain_filters.MOVING_AVERAGE_CODE + 6: MovingAverage.discrete_gain(omega, 6),
+    }
+    for code, expected in cases.items():
+        ours = jax.jit(chain_filters.low_pass_gain)(omega, 0.4, float(code))
+        np.testing.assert_allclose(np.asarray(ours), np.asarray(expected), rtol=1e-12, atol=1e-15)
+    code = float(chain_filters.BESSEL_CODE + 4)
+    total = lambda c: jnp.sum(chain_filters.low_pass_gain(omega, c, code))  # noqa: E731
+    h = 1e-6
+    assert float(jax.grad(total)(0.4)) == pytest.approx(
+        float((total(0.4 + h) - total(0.4 - h)) / (2 * h)), rel=1e-6
+    )
+    with pytest.raises(ValueError, match="order must be 2, 3 or 4"):
+        BesselLowPass(18.0, order=1)
+    with pytest.raises(ValueError, match="taps must be an integer"):
+        MovingAverage(1)
+
+
+@pytest.mark.parametrize(
+    "shape", ["bessel3", "taps5"], ids=["bessel-order-3", "moving-average-5"]
+)
+def test_a_bessel_low_pass_or_a_moving_average_is_found(shape):
+    """The sensor's white noise through a third-order Bessel low-pass
+    (`scipy.signal.bessel`, designed by its phase, as it is by default) or a moving average
+    of 5 samples, with white noise after it: `bandlimit` alone, of that shape, its −3 dB
+    point within 10 % (SciPy's), both white levels within 10 %. A second-order Butterworth
+    low-pass fitted to them left an exp_cosine or Gauss–Markov companion, and on the moving
+    average the white noise collapsed (docs/findings.md, signal chain)."""
+    rng = np.random.default_rng(40)
+    n = 20000
+    if shape == "bessel3":
+        sos = signal.bessel(3, CORNER, fs=1 / DT, output="sos")
+        x = signal.sosfilt(sos, WHITE * rng.normal(size=n + 2000))[2000:]
+        f = np.linspace(0.0, 0.5 / DT, 200001)
+        gain = np.abs(signal.sosfreqz(sos, worN=f, fs=1 / DT)[1]) ** 2
+    else:
+        taps = np.ones(5) / 5
+        x = signal.lfilter(taps, 1.0, WHITE * rng.normal(size=n + 2000))[2000:]
+        f = np.linspace(0.0, 0.5 / DT, 200001)
+        gain = np.abs(signal.freqz(taps, 1.0, worN=f, fs=1 / DT)[1]) ** 2
+    f3 = float(f[np.argmax(gain <= 0.5)])
+    x = x + AFTER * rng.normal(size=n)
+    found = aj.noise.select_sensor_noise(x, DT)
+    assert found.effects == ("bandlimit",), found.steps
+    p = found.parameters["bandlimit"]
+    if shape == "bessel3":
+        assert (p["shape"], p["order"]) == ("bessel", 3)
+    else:
+        assert (p["shape"], p["taps"], p["order"]) == ("moving_average", 5, None)
+    assert p["corner_Hz"] == pytest.approx(f3, rel=0.1)
+    assert p["white_after_filter_sigma"] == pytest.approx(AFTER, rel=0.1)
+    assert found.parameters["white_sigma"] == pytest.approx(WHITE, rel=0.1)
+    words = "Bessel, order 3" if shape == "bessel3" else "a moving average of 5 samples"
+    assert f"bandlimit ({words}, −3 dB at" in _describe(found)
+
+
 @pytest.mark.parametrize("order", [1, 3, 4])
 def test_the_low_pass_order_is_found(order):
     """A low-pass of order 1, 3 or 4 (`scipy.signal.butter`) with white noise after it:
@@ -74,7 +166,7 @@ def test_the_low_pass_order_is_found(order):
     assert found.effects == ("bandlimit",), found.steps
     assert found.steps[-1]["model"].split("+") == ["white", "bandlimit", "filter_floor"]
     p = found.parameters["bandlimit"]
-    assert p["order"] == order
+    assert (p["shape"], p["order"]) == ("butterworth", order)
     assert p["corner_Hz"] == pytest.approx(CORNER, rel=0.1)
     assert p["white_after_filter_sigma"] == pytest.approx(AFTER, rel=0.1)
     assert found.parameters["white_sigma"] == pytest.approx(WHITE, rel=0.1)

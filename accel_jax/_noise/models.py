@@ -415,13 +415,19 @@ class ButterworthLowPass(eqx.Module):
             raise ValueError(f"ButterworthLowPass order must be 1, 2, 3 or 4, got {self.order!r}.")
 
     @staticmethod
-    def discrete_gain(omega, corner, order: ArrayLike = 2) -> Array:
-        """H(ω) at `corner` = π f_b Δ ∈ (0, π/2] for |ω| ≤ π and order N ∈ {1, 2, 3, 4}
-        (traced or not) (tan(|ω|/2) = |sin(ω/2)|/cos(ω/2) held finite at ω = π: the cosine at
-        least that of |ω| = π(1 − 10⁻¹²))."""
+    def squared_ratio(omega, corner) -> Array:
+        """r² = (tan(|ω|/2)/tan(`corner`))², the bilinear transform's frequency over the
+        prewarped corner (tan(|ω|/2) = |sin(ω/2)|/cos(ω/2) held finite at ω = π: the cosine
+        at least that of |ω| = π(1 − 10⁻¹²))."""
         f = _frequencies(omega)
         tangent = jnp.abs(f.half_sin) / jnp.maximum(f.half_cos, _HALF_COS_AT_NYQUIST)
-        r2 = (tangent / jnp.tan(corner)) ** 2
+        return (tangent / jnp.tan(corner)) ** 2
+
+    @staticmethod
+    def discrete_gain(omega, corner, order: ArrayLike = 2) -> Array:
+        """H(ω) at `corner` = π f_b Δ ∈ (0, π/2] for |ω| ≤ π and order N ∈ {1, 2, 3, 4}
+        (traced or not), r² from `squared_ratio`."""
+        r2 = ButterworthLowPass.squared_ratio(omega, corner)
         r4 = r2 * r2
         order = jnp.asarray(order)
         # r^{2N} by products (a traced N through `power` costs a log and an exp per bin)

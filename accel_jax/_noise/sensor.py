@@ -9,7 +9,8 @@ and adds, one at a time, the effect whose evidence is largest, while it is signi
   frequency), `bandlimit` (the sensor's output low-pass: a Butterworth filter, tried as
   second-order, alone and with the white noise its signal chain adds after it
   (`filter_floor`, reported as `bandlimit`'s `white_after_filter_sigma`); orders 1, 3 and
-  4 tried in its place once the selection is done, `_low_pass_order`);
+  4, Bessel low-passes and moving averages (`chain_filters`) tried in its place once the
+  selection is done, `_low_pass_order`; its `shape` reported);
 - deterministic: `sinusoid` (a periodic line; added again for each further line, up to
   `MAX_LINES`) and `startup_transient` (a warm-up a e^{−t/τ} at the start of the record);
 - `quantization`: the output lies on an ADC grid of step q (found from the values, not

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime import usable_cpus
-from . import spectral
+from . import chain_filters, spectral
 from .mean_models import PeriodicLine, StartupTransient
 
 HELD_OUT_FRACTION = 1 / 3
@@ -52,10 +52,7 @@ PARAMETER_COUNT = {
     "exp_cosine": 3,
     "random_walk": 1,
     "flicker": 1,
-    "bandlimit": 1,
-    "bandlimit_order1": 1,
-    "bandlimit_order3": 1,
-    "bandlimit_order4": 1,
+    **{name: 1 for name in spectral.LOW_PASS_ORDERS},  # the corner, or a moving average's M
     "filter_floor": 1,
     "high_frequency_noise": 2,
     "sinusoid": 3,
@@ -494,11 +491,17 @@ def _physical(model: _Model, dt: float, floor: float, n_train: int | None = None
         }
     order_name = spectral.low_pass(model.names)
     if order_name is not None:
-        corner = float(jax.nn.sigmoid(z[8])) * math.pi / 2
-        out["bandlimit"] = {
-            "corner_Hz": corner / (math.pi * dt),
-            "order": spectral.LOW_PASS_ORDERS[order_name],
-        }
+        shape, n = chain_filters.code_kind(spectral.LOW_PASS_ORDERS[order_name])
+        if shape == "moving_average":  # its −3 dB point is set by M
+            out["bandlimit"] = {
+                "corner_Hz": chain_filters.moving_average_corner(n) / dt,
+                "order": None,
+                "shape": shape,
+                "taps": n,
+            }
+        else:
+            corner = float(jax.nn.sigmoid(z[8])) * math.pi / 2
+            out["bandlimit"] = {"corner_Hz": corner / (math.pi * dt), "order": n, "shape": shape}
         if "filter_floor" in model.names:  # the white noise after the filter, fitted
             out["bandlimit"]["white_after_filter_sigma"] = math.sqrt(math.exp(z[9]))
     if model.lines:

@@ -15,8 +15,9 @@ process beside it, once the selection is done.
 from __future__ import annotations
 
 import dataclasses
+import math
 
-from . import spectral
+from . import chain_filters, spectral
 from .sensor_model import (
     HELD_OUT_Z,
     PARAMETER_COUNT,
@@ -124,10 +125,10 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     """Each named effect of `EXCHANGED` against each unnamed `LOW_FREQUENCY` one in its
     place (the rest of the model kept, the substitute's fit started from the model's
     optimum): 2 ln B of the named effect over the substitute, 2 Δ ln L − (k − k') ln J on
-    the whole record as in the forward selection. A substitute that beats the named effect by `evidence` or
-    more replaces it (the forward path added the first that stood, not the best: a random
-    walk with a start-up transient can look like flicker until the transient is in), and
-    the exchange repeats; one within `evidence` either way is reported as a tie: the
+    the whole record as in the forward selection. A substitute that beats the named effect
+    by `evidence` or more replaces it (the forward path added the first that stood, not the
+    best: a random walk with a start-up transient can look like flicker until the transient
+    is in), and the exchange repeats; one within `evidence` either way is reported as a tie: the
     record cannot tell the two apart.
 
     Returns (model, exchanged: [{"effect", "by", "evidence"}], ties: [{"effect",
@@ -149,7 +150,8 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
         for (unit, other, parent), alt in zip(
             pairs, _evaluate_many(rec, floor, specs), strict=True
         ):
-            name, other_name = spectral.effect_name(unit[0]), spectral.effect_name(other[0])  # (a low-pass: with its floor)
+            # (a low-pass: with its floor)
+            name, other_name = spectral.effect_name(unit[0]), spectral.effect_name(other[0])
             k = sum(PARAMETER_COUNT[n] for n in unit) - sum(PARAMETER_COUNT[n] for n in other)
             score = 2 * ((model.train + model.held) - (alt.train + alt.held)) - k * log_j
             # A low-pass with white noise after it stays only where it beats the best of a
@@ -181,40 +183,95 @@ def _exchanges(rec, floor, model: _Model, log_j: float, evidence: float):
     return model, exchanged, ties
 
 
+COMPANIONS = ("gauss_markov", "exp_cosine", "high_frequency_noise")
+"""The processes that take up a low-pass's misfit beside it in the forward steps when its
+shape is not the record's: a Gauss–Markov or exponential-cosine process the roll-off's, a
+noise rising towards the Nyquist frequency the shape near Nyquist (a Bessel low-pass with
+it fitted a first-order Butterworth record as well as the right order with it, and kept it:
+harness records butterworth_0003 and _0006)."""
+
+
 def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
-    """The final model with its low-pass of another order (1, 3 or 4 of
-    `spectral.LOW_PASS_ORDERS`), where that fits the whole record better by `evidence` in 2
-    ln B: in its place, the rest of the model refitted from its optimum, and also without
+    """The final model with another low-pass in place of its second-order Butterworth one —
+    a Butterworth one of order 1, 3 or 4, a Bessel one of order 2–4, a moving average
+    (`spectral.LOW_PASS_ORDERS`) — where that fits the whole record better by `evidence` in
+    2 ln B: in its place, the rest of the model refitted from its optimum, and also without
     each process beside it (a second-order low-pass on a steeper or gentler roll-off leaves
     a misfit that such a companion takes up in the forward steps; without one, refitted
-    from its optimum and from the structure's own starts). Tried once the selection
-    is done: in the forward steps a gentler roll-off takes up a Gauss–Markov process beside
-    the low-pass instead (harness records). Returns (model, the companions dropped:
-    [{"effect", "evidence"}], the evidence 2 ln B of the model before against the one
-    returned)."""
+    from its optimum and from the structure's own starts). Tried once the selection is
+    done: in the forward steps a gentler roll-off takes up a Gauss–Markov process beside
+    the low-pass instead (harness records). The Butterworth orders are each tried so; the
+    other shapes (the moving averages whose −3 dB point lies near the fitted corner:
+    `_other_shapes`) first without every companion, then the best of them as the orders
+    are. Returns (model, the companions dropped: [{"effect", "evidence"}])."""
     if "bandlimit" not in model.names:
         return model, []
-    companions = [n for n in model.names if n in ("gauss_markov", "exp_cosine")]
-    orders = [o for o in spectral.LOW_PASS_ORDERS if o != "bandlimit"]
-    trials = []  # (order, the names dropped beside the low-pass)
-    for o in orders:
-        for dropped in ((), *((c,) for c in companions)):
-            trials.append((o, dropped))
-    specs, tried = [], []
-    for o, dropped in trials:
-        names = tuple(o if n == "bandlimit" else n for n in model.names if n not in dropped)
-        rest = tuple(n for n in names if n != o)
-        specs.append((names, model.lines, model.transient, dataclasses.replace(model, names=rest)))
-        tried.append((o, dropped))
-        if dropped:
-            # also from its own starts: the companion may hold the white noise, whose slot
-            # the refit from the optimum inherits collapsed (docs/findings.md, signal chain)
-            specs.append((names, model.lines, model.transient, None))
-            tried.append((o, dropped))
-    best, gone, top = model, (), evidence
-    for (_, dropped), alt in zip(tried, _evaluate_many(rec, floor, specs), strict=True):
+    companions = tuple(n for n in model.names if n in COMPANIONS)
+
+    def spec(shape, dropped, own_starts):
+        names = tuple(shape if n == "bandlimit" else n for n in model.names if n not in dropped)
+        rest = tuple(n for n in names if n != shape)
+        parent = None if own_starts else dataclasses.replace(model, names=rest)
+        return (names, model.lines, model.transient, parent)
+
+    def variants(shape, drops):
+        out = []
+        for dropped in drops:
+            out.append((shape, dropped, False))
+            if dropped:
+                # also from its own starts: the companion may hold the white noise, whose
+                # slot the refit from the optimum inherits collapsed (docs/findings.md,
+                # signal chain)
+                out.append((shape, dropped, True))
+        return out
+
+    single = ((), *((c,) for c in companions))
+    if len(companions) > 1:  # and every one (the other shapes are screened so)
+        single = (*single, companions)
+    orders = [o for o in spectral.BUTTERWORTH_ORDERS if o != "bandlimit"]
+    trials = [t for o in orders for t in variants(o, single)]
+
+    def score(dropped, alt):
         k = sum(PARAMETER_COUNT[n] for n in dropped)  # the parameters it saves
-        score = 2 * ((alt.train + alt.held) - (model.train + model.held)) + k * log_j
-        if score >= top:
-            best, gone, top = alt, dropped, score
+        return 2 * ((alt.train + alt.held) - (model.train + model.held)) + k * log_j
+
+    def run(tried):
+        fits = _evaluate_many(rec, floor, [spec(*t) for t in tried])
+        return [(score(t[1], alt), t, alt) for t, alt in zip(tried, fits, strict=True)]
+
+    scored = run(trials)
+    # the other shapes, without every companion (a companion took up the roll-off's misfit
+    # and moved the fitted corner: the orders' refits give the corner again)
+    others = _other_shapes([model.z] + [alt.z for *_, alt in scored])
+    screen = [t for o in others for t in variants(o, (companions,))]
+    found = run(screen)
+    scored += found
+    if companions:
+        # the best other shape, also with the companions kept and each one dropped
+        lead = max(found, key=lambda s: s[0])[1][0]
+        scored += run([t for t in variants(lead, single) if t not in screen])
+    best, gone, top = model, (), evidence
+    for value, (_, dropped, _), alt in scored:
+        if value >= top:
+            best, gone, top = alt, dropped, value
     return best, [{"effect": c, "evidence": float(-top)} for c in gone]
+
+
+MOVING_AVERAGE_SPREAD = 2
+"""Moving averages tried on each side of the one whose −3 dB point lies nearest the
+second-order low-pass's fitted corner."""
+
+
+def _other_shapes(zs) -> list[str]:
+    """The low-pass shapes other than Butterworth tried in its place: a Bessel low-pass of
+    each order, and the moving averages whose −3 dB point is nearest each fitted corner f_b
+    of `zs` (z[8] = logit(2 f_b Δ)), with `MOVING_AVERAGE_SPREAD` taps either side of the
+    first (the selected model's) and one either side of the others."""
+    taps = set()
+    for i, z in enumerate(zs):
+        nearest = chain_filters.nearest_taps(0.5 / (1 + math.exp(-float(z[8]))))
+        spread = MOVING_AVERAGE_SPREAD if i == 0 else 1
+        lo = max(2, nearest - spread)
+        taps.update(range(lo, min(chain_filters.MAX_TAPS, nearest + spread) + 1))
+    bessel = [f"bandlimit_bessel{n}" for n in chain_filters.BESSEL_ORDERS]
+    return bessel + [f"bandlimit_taps{m}" for m in sorted(taps)]

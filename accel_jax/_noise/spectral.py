@@ -30,15 +30,18 @@ whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 
   deviation's floor is √(2 ln 2/π)·B = 0.664 B;
 - high-frequency noise (σ_h, corner f_h): f_u = σ_h² (1 − H₂(ω; f_h)), white noise through
   a second-order Butterworth high-pass, H₂ the low-pass gain below;
-- bandlimit: a Butterworth low-pass (bilinear transform) of order N = 2 (`bandlimit`), 3 or
-  4 (`LOW_PASS_ORDERS`) and corner f_b, H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))^{2N}) —
-  exactly 1 at f_b = the Nyquist frequency.
+- bandlimit: a Butterworth low-pass (bilinear transform) of order N = 2 (`bandlimit`), 1, 3
+  or 4 (`BUTTERWORTH_ORDERS`) and corner f_b, H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))^{2N}) —
+  exactly 1 at f_b = the Nyquist frequency; or another shape of the signal chain
+  (`OTHER_LOW_PASSES`, `chain_filters`): a Bessel low-pass of order 2–4 (−3 dB at f_b), a
+  moving average of M samples (H = (sin(Mω/2)/(M sin(ω/2)))², its corner set by M).
 
 Each of these spectra (and λ, H and the assembly of f_y) is defined once, in `models`
 (`WhiteNoise`, `GaussMarkov`, `ExponentialCosine`, `RandomWalk`, `Flicker`,
-`ButterworthLowPass`, `difference_parts`); `_parts` calls them with this module's
-parameterisation, and `component_models` gives the models of a parameter vector. The lines
-and the transient are terms of the mean, not of this spectrum: `mean_models`
+`ButterworthLowPass` and `chain_filters`' shapes, `difference_parts`); `_parts` calls them
+with this module's parameterisation, and `component_models` gives the models of a
+parameter vector. The lines and the transient are terms of the mean, not of this
+spectrum: `mean_models`
 (`PeriodicLine`, `StartupTransient`), regressed out of the record before the fit
 (`sensor_model`).
 
@@ -60,8 +63,8 @@ import numpy as np
 import optimistix as optx
 
 from .._solvers import STALL_WINDOW, StallEndingMinimiser
+from . import chain_filters
 from .models import (
-    ButterworthLowPass,
     ExponentialCosine,
     Flicker,
     Frequencies,
@@ -88,16 +91,30 @@ COMPONENTS = (
 signal chain: the selection adds it only with a low-pass (without one it is white noise,
 the nominal's own)."""
 
-LOW_PASS_ORDERS = {
+BUTTERWORTH_ORDERS = {
     "bandlimit": 2,
     "bandlimit_order1": 1,
     "bandlimit_order3": 3,
     "bandlimit_order4": 4,
 }
-"""The low-pass of each order the selection tries (slot 8 each; the mask carries N): a
-Butterworth filter of order 2 (`bandlimit`), 1, 3 or 4. A first-order one differs from a
-Gauss–Markov process over white noise only near the Nyquist frequency (its bilinear zero
-there), so the record may not tell the two apart (the exchange says so)."""
+"""The Butterworth low-pass of each order (the mask's slot 8 carries N): order 2
+(`bandlimit`), 1, 3 or 4. A first-order one differs from a Gauss–Markov process over white
+noise only near the Nyquist frequency (its bilinear zero there), so the record may not
+tell the two apart (the exchange says so)."""
+
+OTHER_LOW_PASSES = {
+    **{f"bandlimit_bessel{n}": chain_filters.BESSEL_CODE + n for n in chain_filters.BESSEL_ORDERS},
+    **{
+        f"bandlimit_taps{m}": chain_filters.MOVING_AVERAGE_CODE + m
+        for m in range(2, chain_filters.MAX_TAPS + 1)
+    },
+}
+"""The signal chain's other low-pass shapes (`chain_filters`; slot 8 carries the shape's
+code): a Bessel low-pass of order 2–4 and a moving average of M samples."""
+
+LOW_PASS_ORDERS = {**BUTTERWORTH_ORDERS, **OTHER_LOW_PASSES}
+"""Every low-pass the selection tries in the `bandlimit` slot, by name: its code (the
+Butterworth order N, or `chain_filters`' code of another shape)."""
 
 
 def effect_name(name: str) -> str:
@@ -122,9 +139,7 @@ SLOTS = {
     "bandlimit": (8,),
     "filter_floor": (9,),
     "high_frequency_noise": (10, 11),
-    "bandlimit_order1": (8,),
-    "bandlimit_order3": (8,),
-    "bandlimit_order4": (8,),
+    **{name: (8,) for name in LOW_PASS_ORDERS if name != "bandlimit"},
 }
 
 FULL_RESOLUTION = 1 << 11
@@ -186,8 +201,8 @@ def _parts(z, mask, omega, floor):
     ec = ExponentialCosine.discrete_spectrum(omega, jnp.exp(z[3]), rho_e, theta)
     flicker = Flicker.discrete_spectrum(omega, jnp.exp(z[7]))
     corner = jax.nn.sigmoid(z[8]) * (math.pi / 2)  # π f_b Δ ∈ (0, π/2)
-    order = jnp.where(on[8], mask[8], 2.0)  # (off: a finite gain and gradient, unused)
-    gain = jnp.where(on[8], ButterworthLowPass.discrete_gain(omega, corner, order), 1.0)
+    code = jnp.where(on[8], mask[8], 2.0)  # (off: a finite gain and gradient, unused)
+    gain = jnp.where(on[8], chain_filters.low_pass_gain(omega, corner, code), 1.0)
     coloured = WhiteNoise.discrete_spectrum(omega, jnp.exp(z[0]))
     coloured = coloured + jnp.where(on[1], gm, 0.0) + jnp.where(on[3], ec, 0.0)
     coloured = coloured + jnp.where(on[7], flicker, 0.0)
@@ -201,7 +216,8 @@ def _parts(z, mask, omega, floor):
 def component_models(z, mask, sample_interval):
     """The noise of parameters z (the slots `mask` switches on) as `models`' modules: a
     `NoiseSum` of white noise and the stochastic components (Δ = `sample_interval`), the
-    `ButterworthLowPass` (None when off) and the fitted white noise after it (`WhiteNoise`,
+    low-pass (`chain_filters.low_pass`: a `ButterworthLowPass`, `BesselLowPass` or
+    `MovingAverage`; None when off) and the fitted white noise after it (`WhiteNoise`,
     None when `filter_floor` is off). Its difference spectrum, low-passed, plus the white
     noise after the filter and the floor is `spectrum`."""
     on = np.asarray(mask) > 0
@@ -224,7 +240,7 @@ def component_models(z, mask, sample_interval):
     low_pass = None
     if on[8]:
         corner = 1 / (1 + math.exp(-z[8])) / 2  # f_b Δ
-        low_pass = ButterworthLowPass(corner / sample_interval, order=int(np.asarray(mask)[8]))
+        low_pass = chain_filters.low_pass(float(np.asarray(mask)[8]), corner / sample_interval)
     after = WhiteNoise(math.exp(0.5 * z[9])) if on[9] else None
     return noise, low_pass, after
 
@@ -451,18 +467,26 @@ def _fit_all(z0s, repeated, mask, gram, floor):
     return jax.lax.map(one, (z0s, repeated))
 
 
+def _free(mask):
+    """The slots a fit moves: those `mask` switches on, less the corner of a moving
+    average (its M, in the code, sets its gain)."""
+    free = mask > 0
+    return free.at[8].set(free[8] & (mask[8] < chain_filters.MOVING_AVERAGE_CODE))
+
+
 def _fit(z0, mask, gram, floor):
     n = jnp.sum(gram.count)
+    free = _free(mask)
 
     def loss(z, _):
-        z = jnp.where(mask > 0, z, z0)
+        z = jnp.where(free, z, z0)
         return -whittle(z, mask, gram, floor) / n
 
     solver = StallEndingMinimiser(
         optx.BFGS(rtol=TOLERANCE, atol=TOLERANCE), STALL_WINDOW, 0.0, STALL_NATS / n
     )
     sol = optx.minimise(loss, solver, z0, max_steps=STEPS, throw=False)
-    z = jnp.where(mask > 0, sol.value, z0)
+    z = jnp.where(free, sol.value, z0)
     return z, whittle(z, mask, gram, floor), sol.result == optx.RESULTS.successful
 
 
@@ -518,6 +542,8 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
                     z[slot] = value
                 out.append(z)
             continue
+        if name in OTHER_LOW_PASSES and OTHER_LOW_PASSES[name] >= chain_filters.MOVING_AVERAGE_CODE:
+            continue  # a moving average: its M is in the structure, no corner to search
         for slot, value in grids[effect_name(name)]:
             z = base.copy()
             z[slot] = value

@@ -114,6 +114,15 @@ def _capitalised(sentence: str) -> str:
     return ". " + sentence[0].upper() + sentence[1:]
 
 
+def _low_pass_words(band: dict) -> str:
+    """The low-pass's shape in words: "Butterworth, order 2", "Bessel, order 3", "a moving
+    average of 5 samples"."""
+    shape = band.get("shape", "butterworth")
+    if shape == "moving_average":
+        return f"a moving average of {band['taps']} samples"
+    return f"{shape.capitalize()}, order {band['order']}"
+
+
 def _describe(sel: SensorNoiseSelection) -> str:
     parts = []
     for step in sel.steps[1:]:
@@ -121,9 +130,10 @@ def _describe(sel: SensorNoiseSelection) -> str:
         detail = ""
         p = sel.parameters
         if name in ("bandlimit", "filter_floor"):
-            after = p["bandlimit"].get("white_after_filter_sigma")
+            band = p["bandlimit"]
+            after = band.get("white_after_filter_sigma")
             after = "" if after is None else f", white noise after it σ {after:.3g} g"
-            detail = f" (corner {p['bandlimit']['corner_Hz']:.3g} Hz{after})"
+            detail = f" ({_low_pass_words(band)}, −3 dB at {band['corner_Hz']:.3g} Hz{after})"
         elif name == "flicker":
             detail = f" (B = {p['flicker']['bias_instability_B']:.3g} g)"
         elif name == "gauss_markov":
