@@ -15,14 +15,15 @@ never sees the truth.
 
 Scored per kind (`score`):
 
-- `butterworth`: `bandlimit` named with no companion (a `quantization` companion counts
-  only where the record was quantised), its order, its corner within 10 % of the
-  filter's −3 dB point,
-  the white noise ahead of the filter (`white_sigma`) and after it
+- `butterworth`, `bessel`, `moving_average` (the library's low-pass shapes:
+  `accel_jax._noise.chain_filters`): `bandlimit` named with no companion (a
+  `quantization` companion counts only where the record was quantised), its shape and
+  order (a moving average: its samples), its corner within 10 % of the filter's −3 dB
+  point, the white noise ahead of the filter (`white_sigma`) and after it
   (`white_after_filter_sigma`) each within a factor 2 of the truth;
-- `bessel`, `moving_average`, `decimated` (shapes the library has no exact form for): the
-  same figures, the corner against the filter's −3 dB point as logged, and the effect
-  sets named, listed (a decimation through one boxcar stage is exactly white:
+- `decimated` (an oversampled CIC cascade decimated to the logged rate: a response the
+  library has no exact form for): the same figures, the corner against the cascade's
+  −3 dB point, and the effect sets named, listed (a decimation through one boxcar stage is exactly white:
   `decimated_flat`, scored as a white record); a white level collapsed below a quarter of the model-free
   estimate (`flat_band_sigma`) counted as a fit failure;
 - `nyquist_hump`: `high_frequency_noise` alone;
@@ -129,6 +130,15 @@ def _within(value, truth, factor) -> bool:
     return value is not None and truth > 0 and 1 / factor <= value / truth <= factor
 
 
+SHAPES = {"butterworth": "butterworth", "bessel": "bessel", "moving_average": "moving_average"}
+"""The low-pass shape the selection should name for each kind of chain."""
+
+
+def _size(band: dict):
+    """A fitted low-pass's order, or a moving average's number of samples."""
+    return band.get("taps") if band.get("shape") == "moving_average" else band.get("order")
+
+
 def judge(truth: dict, row: dict) -> dict:
     """One record's facts for the score."""
     kind = truth["kind"]
@@ -155,7 +165,10 @@ def judge(truth: dict, row: dict) -> dict:
         after = band.get("white_after_filter_sigma")
         facts.update(
             bandlimit_alone=extra == ["bandlimit"] and not row["unexplained"],
-            order_right=band.get("order") == truth["order"],
+            # the shape named and its order (a moving average: its samples); a decimation's
+            # response has no shape of its own in the library: its order only
+            order_right=_size(band) == truth["order"]
+            and SHAPES.get(kind, band.get("shape")) == band.get("shape"),
             # against the filter's −3 dB point as logged (a Bessel's design corner is not)
             corner_error=(corner / truth["f3dB_Hz"] - 1) if corner else None,
             white_within=_within(white, truth["sensor_white_sigma"], LEVEL_FACTOR),

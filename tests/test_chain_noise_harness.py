@@ -54,7 +54,9 @@ def _row(effects, unexplained=False, **parameters):
 
 
 def test_scoring_a_butterworth_chain():
-    band = {"corner_Hz": 21.0, "order": 2, "white_after_filter_sigma": 2.5e-4}
+    band = {
+        "corner_Hz": 21.0, "order": 2, "shape": "butterworth", "white_after_filter_sigma": 2.5e-4
+    }
     rows = {
         "right": _row(["bandlimit"], bandlimit=band),
         # a quantisation companion counts only where the record was quantised
@@ -74,6 +76,21 @@ def test_scoring_a_butterworth_chain():
     assert score["white_collapsed"]["share"] == pytest.approx(0.2)
     again = harness.score({"q": _truth("butterworth")}, {"q": rows["quantised"]})
     assert again["butterworth"]["bandlimit_alone"]["share"] == 0.0
+    # the shape counts with the order: a Bessel low-pass of order 2 is not the Butterworth
+    other = _row(["bandlimit"], bandlimit={**band, "shape": "bessel"})
+    bessel = harness.score({"b": _truth("butterworth")}, {"b": other})
+    assert bessel["butterworth"]["of_those_order_right"]["share"] == 0.0
+
+
+def test_scoring_a_moving_average_by_its_samples():
+    band = {"corner_Hz": 20.0, "order": None, "shape": "moving_average", "taps": 5}
+    truths = {n: _truth("moving_average", order=5) for n in ("right", "wrong")}
+    rows = {
+        "right": _row(["bandlimit"], bandlimit=band),
+        "wrong": _row(["bandlimit"], bandlimit={**band, "taps": 4}),
+    }
+    score = harness.score(truths, rows)["moving_average"]
+    assert score["of_those_order_right"] == {"n": 2, "share": 0.5}
 
 
 def test_scoring_white_records_and_errors():
