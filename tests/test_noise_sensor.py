@@ -607,7 +607,9 @@ def test_a_small_step_is_not_taken_for_a_random_walk():
     test = stepped.held_out.step_or_walk
     assert test is not None
     # the JSON's held_out has the test's key where it ran, in its old place
-    assert list(stepped.held_out.to_dict())[-3:] == ["step_or_walk", "level_shifts", "saturation"]
+    assert list(stepped.held_out.to_dict())[-5:] == [
+        "step_or_walk", "level_shifts", "saturation", "white_floor", "low_pass_ties"
+    ]
     assert test["evidence_over_the_walk"] >= test["bar"]
     walk = aj.noise.select_sensor_noise(
         2e-3 * rng.normal(size=n) + np.cumsum(rng.normal(size=n)) * 4e-3 / math.sqrt(n), dt

@@ -68,6 +68,8 @@ HELD_OUT = [
     "excess_deviance", "z", "bins", "removed", "exchanged", "ties", "bursts", "non_gaussian",
     "spectral_change", "drift", "drifting", "level_shift_test",
 ]  # fmt: skip
+ADDED = ["white_floor", "low_pass_ties"]
+"""Keys added to the held-out dict since (the signal chain's checks), after the old ones."""
 
 N, PRE = 5000, 200
 
@@ -256,7 +258,7 @@ def test_static_record_analysis_is_typed_and_its_dict_is_the_old_one(stepped):
     plain = analysis.to_dict()
     assert list(plain) == ["allan_deviation", "ieee_terms", "effects"]
     held = plain["effects"]["held_out"]
-    assert list(held) == [*HELD_OUT, "level_shifts", "saturation"]
+    assert list(held) == [*HELD_OUT, "level_shifts", "saturation", *ADDED]
     assert held == {k: getattr(analysis.selection.held_out, k) for k in held}
     assert held["level_shifts"] and held["level_shifts"][0]["time_s"] == pytest.approx(
         10.0, abs=0.3
@@ -297,12 +299,12 @@ def _held_out(**more):
 def test_held_out_check_keeps_the_old_keys_present_only_where_they_were():
     """`more_level_shifts` was set only when True; `step_or_walk` only where its test ran,
     then possibly None."""
-    assert list(_held_out().to_dict()) == [*HELD_OUT, "level_shifts", "saturation"]
+    assert list(_held_out().to_dict()) == [*HELD_OUT, "level_shifts", "saturation", *ADDED]
     more = _held_out(more_level_shifts=True).to_dict()
-    assert list(more) == [*HELD_OUT, "more_level_shifts", "level_shifts", "saturation"]
+    assert list(more) == [*HELD_OUT, "more_level_shifts", "level_shifts", "saturation", *ADDED]
     assert more["more_level_shifts"] is True
     ran = _held_out(step_or_walk=None, step_or_walk_tested=True).to_dict()
-    assert list(ran) == [*HELD_OUT, "step_or_walk", "level_shifts", "saturation"]
+    assert list(ran) == [*HELD_OUT, "step_or_walk", "level_shifts", "saturation", *ADDED]
     assert ran["step_or_walk"] is None and ran["level_shift_test"] is None
     with pytest.warns(DeprecationWarning, match="'more_level_shifts' in result"):
         assert "more_level_shifts" not in _held_out()

@@ -50,6 +50,13 @@ class HeldOutCheck(LegacyItems):
     - `level_shifts`: the steps of the level found and taken out (time, size, their z,
         the held-out z and effects with the step still in).
     - `saturation`: the rails the record's values pile up on (`detect_saturation`).
+    - `white_floor`: the fitted white σ against the σ the record's low band supports, the
+        process that carries the band, and `collapsed` where the band is flat and the
+        white σ lies far below it — a fit failure, flagged (`sensor_refine._white_floor`;
+        None where the model has no stationary coloured process or a wandering level).
+    - `low_pass_ties`: the other low-pass shapes that fit within the evidence bar of the
+        named `bandlimit`'s, `{"shape", "order", "evidence"}` (and `"taps"` or `"ratio"`;
+        `evidence` 2 ln B of the named over it): the record cannot tell them apart.
 
     `to_dict()` is the dict of the JSON's `held_out`; `held_out["z"]` and the other keys
     of the dict this replaced still work for one release, with a `DeprecationWarning`.
@@ -72,6 +79,8 @@ class HeldOutCheck(LegacyItems):
     step_or_walk_tested: bool = False
     level_shifts: list[dict] = dataclasses.field(default_factory=list)
     saturation: list[dict] = dataclasses.field(default_factory=list)
+    white_floor: dict | None = None
+    low_pass_ties: list[dict] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The JSON-ready dict: every field in its order, but `more_level_shifts` only when
@@ -96,6 +105,8 @@ class HeldOutCheck(LegacyItems):
             out["step_or_walk"] = self.step_or_walk
         out["level_shifts"] = self.level_shifts
         out["saturation"] = self.saturation
+        out["white_floor"] = self.white_floor
+        out["low_pass_ties"] = self.low_pass_ties
         return out
 
     def _legacy(self) -> dict:

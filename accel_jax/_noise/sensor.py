@@ -72,7 +72,13 @@ from .sensor_model import (
     _variogram,
 )
 from .sensor_arbiter import transient_ties
-from .sensor_refine import _backward, _exchanges, _low_pass_order
+from .sensor_refine import (
+    _backward,
+    _collapsed_floor,
+    _exchanges,
+    _low_pass_order,
+    _white_floor,
+)
 from .sensor_screens import (
     DRIFT_T,
     QUANTIZATION_SHARE,
@@ -369,11 +375,25 @@ def _select(
     if exchanged:  # the substitute may leave another effect without evidence
         model, again = _backward(rec, floor, model, log_j, evidence)
         removed += again
-    reordered, dropped = _low_pass_order(rec, floor, model, log_j, evidence)
+    reordered, dropped, shape_ties = _low_pass_order(rec, floor, model, log_j, evidence)
     if reordered is not model:  # a companion that took up the roll-off's misfit may go
         removed += dropped
         model, again = _backward(rec, floor, reordered, log_j, evidence)
         removed += again
+    # a white floor gone into a process white over the low band: a decimation filter's
+    # response in its place (the first process it replaces is exchanged for `bandlimit`)
+    chained, gone, gain, decimation_ties = _collapsed_floor(rec, floor, model, dt, log_j, evidence)
+    if gone:
+        shape_ties = decimation_ties
+        exchanged.append({"effect": gone[0], "by": "bandlimit", "evidence": gain})
+        if gain < evidence:  # within the bar of the process it replaces: said
+            ties.append(
+                {"effect": "bandlimit", "alternative": gone[0], "evidence": gain, "bar": evidence}
+            )
+        removed += [{"effect": c, "evidence": -gain} for c in gone[1:]]
+        model, again = _backward(rec, floor, chained, log_j, evidence)
+        removed += again
+        ties = [t for t in ties if t["effect"] in _named(model)]  # the processes gone
     ties += transient_ties(rec, floor, model, evidence, removed)
     if removed or exchanged:
         swap = {}  # the effect the forward path added → the one now in its place
@@ -432,6 +452,8 @@ def _select(
         spectral_change=change,
         drift=drift,
         drifting=bool(drifting),
+        white_floor=_white_floor(model, dt),
+        low_pass_ties=shape_ties if spectral.low_pass(model.names) else [],
     )
     selection = SensorNoiseSelection(
         effects=tuple(effects),

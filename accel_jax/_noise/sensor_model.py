@@ -499,6 +499,14 @@ def _physical(model: _Model, dt: float, floor: float, n_train: int | None = None
                 "shape": shape,
                 "taps": n,
             }
+        elif shape == "decimating_average":  # K and R set its gain and −3 dB point
+            stages, ratio = divmod(n, 100)
+            out["bandlimit"] = {
+                "corner_Hz": chain_filters.decimation_corner(stages, ratio) / dt,
+                "order": stages,
+                "shape": shape,
+                "ratio": ratio,
+            }
         else:
             corner = float(jax.nn.sigmoid(z[8])) * math.pi / 2
             out["bandlimit"] = {"corner_Hz": corner / (math.pi * dt), "order": n, "shape": shape}

@@ -17,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
+
 from . import chain_filters, spectral
 from .sensor_model import (
     HELD_OUT_Z,
@@ -203,9 +205,10 @@ def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
     the low-pass instead (harness records). The Butterworth orders are each tried so; the
     other shapes (the moving averages whose −3 dB point lies near the fitted corner:
     `_other_shapes`) first without every companion, then the best of them as the orders
-    are. Returns (model, the companions dropped: [{"effect", "evidence"}])."""
+    are. Returns (model, the companions dropped: [{"effect", "evidence"}], the other
+    shapes the record cannot tell from the one kept: `_ties`)."""
     if "bandlimit" not in model.names:
-        return model, []
+        return model, [], []
     companions = tuple(n for n in model.names if n in COMPANIONS)
 
     def spec(shape, dropped, own_starts):
@@ -254,7 +257,49 @@ def _low_pass_order(rec, floor, model, log_j: float, evidence: float):
     for value, (_, dropped, _), alt in scored:
         if value >= top:
             best, gone, top = alt, dropped, value
-    return best, [{"effect": c, "evidence": float(-top)} for c in gone]
+    chosen = spectral.low_pass(best.names) or "bandlimit"
+    won = top if best is not model else 0.0
+    scores = {"bandlimit": 0.0}
+    for value, (shape, *_), _ in scored:
+        scores[shape] = max(scores.get(shape, -math.inf), value)
+    gone = [{"effect": c, "evidence": float(-top)} for c in gone]
+    return best, gone, _ties(scores, chosen, won, evidence)
+
+
+def low_pass_shape(name: str) -> dict:
+    """A low-pass of `spectral.LOW_PASS_ORDERS` as `{"shape", "order"}` (a moving average:
+    `"taps"`; a decimating average: its stages as `"order"` and its `"ratio"`)."""
+    shape, n = chain_filters.code_kind(spectral.LOW_PASS_ORDERS[name])
+    if shape == "moving_average":
+        return {"shape": shape, "order": None, "taps": n}
+    if shape == "decimating_average":
+        stages, ratio = divmod(n, 100)
+        return {"shape": shape, "order": stages, "ratio": ratio}
+    return {"shape": shape, "order": n}
+
+
+def _ties(scores: dict, chosen: str, won: float, evidence: float) -> list[dict]:
+    """The low-pass shapes other than `chosen` whose best penalised score (`scores`, by
+    low-pass name) lies within `evidence` of the chosen one's (`won`): the record cannot
+    tell them apart. Each with `evidence`, 2 ln B of the chosen over it; best first. The
+    decimating averages of one number of stages are one entry with their `ratios` (the
+    chosen one's other ratios too: the record barely tells R, and not at all where the
+    response is a first-order moving average, K = 2 or K = 3 with R = 2)."""
+    out = {}
+    for name, value in sorted(scores.items(), key=lambda item: -item[1]):
+        shape = low_pass_shape(name)
+        if name == chosen or won - value >= evidence:
+            continue
+        key = (shape["shape"], shape["order"], shape.get("taps"))
+        if key in out:
+            if "ratios" in out[key]:
+                out[key]["ratios"].append(shape["ratio"])
+            continue
+        entry = {**shape, "evidence": float(won - value)}
+        if "ratio" in entry:
+            entry["ratios"] = [entry.pop("ratio")]
+        out[key] = entry
+    return list(out.values())
 
 
 MOVING_AVERAGE_SPREAD = 2
@@ -266,7 +311,8 @@ def _other_shapes(zs) -> list[str]:
     """The low-pass shapes other than Butterworth tried in its place: a Bessel low-pass of
     each order, and the moving averages whose −3 dB point is nearest each fitted corner f_b
     of `zs` (z[8] = logit(2 f_b Δ)), with `MOVING_AVERAGE_SPREAD` taps either side of the
-    first (the selected model's) and one either side of the others."""
+    first (the selected model's) and one either side of the others, and the decimating
+    averages whose logged −3 dB point lies within `DECIMATION_SPREAD` of a fitted corner."""
     taps = set()
     for i, z in enumerate(zs):
         nearest = chain_filters.nearest_taps(0.5 / (1 + math.exp(-float(z[8]))))
@@ -274,4 +320,119 @@ def _other_shapes(zs) -> list[str]:
         lo = max(2, nearest - spread)
         taps.update(range(lo, min(chain_filters.MAX_TAPS, nearest + spread) + 1))
     bessel = [f"bandlimit_bessel{n}" for n in chain_filters.BESSEL_ORDERS]
-    return bessel + [f"bandlimit_taps{m}" for m in sorted(taps)]
+    corners = [0.5 / (1 + math.exp(-float(z[8]))) for z in zs]
+    decimations = [
+        name
+        for name in _decimations()
+        if any(
+            abs(math.log(chain_filters.folded_corner(*_stages_ratio(name)) / c))
+            <= math.log(DECIMATION_SPREAD)
+            for c in corners
+        )
+    ]
+    return bessel + [f"bandlimit_taps{m}" for m in sorted(taps)] + decimations
+
+
+DECIMATION_SPREAD = 1.25
+"""Decimating averages are tried where their logged −3 dB point lies within this factor of
+a fitted corner (`chain_filters.folded_corner`)."""
+
+
+def _stages_ratio(name: str) -> tuple[int, int]:
+    return divmod(spectral.LOW_PASS_ORDERS[name] - chain_filters.DECIMATION_CODE, 100)
+
+
+LOW_BAND = 0.1
+"""The record's low band, as a fraction of the Nyquist frequency: where every low-pass of
+the signal chain passes the sensor's noise nearly unchanged."""
+
+FLAT_LOW_BAND = 2.0
+"""A fitted spectrum that varies by less than this ratio over the low band is flat there:
+the record's low band supports a white level at its height."""
+
+COLLAPSED_WHITE = 0.25
+"""A fitted white σ below this fraction of the σ the flat low band supports: the white
+floor collapsed into a coloured process (a fit failure, `white_floor`)."""
+
+
+def _white_floor(model: _Model, dt: float) -> dict | None:
+    """The fitted white noise against what the record's low band supports (the fitted
+    spectrum over 0 < f ≤ `LOW_BAND` × Nyquist, the low-pass's gain included): σ of
+    each, the coloured process that carries most of the band, and `collapsed` where the
+    band is flat (by `FLAT_LOW_BAND`) and the white σ lies below `COLLAPSED_WHITE` of its
+    level — the white floor gone into a process that is white over the band, which no
+    sensor's noise does (its signal chain's response, unmodelled, the likely cause). None
+    where the model has a random walk or flicker (never flat at low frequencies) or no
+    coloured process."""
+    mask = spectral._mask(model.names)
+    noise, low_pass, _ = spectral.component_models(model.z, mask, dt)
+    parts = getattr(noise, "components", (noise,))
+    coloured = parts[1:]
+    if not coloured or not all(p.stationary for p in coloured):
+        return None
+    omega = np.linspace(math.pi * LOW_BAND / 64, math.pi * LOW_BAND, 64)
+    gain = 1.0 if low_pass is None else np.asarray(low_pass.gain(omega, dt))
+    white = math.exp(float(model.z[0]))  # z[0] = ln σ_w²
+    each = {p.name: np.asarray(p.spectrum(omega, dt)) * gain for p in coloured}
+    total = white * gain + sum(each.values())
+    level = float(np.mean(total))
+    flat = float(np.max(total) / np.min(total)) <= FLAT_LOW_BAND
+    return {
+        "white_sigma": math.sqrt(white),
+        "low_band_sigma": math.sqrt(level),
+        "carried_by": max(each, key=lambda n: float(np.mean(each[n]))),
+        "low_band_flat": flat,
+        "collapsed": bool(flat and math.sqrt(white) < COLLAPSED_WHITE * math.sqrt(level)),
+    }
+
+
+DECIMATION_RATIOS = (2, 3, 4, 6, 8, 16, 32)
+"""The decimation ratios R tried for each number of stages (the logged response barely
+changes beyond R ≈ 8: `chain_filters.decimation_correlation`)."""
+
+
+def _decimations() -> list[str]:
+    return [
+        f"bandlimit_decimation{k}x{r}"
+        for k in chain_filters.DECIMATION_STAGES
+        for r in DECIMATION_RATIOS
+    ]
+
+
+def _floor_shapes() -> list[str]:
+    """The low-passes tried in a collapsed floor's place: the Butterworth ones of order
+    1–4, the Bessel ones of order 2–4 (each from its corner grid) and `_decimations`."""
+    bessel = [f"bandlimit_bessel{n}" for n in chain_filters.BESSEL_ORDERS]
+    return [*spectral.BUTTERWORTH_ORDERS, *bessel, *_decimations()]
+
+
+def _collapsed_floor(rec, floor, model, dt: float, log_j: float, evidence: float):
+    """Where the selected model has no low-pass and its white floor collapsed
+    (`_white_floor`): the signal chain's low-passes (`_floor_shapes`: Butterworth, Bessel
+    and the decimating averages) with the white noise after them in place of the processes
+    beside the white noise that took it (`COMPANIONS`), refitted from their own starts;
+    the best replaces the model where it fits the whole record better in 2 ln B (the
+    parameters saved counted as in `_low_pass_order`; no bar: the model in place is a fit
+    failure). Returns (model, the processes dropped, its 2 ln B over the model given, the
+    shapes the record cannot tell from it: `_ties`)."""
+    if spectral.low_pass(model.names) is not None:
+        return model, (), 0.0, []
+    check = _white_floor(model, dt)
+    if check is None or not check["collapsed"]:
+        return model, (), 0.0, []
+    dropped = tuple(n for n in model.names if n in COMPANIONS)
+    rest = tuple(n for n in model.names if n not in dropped)
+    specs = [
+        ((*rest, shape, "filter_floor"), model.lines, model.transient, None)
+        for shape in _floor_shapes()
+    ]
+    fits = _evaluate_many(rec, floor, specs)
+    added = PARAMETER_COUNT["bandlimit"] + PARAMETER_COUNT["filter_floor"]
+    k = sum(PARAMETER_COUNT[n] for n in dropped) - added
+    scores = [2 * ((a.train + a.held) - (model.train + model.held)) + k * log_j for a in fits]
+    best = int(np.argmax(scores))
+    if scores[best] <= 0:  # (the model in place is a fit failure: no bar to clear)
+        return model, (), 0.0, []
+    by_name = dict(zip(_floor_shapes(), scores, strict=True))
+    chosen = _floor_shapes()[best]
+    return fits[best], dropped, float(scores[best]), _ties(by_name, chosen, scores[best], evidence)

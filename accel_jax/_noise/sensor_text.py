@@ -66,3 +66,35 @@ def level_shift_sentence(shift: dict, unit: str = "g") -> str:
         f"(|z| = {abs(shift['z']):.1f} against the model's own wander over "
         f"{shift['window_s']:.3g} s windows): outside the library; {what}"
     )
+
+
+def low_pass_words(band: dict) -> str:
+    """A low-pass's shape in words: "Butterworth, order 2", "Bessel, order 3", "a moving
+    average of 5 samples", "a decimating average of 3 stages, ratio 4" (the ratios the
+    record cannot tell apart joined by "/")."""
+    shape = band.get("shape", "butterworth")
+    if shape == "moving_average":
+        return f"a moving average of {band['taps']} samples"
+    if shape == "decimating_average":
+        ratios = band.get("ratios") or [band.get("ratio")]
+        return (
+            f"a decimating average of {band['order']} stages, ratio "
+            + "/".join(str(r) for r in ratios)
+        )
+    return f"{shape.capitalize()}, order {band['order']}"
+
+
+def low_pass_ties_sentence(ties: list[dict]) -> str:
+    """`held_out.low_pass_ties` in words (the CLI and the diagnosis)."""
+    shapes = "; ".join(f"{low_pass_words(t)} (2 ln B {t['evidence']:.1f})" for t in ties)
+    return f"the record fits these low-passes as well, within the bar: {shapes}"
+
+
+def white_floor_sentence(floor: dict, unit: str = "g") -> str:
+    """`held_out.white_floor` in words, when collapsed: a fit failure."""
+    return (
+        f"fit failure: the white noise (σ {floor['white_sigma']:.3g} {unit}) lies far below "
+        f"the {floor['low_band_sigma']:.3g} {unit} the record's flat low band supports; "
+        f"{floor['carried_by']} took it, white over that band: a response of the signal "
+        "chain the library does not model is the likely cause"
+    )

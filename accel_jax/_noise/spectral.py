@@ -34,7 +34,9 @@ whose spectral density per sample, with λ(ω) = |1 − e^{−iω}|² = 2 − 2 
   or 4 (`BUTTERWORTH_ORDERS`) and corner f_b, H(ω) = 1/(1 + (tan(ω/2)/tan(π f_b Δ))^{2N}) —
   exactly 1 at f_b = the Nyquist frequency; or another shape of the signal chain
   (`OTHER_LOW_PASSES`, `chain_filters`): a Bessel low-pass of order 2–4 (−3 dB at f_b), a
-  moving average of M samples (H = (sin(Mω/2)/(M sin(ω/2)))², its corner set by M).
+  moving average of M samples (H = (sin(Mω/2)/(M sin(ω/2)))², its corner set by M), a
+  decimating average of K stages and ratio R (a CIC decimator: H = ρ_0 + 2 Σ ρ_j cos jω,
+  its folded images included, set by K and R).
 
 Each of these spectra (and λ, H and the assembly of f_y) is defined once, in `models`
 (`WhiteNoise`, `GaussMarkov`, `ExponentialCosine`, `RandomWalk`, `Flicker`,
@@ -108,9 +110,15 @@ OTHER_LOW_PASSES = {
         f"bandlimit_taps{m}": chain_filters.MOVING_AVERAGE_CODE + m
         for m in range(2, chain_filters.MAX_TAPS + 1)
     },
+    **{
+        f"bandlimit_decimation{k}x{r}": chain_filters.DECIMATION_CODE + 100 * k + r
+        for k in chain_filters.DECIMATION_STAGES
+        for r in range(2, chain_filters.MAX_RATIO + 1)
+    },
 }
 """The signal chain's other low-pass shapes (`chain_filters`; slot 8 carries the shape's
-code): a Bessel low-pass of order 2–4 and a moving average of M samples."""
+code): a Bessel low-pass of order 2–4, a moving average of M samples, and a decimating
+average of K stages and ratio R."""
 
 LOW_PASS_ORDERS = {**BUTTERWORTH_ORDERS, **OTHER_LOW_PASSES}
 """Every low-pass the selection tries in the `bandlimit` slot, by name: its code (the
@@ -468,8 +476,8 @@ def _fit_all(z0s, repeated, mask, gram, floor):
 
 
 def _free(mask):
-    """The slots a fit moves: those `mask` switches on, less the corner of a moving
-    average (its M, in the code, sets its gain)."""
+    """The slots a fit moves: those `mask` switches on, less the corner of a moving or
+    decimating average (its M, or K and R, in the code, set its gain)."""
     free = mask > 0
     return free.at[8].set(free[8] & (mask[8] < chain_filters.MOVING_AVERAGE_CODE))
 
@@ -543,7 +551,7 @@ def starts(names, variance: float, new=None) -> list[np.ndarray]:
                 out.append(z)
             continue
         if name in OTHER_LOW_PASSES and OTHER_LOW_PASSES[name] >= chain_filters.MOVING_AVERAGE_CODE:
-            continue  # a moving average: its M is in the structure, no corner to search
+            continue  # a moving or decimating average: no corner to search (its code sets it)
         for slot, value in grids[effect_name(name)]:
             z = base.copy()
             z[slot] = value

@@ -44,9 +44,12 @@ from ..._noise.sensor_screens import (
 )
 from ..._noise.sensor_text import (
     level_shift_sentence,
+    low_pass_ties_sentence,
+    low_pass_words,
     non_gaussian_sentence,
     saturation_sentence,
     spectral_change_sentence,
+    white_floor_sentence,
 )
 from ..base import DiagnosisResult
 
@@ -114,13 +117,15 @@ def _capitalised(sentence: str) -> str:
     return ". " + sentence[0].upper() + sentence[1:]
 
 
-def _low_pass_words(band: dict) -> str:
-    """The low-pass's shape in words: "Butterworth, order 2", "Bessel, order 3", "a moving
-    average of 5 samples"."""
-    shape = band.get("shape", "butterworth")
-    if shape == "moving_average":
-        return f"a moving average of {band['taps']} samples"
-    return f"{shape.capitalize()}, order {band['order']}"
+def _chain_sentences(held) -> str:
+    """The low-pass shapes the record cannot tell from the named one, and a white floor
+    gone into a coloured process (a fit failure)."""
+    text = ""
+    if held.low_pass_ties:
+        text += _capitalised(low_pass_ties_sentence(held.low_pass_ties))
+    if held.white_floor and held.white_floor["collapsed"]:
+        text += _capitalised(white_floor_sentence(held.white_floor))
+    return text
 
 
 def _describe(sel: SensorNoiseSelection) -> str:
@@ -133,7 +138,7 @@ def _describe(sel: SensorNoiseSelection) -> str:
             band = p["bandlimit"]
             after = band.get("white_after_filter_sigma")
             after = "" if after is None else f", white noise after it σ {after:.3g} g"
-            detail = f" ({_low_pass_words(band)}, −3 dB at {band['corner_Hz']:.3g} Hz{after})"
+            detail = f" ({low_pass_words(band)}, −3 dB at {band['corner_Hz']:.3g} Hz{after})"
         elif name == "flicker":
             detail = f" (B = {p['flicker']['bias_instability_B']:.3g} g)"
         elif name == "gauss_markov":
@@ -166,6 +171,7 @@ def _describe(sel: SensorNoiseSelection) -> str:
         text += f". More steps than the {len(held.level_shifts)} taken out"
     for rail in held.saturation:
         text += _capitalised(saturation_sentence(rail))
+    text += _chain_sentences(held)
     gaussian = held.non_gaussian
     if gaussian.get("significant") and not bursts:
         text += _capitalised(non_gaussian_sentence(gaussian))

@@ -14,9 +14,12 @@ from ..._noise.analysis import StaticRecordAnalysis
 from ..._noise.sensor import UNEXPLAINED_Z, SensorNoiseSelection
 from ..._noise.sensor_text import (
     level_shift_sentence,
+    low_pass_ties_sentence,
+    low_pass_words,
     non_gaussian_sentence,
     saturation_sentence,
     spectral_change_sentence,
+    white_floor_sentence,
 )
 
 
@@ -126,9 +129,16 @@ def _selection_lines(selection: SensorNoiseSelection) -> list[str]:
                 "and the amplitude is fitted with it)"
             )
         lines.append(line)
-    after = selection.parameters.get("bandlimit", {}).get("white_after_filter_sigma")
+    band = selection.parameters.get("bandlimit")
+    if band is not None:
+        lines.append(f"  low-pass: {low_pass_words(band)}, −3 dB at {band['corner_Hz']:.4g} Hz")
+    if held.low_pass_ties:
+        lines.append(f"  ? {low_pass_ties_sentence(held.low_pass_ties)}")
+    after = (band or {}).get("white_after_filter_sigma")
     if after is not None:
         lines.append(f"  white noise after the low-pass (the signal chain's own): σ {after:.4g} g")
+    if held.white_floor and held.white_floor["collapsed"]:
+        lines.append(f"  ! {white_floor_sentence(held.white_floor)}")
     if selection.quantization is not None:
         lines.append(f"  output grid: step {selection.quantization['step']:.4g} g")
     return lines
