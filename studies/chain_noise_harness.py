@@ -15,17 +15,19 @@ never sees the truth.
 
 Scored per kind (`score`):
 
-- `butterworth`, `bessel`, `moving_average` (the library's low-pass shapes:
-  `accel_jax._noise.chain_filters`): `bandlimit` named with no companion (a
-  `quantization` companion counts only where the record was quantised), its shape and
-  order (a moving average: its samples), its corner within 10 % of the filter's −3 dB
-  point, the white noise ahead of the filter (`white_sigma`) and after it
-  (`white_after_filter_sigma`) each within a factor 2 of the truth;
-- `decimated` (an oversampled CIC cascade decimated to the logged rate: a response the
-  library has no exact form for): the same figures, the corner against the cascade's
-  −3 dB point, and the effect sets named, listed (a decimation through one boxcar stage is exactly white:
-  `decimated_flat`, scored as a white record); a white level collapsed below a quarter of the model-free
-  estimate (`flat_band_sigma`) counted as a fit failure;
+- `butterworth`, `bessel`, `moving_average`, `decimated` (the library's low-pass shapes,
+  `accel_jax._noise.chain_filters`; `decimated` an oversampled CIC cascade decimated to
+  the logged rate, the library's decimating average): `bandlimit` named with no companion
+  (a `quantization` companion counts only where the record was quantised), its shape and
+  order (a moving average: its samples; a decimating average: its stages), or that shape
+  and order among the shapes the record cannot tell apart (`held_out.low_pass_ties`),
+  its corner within 10 % of the filter's own −3 dB point, the white noise ahead of the
+  filter (`white_sigma`) and after it (`white_after_filter_sigma`) each within a factor 2
+  of the truth (a decimation through one boxcar stage is exactly white: `decimated_flat`,
+  scored as a white record);
+- every kind: a white level collapsed below a quarter of the model-free estimate
+  (`flat_band_sigma`) is a fit failure, and the share of those the library flags
+  (`held_out.white_floor["collapsed"]`);
 - `nyquist_hump`: `high_frequency_noise` alone;
 - `white`: anything but `none` is a false alarm.
 
@@ -94,6 +96,8 @@ for k, f in enumerate(files):
     rows[f.stem] = {
         "verdict": found.verdict, "effects": list(found.effects),
         "unexplained": bool(found.unexplained), "parameters": found.parameters,
+        "low_pass_ties": found.held_out.low_pass_ties,
+        "white_floor": found.held_out.white_floor,
     }
     print(f"{k + 1}/{len(files)} {f.stem}: {found.verdict} "
           f"({time.perf_counter() - started:.1f} s)", file=sys.stderr, flush=True)
@@ -130,7 +134,12 @@ def _within(value, truth, factor) -> bool:
     return value is not None and truth > 0 and 1 / factor <= value / truth <= factor
 
 
-SHAPES = {"butterworth": "butterworth", "bessel": "bessel", "moving_average": "moving_average"}
+SHAPES = {
+    "butterworth": "butterworth",
+    "bessel": "bessel",
+    "moving_average": "moving_average",
+    "decimated": "decimating_average",
+}
 """The low-pass shape the selection should name for each kind of chain."""
 
 
@@ -158,6 +167,7 @@ def judge(truth: dict, row: dict) -> dict:
         "verdict": row["verdict"],
         "white_vs_flat_band": white / truth["flat_band_sigma"] if white else None,
         "collapsed": bool(white is None or white < COLLAPSED * truth["flat_band_sigma"]),
+        "flagged": bool((row.get("white_floor") or {}).get("collapsed")),
     }
     if kind in ("butterworth", "bessel", "moving_average", "decimated"):
         band = params.get("bandlimit") or {}
@@ -165,10 +175,14 @@ def judge(truth: dict, row: dict) -> dict:
         after = band.get("white_after_filter_sigma")
         facts.update(
             bandlimit_alone=extra == ["bandlimit"] and not row["unexplained"],
-            # the shape named and its order (a moving average: its samples); a decimation's
-            # response has no shape of its own in the library: its order only
-            order_right=_size(band) == truth["order"]
-            and SHAPES.get(kind, band.get("shape")) == band.get("shape"),
+            # the shape named and its order (a moving average: its samples; a decimating
+            # average: its stages)
+            order_right=_size(band) == truth["order"] and SHAPES[kind] == band.get("shape"),
+            # or the truth's shape and order among the shapes the record cannot tell apart
+            order_tied=any(
+                _size(tie) == truth["order"] and SHAPES[kind] == tie.get("shape")
+                for tie in row.get("low_pass_ties") or []
+            ),
             # against the filter's −3 dB point as logged (a Bessel's design corner is not)
             corner_error=(corner / truth["f3dB_Hz"] - 1) if corner else None,
             white_within=_within(white, truth["sensor_white_sigma"], LEVEL_FACTOR),
@@ -203,6 +217,7 @@ def score(truths: dict, rows: dict) -> dict:
                 )
             ),
             "white_collapsed": _rate(j["collapsed"] for j in ok),
+            "of_those_flagged": _rate(j["flagged"] for j in ok if j["collapsed"]),
             "white_within_2_of_flat_band": _rate(
                 j["white_vs_flat_band"] is not None
                 and 1 / LEVEL_FACTOR <= j["white_vs_flat_band"] <= LEVEL_FACTOR
@@ -215,6 +230,9 @@ def score(truths: dict, rows: dict) -> dict:
             section.update(
                 bandlimit_alone=_rate(j["bandlimit_alone"] for j in ok),
                 of_those_order_right=_rate(j["order_right"] for j in alone),
+                of_those_order_right_or_tied=_rate(
+                    j["order_right"] or j["order_tied"] for j in alone
+                ),
                 of_those_corner_within_10_percent=_rate(e <= CORNER_TOLERANCE for e in errors),
                 of_those_corner_error_median=float(np.median(errors)) if errors else None,
                 of_those_white_within_2=_rate(j["white_within"] for j in alone),
