@@ -217,14 +217,8 @@ def decimation_corner(stages: int, ratio: int) -> float:
     out), in cycles per logged sample: R times the −3 dB point of a moving average of R
     samples raised to the power K (bisection to 1e-12; → 0.3195 for K = 2 and many
     samples)."""
-    lo, hi = 1e-12, 1.0 / ratio  # the gain falls monotonically to its first null
-    def gain(f):
-        return (math.sin(math.pi * ratio * f) / (ratio * math.sin(math.pi * f))) ** (2 * stages)
-
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if gain(mid) > 0.5 else (lo, mid)
-    return ratio * 0.5 * (lo + hi)
+    # the gain falls monotonically to its first null
+    return ratio * _half_power(lambda f: _boxcar_power(ratio, f) ** stages, 1e-12, 1.0 / ratio)
 
 
 def folded_corner(stages: int, ratio: int) -> float:
@@ -236,9 +230,18 @@ def folded_corner(stages: int, ratio: int) -> float:
     def gain(f):
         return sum(c * math.cos(2 * math.pi * j * f) for j, c in enumerate(rho))
 
-    lo, hi = 0.0, 0.5
-    if gain(hi) >= 0.5:
-        return 0.5
+    return 0.5 if gain(0.5) >= 0.5 else _half_power(gain, 0.0, 0.5)
+
+
+def _boxcar_power(taps: int, f: float) -> float:
+    """(sin(π M f)/(M sin(π f)))²: the power gain of a moving average of M samples at f
+    cycles per sample."""
+    return (math.sin(math.pi * taps * f) / (taps * math.sin(math.pi * f))) ** 2
+
+
+def _half_power(gain, lo: float, hi: float) -> float:
+    """Where a gain falling monotonically over [lo, hi] passes one half (bisection, 60
+    halvings)."""
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if gain(mid) > 0.5 else (lo, mid)
@@ -248,12 +251,8 @@ def folded_corner(stages: int, ratio: int) -> float:
 def moving_average_corner(taps: int) -> float:
     """The −3 dB point of a moving average of `taps` samples, in cycles per sample
     (bisection on its gain to 1e-12; 0.25 for two samples, → 0.4430/M for many)."""
-    lo, hi = 1e-9, min(0.5, 1.0 / taps)  # the gain falls monotonically to its first null
-    gain = lambda f: (math.sin(math.pi * taps * f) / (taps * math.sin(math.pi * f))) ** 2  # noqa: E731
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if gain(mid) > 0.5 else (lo, mid)
-    return 0.5 * (lo + hi)
+    # the gain falls monotonically to its first null
+    return _half_power(lambda f: _boxcar_power(taps, f), 1e-9, min(0.5, 1.0 / taps))
 
 
 def nearest_taps(corner_per_sample: float) -> int:
