@@ -555,12 +555,17 @@ def apply_device(choice: str | None = None, *, latency_bound: bool, shared: bool
     if choice not in DEVICE_CHOICES:
         raise DeviceError(f"device must be one of {', '.join(DEVICE_CHOICES)}; got {choice!r}")
     platforms = os.environ.get("JAX_PLATFORMS", "").strip().lower()
+    import jax
+
     if (choice == "cpu" or (choice == "auto" and latency_bound)) and not _backend_started():
         if platforms in ("", "cpu") or choice == "cpu":
+            # JAX read JAX_PLATFORMS when it was imported (the package imports it), so the
+            # variable alone reaches only the processes this one starts: set the option too.
+            # (Without it, found on an H200 host, `--device cpu` met a started GPU.)
             os.environ["JAX_PLATFORMS"] = "cpu"
+            jax.config.update("jax_platforms", "cpu")
     if shared and choice != "cpu":
         os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    import jax
 
     backend = jax.default_backend()
     accelerator = None if backend == "cpu" else backend

@@ -268,6 +268,7 @@ placement = apply_device(sys.argv[1], latency_bound=sys.argv[2] == "latency", sh
 import jax
 print(json.dumps({"placement": placement, "record": placement_record(),
                   "platforms": os.environ.get("JAX_PLATFORMS", ""),
+                  "option": jax.config.jax_platforms or "",
                   "prealloc": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", ""),
                   "env": os.environ.get("ACCEL_JAX_DEVICE")}))
 """
@@ -295,6 +296,9 @@ def test_apply_device_on_a_cpu_host(choice, kind):
     assert doc["record"]["unsharded_work_on"].startswith("cpu")
     assert doc["record"]["sweeps_on"].startswith("cpu")
     assert doc["platforms"] == ("cpu" if kind == "latency" or choice == "cpu" else "")
+    # JAX (imported with the package) read JAX_PLATFORMS before apply_device set it: the
+    # option itself must say cpu, or on a GPU host the GPU starts (seen on an H200 host).
+    assert doc["option"] == doc["platforms"]
     # Several processes may share an accelerator: none preallocates (unless --device cpu).
     assert doc["prealloc"] == ("" if choice == "cpu" else "false")
 

@@ -62,8 +62,8 @@ OPTIONS = {
         "studies are reused and folders from a different run are left alone).",
         "--no-progress": "No progress bars (e.g. in logs).",
         "--jobs": "Studies run at a time, each in its own process. Default: one per CPU core, "
-        "at most 4 and at most one per 4 GiB of memory (1 on a GPU, whose memory every "
-        "process would claim).",
+        "at most 4 and at most one per 4 GiB of memory (the same on a GPU host: the "
+        "processes share the GPU, none claiming its memory up front).",
         "--compile-cache/--no-compile-cache": "Keep compiled XLA programs on disk "
         "($ACCEL_JAX_CACHE_DIR, default ~/.cache/accel_jax/xla) so that later runs skip most "
         "of the compilation.",
