@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
 import numpy as np
 from scipy import optimize
 
@@ -57,11 +56,6 @@ decay into records that have none: 1 of 4 Gauss–Markov records of 200 s at 200
 ARBITER_EVALUATIONS = 150
 """Nelder–Mead's likelihood evaluations per model at most."""
 
-_spectrum = jax.jit(spectral.spectrum)
-"""`spectral.spectrum` compiled: the arbiter evaluates it at one set of frequencies per
-record some hundred times (eagerly, op by op, each evaluation took 4 times as long)."""
-
-
 def _block_differences(r: np.ndarray) -> tuple[np.ndarray, int]:
     """The differenced means of blocks of m samples of r, at most `ARBITER_BLOCKS`; m."""
     m = max(1, -(-r.size // (ARBITER_BLOCKS + 1)))
@@ -72,7 +66,7 @@ def _two_log_likelihood(y, m, model: _Model, floor: float, templates) -> float:
     """2 ln L (less its constant) of the differenced block means y under `model`'s noise,
     the level's drift profiled; with `templates` (columns), the best transient's 2 ln Λ
     added (its amplitude profiled)."""
-    gamma = _differenced_autocovariance(model, floor, y.size, m, _spectrum)
+    gamma = _differenced_autocovariance(model, floor, y.size, m)
     columns = [y[:, None], np.ones((y.size, 1))]
     if templates is not None:
         columns.append(templates)

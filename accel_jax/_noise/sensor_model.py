@@ -299,7 +299,7 @@ def _differenced_autocovariance(
     floor: float,
     size: int,
     block: int = 1,
-    spectrum=spectral.spectrum,
+    spectrum=spectral.compiled_spectrum,
 ) -> np.ndarray:
     """γ(h), h = 0..size−1, of the differenced block means ȳ_j = x̄_j − x̄_{j−1} of the
     model's record x over blocks of `block` samples (`block` = 1: y = Δx): the inverse
@@ -312,7 +312,7 @@ def _differenced_autocovariance(
 
     (f_x = f_y / (4 sin²(ν/2)), f_x̄(ω) = Σ_k f_x(ν_k) |H(ν_k)|² / m, f_ȳ = 4 sin²(ω/2) f_x̄.
     Checked against the time-domain sum over γ_y in tests/test_noise_sensor.py.)
-    `spectrum`: f_y's function (`spectral.spectrum`, or a compiled one of the same
+    `spectrum`: f_y's function (`spectral.compiled_spectrum`, or another of the same
     arguments)."""
     grid = 8 * size
     m = block
