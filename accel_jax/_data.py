@@ -73,6 +73,10 @@ UNITS: dict[str, str] = {
 }
 
 MIN_SAMPLES: dict[str, int] = {"step": 200, "vibration": 8, "noise": 256}
+
+MAX_MAGNITUDE = 1e30
+"""The largest size a record's value may have (in its column's unit): no measurement is
+near it, and the fits' squares and sums of values of 1e160 and beyond overflow float64."""
 """The fewest samples (rows) each kind needs: a step record several input changes long, a
 vibration table with more rows than the largest effect has parameters, a noise record long
 enough for an autocorrelation out to a few correlation times."""
@@ -323,6 +327,14 @@ def validate(data: Dataset, *, path=None) -> Dataset:
                 f"{where}: column {column!r} row {i + 2} is {precise(float(values[i]))} "
                 f"{UNITS[column]}; "
                 "every value must be a finite number."
+            )
+        big = np.flatnonzero(np.abs(values) > MAX_MAGNITUDE)
+        if big.size:
+            i = int(big[0])
+            raise DataError(
+                f"{where}: column {column!r} row {i + 2} is {precise(float(values[i]))} "
+                f"{UNITS[column]}; no value may exceed {precise(MAX_MAGNITUDE)} in size (not a "
+                "measurement: check the file's values and units)."
             )
     notes = list(getattr(data, "notes", ()))
     if "t" in arrays:

@@ -82,12 +82,14 @@ def write_json_atomic(path: str | os.PathLike, payload: dict) -> Path:
 
 
 def save_figure_atomic(figure, path: str | os.PathLike, **kwargs) -> Path:
-    """Save a matplotlib figure as PNG via a temporary file and a rename."""
+    """Save a matplotlib figure via a temporary file and a rename: as PDF or SVG where the
+    path ends in .pdf or .svg, as PNG otherwise."""
     import io
 
     path = Path(path)
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", **{"dpi": 120, "bbox_inches": "tight", **kwargs})
+    fmt = {".pdf": "pdf", ".svg": "svg"}.get(path.suffix.lower(), "png")
+    figure.savefig(buffer, format=fmt, **{"dpi": 120, "bbox_inches": "tight", **kwargs})
     _atomic_write_bytes(path, buffer.getvalue())
     return path
 

@@ -12,12 +12,12 @@ import click
 
 from .report._command import (
     FILE,
+    check_outputs,
     device_option,
     json_writer,
     option,
     outputs,
     route,
-    writable,
     write,
 )
 from .report._studies import STUDIES, TYPICAL_SECONDS
@@ -46,8 +46,7 @@ def _start(command: str, out_dir, force: bool, device: str, json_out, plot_out, 
     (evidence to ~1 in ~1e4, δK_a at 0.1 %, crossing times to 1e-9 s: below float32's)."""
     paths = route(out_dir, command, json_out=json_out, plot_out=plot_out)
     checked = ((paths["json_out"], "--json"), (paths["plot_out"], "--plot"))
-    for path, flag in (*checked, (paths["text"], "--out"), *more):
-        writable(path, force, flag)
+    check_outputs((*checked, (paths["text"], "--out"), *more), force)
     _place(device, latency_bound=True)
     import jax
 
@@ -217,7 +216,7 @@ def tolerance(budget, mean_accel, sine, sine_freq, rms, psd_file, unit, json_out
         tolerance_table,
     )
 
-    writable(json_out, force, "--json")
+    check_outputs(((json_out, "--json"),), force)
     if rms is not None and psd_file is not None:
         raise click.UsageError("give the random vibration by --rms or by --psd, not both.")
     implausible = implausible_option(budget, mean_accel, sine, sine_freq, rms)

@@ -185,6 +185,39 @@ def test_identify_plot_refuses_an_existing_file(records, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["j.json", "p.png"]  # no temporaries
 
 
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--json", "same.x", "--plot", "same.x"], "--json and --plot are the same file"),
+        (["--plot", "p.jpg"], "the figure is written as .png, .pdf, .svg"),
+        (["--json", "a_file/j.json"], "a_file is a file, so nothing can be written below it"),
+        (["--json", "new.json", "--plot", "a_file/p.png"], "a_file is a file"),
+        (["--out", "a_folder", "--json", "../a_file/j.json"], "a_file is a file"),
+    ],
+)
+def test_outputs_that_cannot_be_written_are_refused_before_any_work(
+    records, tmp_path, monkeypatch, options, message
+):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a_file").write_text("the user's")
+    (tmp_path / "a_folder").mkdir()
+    result = CliRunner().invoke(main, ["identify", str(records["low_noise"]), *options])
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output
+    [line] = result.output.strip().splitlines()
+    assert line.startswith("Error: ") and message in line, line
+    # nothing written, nothing replaced
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "a_folder"]
+    assert (tmp_path / "a_file").read_text() == "the user's"
+
+
+def test_identify_plot_as_pdf_is_a_pdf(records, tmp_path):
+    plot = tmp_path / "p.pdf"
+    result = CliRunner().invoke(main, ["identify", str(records["low_noise"]), "--plot", str(plot)])
+    assert result.exit_code == 0, result.output
+    assert plot.read_bytes().startswith(b"%PDF")
+
+
 def test_identify_out_puts_everything_under_the_folder(records, tmp_path):
     out = tmp_path / "run"
     result = CliRunner().invoke(main, ["identify", str(records["low_noise"]), "--out", str(out)])

@@ -200,11 +200,24 @@ def test_without_a_unit_the_total_line_says_why_there_is_none():
         (["--budget", "5e-4", "--rms", "1", "--sine-freq", "-30"], "positive"),
         (["--budget", "5e-4", "--rms", "-1"], "non-negative"),
         (["--budget", "5e-4", "--rms", "nan"], "nan g; the RMS must be finite"),
+        # finite but beyond any accelerometer (the a⁵ terms of 1e300 g overflow)
+        (["--budget", "5e-4", "--rms", "1e300"], "at most 100000 g"),
+        (["--budget", "5e-4", "--rms", "1", "--sine", "1e300", "0", "0"], "at most 100000 g"),
+        (["--budget", "5e-4", "--rms", "1", "--sine-freq", "1e300"], "at most 1e+09 Hz"),
         (["--budget", "5e-4"], "no vibration given"),
     ],
 )
 def test_implausible_options_get_one_error_line(args, message):
     result = CliRunner().invoke(main, ["tolerance", "--mean-accel", "2", *args])
+    _one_error_line(result, message)
+
+
+def test_a_mean_acceleration_beyond_any_accelerometer_is_refused():
+    args = ["tolerance", "--budget", "5e-4", "--rms", "1", "--mean-accel", "1e300"]
+    _one_error_line(CliRunner().invoke(main, args), "at most 100000 g in size")
+
+
+def _one_error_line(result, message):
     assert result.exit_code != 0
     assert isinstance(result.exception, SystemExit)  # a click error, not a crash
     assert "Traceback" not in result.output

@@ -135,6 +135,9 @@ def _modified(column, index, value):
         ("u_test", 3, np.inf, r"'u_test' row 5 is inf V"),
         ("t", 10, 5e-5, r"increase strictly; row 12"),
         ("t", 10, 10.2e-5, "sampling must be uniform"),
+        # A finite value no measurement reaches: refused, not an overflow in the fits.
+        ("u_out", 4, 1e300, r"'u_out' row 6 is 1e300 V; no value may exceed 1e30 in size"),
+        ("u_test", 4, -2e31, r"'u_test' row 6 is -2e31 V; no value may exceed"),
     ],
 )
 def test_bad_csv_values(column, index, value, message):

@@ -86,11 +86,50 @@ def route(out_dir: Path | None, command: str, **paths) -> dict:
 
 
 def writable(path: Path | None, force: bool, option: str) -> None:
-    """Refuse to replace an existing output file unless --force (no user file is lost)."""
-    if path is not None and path.exists() and not force:
+    """Refuse, before any work, an output path that cannot be written: an existing file
+    unless --force (no user file is lost), a folder, or a path below a file."""
+    if path is None:
+        return
+    if path.is_dir():
+        raise click.ClickException(f"{option} {path} is a folder; give a file's path.")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise click.ClickException(
+                    f"{option} {path}: {parent} is a file, so nothing can be written below it."
+                )
+            break
+    if path.exists() and not force:
         raise click.ClickException(
             f"{option} {path} already exists; pass --force to replace it, or choose another path."
         )
+
+
+FIGURE_FORMATS = (".png", ".pdf", ".svg")
+"""The figure files --plot writes, by suffix (`save_figure_atomic` saves in that format)."""
+
+
+def check_outputs(paths, force: bool) -> None:
+    """Refuse, before any work, each path `writable` refuses, two outputs of one command
+    given the same path (the second would replace the first) and a --plot whose suffix is
+    not a figure format (`FIGURE_FORMATS`). `paths`: (path or None, option) pairs."""
+    seen: dict = {}
+    for path, option in paths:
+        if path is None:
+            continue
+        key = path.resolve()
+        if key in seen:
+            raise click.ClickException(
+                f"{seen[key]} and {option} are the same file, {path}; give each its own path."
+            )
+        seen[key] = option
+        if option == "--plot" and path.suffix.lower() not in FIGURE_FORMATS:
+            raise click.ClickException(
+                f"--plot {path}: the figure is written as {', '.join(FIGURE_FORMATS)}; end the "
+                "path in one of those."
+            )
+    for path, option in paths:
+        writable(path, force, option)
 
 
 def write(path: Path | None, content, what: str) -> None:

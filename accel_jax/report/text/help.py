@@ -97,7 +97,8 @@ OPTIONS = {
         "a number.",
         "--json": "Also write the result as JSON here.",
         "--plot": "Draw measured vs fitted model (graph method's t1, t2, A1, A2 marked), the "
-        "residual in its ±2σ noise band and its autocorrelation (PNG) here.",
+        "residual in its ±2σ noise band and its autocorrelation here (PNG, or PDF or SVG by the "
+        "suffix).",
         "--force": _RECORDS_FORCE,
     },
     "diagnose": {
@@ -124,13 +125,14 @@ OPTIONS = {
         "removes and how much of that the discovered term reaches (an estimate of what a "
         "term of the states could do, never a verdict; 1–2 minutes more on a CPU).",
         "--json": "Write the diagnosis as JSON here.",
-        "--plot": "Draw measured vs simulated, residuals, spectrum and ranking (PNG) here.",
+        "--plot": "Draw measured vs simulated, residuals, spectrum and ranking here (PNG, or "
+        "PDF or SVG by the suffix).",
         "--force": _RECORDS_FORCE,
     },
     "noise": {
         "--json": "Write the analysis as JSON here.",
         "--plot": "Draw the Allan deviation with its ±1σ bands and the fitted IEEE terms, and "
-        "the effects found step by step (PNG) here.",
+        "the effects found step by step here (PNG, or PDF or SVG by the suffix).",
         "--export": "Print the identified model in this format (kalibr: imu.yaml "
         "accelerometer entries; gnss-ins-sim: its IMU error dictionary; ieee: IEEE Std "
         "952/1293 names).",

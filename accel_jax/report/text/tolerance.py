@@ -12,6 +12,11 @@ from ..._format import number, precise
 _AXES = ("OA", "PA", "IA")
 
 MAX_BUDGET = 1.0
+MAX_ACCELERATION = 1e5
+"""The largest acceleration an option may give [g]: beyond any accelerometer's range (and
+the k5 a⁵ terms of 1e300 g overflow float64)."""
+MAX_FREQUENCY = 1e9
+"""The largest sinusoid frequency an option may give [Hz]."""
 """The largest budget δ* taken [g]: above 1 g it is a unit slip (mg or ppm typed as g)."""
 
 
@@ -23,20 +28,24 @@ def implausible_option(budget, mean_accel, sine, sine_freq, rms) -> tuple[str, s
             f"{precise(budget)}; the budget must be positive and at most {MAX_BUDGET:g} g: it "
             "is the admissible vibration error δ* in g (e.g. 5e-4 for 0.5 mg)."
         )
-    if not (math.isfinite(mean_accel) and mean_accel != 0):
+    top = f"at most {MAX_ACCELERATION:g} g"
+    if not (math.isfinite(mean_accel) and mean_accel != 0 and abs(mean_accel) <= MAX_ACCELERATION):
         return "--mean-accel", (
-            f"{precise(mean_accel)} g; it must be finite and non-zero (the multiplicative limits "
-            "divide by it)."
+            f"{precise(mean_accel)} g; it must be finite, non-zero (the multiplicative limits "
+            f"divide by it) and {top} in size."
         )
-    if not all(math.isfinite(b) and b >= 0 for b in sine):
+    if not all(math.isfinite(b) and 0 <= b <= MAX_ACCELERATION for b in sine):
         return "--sine", (
-            f"{' '.join(repr(b) for b in sine)} g; the amplitudes (OA PA IA) must be finite "
-            "and non-negative, e.g. 1.2 1.2 0.5."
+            f"{' '.join(repr(b) for b in sine)} g; the amplitudes (OA PA IA) must be finite, "
+            f"non-negative and {top}, e.g. 1.2 1.2 0.5."
         )
-    if not (math.isfinite(sine_freq) and sine_freq > 0):
-        return "--sine-freq", f"{precise(sine_freq)} Hz; the frequency must be finite and positive."
-    if rms is not None and not (math.isfinite(rms) and rms >= 0):
-        return "--rms", f"{precise(rms)} g; the RMS must be finite and non-negative."
+    if not (math.isfinite(sine_freq) and 0 < sine_freq <= MAX_FREQUENCY):
+        return "--sine-freq", (
+            f"{precise(sine_freq)} Hz; the frequency must be finite, positive and at most "
+            f"{MAX_FREQUENCY:g} Hz."
+        )
+    if rms is not None and not (math.isfinite(rms) and 0 <= rms <= MAX_ACCELERATION):
+        return "--rms", f"{precise(rms)} g; the RMS must be finite, non-negative and {top}."
     return None
 
 
