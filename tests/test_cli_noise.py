@@ -73,6 +73,10 @@ def test_noise_command_reports_terms_effects_and_exports(noise_csv, first_run):
     # K = √q = 5e-4 g/√s within its interval
     assert k_term["lower"] <= math.sqrt(2.5e-7) <= k_term["upper"]
     assert out_png.stat().st_size > 10_000
+    # gnss-ins-sim has no random-walk bias: the export leaves K out, and says so (it did
+    # not), with its Infinity correlation time (no correlated bias) explained
+    assert "note: K is not in the gnss-ins-sim export (no random-walk bias" in result.output
+    assert "note: accel_b_corr is Infinity" in result.output
     # gnss-ins-sim's accel_vrw [m/s/√h] is 60 × N [m/s²/√Hz] (N in g·√s × 9.80665)
     exported, _ = json.JSONDecoder().raw_decode(result.output[result.output.index("{") :])
     assert exported["accel_vrw"][0] == pytest.approx(60 * 9.80665 * n_term["value"], rel=1e-9)

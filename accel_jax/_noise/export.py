@@ -444,21 +444,10 @@ def to_gnss_ins_sim(terms: AccelNoiseTerms, *, strict: bool = False) -> dict:
     (`accel_b_stability` 0, `accel_b_corr` inf; `strict=True`: a ValueError instead).
     """
     si = _terms(terms)
-    dropped = {}
-    if _present(si.random_walk):
-        dropped["K"] = "no random-walk bias in gnss-ins-sim"
-    if _present(si.quantization):
-        dropped["Q"] = "no quantization term in gnss-ins-sim"
+    _dropped("gnss-ins-sim", gnss_ins_sim_left_out(terms), strict)
     stability, corr = 0.0, math.inf
-    if _present(si.bias_instability):
-        if si.bias_correlation_time is None:
-            dropped["B"] = (
-                "a bias instability needs bias_correlation_time: gnss-ins-sim's inf "
-                "correlation time draws white per-sample noise"
-            )
-        else:
-            stability, corr = si.bias_instability, si.bias_correlation_time
-    _dropped("gnss-ins-sim", dropped, strict)
+    if _present(si.bias_instability) and si.bias_correlation_time is not None:
+        stability, corr = si.bias_instability, si.bias_correlation_time
     ones = np.ones(3)
     return {
         "accel_b": np.zeros(3),
@@ -466,6 +455,22 @@ def to_gnss_ins_sim(terms: AccelNoiseTerms, *, strict: bool = False) -> dict:
         "accel_b_stability": stability * ones,
         "accel_b_corr": corr * ones,
     }
+
+
+def gnss_ins_sim_left_out(terms: AccelNoiseTerms) -> dict[str, str]:
+    """The terms `to_gnss_ins_sim` cannot carry, each with the reason: {IEEE symbol: why}."""
+    si = _terms(terms)
+    left_out = {}
+    if _present(si.random_walk):
+        left_out["K"] = "no random-walk bias in gnss-ins-sim"
+    if _present(si.quantization):
+        left_out["Q"] = "no quantization term in gnss-ins-sim"
+    if _present(si.bias_instability) and si.bias_correlation_time is None:
+        left_out["B"] = (
+            "a bias instability needs bias_correlation_time: gnss-ins-sim's inf "
+            "correlation time draws white per-sample noise"
+        )
+    return left_out
 
 
 # --- IEEE ---------------------------------------------------------------------------------

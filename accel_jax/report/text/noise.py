@@ -167,7 +167,15 @@ def export_text(analysis: StaticRecordAnalysis, export_format: str) -> tuple[lis
             )
         return notes, export.kalibr_yaml(t)
     if export_format == "gnss-ins-sim":
-        return notes, json.dumps(export.to_gnss_ins_sim(t), indent=1, default=_plain)
+        for name, why in export.gnss_ins_sim_left_out(t).items():
+            notes.append(f"note: {name} is not in the gnss-ins-sim export ({why})")
+        doc = export.to_gnss_ins_sim(t)
+        if not np.all(np.isfinite(doc["accel_b_corr"])):
+            notes.append(
+                "note: accel_b_corr is Infinity, gnss-ins-sim's 'no correlated bias' "
+                "(Python's json reads it as inf; strict JSON parsers refuse it)"
+            )
+        return notes, json.dumps(doc, indent=1, default=_plain)
     return notes, json.dumps(export.to_ieee(t), indent=1, default=_plain)
 
 
