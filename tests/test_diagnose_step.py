@@ -433,6 +433,9 @@ def test_time_scale_domain_check():
     result = diagnose_many([StepData(t, u, y)])[0]
     assert result.verdict == "unexplained"
     assert "time scales" in result.reason and "--params" in result.reason
+    # The nominal's rise (~0.4 ms) is under the 1 ms sample period: the ratio (to the
+    # period) is said to be a lower bound, not set beside the unresolved rise as if exact.
+    assert "under one sample period (1 ms): time scales at least" in result.reason
 
 
 # --- evidence logic, gap, whiteness (independent of the model) ---------------------------

@@ -91,9 +91,18 @@ def check_domain(data: StepData, nominal: NominalDevice, floor: float) -> tuple[
         factor = float(np.median(rises)) / max(nominal_rise, dt)
         measured["rise_time_ratio"] = factor
         if factor > 3 or (factor < 1 / 3 and nominal_rise > 2 * dt):
+            # Under one sample period the nominal rise is not resolved: the ratio is to the
+            # period, a lower bound (a record in ms read as s: 397 ms against 379 µs, 1 ms
+            # samples, is at least 397×, not "379 µs … 397×").
+            apart = (
+                f"time scales {factor:.3g}× apart"
+                if nominal_rise >= dt
+                else f"under one sample period ({time_text(dt)}): time scales at least "
+                f"{factor:.3g}× apart"
+            )
             problems.append(
                 f"the transients reach half their step in {time_text(np.median(rises))}, the "
-                f"nominal device's in {time_text(nominal_rise)}: time scales {factor:.3g}× apart "
-                "(a different device? give its values with --params)"
+                f"nominal device's in {time_text(nominal_rise)}, {apart} (a different device, "
+                "or time in other units than seconds? give the device's values with --params)"
             )
     return problems, measured
