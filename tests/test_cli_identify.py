@@ -247,3 +247,17 @@ def test_report_without_a_fit(records):
     )
     figure = report.identification_figure(result, title="no fit")
     assert len(figure.axes) == 3
+
+
+def test_a_time_constant_far_from_the_nominal_is_noted():
+    # A record whose time column is in ms read as s: T 1000× the nominal device's. Without the
+    # note, identify printed δK_a = +99.9999 % and nothing else (a user's trial).
+    from accel_jax.report.text.identification import time_scale_note
+
+    note = time_scale_note(0.2879, 290.1e-6)
+    assert note is not None and "992× the nominal device's 290.1 µs" in note
+    assert "--params" in note and "seconds" in note
+    assert "is 0.001× the nominal" in (time_scale_note(0.29e-6, 290e-6) or "")
+    assert time_scale_note(2.9 * 290e-6, 290e-6) is None  # within the factor 3
+    assert time_scale_note(290e-6 / 2.9, 290e-6) is None
+    assert time_scale_note(float("nan"), 290e-6) is None

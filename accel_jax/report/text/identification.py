@@ -190,6 +190,27 @@ def damping_note(result: StepIdentification) -> str | None:
     )
 
 
+TIME_SCALE_FACTOR = 3.0
+"""An identified T this factor or more from the nominal device's is noted (the diagnosis's
+domain check uses the same factor on the rise time)."""
+
+
+def time_scale_note(identified_s: float, nominal_s: float) -> str | None:
+    """A note where the graph method's T lies `TIME_SCALE_FACTOR` or more from the nominal
+    device's: K̂_a and δK_a then describe another device, or a record whose time is not in
+    seconds (in ms: T × 1000). None otherwise."""
+    if not (identified_s > 0 and nominal_s > 0):
+        return None
+    ratio = identified_s / nominal_s
+    if 1 / TIME_SCALE_FACTOR < ratio < TIME_SCALE_FACTOR:
+        return None
+    return (
+        f"note: T = {quantity(identified_s, 's')} is {ratio:.3g}× the nominal device's "
+        f"{quantity(nominal_s, 's')}: δK_a compares two different devices. Give the device's "
+        "values with --params, and check that the time column is in seconds."
+    )
+
+
 def identification_summary(result: StepIdentification) -> str:
     """The printed result of `accel-jax identify`: segment, nominal K_a, the graph method's
     estimate and what it read off the record, the fit's parameter table, δK_a, the fit's
@@ -220,6 +241,9 @@ def identification_summary(result: StepIdentification) -> str:
             f"A1 = {quantity(graph.overshoot_A1_V, 'V')}, "
             f"A2 = {quantity(graph.undershoot_A2_V, 'V')}"
         )
+    scale = time_scale_note(graph.time_constant_s, result.nominal.time_constant_s)
+    if scale is not None:
+        lines.append(scale)
     if not isinstance(fit, LeastSquaresFit):
         lines.append(f"least-squares fit failed: {fit.reason}")
         return "\n".join(lines)
