@@ -456,9 +456,10 @@ def _checked_values(body: list[list[str]], header: list[str], where: str) -> np.
 
 
 def _read_text(path: Path) -> str:
-    """The text of a CSV file; `DataError` if it cannot be read."""
+    """The text of a CSV file (UTF-8, with or without the byte-order mark spreadsheet
+    programs write); `DataError` if it cannot be read."""
     try:
-        return path.read_text()
+        return path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DataError(f"{path}: no such file.") from None
     except UnicodeDecodeError:

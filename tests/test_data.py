@@ -231,3 +231,14 @@ def test_error_messages_quote_numbers_as_written():
         parse_csv(text)
     message = str(error.value)
     assert "t = 0.299 s after t = 0.3 s" in message and "0000000" not in message
+
+
+def test_a_csv_with_a_byte_order_mark_is_read(tmp_path):
+    # Spreadsheet programs save "CSV UTF-8" with a BOM: it was refused ("unexpected
+    # ['\ufefft']"); read as the same file without it.
+    text, _ = _step_text()
+    plain, marked = tmp_path / "plain.csv", tmp_path / "bom.csv"
+    plain.write_text(text, encoding="utf-8")
+    marked.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    a, b = aj.read_csv(plain), aj.read_csv(marked)
+    assert np.array_equal(a.u_out, b.u_out) and np.array_equal(a.t, b.t)
