@@ -224,6 +224,10 @@ def test_cli_bad_vibration_and_noise_input(tmp_path):
         + "\n".join(f"{i},1,50,0,{i},-1" for i in range(10)),
         "too few rows": header + "\n" + "\n".join(f"{i},1,50,0,{i}" for i in range(5)),
         "constant noise": "t,a_out\n" + "\n".join(f"{i * 0.01!r},1.0" for i in range(300)),
+        # a dead output (0 g in every row) while a_in varies: it read `none` with δ = −1e6 ppm
+        "dead vibration output": header
+        + "\n"
+        + "\n".join(f"{-1 + 0.25 * i!r},1,50,0,0" for i in range(10)),
         "short noise": "t,a_out\n" + "\n".join(f"{i * 0.01!r},{np.sin(i)!r}" for i in range(100)),
     }
     out_json = tmp_path / "never.json"
@@ -235,3 +239,5 @@ def test_cli_bad_vibration_and_noise_input(tmp_path):
         lines = [line for line in result.stderr.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("Error:"), (name, result.stderr)
         assert not out_json.exists(), name
+        if name == "dead vibration output":
+            assert "disconnected or saturated channel" in lines[0], lines[0]

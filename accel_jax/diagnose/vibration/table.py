@@ -48,6 +48,14 @@ def _unexplained(columns: np.ndarray, basis: np.ndarray) -> np.ndarray:
 def prepare(data: VibrationData, effects: Sequence[AbstractVibrationEffect]) -> VibrationTable:
     """Host side: the design matrix, the free coefficients of each candidate, the folds (a
     `DataError` where the table has no design matrix)."""
+    out = np.asarray(data.a_out)
+    if np.ptp(out) == 0 and np.ptp(np.asarray(data.a_in)) > 0:
+        # As a step record's constant u_out: a dead output would read as a scale factor of
+        # zero (δ = −1e6 ppm), "closed by the refit" (a user's trial read `none`).
+        raise DataError(
+            f"vibration table: a_out is {out[0]:.6g} g in every row while a_in varies; no "
+            "response to diagnose (a disconnected or saturated channel?)."
+        )
     table = data.table()
     try:
         design = np.asarray(design_matrix(table, COEFFICIENTS, n_phase=N_PHASE)) / PPM
