@@ -518,11 +518,18 @@ def compact(result: dict) -> dict:
     if result.get("compact"):
         return result
     channels = {
-        key: {**{k: c[k] for k in CHANNEL_SUMMARY if k in c}, "spikes": len(c.get("spikes") or [])}
+        key: {**{k: c[k] for k in CHANNEL_SUMMARY if k in c}, "spikes": _spike_count(c)}
         for key, c in result["channels"].items()
     }
     rows = {key: {k: v for k, v in r.items() if k != "notes"} for key, r in result["rows"].items()}
     return {**result, "channels": channels, "rows": rows, "compact": True}
+
+
+def _spike_count(channel: dict) -> int:
+    """The number of relay spikes of a channel: its spike list's length, or the count a
+    compact shard kept (a merge of compact shards is compacted again)."""
+    spikes = channel.get("spikes")
+    return spikes if isinstance(spikes, int) else len(spikes or [])
 
 
 def _commit() -> str | None:

@@ -194,6 +194,10 @@ def test_a_compact_result_keeps_the_scores_and_each_channels_draws(tmp_path):
     c = small["channels"]["0"]
     assert c["delay_samples"] == channel["delay_samples"] and "change_index" not in c
     assert c["spikes"] == len(channel["spikes"] or [])
+    # Compact shards merged (the merge is no longer marked compact) compact again: the spike
+    # count is kept (it raised "object of type 'int' has no len()").
+    again = harness.compact({**small, "compact": False})
+    assert again["channels"]["0"]["spikes"] == c["spikes"]
 
 
 def test_prbs_twins_are_scored_on_their_own_world():
