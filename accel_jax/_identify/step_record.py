@@ -91,7 +91,24 @@ def _first_step(data: StepData) -> tuple[int, int, float, float]:
     return 0, stop, float(data.t[first]), float(u_test[first] - u_test[first - 1])
 
 
+_RECORD_WORDS = {
+    # A record's identification (`identify_step_record`, the CLI's) sets no method options:
+    # its reasons say what to change in the record, not which keyword of the Python methods
+    # to pass (a user's trial met "pass `steady_state`" and "use identify_aperiodic" there).
+    "too_short": "The record has not settled after the step: its last part is not flat "
+    "relative to the step. Record for longer after the step.",
+    "no_step": "The record shows no step: the output's change is within the noise band. "
+    "Check that the test signal was applied.",
+    "not_oscillatory": "The response does not oscillate (no overshoot beyond the noise "
+    "band, ξ ≥ 1).",
+    "not_aperiodic": "The response overshoots its steady state (ξ < 1).",
+}
+
+
 def _reason(code) -> str:
+    for name, words in _RECORD_WORDS.items():
+        if bool(code == getattr(IdentificationResult, name)):
+            return words
     return IdentificationResult[code]
 
 
