@@ -3,6 +3,7 @@ effects) and its CLI use, checked by simulate-then-diagnose-then-recover against
 a truth generator that is not the diagnosis's own code (the time average of
 `indicated_acceleration`)."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -178,6 +179,19 @@ def test_vibration_cannot_tell_with_one_input_level():
     assert "one input level" in notes and "cross_coupling left out" in notes
     assert "cross_coupling" not in [r["effect"] for r in result.ranking]
     assert result.gap["shrink"] > 0.5
+
+
+def test_a_row_pasted_twice_is_noted():
+    data = _table({}, seed=3)
+    again = VibrationData(
+        *(
+            None if v is None else np.concatenate([v, v[:2]])
+            for v in (getattr(data, f.name) for f in dataclasses.fields(data))
+        )
+    )
+    notes = " ".join(prepare(again, vibration_effects()).notes)
+    assert "2 row(s) equal another row in every column" in notes
+    assert "equal another row" not in " ".join(prepare(data, vibration_effects()).notes)
 
 
 def test_vibration_unobservable_effects_left_out():

@@ -65,6 +65,18 @@ def prepare(data: VibrationData, effects: Sequence[AbstractVibrationEffect]) -> 
     target = (np.asarray(data.a_out) - np.asarray(data.a_in)) / PPM
     index = {c: j for j, c in enumerate(COEFFICIENTS)}
     notes = []
+    columns = [np.asarray(v, np.float64) for v in table.values()]
+    rows = np.stack(columns, axis=1)
+    copies = rows.shape[0] - np.unique(rows, axis=0).shape[0]
+    if copies:
+        # Repeated conditions are repeats, but a row equal to another in every column,
+        # a_out to the last digit, is more likely pasted twice: counted as a measurement
+        # it shrinks the standard errors. Said, not removed.
+        notes.append(
+            f"{copies} row(s) equal another row in every column, a_out included: repeated "
+            "measurements agree to the last digit only by chance; a row pasted twice counts "
+            "as two measurements and shrinks the standard errors."
+        )
     nominal = [index["bias"]]
     if _unexplained(design[:, [index["scale_factor_error"]]], design[:, nominal])[0] > IDENTIFIABLE:
         nominal.append(index["scale_factor_error"])
