@@ -135,3 +135,16 @@ def test_noise_command_bad_input(tmp_path):
     short.write_text("t,a_out\n" + "".join(f"{k * 0.01},{np.sin(k)}\n" for k in range(40)))
     few = runner.invoke(main, ["noise", str(short)])
     assert few.exit_code != 0 and "at least" in few.output and "Traceback" not in few.output
+
+
+def test_a_record_too_short_for_the_analysis_is_refused_in_its_terms(tmp_path):
+    # 300 samples pass the reader (≥ 256) but not the five IEEE terms' octaves: the reason
+    # named the library function (`fit_allan_terms: …`), not what the command needs.
+    path = tmp_path / "short.csv"
+    x = np.random.default_rng(0).normal(size=300)
+    aj.write_csv(path, aj.NoiseData(np.arange(300) * 0.01, x))
+    result = CliRunner().invoke(main, ["noise", str(path)])
+    assert result.exit_code == 1
+    [line] = [line for line in result.output.splitlines() if line.strip()]
+    assert "300 samples is too short for the noise analysis" in line, line
+    assert "at least 1024 samples" in line and "fit_allan_terms" not in line

@@ -81,6 +81,12 @@ _MIN_BOOTSTRAP = 50
 _CHUNK_SAMPLES = 4_000_000  # samples per simulated batch (32 MB of float64)
 
 
+def minimum_samples(n_terms: int = 5) -> int:
+    """The shortest record `fit_allan_terms` fits `n_terms` terms to: its octave τ's must
+    number `_MIN_SIZES_OVER_TERMS` more than the terms (1,024 samples for all five)."""
+    return 16 * 2 ** (n_terms + _MIN_SIZES_OVER_TERMS - 1)
+
+
 def _flicker_size(n: int) -> int:
     """Length of the FFT record the flicker simulator draws (≥ 2n, the record a part)."""
     from scipy import fft
@@ -367,7 +373,7 @@ def fit_allan_terms(
     n = x.size
     sizes = tuple(octave_cluster_sizes(n))
     if len(sizes) < len(terms) + _MIN_SIZES_OVER_TERMS:
-        need = 16 * 2 ** (len(terms) + _MIN_SIZES_OVER_TERMS - 1)
+        need = minimum_samples(len(terms))
         raise ValueError(
             f"{name}: a record of {n} samples is too short: it gives {len(sizes)} octave τ's "
             f"and fitting {len(terms)} terms needs {len(terms) + _MIN_SIZES_OVER_TERMS} "

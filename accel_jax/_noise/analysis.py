@@ -13,7 +13,7 @@ import numpy as np
 
 from .._deprecated import LegacyItems
 from .allan_intervals import AllanDeviation, allan_deviation_intervals
-from .allan_terms import AllanTerms, fit_allan_terms
+from .allan_terms import AllanTerms, fit_allan_terms, minimum_samples
 from .export import AccelNoiseTerms
 from .sensor import SensorNoiseSelection, select_sensor_noise
 
@@ -102,6 +102,12 @@ def analyse_static_record(
     (`AccelNoiseTerms`). Bad input raises `ValueError`.
     """
     x = np.asarray(record, np.float64)
+    least = minimum_samples()
+    if x.ndim == 1 and x.size < least:  # said in the analysis's terms, before any work
+        raise ValueError(
+            f"a record of {x.size} samples is too short for the noise analysis: the Allan "
+            f"deviation's five IEEE terms need at least {least} samples."
+        )
     adev = allan_deviation_intervals(x, sample_interval)
     terms = fit_allan_terms(
         x, sample_interval, confidence=confidence, n_bootstrap=n_bootstrap, seed=seed
