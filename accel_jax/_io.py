@@ -13,7 +13,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._runtime import placement_record, skipped_xla_flags, usable_cpus
+from ._placement import placement_record
+from ._runtime import skipped_xla_flags, usable_cpus
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:

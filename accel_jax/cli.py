@@ -32,7 +32,7 @@ _report, _tolerance, _identify, _diagnose, _noise = (
 def _place(device: str, *, latency_bound: bool, shared: bool = False) -> None:
     """Apply `--device` before JAX starts its backend; a device that is not there is one
     line and exit status 1."""
-    from ._runtime import DeviceError, apply_device
+    from ._placement import DeviceError, apply_device
 
     try:
         apply_device(device, latency_bound=latency_bound, shared=shared)

@@ -78,9 +78,9 @@ def test_studies_and_notebooks_use_only_the_public_api():
     root = pathlib.Path(__file__).resolve().parent.parent
     scripts = sorted((root / "studies").glob("*.py")) + sorted((root / "notebooks").glob("*.py"))
     assert scripts
-    private = re.compile(r"^\s*(from|import)\s+accel_jax\._(?!runtime\b)", re.MULTILINE)
+    private = re.compile(r"^\s*(from|import)\s+accel_jax\._(?!runtime\b|placement\b)", re.MULTILINE)
     offenders = [p.name for p in scripts if private.search(p.read_text())]
-    runtime = re.compile(r"^\s*(from|import)\s+accel_jax\._runtime", re.MULTILINE)
+    runtime = re.compile(r"^\s*(from|import)\s+accel_jax\._(runtime|placement)\b", re.MULTILINE)
     assert not [
         p.name for p in sorted((root / "notebooks").glob("*.py")) if runtime.search(p.read_text())
     ]
@@ -92,8 +92,8 @@ def test_studies_and_notebooks_use_only_the_public_api():
 # freely, within the estimation layer only as listed.
 _LAYERS = {
     "foundations": (
-        "_params", "_checks", "_data", "_format", "_io", "_progress", "_runtime", "_deprecated",
-        "_solvers",
+        "_params", "_checks", "_data", "_format", "_io", "_progress", "_runtime", "_placement",
+        "_deprecated", "_solvers",
     ),
     "models": ("_servo", "_static", "_pendulum"),
     "simulation": ("_simulate",),
@@ -173,9 +173,10 @@ def test_import_layers():
     # Process settings stay with the entry points (and the package's import-time hook);
     # the library may read the CPUs it may run on (`usable_cpus`, which changes nothing).
     for unit, targets in graph.items():
-        names = set(targets.get("_runtime", ())) - {"usable_cpus"}
-        if names and rank[unit] not in (0, rank["cli"]):
-            wrong.append(f"{unit} imports _runtime {sorted(names)}")
+        for settings in ("_runtime", "_placement"):
+            names = set(targets.get(settings, ())) - {"usable_cpus"}
+            if names and rank[unit] not in (0, rank["cli"]):
+                wrong.append(f"{unit} imports {settings} {sorted(names)}")
     assert wrong == []
 
 

@@ -1,5 +1,5 @@
 """Right on every machine: XLA options that cannot abort a process, and work placed by
-`--device` (accel_jax/_runtime.py).
+`--device` (accel_jax/_runtime.py, accel_jax/_placement.py).
 
 XLA aborts the whole process on an option its build does not know. The pinned jaxlib knows
 every option the package sets, so a jaxlib that rejects one is simulated: with
@@ -20,12 +20,11 @@ import pytest
 
 import accel_jax as aj
 from accel_jax import _runtime
+from accel_jax._placement import DeviceError, plan_placement
 from accel_jax._runtime import (
     CPU_SCHEDULER_FLAG,
     FAST_COMPILE_FLAGS,
-    DeviceError,
     accepted_xla_flags,
-    plan_placement,
 )
 
 REJECTS = Path(__file__).resolve().parent / "xla_rejects"
@@ -263,7 +262,7 @@ def test_placement_decisions():
 
 _PLACE = """
 import json, os, sys
-from accel_jax._runtime import apply_device, placement_record
+from accel_jax._placement import apply_device, placement_record
 placement = apply_device(sys.argv[1], latency_bound=sys.argv[2] == "latency", shared=True)
 import jax
 print(json.dumps({"placement": placement, "record": placement_record(),

@@ -32,8 +32,9 @@ import jax
 import numpy as np
 
 from .._io import _atomic_write_bytes
+from .._placement import apply_device
 from .._progress import bar, show_progress
-from .._runtime import apply_device, usable_cpus
+from .._runtime import usable_cpus
 from ._html import REPORT_MARKER, build_report
 
 MARKER = ".accel_jax_run.json"

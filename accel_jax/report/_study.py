@@ -106,14 +106,8 @@ def study_main(
     and exit status 2; a study that raises is one line on stderr (its traceback in
     `OUT/error.log`) and exit status 1.
     """
-    from .._runtime import (
-        DEVICE_CHOICES,
-        DeviceError,
-        apply_device,
-        apply_fast_compile,
-        enable_compilation_cache,
-        quiet_xla_logs,
-    )
+    from .._placement import DEVICE_CHOICES, DeviceError, apply_device
+    from .._runtime import apply_fast_compile, enable_compilation_cache, quiet_xla_logs
     from ._run import ERROR_LOG, ReportError, _record_failure, cache_key, one_line, run_study
 
     script = Path(study_file).resolve()
