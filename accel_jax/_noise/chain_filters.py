@@ -27,6 +27,7 @@ stage (K = 1) gives block means, exactly white: nothing to fit.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -221,6 +222,7 @@ def decimation_corner(stages: int, ratio: int) -> float:
     return ratio * _half_power(lambda f: _boxcar_power(ratio, f) ** stages, 1e-12, 1.0 / ratio)
 
 
+@functools.cache  # a constant of (K, R), asked for each fitted corner of every selection
 def folded_corner(stages: int, ratio: int) -> float:
     """Where the logged response of a decimating average (its folded images included)
     passes half the power, in cycles per logged sample (bisection to 1e-12): what a

@@ -313,14 +313,14 @@ def _other_shapes(zs) -> list[str]:
     of `zs` (z[8] = logit(2 f_b Δ)), with `MOVING_AVERAGE_SPREAD` taps either side of the
     first (the selected model's) and one either side of the others, and the decimating
     averages whose logged −3 dB point lies within `DECIMATION_SPREAD` of a fitted corner."""
+    corners = [0.5 / (1 + math.exp(-float(z[8]))) for z in zs]  # f_b Δ
     taps = set()
-    for i, z in enumerate(zs):
-        nearest = chain_filters.nearest_taps(0.5 / (1 + math.exp(-float(z[8]))))
+    for i, corner in enumerate(corners):
+        nearest = chain_filters.nearest_taps(corner)
         spread = MOVING_AVERAGE_SPREAD if i == 0 else 1
         lo = max(2, nearest - spread)
         taps.update(range(lo, min(chain_filters.MAX_TAPS, nearest + spread) + 1))
     bessel = [f"bandlimit_bessel{n}" for n in chain_filters.BESSEL_ORDERS]
-    corners = [0.5 / (1 + math.exp(-float(z[8]))) for z in zs]
     decimations = [
         name
         for name in _decimations()
@@ -422,9 +422,9 @@ def _collapsed_floor(rec, floor, model, dt: float, log_j: float, evidence: float
         return model, (), 0.0, []
     dropped = tuple(n for n in model.names if n in COMPANIONS)
     rest = tuple(n for n in model.names if n not in dropped)
+    shapes = _floor_shapes()
     specs = [
-        ((*rest, shape, "filter_floor"), model.lines, model.transient, None)
-        for shape in _floor_shapes()
+        ((*rest, shape, "filter_floor"), model.lines, model.transient, None) for shape in shapes
     ]
     fits = _evaluate_many(rec, floor, specs)
     added = PARAMETER_COUNT["bandlimit"] + PARAMETER_COUNT["filter_floor"]
@@ -433,6 +433,6 @@ def _collapsed_floor(rec, floor, model, dt: float, log_j: float, evidence: float
     best = int(np.argmax(scores))
     if scores[best] <= 0:  # (the model in place is a fit failure: no bar to clear)
         return model, (), 0.0, []
-    by_name = dict(zip(_floor_shapes(), scores, strict=True))
-    chosen = _floor_shapes()[best]
+    by_name = dict(zip(shapes, scores, strict=True))
+    chosen = shapes[best]
     return fits[best], dropped, float(scores[best]), _ties(by_name, chosen, scores[best], evidence)
