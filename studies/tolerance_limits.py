@@ -21,44 +21,30 @@ import sys
 import time
 from pathlib import Path
 
-import jax
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")  # figures to files only, before pyplot is imported
+import jax  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
 
 # Run as a script: float64 before the module's constants are built, as in the report's
 # workers (imported by the report, this changes nothing: the report chose already).
 if __name__ == "__main__":
     jax.config.update("jax_enable_x64", True)
 
-import equinox as eqx
-import jax.numpy as jnp
-import matplotlib
-import numpy as np
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 
 import accel_jax as aj  # noqa: E402
 from accel_jax import PPM  # noqa: E402
-from accel_jax.report import (  # noqa: E402
-    Figures,
-    provenance,
-    study_main,
-    study_run,
-    write_json_atomic,
-)
-from accel_jax.vibration import (  # noqa: E402
-    AKS05_RANGES_PPM,
-    TOLERANCED,
-    BandSpectrum,
-    cyclone4,
-    gradient_limits,
-    mean_abs_input,
-    paper_limits,
-    sample_batch,
-    sensitivities,
-    sensitivity_profile,
-    tactical_missile,
-    unit_vibration_error,
-    within_rms_region,
+from accel_jax.report import Figures, provenance, study_main, study_run  # noqa: E402
+from accel_jax.report import write_json_atomic  # noqa: E402
+from accel_jax.vibration import AKS05_RANGES_PPM, TOLERANCED, BandSpectrum  # noqa: E402
+from accel_jax.vibration import cyclone4, tactical_missile  # noqa: E402  (the two vehicles)
+from accel_jax.vibration import (  # noqa: E402  (the limits and their sensitivities)
+    gradient_limits, mean_abs_input, paper_limits, sample_batch, sensitivities,
+    sensitivity_profile, unit_vibration_error, within_rms_region,
 )
 
 STUDY = "tolerance_limits"
@@ -762,9 +748,8 @@ def make_figures(out_dir, r, scenarios, arrays, samples) -> list:
         low, high = ax.get_ylim()
         ax.set_ylim(low, high * 30)  # room for the labels
         ax.set_xticks(x, [f"{c} [{UNIT[c]}]" for c in LIMITS], rotation=30, ha="right")
-        ax.set_ylabel("admissible |coefficient| [ppm units]")
-        ax.set_title(title)
         ax.grid(alpha=0.3, axis="y")
+        ax.set(ylabel="admissible |coefficient| [ppm units]", title=title)
     axes[0].legend(fontsize=8)
     save(
         fig,
