@@ -903,6 +903,16 @@ def _information_text(c: dict) -> str:
         f"over the second half: a median {info['median']:.1f} nats (10th–90th percentiles "
         f"{info['p10_p90'][0]:.1f}, {info['p10_p90'][1]:.1f}), above the loop's price "
         f"{info['loop_price']:.1f} on {100 * info['share_above_loop_price']:.0f} % of logs"
+        + (
+            f"; and the drift itself, noise-free every {perfect['lag_time_s']:g} s for "
+            f"{perfect['hours']:g} h (the loop's window; NumPy, {perfect['realisations']} "
+            f"realisations), holds a median {perfect['median']:.1f} nats "
+            f"({perfect['p10_p90'][0]:.1f}, {perfect['p10_p90'][1]:.1f}) for the true "
+            "structure over the best Gauss–Markov: a test with perfect candidates on a perfect "
+            f"record would pass the price on {100 * perfect['share_above_loop_price']:.0f} %"
+            if (perfect := info.get("drift_itself_noise_free"))
+            else ""
+        )
     )
 
 

@@ -127,6 +127,12 @@ def test_study_in_flight(quick_report):
             assert info is None, name
         else:
             assert np.isfinite(info["median"]) and info["loop_price"] > 0, name
+            perfect = info["drift_itself_noise_free"]
+            assert perfect["hours"] == min(24, fl["hours"]) and perfect["realisations"] >= 64
+    # The study's drift seen through a 0.1 m/s velocity log holds far less of its structure
+    # than the drift itself would, noise-free (the bound the loop cannot beat).
+    weak = fl["configurations"]["too_large"]["information_true_over_best_gauss_markov"]
+    assert weak["drift_itself_noise_free"]["median"] > weak["median"]
     switch_row = next(row for row in rows if "ends modelling as exponential-cosine (the truth)" in row["quantity"])
     assert "what the log can tell at best" in switch_row["explanation"]
 
@@ -166,3 +172,71 @@ def test_in_flight_information_bound_tells_a_structured_log_from_a_weak_one():
     assert strong[0] > 3 * price, gains
     weak, price = gains["exp_cosine"]
     assert weak[1] < price, gains
+
+
+def test_perfect_observation_bound_against_the_dense_gaussian_likelihood():
+    """`noise_in_flight.perfect_observation_bound`'s two likelihoods against SciPy's
+    multivariate normal with the Toeplitz covariance of each model (an independent route:
+    no filter); the best AR(1) of the grid within 1e-3 nats of a bounded scalar search; and
+    the bound itself: about zero for a drift with no oscillation (β = 0: the true model is
+    one of the Gauss–Markov ones, which then fit two parameters by maximum likelihood: −1
+    expected), and for βτ_c = 2.5 over 24 h at 30 s of the size the Whittle approximation
+    gives — n times the Kullback–Leibler rate between the sampled process's spectrum and
+    the nearest AR(1) spectrum (16.7 nats), less the one nat of the fitted parameters —
+    within 3 standard errors of 256 realisations and one nat."""
+    import sys
+    from pathlib import Path
+
+    from scipy import optimize, stats
+    from scipy.linalg import toeplitz
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+    import noise_in_flight as nf
+
+    rng = np.random.default_rng(3)
+    a, b, dt, n = 1 / 600, 2.5 / 600, 30.0, 120
+    lags = dt * np.arange(n)
+    cov_ec = toeplitz(np.exp(-a * lags) * np.cos(b * lags))
+    x = rng.multivariate_normal(np.zeros(n), cov_ec, size=3)
+    dense = stats.multivariate_normal(np.zeros(n), cov_ec).logpdf(x)
+    np.testing.assert_allclose(nf.exp_cosine_log_likelihood(x, a, b, dt), dense, rtol=1e-10)
+
+    def ar1(phi, series):
+        s2 = np.mean(
+            np.r_[series[0] ** 2 * (1 - phi**2), (series[1:] - phi * series[:-1]) ** 2]
+        )
+        cov = toeplitz(s2 / (1 - phi**2) * phi ** np.arange(n))
+        return stats.multivariate_normal(np.zeros(n), cov).logpdf(series)
+
+    best = [
+        -optimize.minimize_scalar(
+            lambda p, s=s: -ar1(p, s), bounds=(-0.999, 0.999), method="bounded",
+            options={"xatol": 1e-9},
+        ).fun
+        for s in x
+    ]
+    np.testing.assert_allclose(nf.gauss_markov_max_log_likelihood(x), best, atol=1e-3)
+
+    flat = nf.perfect_observation_bound(1 / 3600, 0.0, dt, 24, 256, 1)
+    assert -1.5 < np.mean(flat) <= 0.0
+    a, b = 1 / 3600, 2.5 / 3600
+    lam = np.linspace(-np.pi, np.pi, 40001)
+    spectrum = sum(
+        0.5 * (1 - abs(rho) ** 2) / abs(1 - rho * np.exp(-1j * lam)) ** 2
+        for rho in (np.exp(-a * dt + 1j * b * dt), np.exp(-a * dt - 1j * b * dt))
+    )
+
+    def kl(p):
+        nearest = np.exp(p[1]) / abs(1 - np.tanh(p[0]) * np.exp(-1j * lam)) ** 2
+        ratio = spectrum / nearest
+        return np.trapezoid(ratio - 1 - np.log(ratio), lam) / (4 * np.pi)
+
+    rate = min(
+        optimize.minimize(kl, [np.arctanh(phi), np.log(0.05)], method="Nelder-Mead").fun
+        for phi in (0.9, 0.99)
+    )
+    expected = rate * 24 * 3600 / dt - 1.0
+    assert 15 < expected + 1 < 18.5  # 16.7 nats
+    evidence = nf.perfect_observation_bound(a, b, dt, 24, 256, 2)
+    standard_error = np.std(evidence) / np.sqrt(evidence.size)
+    assert abs(np.mean(evidence) - expected) < 3 * standard_error + 1.0, (np.mean(evidence), expected)
