@@ -1046,8 +1046,7 @@ def _in_flight_rows(fl: dict) -> list[dict]:
                 "calls for it",
                 "note": "target ≥ 90 %; " + where,
                 "status": "reproduced" if min(rates) >= 0.9 and max(wrong) <= 0.05 else "differs",
-                "explanation": "at best"
-                + _information_text(informative[0])
+                "explanation": _information_text(informative[0]).removeprefix("; ")
                 + "; the loop's candidates are the paper's rules on its own estimates: "
                 + "; ".join(
                     f"×{c['start_factor']:g}: gyro ends {c['identified_final']['gyro']['median']['structure']} "
