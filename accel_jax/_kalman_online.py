@@ -26,7 +26,14 @@ state vector [ΔV, δ, a₁, a₂, ω₁, ω₂] keeps its shape: the whole flig
 3. Both structures are fitted by the paper's rules (`structure_candidates`): Gauss–Markov by
    rule (15) on the corrected R̂ (lags while r_j > e⁻¹); exponential-cosine by (19)–(21),
    its β and α from the estimates' own R̂ (whose zero crossing the correction would move),
-   its σ² from the corrected R̂_0.
+   its σ² from the corrected R̂_0. Each structure is fitted from the estimates of the filter
+   that runs it, corrected with that filter's model (`own_filter_candidates`): the current
+   structure from the main filter, the other from the filter beside it with that sensor
+   alone in the other structure. (Fitted from the main filter's estimates, whose shape
+   follows the main filter's model, the other structure's candidate was biased — a gyro
+   drift with 1/α = 14,400 s fitted at 961 s — and the Gauss–Markov accelerometer took
+   exponential-cosine at the drift's frequency on 7 of 16 logs of a strongly oscillating
+   drift, against 0 of 16 so.)
 4. Structure: beside the main filter run three more, one for each other combination of
    the two sensors' structures (each sensor in its other structure takes its latest fit of
    that structure). Over the window, each combination's velocity log-likelihood less
@@ -175,6 +182,8 @@ class OnlineIdentification(eqx.Module):
     - `fading_window`: Sage–Husa's memory N (b = 1 − 1/N), in steps.
     - `cap_correlation_time`: a fitted 1/α longer than the window's span over
       `min_correlation_times` is capped there (else the retune is refused).
+    - `own_filter_candidates`: fit each structure from the estimates of the filter that
+      runs it (with the structure test; otherwise both from the main filter's).
     """
 
     adaptation: Literal["identify", "sage_husa", "none"] = eqx.field(static=True, default="identify")
@@ -189,6 +198,7 @@ class OnlineIdentification(eqx.Module):
     choose_structure: bool = eqx.field(static=True, default=True)
     fading_window: float = eqx.field(static=True, default=3600.0)
     cap_correlation_time: bool = eqx.field(static=True, default=True)
+    own_filter_candidates: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if self.adaptation not in ("identify", "sage_husa", "none"):
@@ -301,19 +311,39 @@ def _limit(new, current, span, settings: OnlineIdentification):
     return SensorErrorModel(sigma, alpha, new.angular_frequency), ok
 
 
-def _retune(current, alternative, use_ec, x_window, p_window, count, settings, lag_time):
-    """One sensor's re-identification after a block: (model, alternative, retuned,
-    alternative retuned). The
-    structure `use_ec` is decided by the caller (the log-likelihood test); the model takes
-    that structure's fit, the alternative the other's."""
+def _corrected(model, x_window, p_window, count, settings, lag_time):
+    """The window's autocovariance with the shrinkage correction under `model` (the model
+    the filter that made the estimates ran), and the estimates' own (the shape)."""
     R, _ = _window_autocovariance(x_window, count, settings.max_lag)
     shape = R
     if settings.correct_shrinkage:
         mask = jnp.arange(x_window.shape[0]) >= x_window.shape[0] - count
         p_mean = jnp.sum(jnp.where(mask[:, None, None], p_window, 0.0), axis=0) / count
         lags = jnp.arange(settings.max_lag + 1, dtype=R.dtype) * lag_time
-        R = R + jax.vmap(lambda tau: (current.transition(tau) @ p_mean)[0, 0])(lags)
+        R = R + jax.vmap(lambda tau: (model.transition(tau) @ p_mean)[0, 0])(lags)
+    return R, shape
+
+
+def _retune(current, alternative, use_ec, windows, count, settings, lag_time):
+    """One sensor's re-identification after a block: (model, alternative, retuned,
+    alternative retuned). The structure `use_ec` is decided by the caller (the
+    log-likelihood test); the model takes that structure's fit, the alternative the
+    other's. `windows`: ((x, P) of the main filter, (x, P) of the filter that runs this
+    sensor in its other structure): each structure is fitted from the estimates of the
+    filter that runs it, corrected with that filter's model (with
+    `own_filter_candidates`; otherwise both from the main filter)."""
+    (x_main, p_main), (x_alt, p_alt) = windows
+    R, shape = _corrected(current, x_main, p_main, count, settings, lag_time)
     gm, ec, gm_ok, ec_ok = structure_candidates(R, lag_time, shape)
+    if settings.own_filter_candidates:
+        R_alt, shape_alt = _corrected(alternative, x_alt, p_alt, count, settings, lag_time)
+        gm_a, ec_a, gm_a_ok, ec_a_ok = structure_candidates(R_alt, lag_time, shape_alt)
+        cur_ec = current.angular_frequency > 0
+        # The current structure's fit from the main filter, the other's from its own.
+        ec = jax.tree.map(lambda a, m: jnp.where(cur_ec, m, a), ec_a, ec)
+        gm = jax.tree.map(lambda a, m: jnp.where(cur_ec, a, m), gm_a, gm)
+        ec_ok = jnp.where(cur_ec, ec_ok, ec_a_ok)
+        gm_ok = jnp.where(cur_ec, gm_a_ok, gm_ok)
     span = count * lag_time
     enough = count >= settings.min_window
 
@@ -463,8 +493,8 @@ def identify_in_flight(
             cov[0, :2, :2],
             innovation[0],
             s[0],
-            mean[0, jnp.array([2, 4])],
-            jnp.stack([cov[0, 2:4, 2:4], cov[0, 4:6, 4:6]]),
+            mean[:, jnp.array([2, 4])],
+            jnp.stack([cov[:, 2:4, 2:4], cov[:, 4:6, 4:6]], axis=1),
             log_lik,
         )
         return (means, covs, q, k + 1), out
@@ -537,14 +567,20 @@ def identify_in_flight(
                 use_ec = models.angular_frequency > 0
             new_models, new_alternatives, alt_ok, oks = [], [], [], []
             for i in range(2):
-                x_window = jax.lax.dynamic_slice_in_dim(x_buf[:, i], end - size, size)
-                p_window = jax.lax.dynamic_slice_in_dim(p_buf[:, i], end - size, size)
+                # The main filter's estimates, and those of the filter that runs sensor i
+                # alone in its other structure (filter 1 + i; the main one without the test).
+                windows = tuple(
+                    (
+                        jax.lax.dynamic_slice_in_dim(x_buf[:, f, i], end - size, size),
+                        jax.lax.dynamic_slice_in_dim(p_buf[:, f, i], end - size, size),
+                    )
+                    for f in (0, 1 + i if test else 0)
+                )
                 m, alt, ok, aok = _retune(
                     sensor(models, i),
                     sensor(alternatives, i),
                     use_ec[i],
-                    x_window,
-                    p_window,
+                    windows,
                     count,
                     settings,
                     lag_time,
@@ -574,8 +610,8 @@ def identify_in_flight(
     )
     q0 = model_of(accel, gyro).process_covariance
     # Buffers front-padded by one window, so every window is one dynamic slice.
-    x_buf = jnp.zeros((size + n_dec, 2))
-    p_buf = jnp.zeros((size + n_dec, 2, 2, 2))
+    x_buf = jnp.zeros((size + n_dec, n_filters, 2))
+    p_buf = jnp.zeros((size + n_dec, n_filters, 2, 2, 2))
     l_buf = jnp.zeros((window_blocks + n_blocks, 4))
     v_buf = jnp.zeros((window_blocks + n_blocks,), bool)
     carry = (
@@ -598,8 +634,8 @@ def identify_in_flight(
         kinematic_covariances=kin_cov,
         innovations=innovation,
         innovation_variances=s,
-        sensor_estimates=final[7][size:],
-        sensor_covariances=final[8][size:],
+        sensor_estimates=final[7][size:, 0],
+        sensor_covariances=final[8][size:, 0],
         models=params,
         retuned=retuned,
         structure_statistic=statistic,
