@@ -25,7 +25,7 @@ from ._kalman_models import INSNoiseChannel as INSNoiseChannel
 from ._kalman_models import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman_online import OnlineIdentification as OnlineIdentification
 from ._kalman_online import OnlineRun as OnlineRun
-from ._kalman_online import SensorErrorModel as SensorErrorModel
-from ._kalman_online import structure_candidates as structure_candidates
+from ._kalman_sensor import SensorErrorModel as SensorErrorModel
+from ._kalman_sensor import structure_candidates as structure_candidates
 from ._kalman_online import identify_in_flight as identify_in_flight
-from ._kalman_online import online_channel as online_channel
+from ._kalman_sensor import online_channel as online_channel

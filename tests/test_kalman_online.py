@@ -141,6 +141,28 @@ def test_structure_candidates_recover_the_rules_parameters():
     assert 0.75 < float(jnp.median(tau)) < 0.95
 
 
+def _day_long_runs(gyro, gyro_start, settings, seed):
+    """Two 24 h logs of the channel with a Gauss–Markov accelerometer (1e-3 m/s², 600 s),
+    the drift `gyro` and a 0.01 m/s reference, each run through `identify_in_flight`
+    started with the true accelerometer and `gyro_start`."""
+    truth = INSNoiseChannel(GaussMarkov(1e-3, 600.0), gyro, velocity_noise=0.01)
+    model = truth.discretise(1.0)
+
+    def one(key):
+        _, z = simulate_linear_gaussian(
+            model, jnp.zeros(model.state_size), ins_initial_covariance(truth), 24 * 3600, key=key
+        )
+        return identify_in_flight(
+            z[:, 0],
+            SensorErrorModel.gauss_markov(1e-3, 600.0),
+            gyro_start,
+            velocity_noise=0.01,
+            settings=settings,
+        )
+
+    return jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(seed), 2))
+
+
 @pytest.mark.parametrize("kind", ["exp_cosine", "gauss_markov"])
 def test_the_loop_changes_structure_when_the_log_carries_it(kind):
     """A gyro drift that oscillates strongly (40 min period for 4 h, σ 5e-7 rad/s) against a
@@ -152,22 +174,7 @@ def test_the_loop_changes_structure_when_the_log_carries_it(kind):
     of the drift's oscillation and wins the likelihood test; the noise study counts it.)"""
     beta, alpha, sigma = 2 * np.pi / 2400, 1 / 14400, 5e-7
     gyro = ExponentialCosine(sigma, alpha, beta) if kind == "exp_cosine" else GaussMarkov(sigma, 14400.0)
-    truth = INSNoiseChannel(GaussMarkov(1e-3, 600.0), gyro, velocity_noise=0.01)
-    model = truth.discretise(1.0)
-
-    def one(key):
-        _, z = simulate_linear_gaussian(
-            model, jnp.zeros(model.state_size), ins_initial_covariance(truth), 24 * 3600, key=key
-        )
-        return identify_in_flight(
-            z[:, 0],
-            SensorErrorModel.gauss_markov(1e-3, 600.0),
-            SensorErrorModel.gauss_markov(sigma, 14400.0),
-            velocity_noise=0.01,
-            settings=_settings(),
-        )
-
-    run = jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(5), 2))
+    run = _day_long_runs(gyro, SensorErrorModel.gauss_markov(sigma, 14400.0), _settings(), 5)
     final = np.asarray(run.models)[:, -1]
     if kind == "exp_cosine":
         assert np.all(final[:, 1, 2] > 0), final
@@ -192,24 +199,12 @@ def test_the_joint_structure_test_keeps_a_structure_it_starts_with(own):
     1/α came out 961 s against 14,400 s), and an oscillating accelerometer model takes up
     what it leaves."""
     beta, alpha, sigma = 2 * np.pi / 2400, 1 / 14400, 5e-7
-    truth = INSNoiseChannel(
-        GaussMarkov(1e-3, 600.0), ExponentialCosine(sigma, alpha, beta), velocity_noise=0.01
+    run = _day_long_runs(
+        ExponentialCosine(sigma, alpha, beta),
+        SensorErrorModel(sigma, alpha, beta),
+        _settings(own_filter_candidates=own),
+        6,
     )
-    model = truth.discretise(1.0)
-
-    def one(key):
-        _, z = simulate_linear_gaussian(
-            model, jnp.zeros(model.state_size), ins_initial_covariance(truth), 24 * 3600, key=key
-        )
-        return identify_in_flight(
-            z[:, 0],
-            SensorErrorModel.gauss_markov(1e-3, 600.0),
-            SensorErrorModel(sigma, alpha, beta),
-            velocity_noise=0.01,
-            settings=_settings(own_filter_candidates=own),
-        )
-
-    run = jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(6), 2))
     final = np.asarray(run.models)[:, -1]
     assert np.all(final[:, 1, 2] > 0), final
     assert np.all(np.asarray(run.structure_statistic)[:, -1, 1] > 0)

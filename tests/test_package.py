@@ -104,6 +104,7 @@ _LAYERS = {
         "_kalman",
         "_kalman_models",
         "_kalman_online",
+        "_kalman_sensor",
         "_vibration",
         "_tolerance",
         "_sweep",
@@ -119,6 +120,9 @@ _SAME_LAYER = {
     ("_kalman_models", "_kalman"),
     ("_kalman_online", "_kalman"),
     ("_kalman_online", "_noise"),
+    ("_kalman_online", "_kalman_sensor"),
+    ("_kalman_sensor", "_kalman"),
+    ("_kalman_sensor", "_noise"),
 }
 # Upward imports inside functions, each for one name: the package version for provenance,
 # and whether the user set XLA's log level before `import accel_jax`.
