@@ -107,7 +107,8 @@ class OnlineIdentification(eqx.Module):
     - `max_change`: σ and α change by at most this factor per retune.
     - `correct_shrinkage`: add the filter's propagated covariance to the estimates'
       autocovariance (law of total covariance).
-    - `choose_structure`: run the joint log-likelihood structure test (three more filters) and let
+    - `choose_structure`: run the joint log-likelihood structure test (three more filters)
+      and let
       it switch between Gauss–Markov and exponential-cosine (otherwise each sensor keeps
       the structure it starts with).
     - `fading_window`: Sage–Husa's memory N (b = 1 − 1/N), in steps.
@@ -219,18 +220,18 @@ def _corrected(model, x_window, p_window, count, settings, lag_time):
     return R, shape
 
 
-def _retune(current, alternative, use_ec, windows, count, settings, lag_time):
+def _retune(current, alternative, use_ec, windows, count, settings, lag_time, own):
     """One sensor's re-identification after a block: (model, alternative, retuned,
     alternative retuned). The structure `use_ec` is decided by the caller (the
     log-likelihood test); the model takes that structure's fit, the alternative the
     other's. `windows`: ((x, P) of the main filter, (x, P) of the filter that runs this
     sensor in its other structure): each structure is fitted from the estimates of the
-    filter that runs it, corrected with that filter's model (with
-    `own_filter_candidates`; otherwise both from the main filter)."""
+    filter that runs it, corrected with that filter's model, when `own` (the settings'
+    `own_filter_candidates` with the structure test); otherwise both from the main filter."""
     (x_main, p_main), (x_alt, p_alt) = windows
     R, shape = _corrected(current, x_main, p_main, count, settings, lag_time)
     gm, ec, gm_ok, ec_ok = structure_candidates(R, lag_time, shape)
-    if settings.own_filter_candidates:
+    if own:
         R_alt, shape_alt = _corrected(alternative, x_alt, p_alt, count, settings, lag_time)
         gm_a, ec_a, gm_a_ok, ec_a_ok = structure_candidates(R_alt, lag_time, shape_alt)
         cur_ec = current.angular_frequency > 0
@@ -479,6 +480,7 @@ def identify_in_flight(
                     count,
                     settings,
                     lag_time,
+                    settings.own_filter_candidates and test,
                 )
                 new_models.append(m)
                 new_alternatives.append(alt)

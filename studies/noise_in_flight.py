@@ -304,7 +304,8 @@ def gauss_markov_max_log_likelihood(x: np.ndarray) -> np.ndarray:
     s11 = np.sum(x[:, :-1] ** 2, axis=1)
     s01 = np.sum(x[:, 1:] * x[:, :-1], axis=1)
     sq = x[:, 0] ** 2 * (1 - phi**2) + s00 - 2 * phi * s01 + phi**2 * s11
-    return np.max(-0.5 * n * np.log(2 * np.pi * sq / n) + 0.5 * np.log(1 - phi**2) - 0.5 * n, axis=0)
+    log_likelihood = -0.5 * n * np.log(2 * np.pi * sq / n) + 0.5 * np.log(1 - phi**2) - 0.5 * n
+    return np.max(log_likelihood, axis=0)
 
 
 def perfect_observation_bound(

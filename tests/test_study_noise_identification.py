@@ -133,7 +133,9 @@ def test_study_in_flight(quick_report):
     # than the drift itself would, noise-free (the bound the loop cannot beat).
     weak = fl["configurations"]["too_large"]["information_true_over_best_gauss_markov"]
     assert weak["drift_itself_noise_free"]["median"] > weak["median"]
-    switch_row = next(row for row in rows if "ends modelling as exponential-cosine (the truth)" in row["quantity"])
+    switch_row = next(
+        row for row in rows if "ends modelling as exponential-cosine (the truth)" in row["quantity"]
+    )
     assert "what the log can tell at best" in switch_row["explanation"]
 
 
@@ -160,7 +162,8 @@ def test_in_flight_information_bound_tells_a_structured_log_from_a_weak_one():
     for kind, velocity_noise in (("strong_exp_cosine", 0.01), ("exp_cosine", 0.1)):
         truth = nf._truth(kind, velocity_noise)
         keys = jax.random.split(jax.random.key(11), 2)
-        _, z = nf._simulate(truth.discretise(1.0), ins_initial_covariance(truth), keys, hours * 3600)
+        model, p0 = truth.discretise(1.0), ins_initial_covariance(truth)
+        _, z = nf._simulate(model, p0, keys, hours * 3600)
         true = nf._true_models(kind)
         oracle_ll = nf._second_half_log_likelihood(nf._run_logs(z, *true, velocity_noise, fixed))
         info = nf._information(
@@ -239,4 +242,5 @@ def test_perfect_observation_bound_against_the_dense_gaussian_likelihood():
     assert 15 < expected + 1 < 18.5  # 16.7 nats
     evidence = nf.perfect_observation_bound(a, b, dt, 24, 256, 2)
     standard_error = np.std(evidence) / np.sqrt(evidence.size)
-    assert abs(np.mean(evidence) - expected) < 3 * standard_error + 1.0, (np.mean(evidence), expected)
+    mean = np.mean(evidence)
+    assert abs(mean - expected) < 3 * standard_error + 1.0, (mean, expected)
