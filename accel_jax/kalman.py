@@ -22,6 +22,9 @@ from ._kalman import normalised_innovation_squared as normalised_innovation_squa
 from ._kalman import rts_smoother as rts_smoother
 from ._kalman import simulate_linear_gaussian as simulate_linear_gaussian
 from ._kalman_models import INSNoiseChannel as INSNoiseChannel
+from ._kalman_spectral import SmoothedAutocovariance as SmoothedAutocovariance
+from ._kalman_spectral import expected_sample_autocovariance as expected_sample_autocovariance
+from ._kalman_spectral import smoothed_autocovariance as smoothed_autocovariance
 from ._kalman_models import scale_noise_coefficients as scale_noise_coefficients
 from ._kalman_online import OnlineIdentification as OnlineIdentification
 from ._kalman_online import OnlineRun as OnlineRun

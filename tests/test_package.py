@@ -105,6 +105,7 @@ _LAYERS = {
         "_kalman_models",
         "_kalman_online",
         "_kalman_sensor",
+        "_kalman_spectral",
         "_vibration",
         "_tolerance",
         "_sweep",
@@ -122,6 +123,7 @@ _SAME_LAYER = {
     ("_kalman_online", "_noise"),
     ("_kalman_online", "_kalman_sensor"),
     ("_kalman_sensor", "_kalman"),
+    ("_kalman_spectral", "_kalman"),
     ("_kalman_sensor", "_noise"),
 }
 # Upward imports inside functions, each for one name: the package version for provenance,
