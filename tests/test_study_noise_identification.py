@@ -83,6 +83,23 @@ def test_study_filter_identification_loop(quick_report):
     assert 2.0 < loops["rule_15"]["oracle"]["mean_nees"] < 8.0
     summary = [row["quantity"] for row in saved["summary"]]
     assert any("the §4 paper's loop" in q and "oracle" in q for q in summary)
+    # The bias from the spectra: one predicted step per iteration; at the true models the
+    # smoothed means alone give a τ_ω well above the truth, and with the smoother's
+    # posterior autocovariance added what rule (15) gives on the true errors (the law of
+    # total covariance, to the frequency grid's round-off).
+    spectral = loops["rule_15"]["spectral_map"]
+    assert len(spectral["steps"]) == len(loops["rule_15"]["iterations"]) - 1
+    at_truth = spectral["at_the_true_models"]
+    assert at_truth["smoothed_means"]["gyro"]["tau_s"] > 2 * 3600.0
+    for sensor in ("accelerometer", "gyro"):
+        ratio = (
+            at_truth["with_posterior"][sensor]["tau_s"]
+            / at_truth["rule_15_on_the_true_errors"][sensor]["tau_s"]
+        )
+        assert abs(ratio - 1) < 1e-6, (sensor, ratio)
+    row = next(r for r in saved["summary"] if "map from the spectra" in r["quantity"])
+    assert row["status"] == ("explained" if spectral["agree"] else "differs")
+    assert len(spectral["over_logs"]["gyro_tau_s_median"]) == len(spectral["steps"])
 
 
 @pytest.mark.slow
