@@ -172,6 +172,9 @@ class OnlineRun(eqx.Module):
       the same steps, shape (T / decimation, 2, 2, 2) (the shrinkage correction's P_s).
     - `models`: (σ, α, β) of [accelerometer, gyro] in force during each block, shape
       (B, 2, 3) (block 0: the starting models).
+    - `alternative_models`: (σ, α, β) of each sensor's other structure during each block,
+      the candidate the structure test weighs (with the test; else the placeholder it
+      starts with), shape (B, 2, 3).
     - `retuned`: whether the models were re-identified after each block, shape (B, 2).
     - `structure_statistic`: after each block, per sensor, the best penalised window
       log-likelihood of the combinations with that sensor exponential-cosine less the best
@@ -186,6 +189,7 @@ class OnlineRun(eqx.Module):
     sensor_estimates: Array
     sensor_covariances: Array
     models: Array
+    alternative_models: Array
     retuned: Array
     structure_statistic: Array
 
@@ -253,7 +257,7 @@ def _retune(current, alternative, use_ec, windows, count, settings, lag_time, ow
     # current model's when it keeps its structure, the alternative's when it changes.
     switched = use_ec != (current.angular_frequency > 0)
     base = jax.tree.map(lambda a, c: jnp.where(switched, a, c), alternative, current)
-    other = jax.tree.map(lambda c, a: jnp.where(switched, c, a), alternative, current)
+    other = jax.tree.map(lambda c, a: jnp.where(switched, c, a), current, alternative)
     model, ok = pick(use_ec, base)
     alternative, alternative_ok = pick(~use_ec, other)
     return model, alternative, ok, alternative_ok
@@ -422,6 +426,12 @@ def identify_in_flight(
         params = jnp.stack(
             [jnp.stack([m.sigma, m.decay_rate, m.angular_frequency]) for m in (accel_m, gyro_m)]
         )
+        other = jnp.stack(
+            [
+                jnp.stack([m.sigma, m.decay_rate, m.angular_frequency])
+                for m in (sensor(alternatives, 0), sensor(alternatives, 1))
+            ]
+        )
         retuned = jnp.zeros(2, bool)
         statistic = jnp.full(2, jnp.nan)
         if identify:
@@ -491,7 +501,7 @@ def identify_in_flight(
             valid = valid | jnp.stack(alt_ok)
         return (means, covs, q, k, models, alternatives, valid, x_buf, p_buf, l_buf, v_buf), (
             (kin_mean, kin_cov, innovation, s),
-            params,
+            (params, other),
             retuned,
             statistic,
         )
@@ -524,7 +534,9 @@ def identify_in_flight(
         l_buf,
         v_buf,
     )
-    final, (steps, params, retuned, statistic) = jax.lax.scan(outer, carry, jnp.arange(n_blocks))
+    final, (steps, (params, other), retuned, statistic) = jax.lax.scan(
+        outer, carry, jnp.arange(n_blocks)
+    )
     kin_mean, kin_cov, innovation, s = (v.reshape((-1,) + v.shape[2:]) for v in steps)
     return OnlineRun(
         kinematic_means=kin_mean,
@@ -534,6 +546,7 @@ def identify_in_flight(
         sensor_estimates=final[7][size:, 0],
         sensor_covariances=final[8][size:, 0],
         models=params,
+        alternative_models=other,
         retuned=retuned,
         structure_statistic=statistic,
     )

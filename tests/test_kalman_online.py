@@ -176,6 +176,10 @@ def test_the_loop_changes_structure_when_the_log_carries_it(kind):
     gyro = ExponentialCosine(sigma, alpha, beta) if kind == "exp_cosine" else GaussMarkov(sigma, 14400.0)
     run = _day_long_runs(gyro, SensorErrorModel.gauss_markov(sigma, 14400.0), _settings(), 5)
     final = np.asarray(run.models)[:, -1]
+    # The candidate the test weighs is always the other structure of each sensor.
+    other = np.asarray(run.alternative_models)
+    assert other.shape == np.asarray(run.models).shape
+    assert np.all((other[..., 2] > 0) != (np.asarray(run.models)[..., 2] > 0))
     if kind == "exp_cosine":
         assert np.all(final[:, 1, 2] > 0), final
         np.testing.assert_allclose(final[:, 1, 2], beta, rtol=0.1)
