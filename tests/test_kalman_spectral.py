@@ -26,6 +26,17 @@ def _gauss_markov_in_white(phi=0.98, sigma=2.0, noise=1.5):
     )
 
 
+def _ins_channel():
+    """The noise study's INS channel (σ_a 1e-3 m/s², 600 s; σ_ω 5e-8 rad/s, 3,600 s)."""
+    return ak.INSChannel(
+        accel_sigma=1e-3,
+        accel_correlation_time=600.0,
+        gyro_sigma=5e-8,
+        gyro_correlation_time=3600.0,
+        velocity_noise=0.1,
+    )
+
+
 @pytest.mark.parametrize("kind", ["gauss_markov", "oscillating"])
 def test_expected_sample_autocovariance_is_the_centred_covariance_algebra(kind):
     """E[R̂_k] = tr_k(J C J)/(n − k), J = I − 11ᵀ/n, computed densely for n = 60."""
@@ -49,13 +60,7 @@ def test_with_the_true_model_estimate_and_error_add_up_to_the_state():
     lags = np.arange(301)
     np.testing.assert_allclose(got.estimate + got.posterior, 4.0 * 0.98**lags, rtol=1e-9)
     assert 0 < got.posterior[0] < 4.0 and got.record_length is None
-    channel = ak.INSChannel(
-        accel_sigma=1e-3,
-        accel_correlation_time=600.0,
-        gyro_sigma=5e-8,
-        gyro_correlation_time=3600.0,
-        velocity_noise=0.1,
-    )
+    channel = _ins_channel()
     ins = channel.discretise(1.0)
     both = ak.smoothed_autocovariance(ins, ins, (2, 3), 2000)
     assert both.estimate.shape == both.posterior.shape == (2, 2001)
@@ -107,13 +112,7 @@ def test_the_prediction_matches_the_rts_smoother_on_simulated_ins_logs():
     models ten times too fast, the middle 8 h kept: the mean sample autocovariance of the
     smoothed Δa and Δω against the prediction for an 8 h record, within 4 standard errors
     at each lag checked."""
-    channel = ak.INSChannel(
-        accel_sigma=1e-3,
-        accel_correlation_time=600.0,
-        gyro_sigma=5e-8,
-        gyro_correlation_time=3600.0,
-        velocity_noise=0.1,
-    )
+    channel = _ins_channel()
     assumed = ak.scale_noise_coefficients(channel, drift_factor=10.0, diffusion_factor=0.1)
     truth, model = channel.discretise(1.0), assumed.discretise(1.0)
     n, skip, max_lag = 16 * 3600, 4 * 3600, 1500
