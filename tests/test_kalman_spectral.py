@@ -62,7 +62,7 @@ def test_with_the_true_model_estimate_and_error_add_up_to_the_state():
     assert 0 < got.posterior[0] < 4.0 and got.record_length is None
     channel = _ins_channel()
     ins = channel.discretise(1.0)
-    both = ak.smoothed_autocovariance(ins, ins, (2, 3), 2000)
+    both = ak.smoothed_autocovariance(ins, ins, (2, 3), 2000, fft_size=1 << 18)
     assert both.estimate.shape == both.posterior.shape == (2, 2001)
     k = np.arange(2001)
     true = np.stack([1e-6 * np.exp(-k / 600.0), 2.5e-15 * np.exp(-k / 3600.0)])
