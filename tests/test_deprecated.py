@@ -147,6 +147,9 @@ _NEW_IN_NAMESPACES = {
     "structure_candidates",
     "identify_in_flight",
     "online_channel",
+    "SmoothedAutocovariance",
+    "expected_sample_autocovariance",
+    "smoothed_autocovariance",
 }
 
 
