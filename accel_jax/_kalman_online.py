@@ -423,14 +423,9 @@ def identify_in_flight(
         at = size + b * per_block
         x_buf = jax.lax.dynamic_update_slice_in_dim(x_buf, sensor_mean[dec - 1 :: dec], at, 0)
         p_buf = jax.lax.dynamic_update_slice_in_dim(p_buf, sensor_cov[dec - 1 :: dec], at, 0)
-        params = jnp.stack(
-            [jnp.stack([m.sigma, m.decay_rate, m.angular_frequency]) for m in (accel_m, gyro_m)]
-        )
-        other = jnp.stack(
-            [
-                jnp.stack([m.sigma, m.decay_rate, m.angular_frequency])
-                for m in (sensor(alternatives, 0), sensor(alternatives, 1))
-            ]
+        params, other = (
+            jnp.stack([m.sigma, m.decay_rate, m.angular_frequency], axis=-1)
+            for m in (models, alternatives)
         )
         retuned = jnp.zeros(2, bool)
         statistic = jnp.full(2, jnp.nan)
