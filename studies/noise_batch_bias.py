@@ -37,7 +37,7 @@ from accel_jax.kalman import (
     simulate_linear_gaussian,
     smoothed_autocovariance,
 )
-from accel_jax.noise import autocorrelation, fit_gauss_markov_paper
+from accel_jax.noise import GaussMarkov, autocorrelation, fit_gauss_markov_paper
 
 _FIELDS = ("accel_sigma", "accel_correlation_time", "gyro_sigma", "gyro_correlation_time")
 _SENSORS = (("accelerometer", "accel"), ("gyro", "gyro"))
@@ -170,17 +170,20 @@ def batch_bias(
             chain.append(step)
             model = _channel(_as_fields(step), velocity_noise)
         chains["with_posterior" if posterior else "smoothed_means"] = chain
-    lags = np.arange(n)
-    true_r = np.stack(
-        [
-            truth_fields[f"{short}_sigma"] ** 2
-            * np.exp(-lags * dt / truth_fields[f"{short}_correlation_time"])
-            for _, short in _SENSORS
-        ]
-    )
+    # Rule (15) on the true errors themselves: the Gauss–Markov models' own autocovariance.
+    lag_times = np.arange(n) * dt
     rule_alone = {
-        name: _rule(expected_sample_autocovariance(true_r[i], n, max_lag), dt)
-        for i, (name, _) in enumerate(_SENSORS)
+        name: _rule(
+            expected_sample_autocovariance(
+                GaussMarkov(
+                    truth_fields[f"{short}_sigma"], truth_fields[f"{short}_correlation_time"]
+                ).autocovariance(lag_times),
+                n,
+                max_lag,
+            ),
+            dt,
+        )
+        for name, short in _SENSORS
     }
     over_logs = loop_over_logs(truth, start, dt, n, len(rows) - 1, logs, key)
     chain_tau = [c["gyro"]["tau_s"] for c in chains["smoothed_means"]]
