@@ -231,6 +231,12 @@ CACHE_ENV = "ACCEL_JAX_CACHE_DIR"
 """Where `enable_compilation_cache` keeps compiled programs; `off` (or `0`) disables it."""
 
 
+def cache_home() -> Path:
+    """The package's folder for what it keeps between runs: `$XDG_CACHE_HOME/accel_jax`
+    (`~/.cache/accel_jax`)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "accel_jax"
+
+
 def compilation_cache_dir() -> Path | None:
     """The persistent compilation cache folder the entry points use, or None when disabled.
 
@@ -243,8 +249,7 @@ def compilation_cache_dir() -> Path | None:
         return None if value.strip().lower() in ("", "0", "off", "no", "false") else Path(value)
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "accel_jax" / "xla"
+    return cache_home() / "xla"
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | None:
@@ -360,8 +365,7 @@ def _options_cache_file() -> Path | None:
     turned the caches off (`ACCEL_JAX_CACHE_DIR=off`): then each process decides anew."""
     if os.environ.get(CACHE_ENV) is not None and compilation_cache_dir() is None:
         return None
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "accel_jax" / "xla_options.json"
+    return cache_home() / "xla_options.json"
 
 
 def _read_options_cache() -> dict:

@@ -35,8 +35,9 @@ if "ACCEL_JAX_CACHE_DIR" not in os.environ:
 
     _folder = None
     if os.environ.get("ACCEL_JAX_TEST_CACHE", "").strip().lower() == "keep":
-        _base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-        _folder = Path(_base) / "accel_jax" / "test-xla"
+        from accel_jax._runtime import cache_home  # noqa: E402
+
+        _folder = cache_home() / "test-xla"
         try:
             _folder.mkdir(parents=True, exist_ok=True)
             if "PYTEST_XDIST_WORKER" not in os.environ:
