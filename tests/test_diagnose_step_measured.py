@@ -336,6 +336,7 @@ def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monk
         ctx: Ctx
         guesses_linear: np.ndarray
         notes: tuple = ()
+        domain_problems: tuple = ()  # inside the model family (else not reweighted)
 
         def with_note(self, note):
             return dataclasses.replace(self, notes=self.notes + (note,))

@@ -452,10 +452,13 @@ class DiagnosisResult:
             )
         else:
             order = "significant effects first, then by evidence"
-        lines.append(
-            "ranking (evidence = 2 ln B against the nominal model; * = significant: evidence "
-            f"≥ {SIGNIFICANCE:g} and a better held-out prediction; {order}):"
-        )
+        if self.ranking:
+            lines.append(
+                "ranking (evidence = 2 ln B against the nominal model; * = significant: "
+                f"evidence ≥ {SIGNIFICANCE:g} and a better held-out prediction; {order}):"
+            )
+        else:
+            lines.append("ranking: none (see the notes)")
         for r in self.ranking:
             mark = "*" if r.get("significant") else " "
             if r.get("fit_failed"):  # a nested fit that lost to the nominal: no evidence

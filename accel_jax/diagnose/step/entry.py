@@ -79,6 +79,15 @@ def _fit_grouped(
     return entries
 
 
+DOMAIN_NOTE = (
+    "no effect fitted: the record failed the domain check, so it lies outside the model "
+    "family the effects belong to (only the nominal model is refitted, for the gap)"
+)
+"""The note of a record that failed the domain check (`record.prepare`). Its verdict is the
+check's `unexplained` whatever the effects would reach, so they are not fitted (they were,
+restarted and reweighted too: 57.1 s against 12.3 s now on a slow sensor's record,
+docs/performance.md)."""
+
 LAG_PAIR = frozenset({"torquer_lag", "output_filter"})
 """The tie that another experiment can break (`design.next_experiments`)."""
 
@@ -129,11 +138,21 @@ def diagnose_step(
     effects = step_effects()
     linear, loop_noise, nonlinear, clamp, contact = _stages(effects)
     records = [prepare(data, nominal, effects) for data in datasets]
+    # The effects only inside the model family (outside, the nominal alone: `DOMAIN_NOTE`).
+    inside = [i for i, rec in enumerate(records) if not rec.domain_problems]
     entries = _fit_grouped(
-        fit_linear, nominal, records, {i: rec.guesses_linear for i, rec in enumerate(records)},
+        fit_linear, nominal, records, {i: records[i].guesses_linear for i in inside},
         linear, effects, "diagnose step",
     )
-    # Every record's linear fits.
+    outside = {i: rec.guesses_linear[:1] for i, rec in enumerate(records) if rec.domain_problems}
+    entries.update(
+        _fit_grouped(
+            fit_linear, nominal, records, outside, [0], effects, "diagnose step (nominal only)"
+        )
+    )
+    for i in outside:
+        records[i] = records[i].with_note(DOMAIN_NOTE)
+    # Every record's linear fits (the nominal's alone outside the model family).
     fits: list[list[StepFit]] = [entries[i] for i in range(len(records))]
     # Each from the best one's nuisances too, where one ended far below another.
     _restart_from_best(fits, records, effects, linear, nominal)
@@ -220,12 +239,12 @@ def diagnose_step(
     results = []
     for rec, record_fits in zip(records, fits, strict=True):
         fitted = {f.effect for f in record_fits}
-        if not any(effects[i - 1].name in fitted for i in clamp):
+        if rec.domain_problems:
+            pass  # no effect fitted (`DOMAIN_NOTE`)
+        elif not any(effects[i - 1].name in fitted for i in clamp):
             skipped = [e.name for e in effects if e.nonlinear]
             rec = rec.with_note(
                 f"{', '.join(skipped)} not fitted: a linear model already explains the record"
-                if not rec.domain_problems
-                else f"{', '.join(skipped)} not fitted: the record failed the domain check"
             )
         elif contact and not any(effects[i - 1].name in fitted for i in contact):
             rec = rec.with_note(
@@ -333,9 +352,12 @@ optimum (the effect at 0: the nominal model) can only end at or above its likeli
 def _reweight_far_records(fits, records: list[StepRecord], effects, linear, nominal) -> dict:
     """Refit the linear candidates of the records that none of them brings near the floor at
     the nominal fit's residual scale (`REWEIGHT_ABOVE`); `fits` and `records` updated in place.
-    Returns {record index: (its context at the floor, the nominal's fit there)}."""
+    Returns {record index: (its context at the floor, the nominal's fit there)}. (Not a
+    record outside the model family, whose nominal alone was fitted: `DOMAIN_NOTE`.)"""
     starts, floor = {}, {}
     for i, rec in enumerate(records):
+        if rec.domain_problems:
+            continue
         sigma_ref = float(np.asarray(rec.ctx.sigma_ref))
         sigma_hat = math.sqrt(max(float(fits[i][0].innovation_variance), 0.0))
         # (Only where no linear candidate comes near the floor: one that explains the
