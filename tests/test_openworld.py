@@ -307,3 +307,33 @@ def test_the_periodic_line_is_chosen_by_least_squares_on_the_training_samples():
     rng = np.random.default_rng(9)
     white = [predictability(rng.normal(size=n), held, dt, *none).periodic for _ in range(200)]
     assert max(white) < PREDICTABLE / 4, max(white)
+
+
+def test_the_lines_fits_at_once_equal_one_least_squares_fit_per_frequency():
+    """`openworld._explained` (every frequency's fit of [cos, sin, 1] at once, by the Gram
+    matrices' pseudo-inverse) against `np.linalg.lstsq` frequency by frequency, as
+    `_training_line` fitted them before: equal to round-off, on a grid that reaches the
+    Nyquist frequency (whose sine column vanishes on the samples: rank 2) and with gaps."""
+    rng = np.random.default_rng(3)
+    n, dt = 900, 1e-5
+    t = np.arange(n) * dt
+    train = np.ones(n, bool)
+    train[200:330] = False
+    x = rng.normal(size=n) + 0.4 * np.cos(np.pi * np.arange(n)) + np.sin(2 * np.pi * 7e3 * t)
+    tt, y = t[train], x[train] - np.mean(x[train])
+    grid = np.concatenate([np.linspace(3 / (n * dt), 0.5 / dt, 37), [6990.0, 7000.0]])
+    each = []
+    for f in grid:
+        columns = np.stack([np.cos(2 * np.pi * f * tt), np.sin(2 * np.pi * f * tt), 0 * tt + 1])
+        projection = columns @ y
+        coef, *_ = np.linalg.lstsq(columns @ columns.T, projection, rcond=None)
+        each.append(coef @ projection)
+    together = openworld._explained(tt, y, grid)
+    assert np.max(np.abs(together - np.array(each))) < 1e-12 * np.max(np.abs(each))
+    # In chunks (fewer frequencies at once than the grid holds) the same.
+    import unittest.mock
+
+    with unittest.mock.patch.object(openworld, "_LINE_CHUNK", 5 * tt.size):
+        line = openworld._training_line(x, train, t, dt)
+    assert line == openworld._training_line(x, train, t, dt)
+    assert abs(line - 7e3) < 1 / (n * dt)  # the line, not the Nyquist one or a sidelobe
