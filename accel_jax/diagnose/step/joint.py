@@ -264,11 +264,6 @@ def _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltag
     return jnp.stack(outs)
 
 
-def _residuals(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight):
-    prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
-    return _misfit(prediction, x, candidate, ctx_stack, layout, data, weight)
-
-
 def _misfit(prediction, x, candidate, ctx_stack, layout, data, weight):
     """The residuals of a prediction: each record's misfit over its floor, then the
     penalties (priors and barriers) of x."""
@@ -287,10 +282,14 @@ def _fit(
     )
 
     def one(x0, candidate):
+        # (The set's prediction a jit of its own: the solver's residuals, their Jacobian and
+        # the final prediction trace it once, as `fit._fit_record` does its model.)
+        @jax.jit
+        def predicted(x):
+            return _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
+
         def fn(x, _):
-            return _residuals(
-                x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight
-            )
+            return _misfit(predicted(x), x, candidate, ctx_stack, layout, data, weight)
 
         # The Jacobian as a matrix (`dense_jacobian`): one copy of the simulation in the
         # solver's program instead of its linearisation, materialisation and transpose.
@@ -298,7 +297,7 @@ def _fit(
             dense_jacobian(fn), solver, x0, max_steps=max_steps, throw=False
         )
         x = solution.value
-        prediction = _predictions(x, candidate, base, prior_sigma, ctx_stack, layout, stop_voltage)
+        prediction = predicted(x)
         penalties = _penalties(*_split(x, ctx_stack.dt.shape[0], layout), candidate, ctx_stack)
         # The cost from the same prediction (no second simulation).
         cost = jnp.sum(_misfit(prediction, x, candidate, ctx_stack, layout, data, weight) ** 2)
