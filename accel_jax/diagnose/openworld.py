@@ -393,8 +393,9 @@ def _explained(tt: np.ndarray, y: np.ndarray, frequencies: np.ndarray) -> np.nda
     pseudo-inverse of each 3×3 Gram matrix, cut at LAPACK's default (3ε of its largest
     singular value: a sine on the Nyquist grid, whose column vanishes, is dropped as a
     least-squares solver drops it). All frequencies at once; the same figures, to
-    round-off, as one `np.linalg.lstsq` per frequency (tests/test_openworld.py), ~5× faster
-    (the noise null runs it for each of its ~100 simulated residuals)."""
+    round-off, as one `np.linalg.lstsq` per frequency (tests/test_openworld.py); on a
+    1,280-block record `_training_line` ~3× faster for it (docs/performance.md), which the
+    noise null runs on each of its ~100 simulated residuals."""
     cos, sin = PeriodicLine.basis(tt[None, :], frequencies[:, None])
     n = np.full(frequencies.size, float(tt.size))
     cc, ss, cs = (np.einsum("kn,kn->k", a, b) for a, b in ((cos, cos), (sin, sin), (cos, sin)))
