@@ -32,7 +32,8 @@ training data can fix), and the held-out *free-run* simulation error is the gap 
 prediction errors are reported beside it).
 
 **Verdict**: `openworld.decide` — `none`, an effect, `cannot_tell` or `unexplained`, after
-a domain check (`domain`) that refuses records the model family cannot describe.
+a domain check (`domain`) that refuses records the model family cannot describe (such a
+record is `unexplained`; its effects are not fitted, `entry.DOMAIN_NOTE`).
 
 **Discovery** (`diagnose_step(..., discover=True)`): where no library effect explains a
 record, the missing term is looked for in a library of terms at named places in the loop
