@@ -31,6 +31,7 @@ from .effects import step_effects
 from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
 from .record import _guesses, prepare, prior_sigma_of, stack_on_host
+from .starts import CONTACT_GRID, _at_nominal, _contact_from_clamp
 from .state import Baseline, RecordShape, StepFit, StepRecord
 from .question import weigh_discovery
 from .verdict import evaluate, noise_in_question
@@ -559,37 +560,6 @@ def _restart_from_nominal(
                 "evidence of every effect is uncertain by about that much (the solver's "
                 "tolerance on this record)"
             )
-
-
-CONTACT_GRID = ((0.0, 0.0), (-1.15, -0.73), (1.15, 0.8))
-"""(z₂, z₃) of the compliant-stop starts from the clamp's fit: κ ≈ 300, 30, 3000 with
-ζ_c ≈ 0.3, 0.1, 1 (`effects.StopContact`): a soft contact lets the pendulum well past the
-clamp's stop and bounces, a stiff one is near the clamp."""
-
-
-def _contact_from_clamp(fit: StepFit, rec: StepRecord, starts: np.ndarray) -> np.ndarray:
-    """Starts of the compliant stops (`starts`, one per contact candidate) moved to the
-    clamp's fit: its device and nuisances, its two stops (at the output offset c ± h) as
-    the clearances; the contact's stiffness and damping as they were."""
-    out = np.array(starts, dtype=np.float64)
-    w = np.asarray(fit.w_trained, dtype=np.float64)
-    half, scale = float(rec.host.half), float(rec.host.scale)
-    z_stop, z_offset = w[W.EFFECT][:2]
-    stop = half / abs(z_stop) if abs(z_stop) > 1e-9 else np.inf
-    offset = 0.1 * scale * z_offset
-    out[..., W.BEFORE_EFFECT] = w[W.BEFORE_EFFECT]
-    out[..., W.INPUT] = w[W.INPUT]
-    for k, edge in ((0, offset + stop), (1, stop - offset)):
-        out[..., W.EFFECT.start + k] = half / edge if np.isfinite(edge) and edge > 0 else 0.0
-    return out
-
-
-def _at_nominal(w_nominal) -> np.ndarray:
-    """A start at the nominal fit's optimum with the effect's slot at 0: the nominal model
-    exactly, for every effect (each is the identity at z = 0)."""
-    w = np.array(w_nominal, dtype=np.float64)
-    w[W.EFFECT] = 0.0
-    return w
 
 
 def _recommend(result: DiagnosisResult, data: StepData, nominal: NominalDevice) -> None:
