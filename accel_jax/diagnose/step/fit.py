@@ -157,13 +157,13 @@ def _fit_record(base, prior_sigma, ctx, u_out, guesses, candidates, mode: str):
     # 131.1 → 120.2 s; the same evidences to the bit on four others; docs/performance.md.)
     @partial(jax.jit, static_argnames="whole")
     def error_of(w, candidate, whole=True):
-        """The model's penalties at w, its prediction, and the innovations and ln V ((k, n),
-        (k,)):
-        first of the training part alone (its own: the held-out blocks are gaps, so that
-        the training likelihood never reads the held-out errors; for white noise the same
-        as the whole record's), then, with `whole`, of the whole record (what the held-out
-        part is judged on). Both from one filter over a batch of masks, so that it appears
-        once in the program; the training solve asks for the training part's alone."""
+        """The model's penalties at w, its prediction, and the innovations and ln V
+        ((k, n), (k,)): first of the training part alone (its own: the held-out blocks are
+        gaps, so that the training likelihood never reads the held-out errors; for white
+        noise the same as the whole record's), then, with `whole`, of the whole record (what
+        the held-out part is judged on). Both from one filter over a batch of masks, so that
+        it appears once in the program; the training solve asks for the training part's
+        alone."""
         m = unpack(w, candidate, effects, base, prior_sigma, ctx)
         penalties = m.penalties
         prediction = predict(m, ctx, n, mode)
