@@ -106,6 +106,13 @@ def pytest_collection_modifyitems(config, items):
     to a file that the controller's scheduler reads."""
     groups: dict[str, str] = {}
     for item in items:
+        # `@pytest.mark.worker_of("step_cases")`: on the worker that makes that session
+        # fixture, whose records share the test's layout (`RecordShape`), so that its
+        # programs are traced and compiled once in that process, not again in the other.
+        mark = item.get_closest_marker("worker_of")
+        if mark is not None:
+            groups[item.nodeid] = mark.args[0]
+            continue
         info = getattr(item, "_fixtureinfo", None)
         if info is None:
             continue

@@ -112,6 +112,7 @@ def test_many_changes_off_any_clock_are_refused_in_one_line():
 
 
 @pytest.mark.slow
+@pytest.mark.worker_of("step_cases")  # the step-sequence twin's layout is the fixture's
 def test_a_prbs_record_is_diagnosed_like_its_step_sequence_twin():
     """One truth (a device with a torquer lag, the truth's conventions) driven by its small
     steps and by a 220-change PRBS; the PRBS's input also measured (delay, anti-alias,

@@ -33,6 +33,11 @@ def _truth(effect, seed):
     return truth, aj.StepData(t, u, y)
 
 
+# Both tests on the worker of `step_cases`, whose records have this layout and include
+# stop records: the compliant stops' programs are compiled there once.
+pytestmark = pytest.mark.worker_of("step_cases")
+
+
 @pytest.fixture(scope="module")
 def diagnosed():
     truths, data = zip(*(_truth(*case) for case in CASES))

@@ -515,6 +515,7 @@ STOP_319 = {
 
 
 @pytest.mark.slow
+@pytest.mark.worker_of("step_cases")  # a measured input's layout, as the twins'
 @pytest.mark.parametrize("index, truth", [(306, STOP_306), (319, STOP_319)])
 def test_a_stop_record_with_a_measured_input_names_the_stop(index, truth):
     rng = np.random.default_rng([2027, 1, index])  # the harness's stream of that record
