@@ -96,6 +96,8 @@ def pytest_collection_modifyitems(config, items):
     `pytest_xdist_make_scheduler` below): each worker computes the fixtures its own tests
     need, so a module fixture whose tests were dealt to both workers was computed twice —
     a diagnosis of a dozen step records (~2 min), a noise analysis — on both cores at once.
+    A test marked `worker_of(name)` joins the group of the session fixture `name` (its
+    records' compiled programs are in that worker's process: docs/performance.md).
     Every other test is dealt on its own. The quick report's tests come first (the longest
     fixture, about seven minutes, made by two study processes while the other worker runs
     the rest: made late, the other worker reaching a study's test waited idle for it, 84 s
