@@ -42,7 +42,8 @@ verdict stays `unexplained`.
 
 **Modules.** `entry` (`diagnose_step`; `starts`, where its later fits start), `record` (a
 record read into a `StepRecord`, the typed state of `state`; `segments`, `domain`),
-`inputs` (a measured input read as plateaus), `effects`, `fit` (the JAX fit of every candidate, each model a `CandidateModel`;
+`inputs` (a measured input read as plateaus), `effects`, `fit` (the JAX fit of every
+candidate, each model a `CandidateModel`;
 `layout` names each parameter of its vector and of the joint fit's), `assess` (each
 candidate's fit, a `state.StepFit`, and its assessment), `verdict` (the open-world
 decision; the ranking's entries, as reported, from `ranking_entry`), `refit` and `nuisance`
