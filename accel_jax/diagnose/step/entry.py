@@ -31,7 +31,7 @@ from .effects import step_effects
 from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
 from .record import _guesses, prepare, prior_sigma_of, stack_on_host
-from .starts import CONTACT_GRID, _at_nominal, _contact_from_clamp
+from .starts import CONTACT_GRID, contact_from_clamp, nominal_start
 from .state import Baseline, RecordShape, StepFit, StepRecord
 from .question import weigh_discovery
 from .verdict import evaluate, noise_in_question
@@ -198,7 +198,7 @@ def diagnose_step(
             # nominal's likelihood (from the peak starts alone, a stop fit lost by
             # thousands on records that a compliant contact clipped).
             at_nominal = np.broadcast_to(
-                _at_nominal(fits[i][0].w_trained), guesses[:, :1].shape
+                nominal_start(fits[i][0].w_trained), guesses[:, :1].shape
             )
             stop_starts[i] = np.concatenate([guesses, at_nominal], axis=1)
     rows = {i: nonlinear.index(i) for i in nonlinear}  # each one's row of the guesses
@@ -225,7 +225,7 @@ def diagnose_step(
         starts = [own]
         if from_clamp:
             for z_stiffness, z_damping in CONTACT_GRID:
-                moved = _contact_from_clamp(from_clamp[0], records[i], own[:, :1])
+                moved = contact_from_clamp(from_clamp[0], records[i], own[:, :1])
                 moved[..., W.EFFECT.start + 2] = z_stiffness
                 moved[..., W.EFFECT.start + 3] = z_damping
                 starts.append(moved)
@@ -307,7 +307,7 @@ def _fit_loop_noise(fits, records: list[StepRecord], effects, loop_noise, nomina
         nominal_w = np.asarray(fits[i][0].w_trained)
         own = _guesses(nominal_w, chosen, rec.host, nominal_first=False)
         output_noise = [f for f in fits[i] if f.effect == "colored_noise"]
-        extra = [_at_nominal(nominal_w)]
+        extra = [nominal_start(nominal_w)]
         if output_noise:
             moved = np.array(output_noise[0].w_trained, dtype=np.float64)
             extra.append(moved)
@@ -535,7 +535,7 @@ def _restart_from_nominal(
     again_starts = {}
     for i in losing:
         guesses = np.array(records[i].guesses_linear)
-        guesses[:, 1, :] = _at_nominal(fits[i][0].w_trained)
+        guesses[:, 1, :] = nominal_start(fits[i][0].w_trained)
         again_starts[i] = guesses
     entries = _fit_grouped(
         fit_linear, nominal, records, again_starts, linear, effects,

@@ -1,7 +1,7 @@
 """Where the step diagnosis's later fits start (`entry`): at the nominal fit's optimum with
-the effect switched off (`_at_nominal`: the nominal model exactly, so that a nested fit can
+the effect switched off (`nominal_start`: the nominal model exactly, so that a nested fit can
 never end below it), and the compliant stops' starts moved to the inelastic clamp's fit
-(`_contact_from_clamp`, over `CONTACT_GRID`'s stiffness and damping)."""
+(`contact_from_clamp`, over `CONTACT_GRID`'s stiffness and damping)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ CONTACT_GRID = ((0.0, 0.0), (-1.15, -0.73), (1.15, 0.8))
 clamp's stop and bounces, a stiff one is near the clamp."""
 
 
-def _contact_from_clamp(fit: StepFit, rec: StepRecord, starts: np.ndarray) -> np.ndarray:
+def contact_from_clamp(fit: StepFit, rec: StepRecord, starts: np.ndarray) -> np.ndarray:
     """Starts of the compliant stops (`starts`, one per contact candidate) moved to the
     clamp's fit: its device and nuisances, its two stops (at the output offset c ± h) as
     the clearances; the contact's stiffness and damping as they were."""
@@ -34,7 +34,7 @@ def _contact_from_clamp(fit: StepFit, rec: StepRecord, starts: np.ndarray) -> np
     return out
 
 
-def _at_nominal(w_nominal) -> np.ndarray:
+def nominal_start(w_nominal) -> np.ndarray:
     """A start at the nominal fit's optimum with the effect's slot at 0: the nominal model
     exactly, for every effect (each is the identity at z = 0)."""
     w = np.array(w_nominal, dtype=np.float64)
