@@ -12,14 +12,17 @@ change) is added to the truth's classes. The diagnosis runs in a fresh process t
 CSV files (`--params`-like nominal device: the reference with T_dm = T_f = 0, as the blind
 validation's).
 
-Scored: the measured twin's verdict against the clean twin's (agreement: the stop models
-named as one family, `verdict_family`; `agree_exact` the same name), refusals of a
-measured input, fits that ended below the nominal model's penalised likelihood (flagged
-`fit_failed`; counted over every ranking), `none` on a record whose truth has an effect
-(false assurance; the held-on-stop class included; the class that leaves its stop at the
-first sample is counted apart: no stop acts within those records, and the state it starts
-in is one the model's free initial state covers) and the joint nuisance test's trips on
-records whose truth is `none`. Float64.
+Scored: the measured twin's verdict against the clean twin's (agreement, over all records
+and per class: the stop models named as one family, `verdict_family`; `agree_exact` the
+same name; a refused twin disagrees), refusals of a measured input, the fits the diagnosis
+flagged `fit_failed` and, apart, those that ended below the nominal model's penalised
+likelihood on the solver's objective (counted over every ranking), `none` on a record
+whose truth has an effect (false assurance; the held-on-stop class included; on the class
+that leaves its stop at the first sample, a `none` is counted apart only where the truth
+simulator's pendulum never reaches a stop again, `stop_contacts`, checked record by
+record: then no stop acts within the record, and the state it starts in is one the
+model's free initial state covers) and the joint nuisance test's trips on records whose
+truth is `none`. Float64.
 
     python studies/measured_input_harness.py --per-class 12 --out out/measured_inputs
     python studies/measured_input_harness.py --per-class 4 --prbs 1   # with PRBS twins
@@ -219,21 +222,24 @@ def write_prbs_twins(truths: list[dict], picked: list[int], folder: Path, seed: 
 
 
 def score_prbs(
-    truths: list[dict], rows: dict, picked: list[int], seed: int, signal=None
+    truths: list[dict], rows: dict, picked: list[int], seed: int, signal=None, contacts=None
 ) -> dict:
-    """Each PRBS twin's verdict (clean and measured input) against the step record's. A
-    `none` on an effect truth is false assurance unless the effect changes the PRBS
-    world's noise-free record by χ² < `EFFECT_ABSENT_CHI2` (`signal`, default
-    `effect_signal`, of `prbs_world`): those are listed in `none_effect_absent`; or its
-    lag is within what the diagnosis says it cannot rule out (`lag_within_stated`):
-    listed in `none_lag_within_stated`."""
+    """Each PRBS twin's verdict (clean and measured input) against the step record's, the
+    stop models as one family (as `score`). A `none` on an effect truth is false assurance
+    unless the effect changes the PRBS world's noise-free record by χ² <
+    `EFFECT_ABSENT_CHI2` (`signal`, default `effect_signal`, of `prbs_world`): those are
+    listed in `none_effect_absent`; or its lag is within what the diagnosis says it cannot
+    rule out (`lag_within_stated`): listed in `none_lag_within_stated`. On an on-stop
+    truth, a `none` is false assurance when the PRBS world reaches a stop after its start
+    (`contacts`, default `stop_contacts`)."""
     signal = effect_signal if signal is None else signal
+    contacts = stop_contacts if contacts is None else contacts
     out = {"records": len(picked), "agree_clean": 0, "agree_measured": 0, "refused": 0,
            "false_assurance": 0, "none_effect_absent": {}, "none_lag_within_stated": {},
            "verdicts": []}
     for i in picked:
         step = rows[f"clean/{i:04d}"]
-        key = (step.get("verdict"), sorted(step.get("tied", [])))
+        key = (family(step.get("verdict")), sorted(map(family, step.get("tied", []))))
         pair = []
         for name in ("prbs_clean", "prbs_measured"):
             row = rows.get(f"{name}/{i:04d}", {"refused": "missing"})
@@ -241,10 +247,10 @@ def score_prbs(
                 out["refused"] += 1
                 pair.append("refused")
                 continue
-            same = (row["verdict"], sorted(row["tied"])) == key
-            if row["verdict"] == "none" and truths[i]["effect"] not in (
-                "none", step_truth.ON_STOP_EFFECT
-            ):
+            same = (family(row["verdict"]), sorted(map(family, row["tied"]))) == key
+            if row["verdict"] == "none" and truths[i]["effect"] == step_truth.ON_STOP_EFFECT:
+                out["false_assurance"] += int(bool(contacts(prbs_world(truths, i, seed)[0])))
+            elif row["verdict"] == "none" and truths[i]["effect"] != "none":
                 stated = lag_within_stated(truths[i], row, name == "prbs_measured")
                 acts = None if stated is not None else signal(prbs_world(truths, i, seed)[0])
                 if stated is not None:
@@ -303,6 +309,37 @@ def effect_signal(truth: dict) -> dict | None:
     }
 
 
+def stop_contacts(truth: dict) -> list[float]:
+    """The times [s from the record's first sample] at which the truth simulator's
+    pendulum reaches a stop after the record has started, in `truth`'s world: each event
+    `step_truth`'s integrator stops at on a contact (its `hit_high` / `hit_low` events),
+    read from the simulator's own calls to `solve_ivp` (observed, not changed; the noise
+    does not enter the dynamics). An on-stop record (`step_truth.ON_STOP_EFFECT`) leaves its
+    stop at the first sample; a `none` on it is false assurance unless this list is empty:
+    then no stop acts within the record, only its start, which the model's free initial
+    state covers. (`step_truth`'s docstring says the later small steps never bring the
+    pendulum back: over 100 records of seeds 0–99 the output reached at most 0.86 of the
+    stop voltage. This checks it record by record instead of trusting it.)"""
+    hits: list[float] = []
+    real = step_truth.solve_ivp
+
+    def spy(*args, **kwargs):
+        solution = real(*args, **kwargs)
+        events = kwargs.get("events") or []
+        names = {getattr(e, "__name__", "") for e in events}
+        if solution.status == 1 and names & {"hit_high", "hit_low"}:
+            hits.append(float(solution.t[-1]))
+        return solution
+
+    step_truth.solve_ivp = spy
+    try:
+        # `make` simulates the world twice (with its noise, then noise-free): one dynamics.
+        _make(truth, np.random.default_rng(0))
+    finally:
+        step_truth.solve_ivp = real
+    return sorted(set(hits))  # the record starts at t = 0 (`step_truth.Record.t0`)
+
+
 LAG_EFFECTS = ("torquer_lag", "output_filter")
 
 
@@ -347,13 +384,18 @@ def channel_ambiguity(channel: dict | None) -> float:
     return own + COLUMN_PHASE + LATENESS_PASSED
 
 
-def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -> dict:
+def score(
+    truths: list[dict], rows: dict, signal=effect_signal, channels=None, contacts=stop_contacts
+) -> dict:
     """The scores over the records in `rows` (`truths` indexed by the records' indices).
     `signal(truth)`: `effect_signal`, asked only of the effect truths read `none`.
     `channels`: the measured twins' input channels by index (str), to check each `none`
-    within the stated lag against what the true channel leaves ambiguous."""
+    within the stated lag against what the true channel leaves ambiguous. `contacts(truth)`:
+    `stop_contacts`, asked only of the on-stop truths read `none` (a `none` there is false
+    assurance when the stop acts after the start). A refused measured twin is a
+    disagreement; its clean twin is still counted (its `none`, false assurance, trip)."""
     per_class = {}
-    absent, within = {}, {}
+    absent, within, on_stop_acts = {}, {}, {}
     failed_fits = rankings = below_objective = 0
     largest_below = 0.0
     indices = sorted(int(key.split("/")[1]) for key in rows if key.startswith("clean/"))
@@ -362,8 +404,9 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
         clean, measured = rows[f"clean/{i:04d}"], rows[f"measured/{i:04d}"]
         entry = per_class.setdefault(
             truth["effect"],
-            {"records": 0, "agree": 0, "refused": 0, "none_clean": 0, "none_measured": 0,
-             "nuisance_trips": 0, "nuisance_trips_measured": 0, "verdicts": []},
+            {"records": 0, "agree": 0, "agree_exact": 0, "refused": 0, "none_clean": 0,
+             "none_measured": 0, "nuisance_trips": 0, "nuisance_trips_measured": 0,
+             "verdicts": []},
         )
         entry["records"] += 1
         for row in (clean, measured):
@@ -373,48 +416,61 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
                 below = [float(b) for b in row.get("below_nominal", {}).values()]
                 below_objective += sum(b > NESTED_ABSOLUTE for b in below)
                 largest_below = max([largest_below, *below])
-        if "refused" in measured:
+        refused = "refused" in measured
+        twins = [("clean", clean)] + ([] if refused else [("measured", measured)])
+        entry["none_clean"] += int(clean.get("verdict") == "none")
+        entry["nuisance_trips"] += int(bool(clean.get("nuisance_strained")))
+        if refused:
             entry["refused"] += 1
             entry["verdicts"].append([clean.get("verdict"), "refused"])
-            continue
-        same = family(clean.get("verdict")) == family(measured["verdict"]) and sorted(
-            map(family, clean.get("tied", []))
-        ) == sorted(map(family, measured["tied"]))
-        entry["agree"] += int(same)
-        entry["agree_exact"] = entry.get("agree_exact", 0) + int(
-            clean.get("verdict") == measured["verdict"]
-            and sorted(clean.get("tied", [])) == sorted(measured["tied"])
-        )
-        entry["none_clean"] += int(clean.get("verdict") == "none")
-        entry["none_measured"] += int(measured["verdict"] == "none")
+        else:
+            same = family(clean.get("verdict")) == family(measured["verdict"]) and sorted(
+                map(family, clean.get("tied", []))
+            ) == sorted(map(family, measured["tied"]))
+            entry["agree"] += int(same)
+            entry["agree_exact"] += int(
+                clean.get("verdict") == measured["verdict"]
+                and sorted(clean.get("tied", [])) == sorted(measured["tied"])
+            )
+            entry["none_measured"] += int(measured["verdict"] == "none")
+            entry["nuisance_trips_measured"] += int(bool(measured.get("nuisance_strained")))
+            entry["verdicts"].append([clean.get("verdict"), measured["verdict"]])
         stated = {}
-        for twin, row in (("clean", clean), ("measured", measured)):
+        for twin, row in twins:
             bound = lag_within_stated(truth, row, twin == "measured")
             if bound is not None:
                 if channels is not None:
                     channel = channels.get(str(i)) if twin == "measured" else None
                     bound["channel_ambiguity_samples"] = channel_ambiguity(channel)
                 stated[f"{twin}/{i:04d}"] = {"effect": truth["effect"], **bound}
-        nones = int(clean.get("verdict") == "none") + int(measured["verdict"] == "none")
+        nones = sum(row.get("verdict") == "none" for _, row in twins)
         if nones > len(stated) and truth["effect"] not in ("none", step_truth.ON_STOP_EFFECT):
             acts = signal(truth)
             if acts is not None and acts["chi2"] < EFFECT_ABSENT_CHI2:
                 absent[f"{i:04d}"] = {"effect": truth["effect"], "none_twins": nones, **acts}
                 stated = {}
+        if nones and truth["effect"] == step_truth.ON_STOP_EFFECT:
+            touched = contacts(truth)
+            if touched:
+                on_stop_acts[f"{i:04d}"] = {"none_twins": nones, "contacts_s": touched[:5]}
         within.update(stated)
-        entry["nuisance_trips"] += int(bool(clean.get("nuisance_strained")))
-        entry["nuisance_trips_measured"] += int(bool(measured.get("nuisance_strained")))
-        entry["verdicts"].append([clean.get("verdict"), measured["verdict"]])
     total = sum(e["records"] for e in per_class.values())
     agree = sum(e["agree"] for e in per_class.values())
     false_assurance = sum(
         e["none_clean"] + e["none_measured"]
         for c, e in per_class.items()
         if c not in ("none", step_truth.ON_STOP_EFFECT)
-    ) - sum(a["none_twins"] for a in absent.values()) - len(within)
+    ) - sum(a["none_twins"] for a in absent.values()) - len(within) + sum(
+        a["none_twins"] for a in on_stop_acts.values()
+    )
+    by_class = {c: e["agree"] / e["records"] for c, e in per_class.items() if e["records"]}
+    lowest = min(by_class, key=lambda c: (by_class[c], c)) if by_class else None
     return {
         "per_class": per_class,
         "agreement": agree / max(total, 1),
+        # The criterion read per effect as well as over all records: each class's share.
+        "agreement_by_class": by_class,
+        "agreement_lowest_class": None if lowest is None else [lowest, by_class[lowest]],
         "records": total,
         "refused_measured": sum(e["refused"] for e in per_class.values()),
         "nested_fit_failures": failed_fits,
@@ -427,11 +483,13 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
         "rankings": rankings,
         "false_assurance": false_assurance,
         "false_assurance_excludes": {
-            step_truth.ON_STOP_EFFECT: "the pendulum leaves the stop at the first sample and "
-            "never reaches it again: no stop acts within the record, and a device without "
-            "lags resting on the stop is one of the initial states (displacement, velocity) "
-            "the model's free initial state covers; its none is counted apart "
-            "(start_on_stop_none)",
+            step_truth.ON_STOP_EFFECT: "a none on a record whose pendulum leaves the stop at "
+            "the first sample and, in the truth simulator, never reaches a stop again "
+            "(stop_contacts, record by record): no stop acts within the record, and a device "
+            "without lags resting on the stop is one of the initial states (displacement, "
+            "velocity) the model's free initial state covers; counted apart "
+            "(start_on_stop_none). A none on one whose stop acts again is false assurance "
+            "(start_on_stop_stop_acts)",
             "effect_absent": "a `none` on a record whose truth's effect changes its "
             f"noise-free samples by χ² < {EFFECT_ABSENT_CHI2:g} (effect_signal: e.g. a stop "
             "the record never reaches); listed in none_effect_absent",
@@ -447,9 +505,11 @@ def score(truths: list[dict], rows: dict, signal=effect_signal, channels=None) -
         "start_on_stop_none": (
             per_class[step_truth.ON_STOP_EFFECT]["none_clean"]
             + per_class[step_truth.ON_STOP_EFFECT]["none_measured"]
+            - sum(a["none_twins"] for a in on_stop_acts.values())
             if step_truth.ON_STOP_EFFECT in per_class
             else None
         ),
+        "start_on_stop_stop_acts": on_stop_acts,
         "nuisance_trips_on_clean_none": per_class.get("none", {}).get("nuisance_trips"),
         "nuisance_trips_on_measured_none": per_class.get("none", {}).get(
             "nuisance_trips_measured"
@@ -471,6 +531,9 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
         differ = [k for k in keys if other["assumptions"].get(k) != first.get(k)]
         if differ:
             raise ValueError(f"the shards differ in {', '.join(differ)}: not one draw")
+        if other["truths"] != results[0]["truths"]:
+            raise ValueError("the shards' drawn truths differ: not one draw (the truth "
+                             "simulator's draw changed between them?)")
     rows, channels, shards, seconds = {}, {}, [], 0.0
     for r in results:
         overlap = set(rows) & set(r["rows"])
@@ -478,12 +541,25 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
             raise ValueError(f"the shards overlap in {len(overlap)} records (e.g. {min(overlap)})")
         rows.update(r["rows"])
         channels.update(r["channels"])
-        shards.append(r["assumptions"]["shard"])
+        # A merged result merges again: its own shards count (the overlap check above
+        # refuses one shard given twice, alone and inside a merge).
+        own = r["assumptions"].get("merged_shards") or [r["assumptions"]["shard"]]
+        shards += [list(k) for k in own]
         seconds += r["seconds"]
     truths = results[0]["truths"]
     picked = sorted({i for r in results for i in r["prbs_picked"]})
+    count = first["shard_count"]
+    missing = sorted(set(range(count)) - {k for k, _ in shards})
     return {
-        "assumptions": {**first, "shard": None, "merged_shards": sorted(shards)},
+        "assumptions": {
+            **first,
+            "shard": None,
+            "merged_shards": sorted(shards),
+            # Whether every shard of the draw is in: a partial merge scores only its records.
+            "complete": not missing,
+            "missing_shards": missing,
+            "merged_at": _commit(),
+        },
         "score": score(truths, rows, signal, channels),
         "prbs": score_prbs(truths, rows, picked, first["seed"], signal) if picked else None,
         "prbs_picked": picked,
@@ -593,7 +669,7 @@ def main(argv=None) -> int:
     elif args.merge:
         try:
             result = merge([json.loads(p.read_text()) for p in args.merge])
-        except (OSError, ValueError, KeyError) as error:
+        except (OSError, ValueError, KeyError, TypeError) as error:
             print(f"measured_input_harness: cannot merge: {error}", file=sys.stderr)
             return 1
     else:
@@ -613,9 +689,16 @@ def main(argv=None) -> int:
     partial.replace(target)  # whole or not at all
     s = result["score"]
     print(json.dumps({k: v for k, v in s.items() if k != "per_class"}, indent=1))
+    merged = result["assumptions"].get("merged_shards")
+    if merged:
+        count = result["assumptions"]["shard_count"]
+        state = "all" if result["assumptions"].get("complete") else "PARTIAL:"
+        print(f"merged {len(merged)} of {count} shards ({state} missing "
+              f"{len(result['assumptions'].get('missing_shards', []))})")
     for name, e in s["per_class"].items():
         print(
-            f"{name:22s} agree {e['agree']}/{e['records']} refused {e['refused']} "
+            f"{name:22s} agree {e['agree']}/{e['records']} "
+            f"({e['agree'] / max(e['records'], 1):.2f}) refused {e['refused']} "
             f"none clean/measured {e['none_clean']}/{e['none_measured']} "
             f"nuisance trips clean/measured {e['nuisance_trips']}/{e['nuisance_trips_measured']}"
         )

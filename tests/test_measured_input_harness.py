@@ -246,3 +246,93 @@ def test_nested_fits_below_the_nominal_are_counted_on_the_objective_apart_from_t
     assert s["nested_fit_failures"] == 2 and s["rankings"] == 4
     assert s["nested_below_on_objective"] == 1
     assert s["largest_objective_below_nominal"] == 12.5
+
+
+def test_a_none_on_a_start_on_stop_record_is_false_assurance_where_the_stop_acts_again():
+    """An on-stop record leaves its stop at the first sample. Its `none` is counted apart
+    only where the truth simulator's pendulum never reaches a stop again (`stop_contacts`,
+    read from the simulator's own contact events, record by record); where it does, the
+    stop acts within the record and the `none` is false assurance."""
+    truths = harness.draw(100, 2027)
+    on_stop = harness.step_truth.ON_STOP_EFFECT
+    free = next(t for t in truths if t["effect"] == on_stop)
+    assert harness.stop_contacts(free) == []  # leaves its stop at t0 and stays clear
+    # The same world with its stops well inside the small steps' reach: hit again.
+    struck = {**free, "stop_over_u_max": 0.7}
+    hits = harness.stop_contacts(struck)
+    assert hits and all(0 < h < harness.step_truth.DURATION for h in hits)
+    rows = {"clean/0000": _row("none"), "measured/0000": _row("none"),
+            "clean/0001": _row("none"), "measured/0001": _row("stop_saturation")}
+    asked = []
+
+    def contacts(truth):
+        asked.append(truth["stop_over_u_max"])
+        return hits if truth is struck else []
+
+    s = harness.score([free, struck], rows, _acts, contacts=contacts)
+    assert s["false_assurance"] == 1  # the struck record's clean twin
+    assert s["start_on_stop_none"] == 2  # the free record's two twins, counted apart
+    assert list(s["start_on_stop_stop_acts"]) == ["0001"]
+    assert s["start_on_stop_stop_acts"]["0001"]["none_twins"] == 1
+    assert len(asked) == 2  # asked once per record read none
+
+
+def test_a_refused_measured_twin_disagrees_and_its_clean_twin_still_counts():
+    truths = [{"effect": "torquer_lag", "lag_s": 1e-5, "rate": 1e6}, {"effect": "none"}]
+    rows = {"clean/0000": _row("none", hidden=0.0), "measured/0000": {"refused": "no plateaus"},
+            "clean/0001": _row("none", strained=True), "measured/0001": {"refused": "x"}}
+    s = harness.score(truths, rows, _acts)
+    assert s["refused_measured"] == 2 and s["agreement"] == 0.0
+    assert s["false_assurance"] == 1  # the lag record's clean none (its lag 10 samples)
+    assert s["nuisance_trips_on_clean_none"] == 1
+    assert s["per_class"]["torquer_lag"]["none_clean"] == 1
+
+
+def test_agreement_is_given_per_class_with_the_lowest():
+    truths = [{"effect": "none"}] * 2 + [{"effect": "stop_saturation"}] * 2
+    rows = {"clean/0000": _row("none"), "measured/0000": _row("none"),
+            "clean/0001": _row("none"), "measured/0001": _row("none"),
+            "clean/0002": _row("stop_saturation"), "measured/0002": _row("unexplained"),
+            "clean/0003": _row("stop_saturation"), "measured/0003": _row("stop_contact")}
+    s = harness.score(truths, rows, _acts)
+    assert s["agreement"] == pytest.approx(3 / 4)
+    assert s["agreement_by_class"] == {"none": 1.0, "stop_saturation": 0.5}
+    assert s["agreement_lowest_class"] == ["stop_saturation", 0.5]
+
+
+def test_merges_merge_again_and_say_which_shards_are_missing(tmp_path):
+    def shard(k, n=3):
+        i, verdict = f"{k:04d}", "torquer_lag" if k == 1 else "none"  # as its truth
+        rows = {f"clean/{i}": _row(verdict), f"measured/{i}": _row(verdict)}
+        result = _shard_result((k, n), rows)
+        result["assumptions"]["shard_count"] = n
+        return result
+
+    pair = harness.merge([shard(0), shard(1)], _acts)
+    assert pair["assumptions"]["complete"] is False
+    assert pair["assumptions"]["missing_shards"] == [2]
+    whole = harness.merge([pair, shard(2)], _acts)
+    assert whole["assumptions"]["complete"] is True and whole["assumptions"]["missing_shards"] == []
+    assert whole["assumptions"]["merged_shards"] == [[0, 3], [1, 3], [2, 3]]
+    assert whole["score"]["records"] == 3
+    with pytest.raises(ValueError, match="overlap"):
+        harness.merge([pair, shard(1)], _acts)  # shard 1 alone and inside the merge
+    other = shard(2)
+    other["truths"] = [*other["truths"][:2], {"effect": "torquer_lag"}]
+    with pytest.raises(ValueError, match="truths differ"):
+        harness.merge([pair, other], _acts)
+    # From the command line: a merged file is accepted, and the partial state printed.
+    files = []
+    for name, result in (("p.json", pair), ("s.json", shard(2))):
+        files.append(tmp_path / name)
+        files[-1].write_text(json.dumps(result))
+    assert harness.main(["--merge", *map(str, files), "--out", str(tmp_path / "o")]) == 0
+    assert json.loads((tmp_path / "o" / "result.json").read_text())["assumptions"]["complete"]
+
+
+def test_prbs_twins_name_the_stop_family_as_the_step_record_does():
+    truths = [{"effect": "stop_saturation"}]
+    rows = {"clean/0000": _row("stop_saturation"), "prbs_clean/0000": _row("stop_contact"),
+            "prbs_measured/0000": _row("unexplained")}
+    out = harness.score_prbs(truths, rows, [0], 7, _acts)
+    assert (out["agree_clean"], out["agree_measured"]) == (1, 0)
