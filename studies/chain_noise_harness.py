@@ -200,8 +200,19 @@ def _rate(flags) -> dict:
     return {"n": len(flags), "share": (sum(flags) / len(flags)) if flags else None}
 
 
+def _failed(j: dict, key: str, error_value=False):
+    """A record's flag for a share over every record of its kind: an errored record (the
+    diagnosis raised, or returned nothing) counts as a failure (`error_value`), so that no
+    miss leaves the denominator."""
+    return error_value if "error" in j else j[key]
+
+
 def score(truths: dict, rows: dict) -> dict:
-    """The per-kind figures (module docstring)."""
+    """The per-kind figures (module docstring). The criterion's shares (`bandlimit_alone`,
+    its joint rate with the corner, `white_within_2_of_flat_band`,
+    `high_frequency_noise_alone`, `false_alarms`) are over every record of the kind, an
+    errored one counted as a failure; the `of_those_…` figures are over the records named
+    `bandlimit` alone, and `white_collapsed` over those that returned a verdict."""
     judged = [judge(truths[n], rows.get(n, {"error": "no verdict returned"})) for n in truths]
     out = {}
     for kind in dict.fromkeys(j["kind"] for j in judged):
@@ -219,16 +230,23 @@ def score(truths: dict, rows: dict) -> dict:
             "white_collapsed": _rate(j["collapsed"] for j in ok),
             "of_those_flagged": _rate(j["flagged"] for j in ok if j["collapsed"]),
             "white_within_2_of_flat_band": _rate(
-                j["white_vs_flat_band"] is not None
+                _failed(j, "white_vs_flat_band", None) is not None
                 and 1 / LEVEL_FACTOR <= j["white_vs_flat_band"] <= LEVEL_FACTOR
-                for j in ok
+                for j in mine
             ),
         }
         if kind in ("butterworth", "bessel", "moving_average", "decimated"):
             alone = [j for j in ok if j["bandlimit_alone"]]
             errors = [abs(j["corner_error"]) for j in alone if j["corner_error"] is not None]
             section.update(
-                bandlimit_alone=_rate(j["bandlimit_alone"] for j in ok),
+                bandlimit_alone=_rate(_failed(j, "bandlimit_alone") for j in mine),
+                # named alone and its corner within 10 %, over every record of the kind
+                bandlimit_alone_corner_within_10_percent=_rate(
+                    _failed(j, "bandlimit_alone")
+                    and j["corner_error"] is not None
+                    and abs(j["corner_error"]) <= CORNER_TOLERANCE
+                    for j in mine
+                ),
                 of_those_order_right=_rate(j["order_right"] for j in alone),
                 of_those_order_right_or_tied=_rate(
                     j["order_right"] or j["order_tied"] for j in alone
@@ -239,9 +257,9 @@ def score(truths: dict, rows: dict) -> dict:
                 of_those_after_within_2=_rate(j["after_within"] for j in alone),
             )
         elif kind == "nyquist_hump":
-            section["high_frequency_noise_alone"] = _rate(j["right"] for j in ok)
+            section["high_frequency_noise_alone"] = _rate(_failed(j, "right") for j in mine)
         elif kind in ("white", "decimated_flat"):
-            section["false_alarms"] = _rate(j["false_alarm"] for j in ok)
+            section["false_alarms"] = _rate(_failed(j, "false_alarm", True) for j in mine)
         out[kind] = section
     return out
 

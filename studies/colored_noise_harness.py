@@ -130,7 +130,8 @@ def _names_truth(row: dict, right: str) -> bool:
 def _credits_noise(row: dict) -> bool:
     """A coloured noise credited, at either place (or a tie between the two)."""
     return row["verdict"] in NOISE_EFFECTS or (
-        row["verdict"] == "cannot_tell" and set(row["tied"]) <= set(NOISE_EFFECTS)
+        row["verdict"] == "cannot_tell" and bool(row["tied"])
+        and set(row["tied"]) <= set(NOISE_EFFECTS)
     )
 
 
@@ -153,6 +154,13 @@ def score(truths: dict, rows: dict) -> dict:
             "right": right,
             "right_share": sum(_names_truth(rows[n], right) for n in names) / len(names),
         }
+        nones = sum(v == "none" for v in verdicts)
+        if effect == "none":
+            # Any other verdict on a record with no coloured noise: a false alarm.
+            section["false_alarms"] = {"n": len(names), "count": len(names) - nones}
+        else:
+            # `none` on a record with a coloured noise (1–20× the white floor): false assurance.
+            section["false_assurance"] = nones
         if effect != "none":
             section["noise_credited_share"] = sum(_credits_noise(rows[n]) for n in names) / len(
                 names
@@ -169,7 +177,9 @@ def score(truths: dict, rows: dict) -> dict:
                 if rows[names[0]].get(key + "_evidence", "absent") == "absent":
                     continue  # rows of a run before the candidate existed
                 for field in ("significant", "variance_consistent", "fit_failed"):
-                    section[f"{key}_{field}"] = sum(bool(rows[n].get(f"{key}_{field}")) for n in names)
+                    section[f"{key}_{field}"] = sum(
+                        bool(rows[n].get(f"{key}_{field}")) for n in names
+                    )
                 section[key + "_white_held_out"] = sum(
                     (rows[n][key + "_ljung_box_p"] or 0.0) >= 1e-3 for n in names
                 )

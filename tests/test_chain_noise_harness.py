@@ -97,8 +97,18 @@ def test_scoring_white_records_and_errors():
     truths = {"a": _truth("white"), "b": _truth("white"), "c": _truth("white")}
     rows = {"a": _row([]), "b": _row([], unexplained=True), "c": {"error": "ValueError: x"}}
     score = harness.score(truths, rows)["white"]
-    assert score["errors"] == 1 and score["false_alarms"] == {"n": 2, "share": 0.5}
+    # An errored record stays in the denominator, as a failure (here a false alarm).
+    assert score["errors"] == 1 and score["false_alarms"] == {"n": 3, "share": 2 / 3}
     assert harness.score({"d": _truth("white")}, {})["white"]["errors"] == 1  # no row
+    band = {"corner_Hz": 21.0, "order": 2, "shape": "butterworth"}
+    chains = {"a": _truth("butterworth"), "b": _truth("butterworth"), "c": _truth("butterworth")}
+    rows = {"a": _row(["bandlimit"], bandlimit=band),
+            "b": _row(["bandlimit"], bandlimit={**band, "corner_Hz": 30.0}),
+            "c": {"error": "ValueError: x"}}
+    chain = harness.score(chains, rows)["butterworth"]
+    assert chain["bandlimit_alone"] == {"n": 3, "share": 2 / 3}
+    assert chain["bandlimit_alone_corner_within_10_percent"] == {"n": 3, "share": 1 / 3}
+    assert chain["white_within_2_of_flat_band"] == {"n": 3, "share": 2 / 3}
 
 
 def test_one_blind_record_end_to_end(tmp_path):

@@ -54,3 +54,22 @@ def test_score_counts_per_class_and_strength_band():
     assert moment["by_ratio"]["8-20"] == {"n": 1, "right": 0, "noise_credited": 1}
     assert moment["noise_variance_consistent"] == 2
     assert score["none"]["right"] == "none" and score["none"]["right_share"] == 0.0
+
+
+def test_false_assurance_false_alarms_and_an_empty_tie():
+    truths = {
+        "a": {"effect": "output_gm", "ratio": 4.0},
+        "b": {"effect": "output_gm", "ratio": 2.0},
+        "c": {"effect": "none", "ratio": None},
+        "d": {"effect": "none", "ratio": None},
+    }
+    rows = {
+        "a": _row("none"),  # a coloured noise read as nothing missing
+        "b": _row("cannot_tell", tied=()),  # a tie naming nothing credits no noise
+        "c": _row("none"),
+        "d": _row("disturbance_drift"),
+    }
+    score = harness.score(truths, rows)
+    assert score["output_gm"]["false_assurance"] == 1
+    assert score["output_gm"]["noise_credited_share"] == 0.0
+    assert score["none"]["false_alarms"] == {"n": 2, "count": 1}
