@@ -238,7 +238,9 @@ class DisturbanceDrift(AbstractStepEffect):
         change = 1e-2 * float(z[0])  # V of M/k_dm over the record
         return {
             "moment_rate_Nm_per_s": change * context.torquer_gain / context.duration,
-            "output_drift_V_per_s": change * context.test_gain / context.duration,
+            # The moment's settled output is k_test M/k_dm: no test winding (its gain and
+            # polarity) on its way.
+            "output_drift_V_per_s": change * context.k_test / context.duration,
         }
 
 

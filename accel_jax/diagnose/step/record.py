@@ -432,6 +432,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         top=float(np.max(yb)),
         bottom=float(np.min(yb)),
         block_samples=int(m),
+        k_test=float(closed_loop_test_gain(base)),
     )
     linear = [e for e in effects if not e.nonlinear and not e.loop_noise]
     nonlinear = [e for e in effects if e.nonlinear]

@@ -59,7 +59,9 @@ class RecordHost:
     `nominal_torquer_time_constant`, `nominal_filter_time_constant` [s] the nominal
     device's lags T_dm, T_f (a lag effect departs from these); `top`, `bottom` [V] the
     whole record's largest and smallest output (block means, held-out part included);
-    `block_samples` m, the samples in one block.
+    `block_samples` m, the samples in one block; `k_test` [V/V] the nominal device's
+    closed-loop test gain, the settled output per volt of M/k_dm (an external moment's
+    output, which passes through no test winding).
     """
 
     lag_unit: float
@@ -77,6 +79,7 @@ class RecordHost:
     top: float
     bottom: float
     block_samples: int
+    k_test: float
 
     def nominal_lag(self, field: str) -> float:
         """The nominal device's value [s] of the lag `ServoParams` field `field`
