@@ -46,8 +46,13 @@ def test_truth_coefficients_from_the_physics():
     # The loop's frame: a reversed output reverses the asymmetry's and the drift's sign.
     asym = {"class": "torquer_asymmetry", "asymmetry": 0.02, "output_sign": -1.0}
     assert harness.truth_coefficient(asym, SCALES) == pytest.approx(-0.02)
-    drift = {"class": "loo_disturbance_drift", "drift_V": 0.01, "output_sign": 1.0}
-    assert harness.truth_coefficient(drift, SCALES) == pytest.approx(0.005)
+    # The drift's ramp is a moment term: the output moves by k_test·c·h (k_test of the
+    # truth's device, here 0.25 = k_dm·gain/(c + k_dm·gain) with gain = k_dp·k_y·l).
+    l = harness.step_truth.Device().l
+    device = {"k_dp": 1.0, "k_y": 1.0 / l, "k_dm": 1.0, "c": 3.0}  # gain 1, k_test 1/4
+    drift = {"class": "loo_disturbance_drift", "drift_V": 0.01, "output_sign": 1.0,
+             "device": device}
+    assert harness.truth_coefficient(drift, SCALES) == pytest.approx(0.005 / 0.25)
     assert harness.truth_coefficient({"class": "periodic_disturbance"}, SCALES) is None
 
 
@@ -61,6 +66,7 @@ def test_calibration_counts_only_the_generating_term():
     }
     out = harness.calibration(records)
     assert out["records"] == 2 and out["within_2_sigma"] == 1
+    assert out["in_band_85_99"] is False  # 50 %: too few within 2σ
     assert out["z"]["a"] == pytest.approx(1.5) and out["z"]["b"] == pytest.approx(3.0)
 
 
@@ -94,3 +100,15 @@ def test_rescore_merges_runs(tmp_path, capsys):
     printed = json.loads(capsys.readouterr().out)
     assert printed["score"]["findable_records"] == 2
     assert printed["score"]["findable_credible_and_right"] == 1
+
+
+def test_rescore_refuses_a_record_given_twice_with_other_results(tmp_path, capsys):
+    paths = []
+    for i, value in enumerate((0.1, 0.2)):
+        records = {"a": _row("loo_output_filter", ["output_pole"], value, 1e-3, lag_s=3e-5)}
+        paths.append(tmp_path / f"r{i}.json")
+        paths[-1].write_text(json.dumps({"records": records}))
+    with pytest.raises(SystemExit) as stop:
+        harness.main(["--rescore", *map(str, paths)])
+    assert stop.value.code == 2
+    assert "record a is in an earlier file" in capsys.readouterr().err
