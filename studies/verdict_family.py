@@ -1,5 +1,5 @@
 """Verdicts that name one family of effects, for the blind studies' scoring (one definition:
-`sim_to_real_validation` and `measured_input_harness` read it).
+`sim_to_real_validation`, `measured_input_harness` and `contact_harness` read it).
 
 The inelastic stop (`stop_saturation`: the velocity lost at contact) is the stiff, damped
 limit of the compliant stops (`stop_contact`): a clamp truth named `stop_contact` is
