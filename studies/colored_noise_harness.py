@@ -42,7 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import colored_truth  # noqa: E402
 from measured_input_harness import _commit  # noqa: E402
-from shards import run_blind  # noqa: E402
+from shards import blind_prelude, run_blind  # noqa: E402
 
 from accel_jax.report import write_json_atomic  # noqa: E402
 
@@ -51,22 +51,8 @@ NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
 BANDS = ((1.0, 3.0), (3.0, 8.0), (8.0, 20.0))
 """Bands of the coloured part's standard deviation over the white noise's."""
 
-_BLIND = (
-    f"NOMINAL_LAGS = {NOMINAL_LAGS!r}\n"
-    + """
-import json, pathlib, sys
-import accel_jax
-from accel_jax._placement import apply_device
-from accel_jax._runtime import enable_compilation_cache
-apply_device(latency_bound=True)
-enable_compilation_cache()
-import jax
-jax.config.update("jax_enable_x64", True)
-from accel_jax import NominalDevice, read_csv
-from accel_jax.diagnose import diagnose_many
-nominal = NominalDevice.reference(**NOMINAL_LAGS)
-out = {}
-for f in sorted(pathlib.Path(sys.argv[2]).glob("*.csv")):
+_BLIND = blind_prelude(NOMINAL_LAGS) + (
+    """for f in sorted(pathlib.Path(sys.argv[2]).glob("*.csv")):
     result = diagnose_many([read_csv(f)], nominal, recommend=False)[0]
     row = {"verdict": result.verdict, "tied": list(result.tied), "reason": result.reason}
     for effect, key in (("colored_noise", "noise"), ("moment_noise", "moment")):

@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import contact_truth  # noqa: E402
 import step_truth  # noqa: E402
 from measured_input_harness import _commit  # noqa: E402
-from shards import parse_shard, run_blind, shard_indices  # noqa: E402
+from shards import blind_prelude, parse_shard, run_blind, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
 from accel_jax.report import write_json_atomic  # noqa: E402
@@ -63,22 +63,8 @@ DRAW_ATTEMPTS = 8
 """Draws of one record before the harness gives up (`contact_truth.draw_truth` refuses a
 sequence that drives the pendulum towards neither side)."""
 
-_BLIND = (
-    f"NOMINAL_LAGS = {NOMINAL_LAGS!r}\n"
-    + """
-import json, pathlib, sys
-import accel_jax
-from accel_jax._placement import apply_device
-from accel_jax._runtime import enable_compilation_cache
-apply_device(latency_bound=True)
-enable_compilation_cache()
-import jax
-jax.config.update("jax_enable_x64", True)
-from accel_jax import DataError, NominalDevice, read_csv
-from accel_jax.diagnose import diagnose_many
-nominal = NominalDevice.reference(**NOMINAL_LAGS)
-out = {}
-for f in sorted(pathlib.Path(sys.argv[2]).glob("*.csv")):
+_BLIND = blind_prelude(NOMINAL_LAGS) + (
+    """for f in sorted(pathlib.Path(sys.argv[2]).glob("*.csv")):
     try:
         result = diagnose_many([read_csv(f)], nominal, recommend=False)[0]
     except DataError as error:

@@ -53,7 +53,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402
-from shards import parse_shard, run_blind, shard_indices  # noqa: E402
+from shards import blind_prelude, parse_shard, run_blind, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
 # (The scorer's tolerance, not the blind diagnosis's process.)
@@ -62,22 +62,8 @@ from accel_jax.diagnose.step.assess import NESTED_ABSOLUTE  # noqa: E402
 CLASSES = step_truth.CLASSES + (step_truth.ON_STOP_EFFECT, step_truth.ON_STOP_HELD_EFFECT)
 NOMINAL_LAGS = {"torquer_time_constant": 0.0, "filter_time_constant": 0.0}
 
-_BLIND = (
-    f"NOMINAL_LAGS = {NOMINAL_LAGS!r}\n"
-    + """
-import json, pathlib, sys
-import accel_jax
-from accel_jax._placement import apply_device
-from accel_jax._runtime import enable_compilation_cache
-apply_device(latency_bound=True)
-enable_compilation_cache()
-import jax
-jax.config.update("jax_enable_x64", True)
-from accel_jax import DataError, NominalDevice, read_csv
-from accel_jax.diagnose import diagnose_many
-nominal = NominalDevice.reference(**NOMINAL_LAGS)
-out = {}
-
+_BLIND = blind_prelude(NOMINAL_LAGS) + (
+    """
 def row(result):
     test = result.refit.get("nuisance_test", {})
     return {

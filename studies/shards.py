@@ -36,6 +36,27 @@ def parse_shard(text: str) -> tuple[int, int]:
     return k, n
 
 
+def blind_prelude(nominal_lags: dict) -> str:
+    """The start every harness's diagnosing script shares: the package imported, the
+    process placed as a latency-bound one, the compilation cache on, float64, and
+    `nominal` the reference device with the lags `nominal_lags`; then an empty `out`
+    (the rows by record name) for the script to fill."""
+    return f"NOMINAL_LAGS = {nominal_lags!r}\n" + """
+import json, pathlib, sys
+import accel_jax
+from accel_jax._placement import apply_device
+from accel_jax._runtime import enable_compilation_cache
+apply_device(latency_bound=True)
+enable_compilation_cache()
+import jax
+jax.config.update("jax_enable_x64", True)
+from accel_jax import DataError, NominalDevice, read_csv
+from accel_jax.diagnose import diagnose_many
+nominal = NominalDevice.reference(**NOMINAL_LAGS)
+out = {}
+"""
+
+
 def run_blind(code: str, *args: str) -> dict:
     """Run `code` (a harness's diagnosing script) in a fresh Python process, in the
     repository root, as `python -c code OUT *args`, and return the JSON it writes to OUT.
