@@ -619,7 +619,10 @@ def score(
             ok = tied_ok = v == "unexplained"
         else:
             ok = v == t or family(v) == t
-            tied_ok = v == "cannot_tell" and t in verdict["tied"]
+            # A tie names the truth as a verdict does: itself or a member of its family.
+            tied_ok = v == "cannot_tell" and (
+                t in verdict["tied"] or t in map(family, verdict["tied"])
+            )
         c = per_class.setdefault(t, {"n": 0, "correct": 0, "correct_or_tied": 0})
         c["n"] += 1
         c["correct"] += ok

@@ -112,6 +112,11 @@ def test_score_gives_every_verdict_a_column_in_every_row(tmp_path):
     assert "stop_contact" in columns[0]
     assert section["confusion"]["stop_saturation"]["stop_contact"] == 1
     assert section["per_class"]["stop_saturation"]["correct"] == 1  # the family counts
+    # and in a tie as in a verdict: a tie naming the compliant member names the clamp
+    tie = [{"verdict": "cannot_tell", "tied": ["stop_contact", "torquer_lag"],
+            "gap": {"shrink": 0.9}}]
+    tied = module.score([{"effect": "stop_saturation"}], tie, classes, outside, assurance=None)
+    assert tied["per_class"]["stop_saturation"]["correct_or_tied"] == 1
     gaps = [1.0] * len(truths)
     out = module._open_world_figure(tmp_path, kind, section, truths, verdicts, gaps)
     assert (tmp_path / out["file"]).stat().st_size > 0
