@@ -227,6 +227,7 @@ def score_prbs(
         step = rows[f"clean/{i:04d}"]
         key = (family(step.get("verdict")), sorted(map(family, step.get("tied", []))))
         pair = []
+        touched = None  # the PRBS world's stop contacts, simulated once for both twins
         for name in ("prbs_clean", "prbs_measured"):
             row = rows.get(f"{name}/{i:04d}", {"refused": "missing"})
             if "refused" in row:
@@ -235,7 +236,9 @@ def score_prbs(
                 continue
             same = (family(row["verdict"]), sorted(map(family, row["tied"]))) == key
             if row["verdict"] == "none" and truths[i]["effect"] == step_truth.ON_STOP_EFFECT:
-                out["false_assurance"] += int(bool(contacts(prbs_world(truths, i, seed)[0])))
+                if touched is None:
+                    touched = contacts(prbs_world(truths, i, seed)[0])
+                out["false_assurance"] += int(bool(touched))
             elif row["verdict"] == "none" and truths[i]["effect"] != "none":
                 stated = lag_within_stated(truths[i], row, name == "prbs_measured")
                 acts = None if stated is not None else signal(prbs_world(truths, i, seed)[0])
