@@ -79,6 +79,13 @@ means of blocks of 10 samples. White noise averages down by √m with the signal
 the model predicts the block means exactly (`_simulate.sequence.linear_record`), so little is lost
 while the fit handles ~30 points per T however fast the record was sampled."""
 
+COARSE_BIAS = 0.1
+"""An output not dithered by its own noise (σ of its differences below half the ADC step)
+whose plateaus keep a quantisation bias (`quantisation_bias`) above this fraction of the
+record's noise floor σ has its levels fitted as errors in variables (σ that bias), as a
+measured input's are: a plateau's mean, averaged over its ~10² blocks, resolves a bias of
+about a tenth of σ, which a white output noise does not describe."""
+
 
 def stack_on_host(trees: list):
     """Trees of the same structure stacked leaf by leaf along a new first axis: with NumPy
@@ -324,14 +331,21 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     level_bias = 0.0
     if clock is None:
         level_bias = quantisation_bias(y, q, settled) / max(abs(k_test), 1e-300)
-    if rms_sigma > 0 and a is None:
+    # An output quantised coarsely against its noise (not dithered, `quantisation_bias`
+    # far from 0) gives each plateau a bias of its own, which a white output noise does
+    # not describe: its levels are then errors in variables too, with an exact input.
+    coarse = not dithered and level_bias * abs(k_test) > COARSE_BIAS * sigma
+    if (rms_sigma > 0 or coarse) and a is None:
         # (rms_sigma > 0: a measured input, which has level errors and a drift shape)
-        assert plateau_sigmas is not None and inputs.level_drift is not None
         level_sigma = np.zeros(j_padded)
-        level_sigma[: index.size] = np.hypot(plateau_sigmas[1:], level_bias)
-        held_out_level = np.append(starts_held.astype(np.float64), 0.0)  # (the drift: not)
         drift_step = np.zeros(j_padded)
-        drift_step[: index.size] = np.diff(inputs.level_drift)
+        if rms_sigma > 0:
+            assert plateau_sigmas is not None and inputs.level_drift is not None
+            level_sigma[: index.size] = np.hypot(plateau_sigmas[1:], level_bias)
+            drift_step[: index.size] = np.diff(inputs.level_drift)
+        else:
+            level_sigma[: index.size] = level_bias
+        held_out_level = np.append(starts_held.astype(np.float64), 0.0)  # (the drift: not)
         if grouped is not None:  # one error per distinct level, shared by train and test
             group, group_sigma = grouped.group, np.hypot(grouped.sigmas, level_bias)
             level_map = np.zeros((j_padded + 1, group_sigma.size))
