@@ -50,11 +50,13 @@ def test_levels_are_errors_in_variables_only_where_the_output_is_not_dithered():
     assert np.all(sigmas[:changes] > 0) and np.all(sigmas[changes:] == 0)
     assert np.ptp(sigmas[:changes]) == 0  # one bias for every plateau
     assert np.all(np.asarray(rec.ctx.drift_step) == 0)  # no input channel to drift
+    assert sum("coarse against its noise" in note for note in rec.notes) == 1
     # The same world with noise that dithers the ADC (σ ≈ q), and a fine ADC (16 bits
     # against the same 0.21 mV): the levels stay exact.
     for changes_ in ({"noise_V": 1.2e-3}, {"adc_step_V": 20.0 / 2**18}):
         _, other = _clean(6, **changes_)
-        assert record.prepare(other, NOMINAL, step_effects()).ctx.level_sigma is None, changes_
+        plain = record.prepare(other, NOMINAL, step_effects())
+        assert plain.ctx.level_sigma is None and not plain.notes, changes_
 
 
 @pytest.mark.slow
@@ -66,3 +68,5 @@ def test_a_clean_record_quantised_coarsely_is_none_not_coloured_noise():
     result = diagnose_many([data], NOMINAL, recommend=False)[0]
     assert result.verdict == "none", result.summary()
     assert "and white" in result.reason, result.reason
+    # The record says why its levels are nuisances (a clean input has no level errors).
+    assert any("coarse against its noise" in note for note in result.notes), result.notes

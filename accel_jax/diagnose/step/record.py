@@ -159,6 +159,16 @@ def _response_fit(t, u, y, base) -> tuple[float, float]:
     return float(intercept), float(slope)
 
 
+def _coarse_note(quantum: float, bias: float, sigma: float) -> str:
+    """The note of a record whose plateaus keep a quantisation bias (`COARSE_BIAS`)."""
+    return (
+        f"the output's ADC step ({quantum:.3g} V) is coarse against its noise: each plateau "
+        f"keeps a quantisation bias (RMS {bias:.2g} V, {bias / sigma:.2g}× the noise floor), "
+        "so the test levels are fitted as errors in variables with that σ (the input_level "
+        "nuisances)"
+    )
+
+
 def _clock_notes(clock, grouped: LevelGroups | None, changes: int) -> list[str]:
     if clock is None:
         return []
@@ -448,11 +458,14 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         block_samples=int(m),
         k_test=float(closed_loop_test_gain(base)),
     )
+    coarse_notes = ()
+    if coarse and rms_sigma == 0:
+        coarse_notes = (_coarse_note(q, level_bias * abs(k_test), sigma),)
     linear = [e for e in effects if not e.nonlinear and not e.loop_noise]
     nonlinear = [e for e in effects if e.nonlinear]
     return StepRecord(
         data=data,
-        notes=tuple(inputs.notes) + tuple(_clock_notes(clock, grouped, index.size)),
+        notes=tuple(inputs.notes) + tuple(_clock_notes(clock, grouped, index.size)) + coarse_notes,
         ctx=ctx,
         view=view,
         u_out=np.concatenate([yb, np.zeros(n_padded - n_blocks)]),
