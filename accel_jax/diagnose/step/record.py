@@ -344,7 +344,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     # An output quantised coarsely against its noise (not dithered, `quantisation_bias`
     # far from 0) gives each plateau a bias of its own, which a white output noise does
     # not describe: its levels are then errors in variables too, with an exact input.
-    coarse = not dithered and level_bias * abs(k_test) > COARSE_BIAS * sigma
+    # (Not with an acceleration column, whose changes share the test levels' segments.)
+    coarse = not dithered and level_bias * abs(k_test) > COARSE_BIAS * sigma and a is None
     if (rms_sigma > 0 or coarse) and a is None:
         # (rms_sigma > 0: a measured input, which has level errors and a drift shape)
         level_sigma = np.zeros(j_padded)
