@@ -23,6 +23,8 @@ def _entry(**changes) -> dict:
     entry = dict(
         effect="moment_noise", evidence=3762.1, stochastic=True, deterministic_misfit=False,
         predictability_null_quantile=NULL, gap_after_V=0.00416, gap_shrink=0.547,
+        # its free run's held-out mean square: 0.00416 V over the 0.000432 V floor
+        held_out_mean_square=0.00416**2 + 0.000432**2,
     )
     return {**entry, **changes}
 
@@ -84,6 +86,20 @@ def test_a_credible_term_at_the_floor_where_the_noise_is_not_makes_the_record_un
     assert result.notes == ["another note"]  # the question's own note is now the reason
 
 
+def test_the_noise_is_weighed_by_its_free_run_over_the_records_floor_not_its_own_variance():
+    # Blind record 809 of the measured-input harness (a 300 Hz disturbance): moment_noise
+    # fitted large enough that its free run sat within its own variance (gap_after_V 0),
+    # while it missed the held-out part by 1.18 mV over the 8.45e-5 V floor; the discovered
+    # sinusoid reached the floor. Judged by gap_after_V the noise was kept.
+    floor = 8.45e-5
+    entry = _entry(gap_after_V=0.0, held_out_mean_square=0.00118**2 + floor**2)
+    result = _result(entry, _discovery())
+    result.remaining_gap["noise_floor_V"] = floor
+    question.weigh_discovery(result)
+    assert result.verdict == "unexplained"
+    assert "moment_noise leaves 0.00118 V (14.0× the 8.45e-05 V floor)" in result.reason
+
+
 def test_an_overturned_noise_leaves_the_nominals_gap_not_its_own_shrink():
     # Overturned, no library model is kept: the gap blocks are the nominal's (the noise's
     # shrink beside an explained fraction of 0 contradicted it); a kept noise keeps its own.
@@ -136,7 +152,11 @@ def test_the_noise_is_kept_unless_a_credible_term_brings_the_held_out_gap_to_the
 
 
 def test_the_noise_is_kept_where_it_too_leaves_the_held_out_gap_at_the_floor():
-    result = _result(_entry(gap_after_V=0.0004), _discovery())
+    # its free run 0.0004 V over the record's 0.000432 V floor (the own-variance gap is
+    # not what is weighed: set far above the floor here)
+    result = _result(
+        _entry(gap_after_V=0.01, held_out_mean_square=0.0004**2 + 0.000432**2), _discovery()
+    )
     question.weigh_discovery(result)
     assert result.verdict == "moment_noise"
     assert "and so does moment_noise" in result.notes[0]
