@@ -120,9 +120,9 @@ def diagnose_step(
         `Discovery`, a hypothesis; the verdict stays `unexplained`), and for a noise
         verdict in question (`verdict.noise_in_question`: its misfit partly predictable,
         kept only by the noise's own null), where a credible term that brings the held-out
-        gap to the floor, while the noise leaves its own above it, makes the verdict
-        `unexplained` (`question.weigh_discovery`); "all": for every record that passed it
-        (a check that nothing is found where nothing is missing).
+        gap to the floor, while the noise's free run leaves it above the record's floor,
+        makes the verdict `unexplained` (`question.weigh_discovery`); "all": for every
+        record that passed it (a check that nothing is found where nothing is missing).
     - `ceiling`: with `discover`, also fit the network reference of what a term of the
         loop's states could remove of the held-out gap (`ceiling`: the discovery's
         `ceiling` and each candidate's `ceiling_fraction`; an estimate, never a
