@@ -25,7 +25,7 @@ def diagnose_many(
     records of one length are fitted as one batch (one compilation). See `diagnose`.
     `recommend` (step records): compute the next experiment for a lag tie; `discover`
     (step records): look for the missing term of an unexplained record (or of a noise
-    verdict in question, `step.verdict.noise_in_question`)
+    verdict, `step.verdict.noise_verdict`)
     (`step.discover`), with `ceiling` the network reference of what a term of the states
     could remove (`step.ceiling`). Several step
     records of one device diagnosed *together*: `step.joint_verdict.diagnose_step_set`."""
@@ -82,8 +82,8 @@ def diagnose(
     `.to_dict()`, `.summary()`). Computed in float64 (x64 must be enabled). With
     `discover` (step records), an unexplained record also gets `.discovery`: the missing
     term found in the term library, a hypothesis (`step.discover`); so does a noise
-    verdict in question (`step.verdict.noise_in_question`), which a credible term that
-    brings the held-out gap to the floor, where the noise does not, makes `unexplained`
+    verdict (`step.verdict.noise_verdict`), which a credible term that brings the
+    held-out gap to the floor, where the noise's free run does not, makes `unexplained`
     (`step.question.weigh_discovery`); with `ceiling` too,
     the share of the held-out gap a network of the loop's states removes (`step.ceiling`).
     """

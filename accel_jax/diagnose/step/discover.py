@@ -1,10 +1,10 @@
 """Discovery of a missing term (issue 45, step records): where no library effect explains a
 record, which term of a library of candidate terms at named places in the loop does, and how
 far it closes the held-out gap. A hypothesis, never a verdict: the verdict stays
-`unexplained` and the result carries a `discovery` block. (A noise verdict in question is
-searched too, and `question.weigh_discovery` makes it `unexplained` where a credible term
-predicts the held-out part and the noise does not: the verdict is then the library's, that
-no effect of it explains the record; the term stays a hypothesis.)
+`unexplained` and the result carries a `discovery` block. (A noise verdict is searched
+too, `verdict.noise_verdict`, and `question.weigh_discovery` makes it `unexplained` where a
+credible term predicts the held-out part and the noise does not: the verdict is then the
+library's, that no effect of it explains the record; the term stays a hypothesis.)
 
 The term library (`terms.TERMS`) and the loop simulated with its terms
 (`terms.term_record`) are `terms`'s.

@@ -34,7 +34,7 @@ from .record import _guesses, prepare, prior_sigma_of, stack_on_host
 from .starts import CONTACT_GRID, contact_from_clamp, nominal_start
 from .state import Baseline, RecordShape, StepFit, StepRecord
 from .question import weigh_discovery
-from .verdict import evaluate, noise_in_question
+from .verdict import evaluate, noise_verdict
 
 
 def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candidates, desc):
@@ -118,8 +118,7 @@ def diagnose_step(
     - `discover`: True: for an `unexplained` record that passed the domain check, look for
         the missing term in the term library (`discover`: `result.discovery`, a typed
         `Discovery`, a hypothesis; the verdict stays `unexplained`), and for a noise
-        verdict in question (`verdict.noise_in_question`: its misfit partly predictable,
-        kept only by the noise's own null), where a credible term that brings the held-out
+        verdict (`verdict.noise_verdict`), where a credible term that brings the held-out
         gap to the floor, while the noise's free run leaves it above the record's floor,
         makes the verdict `unexplained` (`question.weigh_discovery`); "all": for every
         record that passed it (a check that nothing is found where nothing is missing).
@@ -257,8 +256,8 @@ def diagnose_step(
         from .discover import discover as discover_term
 
         for i, (rec, record_fits, result) in enumerate(zip(records, fits, results, strict=True)):
-            in_question = noise_in_question(result) is not None
-            wanted = discover == "all" or result.verdict == "unexplained" or in_question
+            noise = noise_verdict(result) is not None
+            wanted = discover == "all" or result.verdict == "unexplained" or noise
             if wanted and not rec.domain_problems:
                 # From the nominal's fit at the floor, the scale its refits weigh the
                 # residual at: from the fit at σ̂ (`REWEIGHT_ABOVE`) the vibrating stand's
@@ -266,7 +265,7 @@ def diagnose_step(
                 # existed; one run each on the 2-core CPU).
                 start = floor[i][1] if i in floor else record_fits[0]
                 result.discovery = discover_term(rec, nominal, start, effects, reference=ceiling)
-                weigh_discovery(result)  # a noise verdict in question against the term
+                weigh_discovery(result)  # a noise verdict against the term
     if recommend:
         for data, rec, result in zip(datasets, records, results, strict=True):
             if result.verdict == "cannot_tell" and set(result.tied) == LAG_PAIR:

@@ -1,4 +1,4 @@
-"""A step noise verdict in question (`verdict.noise_in_question`) weighed against the
+"""A step noise verdict (`verdict.noise_verdict`) weighed against the
 discovery's best term (`weigh_discovery`), and the gap blocks of a verdict it overturns
 (`_gap_of_the_nominal`)."""
 
@@ -7,11 +7,11 @@ from __future__ import annotations
 from .. import openworld
 from ..base import DiagnosisResult
 from ..discovery_result import VibrationDiscovery
-from .verdict import noise_in_question
+from .verdict import noise_verdict
 
 
 def weigh_discovery(result: DiagnosisResult) -> None:
-    """A noise verdict in question (`noise_in_question`) against the discovery's best
+    """A noise verdict (`noise_verdict`, in question or not) against the discovery's best
     subset of terms (`result.discovery`), in place, on the held-out part: where the subset
     is credible and brings the held-out free-run gap to the floor
     (`held_out_at_floor`), and the noise leaves its own free-run gap above the floor
@@ -22,13 +22,13 @@ def weigh_discovery(result: DiagnosisResult) -> None:
     what the discovery found. Both gaps are the held-out RMS in excess of the same noise
     floor, the record's (`_free_run_gap`): not the noise's gap over its own fitted variance
     (the ranking's `gap_after_V`), which a noise fitted large enough to absorb the misfit
-    always brings to 0. The two evidences are not compared: the discovery's is a BIC at the floor's σ
-    with the change times' priors, the noise's a likelihood ratio with the variance
-    fitted, and far above the floor the first grows as n(σ̂²/σ² − 1), the second as
+    always brings to 0. The two evidences are not compared: the discovery's is a BIC at
+    the floor's σ with the change times' priors, the noise's a likelihood ratio with the
+    variance fitted, and far above the floor the first grows as n(σ̂²/σ² − 1), the second as
     n ln(σ̂²/σ²). Seen on a blind record of a 382 Hz disturbance on a loop of f₀ = 549 Hz
     (docs/findings.md): `moment_noise` leaves 0.00416 V (9.6× the floor), the discovered
     `forcing_sinusoid` 8.4e-5 V, at the floor."""
-    entry = noise_in_question(result)
+    entry = noise_verdict(result)
     discovery = result.discovery
     if entry is None or discovery is None or isinstance(discovery, VibrationDiscovery):
         return
