@@ -199,7 +199,7 @@ def noise_in_question(result: DiagnosisResult) -> dict | None:
     question (`_in_question`): the misfit partly predictable, kept only by the noise's own
     null (a note says so). None elsewhere. Discovery weighs every noise verdict
     (`noise_verdict`), not only these."""
-    entry = next((e for e in result.ranking if e["effect"] == result.verdict), None)
+    entry = noise_verdict(result)
     return entry if entry is not None and _in_question(entry) else None
 
 
