@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -506,6 +507,25 @@ def score(
     }
 
 
+DRAW_RTOL = 1e-12
+"""Two shards' truths are one draw when they agree in every field, floats to this relative
+tolerance: the draw's `np.exp` (the device's log-normal spread) can differ in the last bit
+between CPUs (NumPy's SIMD paths); seen on this draw's shards run on two machines, device
+parameters 1 ulp apart (mu 2.518154010235269e-05 against 2.5181540102352685e-05)."""
+
+
+def same_draw(a, b) -> bool:
+    """Whether truths `a` and `b` are the same draw: equal structure and values, floats
+    within `DRAW_RTOL` (relative) of each other."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same_draw(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(same_draw(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float) and isinstance(b, float):
+        return math.isclose(a, b, rel_tol=DRAW_RTOL, abs_tol=0.0)
+    return type(a) is type(b) and a == b
+
+
 def merge(results: list[dict], signal=effect_signal) -> dict:
     """Shards' results (`--shard k/n` runs of the same draw) as one: their rows joined and
     scored together. Refused (ValueError) when the shards drew differently or overlap."""
@@ -520,7 +540,7 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
         differ = [k for k in keys if other["assumptions"].get(k) != first.get(k)]
         if differ:
             raise ValueError(f"the shards differ in {', '.join(differ)}: not one draw")
-        if other["truths"] != results[0]["truths"]:
+        if not same_draw(other["truths"], results[0]["truths"]):
             raise ValueError("the shards' drawn truths differ: not one draw (the truth "
                              "simulator's draw changed between them?)")
     rows, channels, shards, seconds = {}, {}, [], 0.0

@@ -3,6 +3,7 @@ whichever shard writes it, and the shards' results merged and scored together
 (studies/measured_input_harness.py; the diagnoses themselves are not run here)."""
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -321,6 +322,15 @@ def test_merges_merge_again_and_say_which_shards_are_missing(tmp_path):
     other["truths"] = [*other["truths"][:2], {"effect": "torquer_lag"}]
     with pytest.raises(ValueError, match="truths differ"):
         harness.merge([pair, other], _acts)
+    # The same draw on another CPU (a float in its last bit) merges; a real change does not.
+    for truth, merges in ((math.nextafter(2.5e-5, 1.0), True), (2.5e-5 * (1 + 1e-9), False)):
+        a, b = shard(0), shard(1)
+        a["truths"][0]["device"], b["truths"][0]["device"] = {"mu": 2.5e-5}, {"mu": truth}
+        if merges:
+            assert harness.merge([a, b], _acts)["truths"][0]["device"] == {"mu": 2.5e-5}
+        else:
+            with pytest.raises(ValueError, match="truths differ"):
+                harness.merge([a, b], _acts)
     # From the command line: a merged file is accepted, and the partial state printed.
     files = []
     for name, result in (("p.json", pair), ("s.json", shard(2))):
