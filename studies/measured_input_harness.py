@@ -510,8 +510,10 @@ def score(
 DRAW_RTOL = 1e-12
 """Two shards' truths are one draw when they agree in every field, floats to this relative
 tolerance: the draw's `np.exp` (the device's log-normal spread) can differ in the last bit
-between CPUs (NumPy's SIMD paths); seen on this draw's shards run on two machines, device
-parameters 1 ulp apart (mu 2.518154010235269e-05 against 2.5181540102352685e-05)."""
+between CPUs (NumPy's SIMD paths). Seen on the seed-2027 draw: shards 10-25 and 27 carry
+device parameters 1 ulp off the later shards' (mu 2.518154010235269e-05 against
+2.5181540102352685e-05) with the truth simulator unchanged; another CPU is the presumed
+cause, not a shown one."""
 
 
 def same_draw(a, b) -> bool:
