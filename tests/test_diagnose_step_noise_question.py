@@ -1,7 +1,7 @@
 """A noise verdict weighed against the discovery's deterministic term
 (`step.verdict.noise_verdict`, `weigh_discovery`), and when its misfit is in question (the
 fixed predictability fraction called it deterministic, only the noise's own null kept the
-noise: `step.verdict.noise_in_question`, which writes a note). The whole path,
+noise: `step.verdict.noise_in_question`; `evaluate` writes the note). The whole path,
 a blind record of a 382 Hz disturbance read `moment_noise` and then `unexplained` with a
 discovered `forcing_sinusoid`, takes ~3 min on the 2-core CPU and is not run here; its
 figures are in docs/findings.md."""
