@@ -69,14 +69,15 @@ def test_a_measured_input_gives_the_clean_records_verdict(twins):
             # No nested fit's solver ended below the nominal's penalised objective beyond
             # the restart threshold or the comparison's round-off share (the linear
             # candidates are restarted from the nominal optimum above either; the later
-            # stages have that optimum among their starts). A fit may be flagged for its
-            # reported ln L (`reported_below`: on the torquer-lag twin, the drift's), which
-            # the solver does not maximise.
+            # stages have that optimum among their starts). Nor below its reported ln L
+            # (`reported_below`), which the solver does not maximise: on the torquer-lag
+            # twin the drift's was, until such a fit was fitted again at the residual scale
+            # of its nominal (`rescale.retry_at_residual_scale`).
             allowed = max(NESTED_RESTART_ABOVE, entry["objective_round_off"])
             assert entry["objective_below_nominal"] <= allowed, (name, entry)
             assert entry["objective_round_off"] < NESTED_ABSOLUTE, (name, entry)
-            if entry["fit_failed"]:
-                assert entry["log_likelihood_below_nominal"] > NESTED_LNL_SLACK, (name, entry)
+            assert not entry["fit_failed"], (name, entry)
+            assert entry["log_likelihood_below_nominal"] <= NESTED_LNL_SLACK, (name, entry)
 
 
 @pytest.mark.slow
@@ -512,6 +513,116 @@ STOP_319 = {
     "u_max_V": 1.7790202432513296,
     "stop_over_u_max": 0.9682438131508694,
 }
+
+
+def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_hat(monkeypatch):
+    """`rescale.retry_at_residual_scale`: a candidate whose reported ln L ended below its
+    nominal's by more than `NESTED_LNL_SLACK`, its objective not, is fitted again with σ_ref
+    the σ̂ of the nominal fit it is judged against (the record's nominal, or the nominal's
+    fit at the floor for a later stage's fit: `Baseline`), from its own optimum and the
+    nominal optimum with the effect off; the refit replaces it, judged against the nominal's
+    refit at that scale, only where it ends less far below and not below the objective."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from accel_jax.diagnose.step import rescale
+
+    class Ctx(eqx.Module):
+        sigma_ref: jnp.ndarray
+
+    @dataclasses.dataclass(frozen=True)
+    class Record:
+        ctx: Ctx
+        guesses_linear: np.ndarray
+        notes: tuple = ()
+        domain_problems: tuple = ()
+
+        def with_note(self, note):
+            return dataclasses.replace(self, notes=self.notes + (note,))
+
+    @dataclasses.dataclass(frozen=True)
+    class Fit:
+        effect: str
+        objective: float
+        log_likelihood: float
+        at: float = 0.0
+        innovation_variance: float = 0.0
+        baseline: Baseline | None = None
+
+        @property
+        def w_trained(self):
+            return np.full(width, self.at)
+
+    width = W.FIXED + 3
+    sigma = 1e-3
+    effects = [SimpleNamespace(name="torquer_lag"), SimpleNamespace(name="stop_saturation")]
+    stages = [("linear", [0, 1]), ("stops", [2])]
+    records = [Record(Ctx(jnp.asarray(sigma)), np.zeros((2, 2, width))) for _ in range(4)]
+    floor_nominal = Fit("nominal", 200.0, 60.0, at=5.0, innovation_variance=(20 * sigma) ** 2)
+    fits = [
+        # Record 0: the lag 30 below its nominal's ln L (objective 90 < 100), the stop 50
+        # below the floor's nominal (its baseline); both fitted again.
+        [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2),
+         Fit("torquer_lag", 90.0, 20.0, at=2.0),
+         Fit("stop_saturation", 150.0, 10.0, at=3.0, baseline=Baseline.of(floor_nominal))],
+        # Record 1: the lag 1 below (within the slack): left alone.
+        [Fit("nominal", 100.0, 50.0, at=1.0), Fit("torquer_lag", 90.0, 49.0, at=2.0)],
+        # Record 2: the lag 30 below, whose refit ends above its nominal's objective: kept.
+        [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2),
+         Fit("torquer_lag", 90.0, 20.0, at=2.0)],
+        # Record 3: the lag 30 below, whose refit ends 10 below: taken, still flagged, and
+        # not fitted again in the second round (whose fits are judged at the floor).
+        [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2),
+         Fit("torquer_lag", 90.0, 20.0, at=2.0)],
+    ]
+    floor = {0: (records[0].ctx, floor_nominal)}
+    calls = []
+
+    def refit(fn, nominal, records_, starts, candidates, effects_, desc):
+        calls.append((fn, {i: float(records_[i].ctx.sigma_ref) for i in starts}, starts))
+        if fn == "stops":
+            return {0: [Fit("stop_saturation", 60.0, 29.0)]}
+        if len(calls) == 1:  # the candidates judged against the record's nominal fit
+            return {0: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 79.0, 41.0)],
+                    2: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 81.0, 41.0)],
+                    3: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 79.0, 30.0)]}
+        return {0: [Fit("nominal", 70.0, 30.0, at=7.0), Fit("torquer_lag", 69.0, 1.0)]}
+
+    monkeypatch.setattr(rescale, "fit_grouped", refit)
+    old = [list(f) for f in fits]
+    rescale.retry_at_residual_scale(fits, records, effects, stages, None, floor)
+    # Round 1, at the record's nominal σ̂ (30σ): the linear stage of records 0 and 2, each
+    # candidate from its own optimum and from the nominal optimum with the effect off.
+    fn, scales, starts = calls[0]
+    assert fn == "linear" and scales == pytest.approx({i: 30 * sigma for i in (0, 2, 3)})
+    assert np.all(starts[0][0, 0] == 1.0) and np.all(starts[0][1, 0] == 2.0)
+    for row in starts[0][:, 1]:
+        assert np.all(row[W.EFFECT] == 0.0) and np.all(row[W.BEFORE_EFFECT] == 1.0)
+    # Round 2, at the floor nominal's σ̂ (20σ), from its optimum; then the stop stage from
+    # its own optimum and the refitted nominal's (at 7, the effect off).
+    assert [c[0] for c in calls[1:]] == ["linear", "stops"]
+    assert calls[1][1] == pytest.approx({0: 20 * sigma}) and np.all(calls[1][2][0][0, 1, 0] == 5.0)
+    stop_starts = calls[2][2][0]
+    assert stop_starts.shape == (1, 2, width) and np.all(stop_starts[0, 0] == 3.0)
+    assert np.all(stop_starts[0, 1, W.BEFORE_EFFECT] == 7.0)
+    assert np.all(stop_starts[0, 1, W.EFFECT] == 0.0)
+    # Replaced, each judged against the nominal's refit at its scale.
+    lag, stop = fits[0][1], fits[0][2]
+    assert (lag.log_likelihood, lag.baseline) == (41.0, Baseline(80.0, 40.0))
+    assert (stop.log_likelihood, stop.baseline) == (29.0, Baseline(70.0, 30.0))
+    assert fits[0][0] is old[0][0]  # the record's nominal fit stays
+    assert not reported_below(lag, fits[0][0]) and not reported_below(stop, fits[0][0])
+    assert fits[1] == old[1] and fits[2] == old[2] and records[1].notes == records[2].notes == ()
+    assert fits[3][1].baseline == Baseline(80.0, 40.0) and reported_below(fits[3][1], fits[3][0])
+    assert [n for n in records[0].notes if rescale.RESCALED_NOTE in n] == [
+        f"torquer_lag {rescale.RESCALED_NOTE} (σ̂ = 30 × this record's σ_ref): at σ_ref "
+        "its reported ln L had ended up to 30 below that nominal's, the solver weighing the "
+        "residual against the priors otherwise than the likelihood the evidence compares",
+        f"stop_saturation {rescale.RESCALED_NOTE} (σ̂ = 20 × this record's σ_ref): at σ_ref "
+        "its reported ln L had ended up to 50 below that nominal's, the solver weighing the "
+        "residual against the priors otherwise than the likelihood the evidence compares",
+    ]
+    assert float(records[0].ctx.sigma_ref) == sigma  # the record's own context kept
 
 
 @pytest.mark.slow

@@ -16,68 +16,25 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._data import NominalDevice, StepData
-from ..._sweep import even_chunk_size, sweep
 from ..base import DiagnosisResult, require_float64
 from .assess import (
     NESTED_ABSOLUTE,
     NESTED_RESTART_ABOVE,
     explains_deterministically,
-    fit_entries,
     nested_failed,
     nested_losers,
     nested_shortfall,
 )
+from .batch import fit_grouped as _fit_grouped
 from .effects import step_effects
-from .fit import BATCH_CHUNK, fit_contact, fit_linear, fit_moment, fit_nonlinear
+from .fit import fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
-from .record import _guesses, prepare, prior_sigma_of, stack_on_host
+from .record import _guesses, prepare
 from .starts import CONTACT_GRID, contact_from_clamp, nominal_start
-from .state import Baseline, RecordShape, StepFit, StepRecord
+from .state import Baseline, StepFit, StepRecord
 from .question import weigh_discovery
+from .rescale import retry_at_residual_scale
 from .verdict import evaluate, noise_verdict
-
-
-def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candidates, desc):
-    """Fit `candidates` of `records` (one shape) from `starts` (one array of starts per
-    record), batched."""
-    ctx = stack_on_host([rec.ctx for rec in records])
-    u_out = stack_on_host([rec.u_out for rec in records])
-    guesses = jnp.asarray(np.stack(starts))
-    outputs = sweep(
-        fn,
-        nominal.params,
-        jnp.asarray(prior_sigma_of(nominal)),
-        ctx,
-        u_out,
-        guesses,
-        jnp.asarray(candidates),
-        in_axes=(None, None, 0, 0, 0, None),
-        chunk_size=even_chunk_size(len(records), BATCH_CHUNK),
-        desc=desc,
-    )
-    return [np.asarray(o) for o in outputs]
-
-
-def _fit_grouped(
-    fn, nominal, records: list[StepRecord], starts: dict[int, np.ndarray], candidates, effects, desc
-) -> dict[int, list[StepFit]]:
-    """Fit `candidates` of the records `starts` names ({record index: its starts}), one
-    batch per record shape (one compiled program each); returns {i: each candidate's fit}."""
-    groups: dict[RecordShape, list[int]] = {}
-    for i in starts:
-        groups.setdefault(records[i].shape, []).append(i)
-    entries = {}
-    for members in groups.values():
-        outputs = _run(
-            fn, nominal, [records[i] for i in members], [starts[i] for i in members],
-            candidates, desc,
-        )
-        for j, i in enumerate(members):
-            entries[i] = fit_entries(
-                records[i], effects, candidates, [o[j] for o in outputs], records[i].u_out,
-                base=nominal.params,
-            )
-    return entries
 
 
 DOMAIN_NOTE = (
@@ -236,6 +193,13 @@ def diagnose_step(
     for i, record_fits in entries.items():
         fits[i] = fits[i] + record_fits
     _put_back_at_sigma_hat(fits, floor, at_sigma_hat, n_linear)
+    # A fit whose reported ln L ended below its nominal's, its objective not: the two
+    # likelihoods part where σ̂ lies far from σ_ref; fitted again at σ̂ (`rescale`).
+    stages = [(fit_linear, linear), (fit_moment, loop_noise), (fit_nonlinear, clamp),
+              (fit_contact, contact)]
+    retry_at_residual_scale(
+        fits, records, effects, [(fn, c) for fn, c in stages if c], nominal, floor
+    )
     results = []
     for rec, record_fits in zip(records, fits, strict=True):
         fitted = {f.effect for f in record_fits}
