@@ -29,6 +29,7 @@ from accel_jax.diagnose.step.assess import (
     nested_shortfall,
     reported_below,
 )
+from accel_jax.diagnose.step.model import REFIT_BOUND
 from accel_jax.diagnose.step.nuisance import NUISANCE_ALPHA, nuisance_test, strained_sentence
 from accel_jax.diagnose.step.state import Baseline
 
@@ -548,16 +549,20 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
         at: float = 0.0
         innovation_variance: float = 0.0
         baseline: Baseline | None = None
+        shift: float = 0.0  # the device's largest, in σ of its prior
 
         @property
         def w_trained(self):
             return np.full(width, self.at)
 
+        def device_shifts(self):
+            return [("moment_of_inertia", self.shift)]
+
     width = W.FIXED + 3
     sigma = 1e-3
     effects = [SimpleNamespace(name="torquer_lag"), SimpleNamespace(name="stop_saturation")]
     stages = [("linear", [0, 1]), ("stops", [2])]
-    records = [Record(Ctx(jnp.asarray(sigma)), np.zeros((2, 2, width))) for _ in range(4)]
+    records = [Record(Ctx(jnp.asarray(sigma)), np.zeros((2, 2, width))) for _ in range(5)]
     floor_nominal = Fit("nominal", 200.0, 60.0, at=5.0, innovation_variance=(20 * sigma) ** 2)
     fits = [
         # Record 0: the lag 30 below its nominal's ln L (objective 90 < 100), the stop 50
@@ -573,6 +578,11 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
         # Record 3: the lag 30 below, whose refit ends 10 below: taken, still flagged, and
         # not fitted again in the second round (whose fits are judged at the floor).
         [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2),
+         Fit("torquer_lag", 90.0, 20.0, at=2.0)],
+        # Record 4: as record 2, its nominal's refit past the bound (`REFIT_BOUND`): the
+        # bound's penalty is what the lag trades, at any scale; left flagged.
+        [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2,
+             shift=REFIT_BOUND + 0.1),
          Fit("torquer_lag", 90.0, 20.0, at=2.0)],
     ]
     floor = {0: (records[0].ctx, floor_nominal)}
@@ -614,13 +624,16 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
     assert not reported_below(lag, fits[0][0]) and not reported_below(stop, fits[0][0])
     assert fits[1] == old[1] and fits[2] == old[2] and records[1].notes == records[2].notes == ()
     assert fits[3][1].baseline == Baseline(80.0, 40.0) and reported_below(fits[3][1], fits[3][0])
+    assert fits[4] == old[4] and records[4].notes == ()
+    why = (
+        "the solver weighing the residual against the priors otherwise than the likelihood "
+        "the evidence compares"
+    )
     assert [n for n in records[0].notes if rescale.RESCALED_NOTE in n] == [
         f"torquer_lag {rescale.RESCALED_NOTE} (σ̂ = 30 × this record's σ_ref): at σ_ref "
-        "its reported ln L had ended up to 30 below that nominal's, the solver weighing the "
-        "residual against the priors otherwise than the likelihood the evidence compares",
+        f"the reported ln L of each had ended up to 30 below that nominal's, {why}",
         f"stop_saturation {rescale.RESCALED_NOTE} (σ̂ = 20 × this record's σ_ref): at σ_ref "
-        "its reported ln L had ended up to 50 below that nominal's, the solver weighing the "
-        "residual against the priors otherwise than the likelihood the evidence compares",
+        f"the reported ln L of each had ended up to 50 below that nominal's, {why}",
     ]
     assert float(records[0].ctx.sigma_ref) == sigma  # the record's own context kept
 

@@ -237,7 +237,10 @@ floor, they are all fitted again with the floor set to the nominal's residual RM
 for every record far above the nominal's floor, it strained the nuisances of a lag fit that
 explains its record to the floor: docs/models.md §5.) Where the nominal's refit rests past
 `model.REFIT_BOUND`, the bound's penalty (in the objective, not in this ln L) is traded too,
-and a flagged fit there is no solver failure (`verdict._at_bound_note` says so)."""
+and a flagged fit there is no solver failure (`verdict._at_bound_note` says so). A fit
+flagged here is fitted again at the σ̂ of the nominal fit it is judged against, and judged
+against the nominal's refit there (`rescale.retry_at_residual_scale`); it stays flagged
+only where that refit, too, ends below."""
 
 
 def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:

@@ -32,17 +32,24 @@ import numpy as np
 
 from .assess import log_likelihood_shortfall, nested_failed, reported_below
 from .batch import fit_grouped
+from .model import REFIT_BOUND
 from .starts import nominal_start
 from .state import Baseline, StepFit, StepRecord
 
-RESCALED_NOTE = "refitted at the residual scale of the nominal fit it is judged against"
+RESCALED_NOTE = "refitted at σ̂, the residual RMS of the nominal fit that each is judged against"
 """Part of a record's note where a candidate was refitted by `retry_at_residual_scale`."""
 
 
 def _losers(fits: list[StepFit]) -> list[int]:
     """The candidates (indices into `fits`, the nominal first) whose reported ln L ended
     below the nominal's (`assess.reported_below`) though their objective did not: the two
-    likelihoods' disagreement, not the solver's failure (`assess.nested_failed`)."""
+    likelihoods' disagreement, not the solver's failure (`assess.nested_failed`). None
+    where the nominal's refit rests past `model.REFIT_BOUND`: there the bound's penalty,
+    in the objective and not in the reported ln L at any scale, is what a nested fit
+    trades (`verdict._at_bound_note`), and counting that trade as evidence would credit
+    an effect for easing a device far outside its prior."""
+    if any(abs(z) > REFIT_BOUND for _, z in fits[0].device_shifts()):
+        return []
     return [
         k for k, f in enumerate(fits) if k > 0
         and reported_below(f, fits[0]) and not nested_failed(f, fits[0])
@@ -144,7 +151,7 @@ def retry_at_residual_scale(
                 sigma_hat = float(np.asarray(scaled[i].ctx.sigma_ref))
                 records[i] = records[i].with_note(
                     f"{', '.join(kept)} {RESCALED_NOTE} (σ̂ = {sigma_hat / sigma_ref:.3g} × "
-                    f"this record's σ_ref): at σ_ref its reported ln L had ended up to "
+                    f"this record's σ_ref): at σ_ref the reported ln L of each had ended up to "
                     f"{max(before):.4g} below that nominal's, the solver weighing the residual "
                     "against the priors otherwise than the likelihood the evidence compares"
                 )
