@@ -522,7 +522,8 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
     the σ̂ of the nominal fit it is judged against (the record's nominal, or the nominal's
     fit at the floor for a later stage's fit: `Baseline`), from its own optimum and the
     nominal optimum with the effect off; the refit replaces it, judged against the nominal's
-    refit at that scale, only where it ends less far below and not below the objective."""
+    refit at that scale, only where it ends less far below and not below the objective;
+    one still below is fitted again at the σ̂ of that nominal refit (`RESCALE_ROUNDS`)."""
     import equinox as eqx
     import jax.numpy as jnp
 
@@ -576,7 +577,7 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
         [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2),
          Fit("torquer_lag", 90.0, 20.0, at=2.0)],
         # Record 3: the lag 30 below, whose refit ends 10 below: taken, still flagged, and
-        # not fitted again in the second round (whose fits are judged at the floor).
+        # fitted again at the σ̂ of that round's nominal refit, where it ends above.
         [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2),
          Fit("torquer_lag", 90.0, 20.0, at=2.0)],
         # Record 4: as record 2, its nominal's refit past the bound (`REFIT_BOUND`): the
@@ -587,54 +588,70 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
     ]
     floor = {0: (records[0].ctx, floor_nominal)}
     calls = []
+    # Each call's fits, by record: round 1 at the record's nominal σ̂ (linear), at the floor
+    # nominal's σ̂ (linear, then the stops), round 2 at the σ̂ of round 1's nominal refit.
+    replies = [
+        {0: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 79.0, 41.0)],
+         2: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 81.0, 41.0)],
+         3: [Fit("nominal", 80.0, 40.0, at=6.0, innovation_variance=(50 * sigma) ** 2),
+             Fit("torquer_lag", 79.0, 30.0, at=4.0)]},
+        {0: [Fit("nominal", 70.0, 30.0, at=7.0), Fit("torquer_lag", 69.0, 1.0)]},
+        {0: [Fit("stop_saturation", 60.0, 29.0)]},
+        {3: [Fit("nominal", 60.0, 20.0, at=8.0), Fit("torquer_lag", 59.0, 21.0)]},
+    ]
 
     def refit(fn, nominal, records_, starts, candidates, effects_, desc):
         calls.append((fn, {i: float(records_[i].ctx.sigma_ref) for i in starts}, starts))
-        if fn == "stops":
-            return {0: [Fit("stop_saturation", 60.0, 29.0)]}
-        if len(calls) == 1:  # the candidates judged against the record's nominal fit
-            return {0: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 79.0, 41.0)],
-                    2: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 81.0, 41.0)],
-                    3: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 79.0, 30.0)]}
-        return {0: [Fit("nominal", 70.0, 30.0, at=7.0), Fit("torquer_lag", 69.0, 1.0)]}
+        reply = replies[len(calls) - 1]
+        assert set(reply) == set(starts), (len(calls), list(starts))
+        return reply
 
     monkeypatch.setattr(rescale, "fit_grouped", refit)
     old = [list(f) for f in fits]
     rescale.retry_at_residual_scale(fits, records, effects, stages, None, floor)
-    # Round 1, at the record's nominal σ̂ (30σ): the linear stage of records 0 and 2, each
-    # candidate from its own optimum and from the nominal optimum with the effect off.
+    assert len(calls) == len(replies)
+    # Round 1, at the record's nominal σ̂ (30σ): the linear stage of records 0, 2 and 3,
+    # each candidate from its own optimum and from the nominal optimum, the effect off.
     fn, scales, starts = calls[0]
     assert fn == "linear" and scales == pytest.approx({i: 30 * sigma for i in (0, 2, 3)})
     assert np.all(starts[0][0, 0] == 1.0) and np.all(starts[0][1, 0] == 2.0)
     for row in starts[0][:, 1]:
         assert np.all(row[W.EFFECT] == 0.0) and np.all(row[W.BEFORE_EFFECT] == 1.0)
-    # Round 2, at the floor nominal's σ̂ (20σ), from its optimum; then the stop stage from
-    # its own optimum and the refitted nominal's (at 7, the effect off).
-    assert [c[0] for c in calls[1:]] == ["linear", "stops"]
+    # Then at the floor nominal's σ̂ (20σ), from its optimum; the stop stage from its own
+    # optimum and the refitted nominal's (at 7, the effect off).
+    assert [c[0] for c in calls[1:]] == ["linear", "stops", "linear"]
     assert calls[1][1] == pytest.approx({0: 20 * sigma}) and np.all(calls[1][2][0][0, 1, 0] == 5.0)
     stop_starts = calls[2][2][0]
     assert stop_starts.shape == (1, 2, width) and np.all(stop_starts[0, 0] == 3.0)
     assert np.all(stop_starts[0, 1, W.BEFORE_EFFECT] == 7.0)
     assert np.all(stop_starts[0, 1, W.EFFECT] == 0.0)
+    # Round 2: record 3's lag, taken in round 1 but still 10 below, at the σ̂ of round 1's
+    # nominal refit (50σ), from its new optimum and that refit's.
+    assert calls[3][1] == pytest.approx({3: 50 * sigma})
+    assert np.all(calls[3][2][3][1, 0] == 4.0) and np.all(calls[3][2][3][1, 1, 0] == 6.0)
     # Replaced, each judged against the nominal's refit at its scale.
     lag, stop = fits[0][1], fits[0][2]
     assert (lag.log_likelihood, lag.baseline) == (41.0, Baseline(80.0, 40.0))
     assert (stop.log_likelihood, stop.baseline) == (29.0, Baseline(70.0, 30.0))
     assert fits[0][0] is old[0][0]  # the record's nominal fit stays
     assert not reported_below(lag, fits[0][0]) and not reported_below(stop, fits[0][0])
+    assert (fits[3][1].log_likelihood, fits[3][1].baseline) == (21.0, Baseline(60.0, 20.0))
+    assert not reported_below(fits[3][1], fits[3][0])
     assert fits[1] == old[1] and fits[2] == old[2] and records[1].notes == records[2].notes == ()
-    assert fits[3][1].baseline == Baseline(80.0, 40.0) and reported_below(fits[3][1], fits[3][0])
     assert fits[4] == old[4] and records[4].notes == ()
     why = (
         "the solver weighing the residual against the priors otherwise than the likelihood "
         "the evidence compares"
     )
     assert [n for n in records[0].notes if rescale.RESCALED_NOTE in n] == [
-        f"torquer_lag {rescale.RESCALED_NOTE} (σ̂ = 30 × this record's σ_ref): at σ_ref "
-        f"the reported ln L of each had ended up to 30 below that nominal's, {why}",
-        f"stop_saturation {rescale.RESCALED_NOTE} (σ̂ = 20 × this record's σ_ref): at σ_ref "
-        f"the reported ln L of each had ended up to 50 below that nominal's, {why}",
+        f"torquer_lag, stop_saturation {rescale.RESCALED_NOTE} (σ̂ = 20–30 × this record's "
+        f"σ_ref): at σ_ref the reported ln L of each had ended up to 50 below that nominal's, "
+        f"{why}"
     ]
+    assert records[3].notes == (
+        f"torquer_lag {rescale.RESCALED_NOTE} (σ̂ = 50 × this record's σ_ref): at σ_ref the "
+        f"reported ln L of each had ended up to 30 below that nominal's, {why}",
+    )
     assert float(records[0].ctx.sigma_ref) == sigma  # the record's own context kept
 
 
