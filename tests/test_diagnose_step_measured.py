@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 from types import SimpleNamespace
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -320,28 +322,33 @@ def test_the_last_restart_keeps_the_nominal_so_a_candidate_started_there_cannot_
     assert held and "2.5 higher in ln L" in held[0]
 
 
+class _Ctx(eqx.Module):
+    """A record's fit context, its floor alone (what the rescaling reads and replaces)."""
+
+    sigma_ref: jnp.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class _Record:
+    """A record's fields that the rescaling reads (`state.StepRecord`'s)."""
+
+    ctx: _Ctx
+    guesses_linear: np.ndarray
+    notes: tuple = ()
+    domain_problems: tuple = ()  # inside the model family (else not refitted)
+
+    def with_note(self, note):
+        return dataclasses.replace(self, notes=self.notes + (note,))
+
+
 def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monkeypatch):
     """`entry._reweight_far_records`: only a record whose nominal fit leaves σ̂ above
     `REWEIGHT_ABOVE` floors has its linear candidates fitted again, at σ_ref = σ̂, each
     from its own optimum, the record's own start kept; its fits are replaced, the record
     says so, and the floor's context and nominal objective are handed back."""
-    import equinox as eqx
-    import jax.numpy as jnp
-
     from accel_jax.diagnose.step import entry
 
-    class Ctx(eqx.Module):
-        sigma_ref: jnp.ndarray
-
-    @dataclasses.dataclass(frozen=True)
-    class Record:
-        ctx: Ctx
-        guesses_linear: np.ndarray
-        notes: tuple = ()
-        domain_problems: tuple = ()  # inside the model family (else not reweighted)
-
-        def with_note(self, note):
-            return dataclasses.replace(self, notes=self.notes + (note,))
+    Ctx, Record = _Ctx, _Record
 
     def fit(effect, variance, at):
         at = np.full(width, at) if np.ndim(at) == 0 and at is not None else at
@@ -524,23 +531,9 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
     nominal optimum with the effect off; the refit replaces it, judged against the nominal's
     refit at that scale, only where it ends less far below and not below the objective;
     one still below is fitted again at the σ̂ of that nominal refit (`RESCALE_ROUNDS`)."""
-    import equinox as eqx
-    import jax.numpy as jnp
-
     from accel_jax.diagnose.step import rescale
 
-    class Ctx(eqx.Module):
-        sigma_ref: jnp.ndarray
-
-    @dataclasses.dataclass(frozen=True)
-    class Record:
-        ctx: Ctx
-        guesses_linear: np.ndarray
-        notes: tuple = ()
-        domain_problems: tuple = ()
-
-        def with_note(self, note):
-            return dataclasses.replace(self, notes=self.notes + (note,))
+    Ctx, Record = _Ctx, _Record
 
     @dataclasses.dataclass(frozen=True)
     class Fit:
