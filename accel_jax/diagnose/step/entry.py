@@ -1,9 +1,10 @@
 """The `step` kind's entry: `diagnose_step` prepares each record (`record.prepare`), fits
 every linear candidate of records of one shape as one batch, restarts a nested fit that
 ended below the nominal's from the nominal optimum, fits the stop candidate where no linear
-model explains a record, and judges each record (`verdict.evaluate`); a lag tie gets the
-experiment that would break it (`design`). The kind itself is described in the package
-`accel_jax.diagnose.step`.
+model explains a record, fits again at its nominal's residual scale a fit whose reported ln L
+ended below the nominal's (`rescale`), and judges each record (`verdict.evaluate`); a lag
+tie gets the experiment that would break it (`design`). The kind itself is described in the
+package `accel_jax.diagnose.step`.
 """
 
 from __future__ import annotations
