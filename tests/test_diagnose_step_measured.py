@@ -588,6 +588,9 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
          2: [Fit("nominal", 80.0, 40.0, at=6.0), Fit("torquer_lag", 81.0, 41.0)],
          3: [Fit("nominal", 80.0, 40.0, at=6.0, innovation_variance=(50 * sigma) ** 2),
              Fit("torquer_lag", 79.0, 30.0, at=4.0)]},
+        # Record 2's lag ended above the nominal's refit in objective: once more from that
+        # refit's optimum (the mock's fit ends above it again: not taken).
+        {2: [Fit("nominal", 1.0, 99.0), Fit("torquer_lag", 80.5, 41.0)]},
         {0: [Fit("nominal", 70.0, 30.0, at=7.0), Fit("torquer_lag", 69.0, 1.0)]},
         {0: [Fit("stop_saturation", 60.0, 29.0)]},
         {3: [Fit("nominal", 60.0, 20.0, at=8.0), Fit("torquer_lag", 59.0, 21.0)]},
@@ -610,18 +613,22 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
     assert np.all(starts[0][0, 0] == 1.0) and np.all(starts[0][1, 0] == 2.0)
     for row in starts[0][:, 1]:
         assert np.all(row[W.EFFECT] == 0.0) and np.all(row[W.BEFORE_EFFECT] == 1.0)
+    # Record 2's lag once more, from its refit and the nominal refit's optimum (at 6).
+    assert calls[1][1] == pytest.approx({2: 30 * sigma})
+    assert np.all(calls[1][2][2][1, 1, W.BEFORE_EFFECT] == 6.0)
+    assert np.all(calls[1][2][2][1, 1, W.EFFECT] == 0.0)
     # Then at the floor nominal's σ̂ (20σ), from its optimum; the stop stage from its own
     # optimum and the refitted nominal's (at 7, the effect off).
-    assert [c[0] for c in calls[1:]] == ["linear", "stops", "linear"]
-    assert calls[1][1] == pytest.approx({0: 20 * sigma}) and np.all(calls[1][2][0][0, 1, 0] == 5.0)
-    stop_starts = calls[2][2][0]
+    assert [c[0] for c in calls[1:]] == ["linear", "linear", "stops", "linear"]
+    assert calls[2][1] == pytest.approx({0: 20 * sigma}) and np.all(calls[2][2][0][0, 1, 0] == 5.0)
+    stop_starts = calls[3][2][0]
     assert stop_starts.shape == (1, 2, width) and np.all(stop_starts[0, 0] == 3.0)
     assert np.all(stop_starts[0, 1, W.BEFORE_EFFECT] == 7.0)
     assert np.all(stop_starts[0, 1, W.EFFECT] == 0.0)
     # Round 2: record 3's lag, taken in round 1 but still 10 below, at the σ̂ of round 1's
     # nominal refit (50σ), from its new optimum and that refit's.
-    assert calls[3][1] == pytest.approx({3: 50 * sigma})
-    assert np.all(calls[3][2][3][1, 0] == 4.0) and np.all(calls[3][2][3][1, 1, 0] == 6.0)
+    assert calls[4][1] == pytest.approx({3: 50 * sigma})
+    assert np.all(calls[4][2][3][1, 0] == 4.0) and np.all(calls[4][2][3][1, 1, 0] == 6.0)
     # Replaced, each judged against the nominal's refit at its scale.
     lag, stop = fits[0][1], fits[0][2]
     assert (lag.log_likelihood, lag.baseline) == (41.0, Baseline(80.0, 40.0))
