@@ -12,8 +12,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 
 from ..._data import NominalDevice, StepData
@@ -34,7 +32,7 @@ from .record import _guesses, prepare
 from .starts import CONTACT_GRID, contact_from_clamp, nominal_start
 from .state import Baseline, StepFit, StepRecord
 from .question import weigh_discovery
-from .rescale import retry_at_residual_scale
+from .rescale import at_noise_scale, retry_at_residual_scale
 from .verdict import evaluate, noise_verdict
 
 
@@ -331,8 +329,7 @@ def _reweight_far_records(fits, records: list[StepRecord], effects, linear, nomi
         if not least > REWEIGHT_ABOVE * sigma_ref:
             continue
         floor[i] = (rec.ctx, fits[i][0])
-        ctx = eqx.tree_at(lambda c: c.sigma_ref, rec.ctx, jnp.asarray(sigma_hat))
-        records[i] = dataclasses.replace(rec, ctx=ctx).with_note(
+        records[i] = at_noise_scale(rec, sigma_hat).with_note(
             f"linear models fitted at the record's residual scale ({sigma_hat / sigma_ref:.3g} × "
             "the noise floor)"
         )

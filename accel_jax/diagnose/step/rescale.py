@@ -38,6 +38,13 @@ from .model import REFIT_BOUND
 from .starts import nominal_start
 from .state import Baseline, StepFit, StepRecord
 
+def at_noise_scale(rec: StepRecord, sigma: float) -> StepRecord:
+    """`rec` with its fits' noise floor σ_ref set to `sigma` [V] (its context's
+    `sigma_ref`, data to the compiled fits: no recompilation)."""
+    ctx = eqx.tree_at(lambda c: c.sigma_ref, rec.ctx, jnp.asarray(sigma))
+    return dataclasses.replace(rec, ctx=ctx)
+
+
 RESCALED_NOTE = "refitted at σ̂, the residual RMS of the nominal fit that each is judged against"
 """Part of a record's note where a candidate was refitted by `retry_at_residual_scale`."""
 
@@ -129,24 +136,22 @@ def _refit_at_scale(fits, records, effects, stages, nominal, wanted):
     """One round of `retry_at_residual_scale` for the records of `wanted` ({record: (the
     nominal fit its losers are judged against, the losers)}): yields (record, the nominal's
     refit at that fit's σ̂, {each loser taken: σ̂})."""
-    index = {e.name: j for j, e in enumerate(effects, start=1)}
-    index["nominal"] = 0
+    def name(candidate: int) -> str:
+        return "nominal" if candidate == 0 else effects[candidate - 1].name
+
     linear_fn, linear = stages[0]
-    linear_names = ["nominal" if c == 0 else effects[c - 1].name for c in linear]
     scaled = list(records)
     for i, (base, _) in wanted.items():
-        sigma_hat = math.sqrt(max(float(base.innovation_variance), 0.0))
-        ctx = eqx.tree_at(lambda c: c.sigma_ref, records[i].ctx, jnp.asarray(sigma_hat))
-        scaled[i] = dataclasses.replace(records[i], ctx=ctx)
+        scaled[i] = at_noise_scale(records[i], math.sqrt(max(float(base.innovation_variance), 0)))
     # The nominal and the linear candidates at σ̂: each from its own optimum and from the
     # baseline's optimum with the effect off (the same compiled program as the first fits:
     # σ_ref and the starts are data).
     starts = {}
     for i, (base, _) in wanted.items():
+        own = {f.effect: f.w_trained for f in fits[i]}
         guesses = np.array(records[i].guesses_linear)
         for row, candidate in enumerate(linear):
-            own = [f for f in fits[i] if index[f.effect] == candidate]
-            guesses[row, 0, :] = own[0].w_trained if own else nominal_start(base.w_trained)
+            guesses[row, 0, :] = own.get(name(candidate), nominal_start(base.w_trained))
             guesses[row, 1, :] = nominal_start(base.w_trained)
         starts[i] = guesses
     refits = fit_grouped(
@@ -161,14 +166,13 @@ def _refit_at_scale(fits, records, effects, stages, nominal, wanted):
     again_starts = {}
     for i, (_, mine) in wanted.items():
         nominal_at = new[i]["nominal"]
-        behind = [
-            fits[i][k].effect for k in mine
-            if fits[i][k].effect in new[i] and nested_failed(new[i][fits[i][k].effect], nominal_at)
-        ]
-        if behind:
+        if any(
+            fits[i][k].effect in new[i] and nested_failed(new[i][fits[i][k].effect], nominal_at)
+            for k in mine
+        ):
             guesses = np.array(starts[i])
-            for row, name in enumerate(linear_names):
-                guesses[row, 0, :] = new[i][name].w_trained
+            for row, candidate in enumerate(linear):
+                guesses[row, 0, :] = new[i][name(candidate)].w_trained
                 guesses[row, 1, :] = nominal_start(nominal_at.w_trained)
             again_starts[i] = guesses
     if again_starts:
@@ -180,16 +184,14 @@ def _refit_at_scale(fits, records, effects, stages, nominal, wanted):
                     new[i][fit.effect] = fit
     # The later stages' losers, from their own optimum and the nominal refit's.
     for fn, members in stages[1:]:
-        names = {effects[c - 1].name for c in members}
+        names = [name(c) for c in members]
         stage_starts = {}
         for i, (_, mine) in wanted.items():
             if not any(fits[i][k].effect in names for k in mine):
                 continue
             at_nominal = nominal_start(new[i]["nominal"].w_trained)
-            rows = []
-            for candidate in members:
-                own = [f for f in fits[i] if index[f.effect] == candidate]
-                rows.append([own[0].w_trained if own else at_nominal, at_nominal])
+            own = {f.effect: f.w_trained for f in fits[i]}
+            rows = [[own.get(n, at_nominal), at_nominal] for n in names]
             stage_starts[i] = np.asarray(rows, dtype=np.float64)
         if not stage_starts:
             continue
