@@ -73,6 +73,10 @@ def row(result):
         "fit_failed": [e["effect"] for e in result.ranking if e.get("fit_failed")],
         "below_nominal": {e["effect"]: e.get("objective_below_nominal", 0.0)
                           for e in result.ranking},
+        "reported_below_nominal": {e["effect"]: e.get("log_likelihood_below_nominal", 0.0)
+                                   for e in result.ranking},
+        "at_no_effect": {e["effect"]: e["optimum_log_likelihood_below_nominal"]
+                         for e in result.ranking if e.get("at_no_effect")},
         "nuisance_p": test.get("family_p_value"),
         "nuisance_strained": test.get("strained"),
         "nuisance_largest": [test.get("largest"), test.get("largest_sigma")],
@@ -386,8 +390,8 @@ def score(
     disagreement; its clean twin is still counted (its `none`, false assurance, trip)."""
     per_class = {}
     absent, within, on_stop_acts = {}, {}, {}
-    failed_fits = rankings = below_objective = 0
-    largest_below = 0.0
+    failed_fits = rankings = below_objective = settled = 0
+    largest_below = largest_reported = 0.0
     indices = sorted(int(key.split("/")[1]) for key in rows if key.startswith("clean/"))
     for i in indices:
         truth = truths[i]
@@ -406,6 +410,12 @@ def score(
                 below = [float(b) for b in row.get("below_nominal", {}).values()]
                 below_objective += sum(b > NESTED_ABSOLUTE for b in below)
                 largest_below = max([largest_below, *below])
+                settled += len(row.get("at_no_effect", {}))
+                reported = [
+                    float(b) for name, b in row.get("reported_below_nominal", {}).items()
+                    if name not in row["fit_failed"]
+                ]
+                largest_reported = max([largest_reported, *reported])
         refused = "refused" in measured
         twins = [("clean", clean)] + ([] if refused else [("measured", measured)])
         entry["none_clean"] += int(clean.get("verdict") == "none")
@@ -470,6 +480,11 @@ def score(
         # alone (`NESTED_LNL_SLACK`) is in `nested_fit_failures`, not here.
         "nested_below_on_objective": below_objective,
         "largest_objective_below_nominal": largest_below,
+        # Fits whose reported ln L (the evidence's) still ended below the nominal's after
+        # the refits at σ̂, reported at their no-effect value (`rescale.settle_at_no_effect`),
+        # and the largest reported ln L below the nominal's of any fit not flagged.
+        "settled_at_no_effect": settled,
+        "largest_reported_below_nominal": largest_reported,
         "rankings": rankings,
         "false_assurance": false_assurance,
         "false_assurance_excludes": {

@@ -554,7 +554,8 @@ for folder in map(pathlib.Path, sys.argv[2:]):
                                           "params")},
                       **{k: e[k] for k in ("fit_failed", "objective_below_nominal",
                                           "objective_round_off",
-                                          "log_likelihood_below_nominal") if k in e}}
+                                          "log_likelihood_below_nominal", "at_no_effect",
+                                          "optimum_log_likelihood_below_nominal") if k in e}}
                      for e in r.ranking],
          "refit": r.refit}
         for f, r in zip(files, results)]
@@ -689,11 +690,13 @@ def nested_failures(verdicts: list[dict]) -> dict:
     datasets: how many fits in all, how many failed, by effect, the datasets with one, and
     the largest shortfall (ln L units: the penalised objective's or the reported ln L's)."""
     by_effect, datasets, n_fits, worst, solver = {}, [], 0, 0.0, 0
-    beyond, largest_objective = 0, 0.0
+    beyond, largest_objective, settled = 0, 0.0, []
     for i, verdict in enumerate(verdicts):
         ranking = verdict.get("ranking") or ()
         n_fits += len(ranking)
         for e in ranking:
+            if e.get("at_no_effect"):
+                settled.append(e["optimum_log_likelihood_below_nominal"])
             # Every fit, flagged or not: below the nominal's penalised objective beyond the
             # restart threshold and the comparison's round-off share (issue 42's "beyond
             # round-off"; below the flag's 1e-3 such a fit is not flagged).
@@ -725,6 +728,11 @@ def nested_failures(verdicts: list[dict]) -> dict:
         # shortfall of the penalised objective over every fit
         "objective_below_beyond_round_off": beyond,
         "largest_objective_below_nominal": largest_objective,
+        # fits reported at their no-effect value (the nominal model exactly: the solver's
+        # optimum's reported ln L ended below the nominal's, its objective not), and how far
+        # the furthest of those optima had ended below
+        "at_no_effect": len(settled),
+        "largest_optimum_below_at_no_effect": max(settled, default=0.0),
     }
 
 

@@ -285,16 +285,19 @@ def test_a_nested_fit_is_judged_on_its_training_likelihood_and_a_flag_is_shown(d
     assert stop["gap_shrink"] < 0 and not stop["significant"], stop
     assert all(e["log_likelihood_below_nominal"] <= NESTED_LNL_SLACK for e in result.ranking)
     # A flagged entry is never ranked as evidence: failed in the solver (the objective's
-    # `nested_failed`), shown failed with both shortfalls; flagged by its reported ln L
-    # alone (`assess.reported_below`), shown as no evidence, not as a failed fit.
+    # `nested_failed`), shown failed with both shortfalls; one whose reported ln L alone
+    # ended below (`assess.reported_below`) is reported at its no-effect value
+    # (`rescale.settle_at_no_effect`), shown with its evidence and its optimum's shortfall.
     entry = {**stop, "fit_failed": True, "solver_failed": True, "objective_below_nominal": 4.2,
              "log_likelihood_below_nominal": 1830.0}
     shown = dataclasses.replace(result, ranking=[*result.ranking, entry]).summary()
     assert "stop_saturation    fit failed (ended 4.2 below the nominal model's" in shown
     assert "1.83e+03 below its reported ln L" in shown
-    entry = {**entry, "solver_failed": False, "objective_below_nominal": 0.0}
+    entry = {**stop, "evidence": -9.2, "gap_shrink": 0.0, "at_no_effect": True,
+             "optimum_log_likelihood_below_nominal": 1830.0}
     shown = dataclasses.replace(result, ranking=[*result.ranking, entry]).summary()
-    assert "stop_saturation    no evidence (its reported ln L ended 1.83e+03 below" in shown
+    assert ("stop_saturation    evidence       -9.2  shrink +0.00  (at its no-effect value: "
+            "the solver's optimum ended 1.83e+03 below the nominal's ln L)") in shown, shown
     assert "fit failed" not in shown
     # No fit is flagged on the clean records (their shortfalls ≤ 0.8 ln L).
     for name in ("clean", "clean_conventions"):
@@ -384,47 +387,23 @@ def test_a_different_device_is_never_none(diagnosed):
     assert result.verdict != "none"
     if result.verdict == "unexplained":
         assert "moment_of_inertia" in result.reason or "remains" in result.reason
-    # Its refit rests past the bound (three times the moment of inertia): where a nested fit
-    # is flagged there, the record says why (`verdict._at_bound_note`); no other case, every
-    # refit within its bound, says so.
-    flagged = [e["effect"] for e in result.ranking if e["fit_failed"]]
+    # Its refit rests past the bound (three times the moment of inertia): a nested fit that
+    # eased it at the cost of its reported ln L is reported at its no-effect value
+    # (`rescale.settle_at_no_effect`), and the record says why; no fit is flagged unless it
+    # failed in the solver, and no other case, every refit within its bound, says so.
+    assert not any(e["fit_failed"] and not e["solver_failed"] for e in result.ranking)
+    settled = [e["effect"] for e in result.ranking if e["at_no_effect"]]
     said = [n for n in result.notes if "rests past its bound" in n]
-    assert bool(flagged) == bool(said)
-    if flagged:
-        assert "moment_of_inertia +" in said[0] and all(f in said[0] for f in flagged)
+    assert bool(settled) == bool(said), result.summary()
+    if settled:
+        assert "moment_of_inertia +" in said[0] and all(f in said[0] for f in settled)
+        assert all(
+            e["evidence"] < 0 and not e["significant"] and e["gap_shrink"] == 0
+            for e in result.ranking if e["at_no_effect"]
+        ), result.ranking
     for name, (_, other) in diagnosed.items():
         if name != "other_device":
             assert not any("rests past its bound" in n for n in other.notes), name
-
-
-def test_the_bound_note_names_only_fits_flagged_by_their_reported_log_likelihood():
-    # `verdict._at_bound_note`: a refit past `REFIT_BOUND` explains a flag on the reported
-    # ln L (the bound's penalty traded for it); a fit whose objective also ended below the
-    # nominal's failed in the solver and is not explained away; within the bound, no note.
-    from accel_jax.diagnose.step.verdict import _at_bound_note
-
-    def entry(effect, failed, below):
-        return SimpleNamespace(
-            effect=effect, fit_failed=failed, objective_below_nominal=below,
-            solver_failed=failed and below > 1e-3,  # (`assess.nested_failed` on this scale)
-        )
-
-    from accel_jax.diagnose.step.state import StepFit
-
-    def nominal_fit(z, z_gain):  # what the note reads of a `StepFit`
-        fit = SimpleNamespace(z=np.array(z), z_gain=z_gain)
-        fit.device_shifts = lambda prior_sigma=None: StepFit.device_shifts(fit, prior_sigma)
-        return fit
-
-    past = nominal_fit([13.1, -9.7, 0.0, 0.0], 0.0)
-    within = nominal_fit([5.9, -5.0, 0.0, 0.0], -5.5)
-    entries = [entry("torquer_lag", True, 0.0), entry("output_filter", True, 40.0),
-               entry("colored_noise", False, 0.0)]
-    note = _at_bound_note(past, entries)
-    assert note is not None and "moment_of_inertia +13.1σ, damping -9.7σ" in note
-    assert "(torquer_lag)" in note and "output_filter" not in note
-    assert _at_bound_note(within, entries) is None
-    assert _at_bound_note(past, [entry("output_filter", True, 40.0)]) is None
 
 
 def test_time_scale_domain_check():

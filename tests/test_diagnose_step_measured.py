@@ -574,7 +574,8 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
         [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2),
          Fit("torquer_lag", 90.0, 20.0, at=2.0)],
         # Record 4: as record 2, its nominal's refit past the bound (`REFIT_BOUND`): the
-        # bound's penalty is what the lag trades, at any scale; left flagged.
+        # bound's penalty is what the lag trades, at any scale; not refitted
+        # (`rescale.settle_at_no_effect` takes it).
         [Fit("nominal", 100.0, 50.0, at=1.0, innovation_variance=(30 * sigma) ** 2,
              shift=REFIT_BOUND + 0.1),
          Fit("torquer_lag", 90.0, 20.0, at=2.0)],
@@ -653,6 +654,99 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
         f"reported ln L of each had ended up to 30 below that nominal's, {why}",
     )
     assert float(records[0].ctx.sigma_ref) == sigma  # the record's own context kept
+
+
+def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
+    """`rescale.settle_at_no_effect`: a nested fit whose reported ln L still ends more than
+    `NESTED_LNL_SLACK` below the nominal's, its objective not, is replaced by its effect at
+    z = 0 (the nominal model exactly: the nominal fit's prediction, errors and ln L), judged
+    against the nominal fit it copies (the floor's for a fit with a `Baseline`), with its
+    optimum's shortfall kept; a solver failure and a fit within the slack stay as they
+    are; the record's note says why, naming the bound where the nominal rests past it."""
+    from accel_jax.diagnose.step import rescale
+    from accel_jax.diagnose.step.state import StepFit
+
+    width = W.FIXED + 3
+
+    def fit(effect, objective, log_likelihood, at, z0=0.0, baseline=None, model=None):
+        n = 6
+        return StepFit(
+            effect=effect, model=model, stochastic=False, k=0 if model is None else 1,
+            w=np.full(width, at), w_trained=np.full(width, at + 0.5),
+            z=np.array([z0, 0.0, 0.0, 0.0]), z_gain=0.0, gain=-1.0,
+            log_likelihood=log_likelihood, innovation_variance=4e-6,
+            prediction=np.full(n, at), prior_prediction=np.zeros(n), error=np.full(n, -at),
+            innovations=np.full(n, 0.1 * at), converged=True, steps=3, decrement=0.0,
+            objective=objective, params={}, baseline=baseline,
+        )
+
+    lag = SimpleNamespace(
+        name="torquer_lag", loop_noise=False, n_params=1,
+        physical=lambda w, context: {"T_dm_s": float(w[0]), "test_gain": context["test_gain"]},
+    )
+    stop = SimpleNamespace(**{**vars(lag), "name": "stop_saturation"})
+
+    @dataclasses.dataclass(frozen=True)
+    class Record:
+        notes: tuple = ()
+        domain_problems: tuple = ()
+        k_test: float = 2.0
+        prior_sigma: tuple = (1.0, 1.0, 1.0, 1.0)
+        host: object = dataclasses.field(
+            default_factory=lambda: SimpleNamespace(candidate=lambda **context: context)
+        )
+
+        def with_note(self, note):
+            return dataclasses.replace(self, notes=self.notes + (note,))
+
+    floor_nominal = fit("nominal", 200.0, 60.0, at=5.0)
+    fits = [
+        # Record 0: the lag 30 below (its objective 90 < 100): settled; the stop, judged
+        # against the floor's nominal, 50 below it: settled from that fit; the other lag
+        # failed in the solver (objective 300 > 100): flagged, kept; one 1 below: kept.
+        [fit("nominal", 100.0, 50.0, at=1.0),
+         fit("torquer_lag", 90.0, 20.0, at=2.0, model=lag),
+         fit("stop_saturation", 150.0, 10.0, at=3.0, model=stop,
+             baseline=Baseline.of(floor_nominal)),
+         fit("torquer_lag", 300.0, 20.0, at=4.0, model=lag),
+         fit("torquer_lag", 90.0, 49.0, at=4.0, model=lag)],
+        # Record 1: its nominal's refit past the bound; the lag 40 below: settled.
+        [fit("nominal", 100.0, 50.0, at=1.0, z0=REFIT_BOUND + 0.5),
+         fit("torquer_lag", 90.0, 10.0, at=2.0, model=lag)],
+        # Record 2: outside the model family (no effect fitted): untouched.
+        [fit("nominal", 100.0, 50.0, at=1.0),
+         fit("torquer_lag", 90.0, 10.0, at=2.0, model=lag)],
+    ]
+    records = [Record(), Record(), Record(domain_problems=("too fast",))]
+    old = [list(f) for f in fits]
+    rescale.settle_at_no_effect(fits, records, {0: (None, floor_nominal)}, base=None)
+
+    settled_lag, settled_stop = fits[0][1], fits[0][2]
+    for settled, nominal_fit, shortfall in (
+        (settled_lag, fits[0][0], 30.0), (settled_stop, floor_nominal, 50.0)
+    ):
+        assert settled.optimum_shortfall == shortfall
+        assert settled.log_likelihood == nominal_fit.log_likelihood
+        assert settled.baseline == Baseline.of(nominal_fit)
+        assert np.all(settled.prediction == nominal_fit.prediction)
+        assert np.all(settled.innovations == nominal_fit.innovations)
+        assert np.all(settled.w[W.EFFECT] == 0) and np.all(settled.w_trained[W.EFFECT] == 0)
+        assert np.all(settled.w[W.BEFORE_EFFECT] == nominal_fit.w[W.BEFORE_EFFECT])
+        assert settled.params == {"T_dm_s": 0.0, "test_gain": -2.0}  # its value at z = 0
+        assert settled.k == 1 and settled.model is not None
+        assert not reported_below(settled, fits[0][0])
+    assert (settled_lag.effect, settled_stop.effect) == ("torquer_lag", "stop_saturation")
+    assert fits[0][0] is old[0][0] and fits[0][3] is old[0][3] and fits[0][4] is old[0][4]
+    assert fits[0][3].optimum_shortfall is None
+    assert fits[1][1].optimum_shortfall == 40.0
+    assert fits[2] == old[2] and records[2].notes == ()
+    (note,) = records[0].notes
+    assert note.startswith(f"torquer_lag, stop_saturation {rescale.NO_EFFECT_NOTE}")
+    assert "up to 50 below the nominal's reported ln L" in note
+    assert "the refits at σ̂ did not close it" in note and "bound" not in note
+    (note,) = records[1].notes
+    assert "up to 40 below" in note and "the refits at σ̂" not in note
+    assert f"rests past its bound of ±{REFIT_BOUND:g}σ (moment_of_inertia +6.5σ)" in note
 
 
 @pytest.mark.slow

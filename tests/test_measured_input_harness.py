@@ -240,13 +240,19 @@ def test_nested_fits_below_the_nominal_are_counted_on_the_objective_apart_from_t
     flagged = {**_row("none"), "fit_failed": ["disturbance_drift"],
                "below_nominal": {"torquer_lag": 0.0, "disturbance_drift": 7.8e-10}}
     lost = {**_row("none"), "fit_failed": ["stop_saturation"],
-            "below_nominal": {"stop_saturation": 12.5}}
-    rows = {"clean/0000": _row("none"), "measured/0000": flagged,
+            "below_nominal": {"stop_saturation": 12.5},
+            "reported_below_nominal": {"stop_saturation": 900.0, "torquer_lag": 0.4}}
+    # A fit reported at its no-effect value (`rescale.settle_at_no_effect`) is counted apart,
+    # and the reported ln L below the nominal's read over the fits not flagged.
+    settled = {**_row("none"), "at_no_effect": {"stop_saturation": 2661.0},
+               "reported_below_nominal": {"stop_saturation": 0.0, "torquer_lag": 1.5}}
+    rows = {"clean/0000": settled, "measured/0000": flagged,
             "clean/0001": _row("none"), "measured/0001": lost}
     s = harness.score(truths, rows, _acts)
     assert s["nested_fit_failures"] == 2 and s["rankings"] == 4
     assert s["nested_below_on_objective"] == 1
     assert s["largest_objective_below_nominal"] == 12.5
+    assert s["settled_at_no_effect"] == 1 and s["largest_reported_below_nominal"] == 1.5
 
 
 def test_a_none_on_a_start_on_stop_record_is_false_assurance_where_the_stop_acts_again():

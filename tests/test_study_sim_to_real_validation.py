@@ -137,7 +137,9 @@ def test_score_counts_nested_fits_that_lost_to_the_nominal():
     # share of 1e-5, 3e-6 beyond both (counted beyond round-off, not as failed).
     rankings = [
         [entry("torquer_lag", below=5e-7), entry("stop_saturation", True, 4909.7)],
-        [entry("torquer_lag", below=2e-6, round_off=1e-5), entry("stop_saturation")],
+        [entry("torquer_lag", below=2e-6, round_off=1e-5),
+         {**entry("stop_saturation"), "at_no_effect": True,
+          "optimum_log_likelihood_below_nominal": 2661.0}],
         [entry("stop_contact", True, 12.0), entry("stop_saturation", True, 0.5),
          entry("output_filter", below=3e-6)],
     ]
@@ -151,6 +153,7 @@ def test_score_counts_nested_fits_that_lost_to_the_nominal():
     assert nested["failed_by_effect"] == {"stop_saturation": 2, "stop_contact": 1}
     assert nested["datasets_with_a_failed_fit"] == [0, 2]
     assert nested["largest_shortfall_lnL"] == 4909.7
+    assert nested["at_no_effect"] == 1 and nested["largest_optimum_below_at_no_effect"] == 2661
     row = module._open_world_rows("step", {"nested_fits": nested})[0]
     assert nested["failed_objective"] == 3
     assert row["ours"] == 3 and "3 of 7 effect fits on 2 datasets, 3 of them" in row["note"]

@@ -329,7 +329,8 @@ def test_step_ranking_entry_is_typed_and_its_dict_is_the_old_row():
     )
     old_keys = [
         "effect", "evidence", "fit_failed", "solver_failed", "objective_below_nominal",
-        "objective_round_off", "log_likelihood_below_nominal", "significant",
+        "objective_round_off", "log_likelihood_below_nominal", "at_no_effect",
+        "optimum_log_likelihood_below_nominal", "significant",
         "stochastic", "explains", "explains_up_to_model_form", "plausible",
         "explained_fraction", "gap_after_V", "gap_shrink", "held_out_mean_square",
         "held_out_one_step_mean_square", "params", "converged", "fit_steps", "out_of_prior",

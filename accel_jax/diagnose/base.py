@@ -462,26 +462,26 @@ class DiagnosisResult:
         for r in self.ranking:
             mark = "*" if r.get("significant") else " "
             if r.get("fit_failed"):  # a nested fit that lost to the nominal: no evidence
+                # (One whose reported ln L alone ended below is reported at its no-effect
+                # value instead: `at_no_effect`, below.)
                 below = r["objective_below_nominal"]
                 reported = r.get("log_likelihood_below_nominal", 0.0)
-                if r.get("solver_failed", True):
-                    lines.append(
-                        f"   {r['effect']:<18} fit failed (ended {below:.3g} below the nominal "
-                        f"model's penalised ln L, {reported:.3g} below its reported ln L; the "
-                        "nominal is the effect switched off: no evidence either way)"
-                    )
-                else:
-                    lines.append(
-                        f"   {r['effect']:<18} no evidence (its reported ln L ended "
-                        f"{reported:.3g} below the nominal model's, its penalised ln L, which "
-                        "the fit maximised, did not: the two weigh the residual against the "
-                        "priors differently on this record)"
-                    )
+                lines.append(
+                    f"   {r['effect']:<18} fit failed (ended {below:.3g} below the nominal "
+                    f"model's penalised ln L, {reported:.3g} below its reported ln L; the "
+                    "nominal is the effect switched off: no evidence either way)"
+                )
                 continue
-            lines.append(
+            line = (
                 f" {mark} {r['effect']:<18} evidence {r['evidence']:>10.1f}  "
                 f"shrink {r['gap_shrink']:+.2f}"
             )
+            if r.get("at_no_effect"):  # the nested model at z = 0: the nominal exactly
+                line += (
+                    "  (at its no-effect value: the solver's optimum ended "
+                    f"{r['optimum_log_likelihood_below_nominal']:.3g} below the nominal's ln L)"
+                )
+            lines.append(line)
         for e in self.next_experiment[:3]:
             lines.append(
                 f"next experiment: {e['description']} (expected 2 ln B ≈ {e['expected_2lnB']:.3g})"

@@ -74,15 +74,9 @@ def _fit_entry(
     )
     effect = effects_all[candidate - 1] if candidate else None
     gain = rec.polarity * math.exp(GAIN_SIGMA * z_gain)
-    device = None
-    if base is not None and effect is not None and effect.loop_noise:
-        device = refitted_device(base, jnp.asarray(z), jnp.asarray(rec.prior_sigma))
-    context = rec.host.candidate(
-        innovation_variance=rss / n_train, test_gain=gain * rec.k_test, device=device
-    )
     params = {}
     if effect is not None:
-        params = effect.physical(w[W.effect(effect.n_params)], context)
+        params = _physical(effect, w, rec, base, z, gain, rss / n_train)
     error = u_out - prediction
     return StepFit(
         effect="nominal" if effect is None else effect.name,
@@ -105,6 +99,47 @@ def _fit_entry(
         decrement=float(decrement),
         objective=float(objective),
         params=params,
+    )
+
+
+def _physical(effect, w, rec: StepRecord, base, z, gain: float, innovation_variance: float):
+    """`effect`'s physical values at the fitted vector `w` (`AbstractStepEffect.physical`),
+    in the context of the fit: its one-step variance, its test gain and, for a noise in the
+    loop, its refitted device (`base` the nominal one)."""
+    device = None
+    if base is not None and effect.loop_noise:
+        device = refitted_device(base, jnp.asarray(z), jnp.asarray(rec.prior_sigma))
+    context = rec.host.candidate(
+        innovation_variance=innovation_variance, test_gain=gain * rec.k_test, device=device
+    )
+    return effect.physical(w[W.effect(effect.n_params)], context)
+
+
+def at_no_effect(nominal_fit: StepFit, fit: StepFit, rec: StepRecord, base) -> StepFit:
+    """`fit`'s effect at its no-effect value, z = 0 (`starts.nominal_start`), the rest of the
+    model at `nominal_fit`'s optimum: that nominal fit exactly (its prediction, errors and ln
+    L), as the effect's fit, judged against `nominal_fit` (its `baseline`) and recording how
+    far `fit`'s own reported ln L had ended below it (`optimum_shortfall`). A nested model's
+    maximised ln L is at least its nominal's; this is the point that shows it
+    (`rescale.settle_at_no_effect`). `base` the nominal device (`ServoParams`)."""
+    effect = fit.model
+    w, trained = np.array(nominal_fit.w), np.array(nominal_fit.w_trained)
+    w[W.EFFECT] = 0.0
+    trained[W.EFFECT] = 0.0
+    return dataclasses.replace(
+        nominal_fit,
+        effect=fit.effect,
+        model=effect,
+        stochastic=fit.stochastic,
+        k=fit.k,
+        w=w,
+        w_trained=trained,
+        params=_physical(
+            effect, w, rec, base, nominal_fit.z, nominal_fit.gain,
+            float(nominal_fit.innovation_variance),
+        ),
+        baseline=Baseline.of(nominal_fit),
+        optimum_shortfall=log_likelihood_shortfall(fit, nominal_fit),
     )
 
 
@@ -237,10 +272,11 @@ floor, they are all fitted again with the floor set to the nominal's residual RM
 for every record far above the nominal's floor, it strained the nuisances of a lag fit that
 explains its record to the floor: docs/models.md §5.) Where the nominal's refit rests past
 `model.REFIT_BOUND`, the bound's penalty (in the objective, not in this ln L) is traded too,
-and a flagged fit there is no solver failure (`verdict._at_bound_note` says so). A fit
-flagged here is fitted again at the σ̂ of the nominal fit it is judged against, and judged
-against the nominal's refit there (`rescale.retry_at_residual_scale`); it stays flagged
-only where that refit, too, ends below."""
+and a fit below there is no solver failure. A fit below is fitted again at the σ̂ of the
+nominal fit it is judged against, and judged against the nominal's refit there
+(`rescale.retry_at_residual_scale`); one still below is reported at its no-effect value,
+the nominal model exactly (`rescale.settle_at_no_effect`; its ranking entry's
+`at_no_effect`)."""
 
 
 def log_likelihood_shortfall(fit: StepFit, nominal_fit: StepFit) -> float:

@@ -32,7 +32,7 @@ from .record import _guesses, prepare
 from .starts import CONTACT_GRID, contact_from_clamp, nominal_start
 from .state import Baseline, StepFit, StepRecord
 from .question import weigh_discovery
-from .rescale import at_noise_scale, retry_at_residual_scale
+from .rescale import at_noise_scale, retry_at_residual_scale, settle_at_no_effect
 from .verdict import evaluate, noise_verdict
 
 
@@ -199,6 +199,8 @@ def diagnose_step(
     retry_at_residual_scale(
         fits, records, effects, [(fn, c) for fn, c in stages if c], nominal, floor
     )
+    # What is still below: the nested model at its no-effect value, the nominal exactly.
+    settle_at_no_effect(fits, records, floor, nominal.params)
     results = []
     for rec, record_fits in zip(records, fits, strict=True):
         fitted = {f.effect for f in record_fits}

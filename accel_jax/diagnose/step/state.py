@@ -314,6 +314,10 @@ class StepFit:
         is judged against (`assess.baseline`) and its evidence measured from.
     - `params`: the effect's physical values (`AbstractStepEffect.physical`; empty for the
         nominal model).
+    - `optimum_shortfall`: where the fit is the nested model at its no-effect value
+        (`rescale.settle_at_no_effect`: the solver's optimum read a lower ln L than the
+        nominal, which the nested model contains), how far below the nominal's reported ln
+        L that optimum had ended; None elsewhere.
 
     **The assessment** (NaN / False / None before `assess.assess_fit`): `ms_train`, `ms_held`
     [V²] the free-run errors' mean squares on the training and held-out parts,
@@ -351,6 +355,7 @@ class StepFit:
     objective: float
     params: dict[str, Any]
     baseline: Baseline | None = None
+    optimum_shortfall: float | None = None
     ms_train: float = math.nan
     ms_held: float = math.nan
     ms_held_one_step: float = math.nan
@@ -444,6 +449,10 @@ class RankingEntry(Candidate):
         `solver_failed` whether the former (a fit flagged by its reported ln L alone did
         not fail in the solver: the two likelihoods weigh the residual against the priors
         differently, `assess.NESTED_LNL_SLACK`).
+    - `at_no_effect`: the entry is the nested model at its no-effect value, the nominal
+        model exactly (`rescale.settle_at_no_effect`: the solver's optimum read a ln L
+        `optimum_log_likelihood_below_nominal` below the nominal's, after the refits at
+        σ̂): its evidence is −k ln n, its fit the nominal's.
     - `explains_up_to_model_form`: a deterministic effect that explains the record up to
         its model form (`openworld.MODEL_FORM`).
     - `gap_after_V` [V]: the held-out gap with the effect; `gap_shrink` the fraction of the
@@ -473,6 +482,8 @@ class RankingEntry(Candidate):
     log_likelihood_below_nominal: float = 0.0
     solver_failed: bool = False
     objective_round_off: float = 0.0
+    at_no_effect: bool = False
+    optimum_log_likelihood_below_nominal: float | None = None
     one_step_whiteness: Whiteness | None = None
     variance_consistent: bool | None = None
     predictability_null_quantile: dict[str, Any] | None = None
@@ -486,6 +497,8 @@ class RankingEntry(Candidate):
             "objective_below_nominal": self.objective_below_nominal,
             "objective_round_off": self.objective_round_off,
             "log_likelihood_below_nominal": self.log_likelihood_below_nominal,
+            "at_no_effect": self.at_no_effect,
+            "optimum_log_likelihood_below_nominal": self.optimum_log_likelihood_below_nominal,
             "significant": self.significant,
             "stochastic": self.stochastic,
             "explains": self.explains,

@@ -15,7 +15,7 @@ from .. import openworld
 from ..base import SIGNIFICANCE, DiagnosisResult, held_out_gap
 from . import assess, noise_null, nuisance
 from .assess import assess_fit
-from .model import DELAY_LIMIT, REFIT_BOUND, REFIT_FIELDS
+from .model import DELAY_LIMIT, REFIT_FIELDS
 from .refit import _describe_where, _localise, _ranges, _refit_report
 from .state import RankingEntry, StepFit, StepRecord
 
@@ -161,9 +161,6 @@ def evaluate(
     notes = list(getattr(data, "notes", ())) + list(rec.notes)
     if verdict == "none" and rec.input_measured and rec.input_delay_known is None:
         notes.append(_hidden_lag_note(nuisances, rec))
-    at_bound = _at_bound_note(nominal_fit, entries)
-    if at_bound:
-        notes.append(at_bound)
     questioned = next((e for e in entries if e.effect == verdict), None)
     if questioned is not None and _in_question(questioned.to_dict()):
         notes.append(_in_question_note(questioned, predictable))
@@ -229,29 +226,6 @@ def _in_question_note(entry: RankingEntry, predictable) -> str:
         f"{noise_null.NULL_DRAWS} draws: a deterministic term outside the library may "
         "describe the record better (a disturbance near the loop's resonance is one); the "
         "discovery (`--discover`, the command's default) weighs one against the noise"
-    )
-
-
-def _at_bound_note(nominal_fit: StepFit, entries: list[RankingEntry]) -> str | None:
-    """Why nested fits were flagged where the nominal's refit rests past `REFIT_BOUND`
-    (None elsewhere): the bound's penalty (`model.BARRIER`) is in the solver's objective,
-    not in the reported ln L, and a fit that eases it trades ln L for it (seen on the tests'
-    device with three times the moment of inertia, its refit at +13.1σ: the lag and
-    output-noise fits, each ending below the nominal's objective, 2,661 and 2,574 lower,
-    read evidence −216 and −1,368)."""
-    # (Only the fits flagged by their reported ln L alone: one whose objective also ended
-    # below the nominal's did fail in the solver.)
-    flagged = [e.effect for e in entries if e.fit_failed and not e.solver_failed]
-    shifts = nominal_fit.device_shifts()
-    past = [f"{name} {z:+.1f}σ" for name, z in shifts if abs(z) > REFIT_BOUND]
-    if not flagged or not past:
-        return None
-    return (
-        f"the nominal's refit rests past its bound of ±{REFIT_BOUND:g}σ ({', '.join(past)}), "
-        "held there by a steep penalty that the solver minimises and the reported ln L leaves "
-        "out: a fit that eases it trades ln L for it, so the flagged fits "
-        f"({', '.join(flagged)}) end below the nominal's reported ln L without a solver "
-        "failure; the device is far outside its prior"
     )
 
 
@@ -337,6 +311,8 @@ def ranking_entry(
         solver_failed=solver_failed,
         objective_below_nominal=max(assess.nested_shortfall(fit, nominal_fit), 0.0),
         objective_round_off=assess.nested_round_off(fit, nominal_fit),
+        at_no_effect=fit.optimum_shortfall is not None,
+        optimum_log_likelihood_below_nominal=fit.optimum_shortfall,
         log_likelihood_below_nominal=max(assess.log_likelihood_shortfall(fit, nominal_fit), 0.0),
         significant=bool(evidence - slack >= SIGNIFICANCE and improves and not failed),
         stochastic=fit.stochastic,
