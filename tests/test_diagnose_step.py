@@ -317,7 +317,7 @@ def test_no_nested_fit_ends_below_the_nominal_by_more_than_the_restart_threshold
 
 
 def test_records_no_linear_model_brings_near_the_floor_are_fitted_at_their_scale(diagnosed):
-    # `entry.REWEIGHT_ABOVE`: a record that no linear candidate fits to within twice its
+    # `rescale.REWEIGHT_ABOVE`: a record that no linear candidate fits to within twice its
     # floor has its linear fits made again at the nominal's residual scale, and there no
     # nested fit ends below the nominal's reported ln L (at the floor the stop record's
     # torquer_lag ended 39 below). The clean records and those a linear model explains (a

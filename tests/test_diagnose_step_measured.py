@@ -208,7 +208,7 @@ def test_nested_fits_are_judged_on_the_objective_the_solver_minimised():
         _nested_fit(effect="torquer_lag", objective=2e10 + 1.0), huge
     )  # (½·1 ≤ 1e-10 of ½·2e10: round-off of the sum)
     # A later fit (a stop's) of a record whose linear fits were made at its residual scale
-    # (`entry.REWEIGHT_ABOVE`): judged against the nominal's objective at its own scale.
+    # (`rescale.REWEIGHT_ABOVE`): judged against the nominal's objective at its own scale.
     stop = _nested_fit(
         effect="stop_saturation", objective=2010.0, baseline=Baseline(2020.0, 0.0)
     )
@@ -342,11 +342,11 @@ class _Record:
 
 
 def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monkeypatch):
-    """`entry._reweight_far_records`: only a record whose nominal fit leaves σ̂ above
+    """`rescale.reweight_far_records`: only a record whose nominal fit leaves σ̂ above
     `REWEIGHT_ABOVE` floors has its linear candidates fitted again, at σ_ref = σ̂, each
     from its own optimum, the record's own start kept; its fits are replaced, the record
     says so, and the floor's context and nominal objective are handed back."""
-    from accel_jax.diagnose.step import entry
+    from accel_jax.diagnose.step import rescale
 
     Ctx, Record = _Ctx, _Record
 
@@ -374,14 +374,14 @@ def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monk
         seen.update(starts=starts, records=list(records_), fn=fn, desc=desc)
         return {i: [fit("nominal", 1.0, None), fit("torquer_lag", 1.0, None)] for i in starts}
 
-    monkeypatch.setattr(entry, "_fit_grouped", refit)
+    monkeypatch.setattr(rescale, "fit_grouped", refit)
     untouched, at_floor = fits[0], records[1].ctx
-    floor = entry._reweight_far_records(fits, records, [], [0, 1], None)
+    floor = rescale.reweight_far_records(fits, records, [], [0, 1], None)
     # What the later fits (at the floor again) need: the context there and the nominal's
     # fit at the floor, to start from and be judged against.
     assert list(floor) == [1] and floor[1][0] is at_floor
     assert floor[1][1].effect == "nominal" and floor[1][1].objective == 7.0 * far**2
-    assert entry.REWEIGHT_ABOVE == 2.0 and seen["fn"] is entry.fit_linear
+    assert rescale.REWEIGHT_ABOVE == 2.0 and seen["fn"] is rescale.fit_linear
     assert list(seen["starts"]) == [1]  # only the far record
     guesses = seen["starts"][1]
     assert np.all(guesses[:, 0] == 0.0)  # its own start kept
@@ -396,12 +396,12 @@ def test_a_record_far_above_its_floor_is_fitted_again_at_its_residual_scale(monk
 
 
 def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_ones_at_sigma_hat():
-    """`entry._put_back_at_sigma_hat`, on the fits in the order `diagnose_step` appends
+    """`rescale.put_back_at_sigma_hat`, on the fits in the order `diagnose_step` appends
     them (`entry._stages`): the nominal's fit at σ̂ back first; every linear candidate
     (fitted at σ̂ with it, the last of them `colored_noise`) without a `baseline`, judged
     against it; every later fit (noise in the loop, stops: fitted at the floor) judged
-    against the floor's nominal. `entry._to_floor` before it swaps the floor's in."""
-    from accel_jax.diagnose.step import entry
+    against the floor's nominal. `rescale.to_floor` before it swaps the floor's in."""
+    from accel_jax.diagnose.step import entry, rescale
     from accel_jax.diagnose.step.assess import baseline, nested_failed
     from accel_jax.diagnose.step.effects import step_effects
 
@@ -440,11 +440,11 @@ def test_a_rescaled_records_later_fits_are_judged_at_the_floor_and_its_linear_on
         fits = [[at_sigma_hat] + [made(name, k) for k, name in enumerate(names[1:len(linear)], 1)]]
         records = [Record("at σ̂")]
         floor = {0: ("at the floor", at_floor)}
-        swapped = entry._to_floor(fits, records, floor)
+        swapped = rescale.to_floor(fits, records, floor)
         assert swapped == {0: at_sigma_hat} and fits[0][0] is at_floor
         assert records[0].ctx == "at the floor"
         fits[0] += [made(name, k) for k, name in enumerate(names[len(linear):], len(linear))]
-        entry._put_back_at_sigma_hat(fits, floor, swapped, n_linear)
+        rescale.put_back_at_sigma_hat(fits, floor, swapped, n_linear)
         assert fits[0][0] is at_sigma_hat and [f.effect for f in fits[0]] == names
         flagged = [f.effect for f in fits[0][1:] if nested_failed(f, fits[0][0])]
         assert flagged == expected, n_linear
@@ -763,7 +763,7 @@ def test_a_stop_record_with_a_measured_input_names_the_stop(index, truth):
     nominal = NominalDevice.reference(torquer_time_constant=0.0, filter_time_constant=0.0)
     result = diagnose_many([StepData(t, column, y)], nominal, recommend=False)[0]
     # The nominal refit's levels are strained (what the stop fits must walk back) … The
-    # refit reported is the one at the record's residual scale (`entry.REWEIGHT_ABOVE`):
+    # refit reported is the one at the record's residual scale (`rescale.REWEIGHT_ABOVE`):
     # there its largest level moves 12σ (306) and 4.5σ (319), at the floor 1.1e4σ and 6.0e3σ.
     test = result.refit["nuisance_test"]
     assert test["strained"] and abs(test["largest_sigma"]) > 3, test

@@ -222,7 +222,7 @@ def baseline(fit: StepFit, nominal_fit: StepFit) -> Baseline:
     (`nested_failed`, `reported_below`) and its evidence measured from: the record's
     nominal fit `nominal_fit`, or on a record whose linear candidates were fitted at its
     residual scale the nominal's fit at the floor, where the later fits (noise in the loop,
-    stops) were made (`StepFit.baseline`, `entry.REWEIGHT_ABOVE`). The two scales weigh the
+    stops) were made (`StepFit.baseline`, `rescale.REWEIGHT_ABOVE`). The two scales weigh the
     residual against the priors differently: stop fits at the floor read against the
     nominal at σ̂ ended below it in ln L and were flagged as failed fits (8 of the 11 flags
     on shard 0/50's 22 measured records of the measured-input harness at 400b81b, on 4
@@ -267,7 +267,7 @@ the fixed floor makes a unit of residual weigh far more in the objective than in
 ln L. Adding the change times' priors to this ln L (tried) did not close that: the flags
 moved to the lag fits of other such records, and on the strong coloured-noise case of the
 tests two lag fits ended ~23 below the nominal. What closes it on those records is the
-second solve of `entry.REWEIGHT_ABOVE`: where no linear candidate comes within twice the
+second solve of `rescale.REWEIGHT_ABOVE`: where no linear candidate comes within twice the
 floor, they are all fitted again with the floor set to the nominal's residual RMS. (Done
 for every record far above the nominal's floor, it strained the nuisances of a lag fit that
 explains its record to the floor: docs/models.md §5.) Where the nominal's refit rests past

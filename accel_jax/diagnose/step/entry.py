@@ -9,9 +9,6 @@ package `accel_jax.diagnose.step`.
 
 from __future__ import annotations
 
-import dataclasses
-import math
-
 import numpy as np
 
 from ..._data import NominalDevice, StepData
@@ -30,9 +27,15 @@ from .fit import fit_contact, fit_linear, fit_moment, fit_nonlinear
 from .layout import W
 from .record import _guesses, prepare
 from .starts import CONTACT_GRID, contact_from_clamp, nominal_start
-from .state import Baseline, StepFit, StepRecord
+from .state import StepFit, StepRecord
 from .question import weigh_discovery
-from .rescale import at_noise_scale, retry_at_residual_scale, settle_at_no_effect
+from .rescale import (
+    put_back_at_sigma_hat,
+    retry_at_residual_scale,
+    reweight_far_records,
+    settle_at_no_effect,
+    to_floor,
+)
 from .verdict import evaluate, noise_verdict
 
 
@@ -119,16 +122,16 @@ def diagnose_step(
     _restart_losers(fits, records, effects, linear, nominal)
     # A record that no linear candidate brings near its noise floor, after the restarts
     # (from its optimum the nominal's own refit may reach the floor: a device far from its
-    # prior): its linear fits again at the nominal's residual scale (`REWEIGHT_ABOVE`),
+    # prior): its linear fits again at the nominal's residual scale (`rescale.REWEIGHT_ABOVE`),
     # restarted as above where one lost there.
-    floor = _reweight_far_records(fits, records, effects, linear, nominal)
+    floor = reweight_far_records(fits, records, effects, linear, nominal)
     _restart_losers(fits, records, effects, linear, nominal, among=set(floor))
     # The later fits (noise in the loop, stops) at the noise floor again: a model that
     # explains the record leaves residuals at the floor, not at the nominal's σ̂. They
     # start from the nominal's fit at the floor (from its optimum, a nested
     # fit cannot end above its objective there), and are judged against it
     # (`StepFit.baseline`); the nominal at σ̂ is put back for the verdict.
-    at_sigma_hat = _to_floor(fits, records, floor)
+    at_sigma_hat = to_floor(fits, records, floor)
     n_linear = len(linear)  # the nominal (0) and the linear candidates: `fits[i][:n_linear]`
     # Noise inside the loop, for the records that no deterministic linear model explains:
     # from its own starts (the nominal fit's device and nuisances), from the output noise's
@@ -191,7 +194,7 @@ def diagnose_step(
     )
     for i, record_fits in entries.items():
         fits[i] = fits[i] + record_fits
-    _put_back_at_sigma_hat(fits, floor, at_sigma_hat, n_linear)
+    put_back_at_sigma_hat(fits, floor, at_sigma_hat, n_linear)
     # A fit whose reported ln L ended below its nominal's, its objective not: the two
     # likelihoods part where σ̂ lies far from σ_ref; fitted again at σ̂ (`rescale`).
     stages = [(fit_linear, linear), (fit_moment, loop_noise), (fit_nonlinear, clamp),
@@ -225,7 +228,7 @@ def diagnose_step(
             wanted = discover == "all" or result.verdict == "unexplained" or noise
             if wanted and not rec.domain_problems:
                 # From the nominal's fit at the floor, the scale its refits weigh the
-                # residual at: from the fit at σ̂ (`REWEIGHT_ABOVE`) the vibrating stand's
+                # residual at: from the fit at σ̂ (`rescale.REWEIGHT_ABOVE`) the vibrating stand's
                 # CLI test took 477 s, from the floor 318 s (292 s before the rescale
                 # existed; one run each on the 2-core CPU).
                 start = floor[i][1] if i in floor else record_fits[0]
@@ -287,23 +290,6 @@ def _fit_loop_noise(fits, records: list[StepRecord], effects, loop_noise, nomina
         fits[i] = fits[i] + record_fits
 
 
-REWEIGHT_ABOVE = 2.0
-"""A record that no linear candidate fits to within this many noise floors σ_ref (each one's
-training residual RMS above it, after the restarts from the nominal optimum, which may take
-the nominal's own refit to a device far from its prior and to the floor) has its linear
-candidates fitted again with σ_ref = σ̂, the nominal fit's residual RMS, each from its own
-optimum (the same compiled program: σ_ref is data). The solver weighs the residual against
-the priors at σ_ref, the reported ln L (the evidence's) at the σ̂ it estimates: far above
-the floor the two optima part, and a nested fit could end below the nominal's ln L although
-its objective did not (`assess.NESTED_LNL_SLACK`). One σ_ref for all the linear candidates
-keeps their objectives comparable. Where one candidate comes near the floor the record is
-left alone: weighed at the nominal's larger scale, the priors of a fit that explains the
-record pull its nuisances (an output-filter record then read `torquer_lag`). The later fits
-(noise in the loop, stops) stay at the floor, where a model that explains the record leaves
-its residuals (at σ̂ a stop fit stopped short, its device 6σ out, and a stop record read
-`unexplained`), each judged against the nominal's fit at the floor
-(`StepFit.baseline`)."""
-
 NESTED_RESTARTS = 2
 """Rounds of restarts from the nominal optimum for candidates that lost to it, each taking
 the nominal's own refit too where it ends lower (one that had stopped at its step limit,
@@ -312,64 +298,6 @@ tolerance leaves the objective ~1e-6 of itself short). Where a candidate still l
 them, one more round holds the nominal fit as it is, so that a candidate started at its
 optimum (the effect at 0: the nominal model) can only end at or above its likelihood
 (Levenberg–Marquardt accepts only steps that lower the objective)."""
-
-
-def _reweight_far_records(fits, records: list[StepRecord], effects, linear, nominal) -> dict:
-    """Refit the linear candidates of the records that none of them brings near the floor at
-    the nominal fit's residual scale (`REWEIGHT_ABOVE`); `fits` and `records` updated in place.
-    Returns {record index: (its context at the floor, the nominal's fit there)}. (Not a
-    record outside the model family, whose nominal alone was fitted: `DOMAIN_NOTE`.)"""
-    starts, floor = {}, {}
-    for i, rec in enumerate(records):
-        if rec.domain_problems:
-            continue
-        sigma_ref = float(np.asarray(rec.ctx.sigma_ref))
-        sigma_hat = math.sqrt(max(float(fits[i][0].innovation_variance), 0.0))
-        # (Only where no linear candidate comes near the floor: one that explains the
-        # record, weighed at the nominal's scale, strains its nuisances.)
-        least = math.sqrt(max(min(float(f.innovation_variance) for f in fits[i]), 0.0))
-        if not least > REWEIGHT_ABOVE * sigma_ref:
-            continue
-        floor[i] = (rec.ctx, fits[i][0])
-        records[i] = at_noise_scale(rec, sigma_hat).with_note(
-            f"linear models fitted at the record's residual scale ({sigma_hat / sigma_ref:.3g} × "
-            "the noise floor)"
-        )
-        guesses = np.array(rec.guesses_linear)
-        guesses[:, -1, :] = np.stack([f.w_trained for f in fits[i]])  # each from its optimum
-        starts[i] = guesses
-    entries = _fit_grouped(
-        fit_linear, nominal, records, starts, linear, effects, "diagnose step (reweighted)"
-    )
-    for i, again in entries.items():
-        fits[i] = again
-    return floor
-
-
-def _to_floor(fits, records: list[StepRecord], floor: dict) -> dict:
-    """On the rescaled records (`floor`, `_reweight_far_records`'s), the context at the
-    floor and the nominal's fit there in place of those at σ̂, for the later fits (noise in
-    the loop, stops); returns {i: the nominal's fit at σ̂} for `_put_back_at_sigma_hat`.
-    `fits` and `records` updated in place."""
-    at_sigma_hat = {}
-    for i, (ctx, nominal_at_floor) in floor.items():
-        records[i] = dataclasses.replace(records[i], ctx=ctx)
-        at_sigma_hat[i], fits[i][0] = fits[i][0], nominal_at_floor
-    return at_sigma_hat
-
-
-def _put_back_at_sigma_hat(fits, floor: dict, at_sigma_hat: dict, n_linear: int) -> None:
-    """`_to_floor` undone for the verdict: on the rescaled records (`floor`: {i: (context,
-    the nominal's fit at the floor)}), the nominal's fit at σ̂ back in `fits[i][0]`; the
-    linear candidates (`fits[i][1:n_linear]`, fitted at σ̂ with it) judged against it as
-    they are; the later fits (noise in the loop, stops: at the floor) judged against the
-    floor's nominal, and their evidence measured from it (`StepFit.baseline`). `fits`
-    updated in place."""
-    for i, (_, nominal_at_floor) in floor.items():
-        at_floor = Baseline.of(nominal_at_floor)
-        fits[i] = [at_sigma_hat[i], *fits[i][1:n_linear]] + [
-            dataclasses.replace(f, baseline=at_floor) for f in fits[i][n_linear:]
-        ]
 
 
 RESTART_NOTE = "a candidate's fit ended below the nominal model's likelihood"

@@ -1,5 +1,9 @@
-"""A nested fit whose reported ln L ended below its nominal's, fitted again where the two
-likelihoods agree (`retry_at_residual_scale`).
+"""The step fits at a record's residual scale: a record that no linear candidate brings near
+its noise floor has them fitted again at the nominal fit's σ̂ (`reweight_far_records`, with
+`to_floor` and `put_back_at_sigma_hat` around the later fits, made at the floor); a nested
+fit whose reported ln L ended below its nominal's is fitted again where the two likelihoods
+agree (`retry_at_residual_scale`); one still below is reported at its no-effect value
+(`settle_at_no_effect`).
 
 The solver maximises a penalised likelihood with the noise fixed at σ_ref (`StepFit.objective`);
 the evidence compares the profiled one, the noise variance estimated (`StepFit.log_likelihood`).
@@ -34,15 +38,92 @@ import numpy as np
 
 from .assess import at_no_effect, log_likelihood_shortfall, nested_failed, reported_below
 from .batch import fit_grouped
+from .fit import fit_linear
 from .model import REFIT_BOUND
 from .starts import nominal_start
 from .state import Baseline, StepFit, StepRecord
+
 
 def at_noise_scale(rec: StepRecord, sigma: float) -> StepRecord:
     """`rec` with its fits' noise floor σ_ref set to `sigma` [V] (its context's
     `sigma_ref`, data to the compiled fits: no recompilation)."""
     ctx = eqx.tree_at(lambda c: c.sigma_ref, rec.ctx, jnp.asarray(sigma))
     return dataclasses.replace(rec, ctx=ctx)
+
+
+REWEIGHT_ABOVE = 2.0
+"""A record that no linear candidate fits to within this many noise floors σ_ref (each one's
+training residual RMS above it, after the restarts from the nominal optimum, which may take
+the nominal's own refit to a device far from its prior and to the floor) has its linear
+candidates fitted again with σ_ref = σ̂, the nominal fit's residual RMS, each from its own
+optimum (the same compiled program: σ_ref is data). The solver weighs the residual against
+the priors at σ_ref, the reported ln L (the evidence's) at the σ̂ it estimates: far above
+the floor the two optima part, and a nested fit could end below the nominal's ln L although
+its objective did not (`assess.NESTED_LNL_SLACK`). One σ_ref for all the linear candidates
+keeps their objectives comparable. Where one candidate comes near the floor the record is
+left alone: weighed at the nominal's larger scale, the priors of a fit that explains the
+record pull its nuisances (an output-filter record then read `torquer_lag`). The later fits
+(noise in the loop, stops) stay at the floor, where a model that explains the record leaves
+its residuals (at σ̂ a stop fit stopped short, its device 6σ out, and a stop record read
+`unexplained`), each judged against the nominal's fit at the floor
+(`StepFit.baseline`)."""
+
+def reweight_far_records(fits, records: list[StepRecord], effects, linear, nominal) -> dict:
+    """Refit the linear candidates of the records that none of them brings near the floor at
+    the nominal fit's residual scale (`REWEIGHT_ABOVE`); `fits` and `records` updated in place.
+    Returns {record index: (its context at the floor, the nominal's fit there)}. (Not a
+    record outside the model family, whose nominal alone was fitted: `DOMAIN_NOTE`.)"""
+    starts, floor = {}, {}
+    for i, rec in enumerate(records):
+        if rec.domain_problems:
+            continue
+        sigma_ref = float(np.asarray(rec.ctx.sigma_ref))
+        sigma_hat = math.sqrt(max(float(fits[i][0].innovation_variance), 0.0))
+        # (Only where no linear candidate comes near the floor: one that explains the
+        # record, weighed at the nominal's scale, strains its nuisances.)
+        least = math.sqrt(max(min(float(f.innovation_variance) for f in fits[i]), 0.0))
+        if not least > REWEIGHT_ABOVE * sigma_ref:
+            continue
+        floor[i] = (rec.ctx, fits[i][0])
+        records[i] = at_noise_scale(rec, sigma_hat).with_note(
+            f"linear models fitted at the record's residual scale ({sigma_hat / sigma_ref:.3g} × "
+            "the noise floor)"
+        )
+        guesses = np.array(rec.guesses_linear)
+        guesses[:, -1, :] = np.stack([f.w_trained for f in fits[i]])  # each from its optimum
+        starts[i] = guesses
+    entries = fit_grouped(
+        fit_linear, nominal, records, starts, linear, effects, "diagnose step (reweighted)"
+    )
+    for i, again in entries.items():
+        fits[i] = again
+    return floor
+
+
+def to_floor(fits, records: list[StepRecord], floor: dict) -> dict:
+    """On the rescaled records (`floor`, `reweight_far_records`'s), the context at the
+    floor and the nominal's fit there in place of those at σ̂, for the later fits (noise in
+    the loop, stops); returns {i: the nominal's fit at σ̂} for `put_back_at_sigma_hat`.
+    `fits` and `records` updated in place."""
+    at_sigma_hat = {}
+    for i, (ctx, nominal_at_floor) in floor.items():
+        records[i] = dataclasses.replace(records[i], ctx=ctx)
+        at_sigma_hat[i], fits[i][0] = fits[i][0], nominal_at_floor
+    return at_sigma_hat
+
+
+def put_back_at_sigma_hat(fits, floor: dict, at_sigma_hat: dict, n_linear: int) -> None:
+    """`to_floor` undone for the verdict: on the rescaled records (`floor`: {i: (context,
+    the nominal's fit at the floor)}), the nominal's fit at σ̂ back in `fits[i][0]`; the
+    linear candidates (`fits[i][1:n_linear]`, fitted at σ̂ with it) judged against it as
+    they are; the later fits (noise in the loop, stops: at the floor) judged against the
+    floor's nominal, and their evidence measured from it (`StepFit.baseline`). `fits`
+    updated in place."""
+    for i, (_, nominal_at_floor) in floor.items():
+        at_floor = Baseline.of(nominal_at_floor)
+        fits[i] = [at_sigma_hat[i], *fits[i][1:n_linear]] + [
+            dataclasses.replace(f, baseline=at_floor) for f in fits[i][n_linear:]
+        ]
 
 
 RESCALED_NOTE = "refitted at σ̂, the residual RMS of the nominal fit that each is judged against"
@@ -84,7 +165,7 @@ def retry_at_residual_scale(
 ) -> None:
     """Fit each candidate of `_losers` again with σ_ref the residual RMS σ̂ of the nominal
     fit it is judged against (`assess.baseline`: the record's nominal fit, or on a record
-    of `floor` — `entry._reweight_far_records` — the nominal's fit at the floor for the later
+    of `floor` — `reweight_far_records` — the nominal's fit at the floor for the later
     fits), from its own optimum and from that nominal's optimum with the effect off, and
     judge it against the nominal's refit at that scale (its `StepFit.baseline`). The refit
     replaces the old one where it ends less far below its baseline's reported ln L (and not

@@ -310,7 +310,7 @@ class StepFit:
         `steps` the solver's steps; `decrement` the Newton decrement; `objective` the
         solver's penalised cost at `w_trained` (`assess.nested_failed`);
         `baseline` the nominal model's fit at the same noise scale where the record's
-        nominal fit was made at another (`entry.REWEIGHT_ABOVE`), else None: what the fit
+        nominal fit was made at another (`rescale.REWEIGHT_ABOVE`), else None: what the fit
         is judged against (`assess.baseline`) and its evidence measured from.
     - `params`: the effect's physical values (`AbstractStepEffect.physical`; empty for the
         nominal model).
