@@ -52,6 +52,8 @@ MOVES = {
     "accel_jax.diagnose.noise_sensor": {"combine": "accel_jax.diagnose.noise.sensor"},
     "accel_jax.diagnose.noise_fit": {"filter_terms": "accel_jax.diagnose.noise.fit"},
     "accel_jax.diagnose.vibration_effects": {"K3": "accel_jax.diagnose.vibration.effects"},
+    # The rescaling of a record far above its floor, with the rest of the rescaling.
+    "accel_jax.diagnose.step.entry": {"REWEIGHT_ABOVE": "accel_jax.diagnose.step.rescale"},
 }
 
 _OLD_MODULES = (

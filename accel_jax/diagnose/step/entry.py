@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..._data import NominalDevice, StepData
+from ..._deprecated import moved_names
 from ..base import DiagnosisResult, require_float64
 from .assess import (
     NESTED_ABSOLUTE,
@@ -467,3 +468,7 @@ def _recommend(result: DiagnosisResult, data: StepData, nominal: NominalDevice) 
             f" To separate {result.tied[0]} from {result.tied[1]}: {best['description']} "
             f"(expected 2 ln B ≈ {best['expected_2lnB']:.3g})."
         )
+
+
+# `REWEIGHT_ABOVE` moved to `rescale`, with the rescaling it sets (CHANGELOG.md).
+__getattr__ = moved_names(__name__, "accel_jax.diagnose.step.rescale", "REWEIGHT_ABOVE")
