@@ -68,11 +68,12 @@ its residuals (at σ̂ a stop fit stopped short, its device 6σ out, and a stop 
 `unexplained`), each judged against the nominal's fit at the floor
 (`StepFit.baseline`)."""
 
+
 def reweight_far_records(fits, records: list[StepRecord], effects, linear, nominal) -> dict:
     """Refit the linear candidates of the records that none of them brings near the floor at
     the nominal fit's residual scale (`REWEIGHT_ABOVE`); `fits` and `records` updated in place.
     Returns {record index: (its context at the floor, the nominal's fit there)}. (Not a
-    record outside the model family, whose nominal alone was fitted: `DOMAIN_NOTE`.)"""
+    record outside the model family, whose nominal alone was fitted: `entry.DOMAIN_NOTE`.)"""
     starts, floor = {}, {}
     for i, rec in enumerate(records):
         if rec.domain_problems:
@@ -314,7 +315,8 @@ def settle_at_no_effect(
     device with three times the moment of inertia, its refit at +13.1σ: the lag and
     output-noise fits, each below the nominal's objective, 2,661 and 2,574 lower, read
     evidence −216 and −1,368; 33 of the 36 flags left on 86 flagged records of the
-    measured-input harness at e8998dd, all on band-pass records). Its evidence is then
+    measured-input harness at e8998dd, all on band-pass records; on the draw's other 111
+    flagged records at ae77032, 38 fits so reported, 37 past the bound). Its evidence is then
     −k ln n, its ranking entry says so (`at_no_effect`), and the record's note says why.
     `floor` as in `retry_at_residual_scale` (a fit judged against the nominal's fit at the
     floor takes that fit's values); `base` the nominal device (`ServoParams`). `fits` and
