@@ -18,6 +18,7 @@ import numpy as np
 from .. import openworld
 from .model import GAIN_SIGMA, n_timing, refitted_device
 from .layout import W
+from .starts import nominal_start
 from .state import Baseline, StepFit, StepRecord
 
 
@@ -123,9 +124,7 @@ def at_no_effect(nominal_fit: StepFit, fit: StepFit, rec: StepRecord, base) -> S
     maximised ln L is at least its nominal's; this is the point that shows it
     (`rescale.settle_at_no_effect`). `base` the nominal device (`ServoParams`)."""
     effect = fit.model
-    w, trained = np.array(nominal_fit.w), np.array(nominal_fit.w_trained)
-    w[W.EFFECT] = 0.0
-    trained[W.EFFECT] = 0.0
+    w, trained = nominal_start(nominal_fit.w), nominal_start(nominal_fit.w_trained)
     return dataclasses.replace(
         nominal_fit,
         effect=fit.effect,

@@ -131,6 +131,13 @@ RESCALED_NOTE = "refitted at σ̂, the residual RMS of the nominal fit that each
 """Part of a record's note where a candidate was refitted by `retry_at_residual_scale`."""
 
 
+def _past_bound(nominal_fit: StepFit) -> list[str]:
+    """The nominal refit's shifts past `model.REFIT_BOUND` ("name +13.1σ"; empty if none)."""
+    return [
+        f"{name} {z:+.1f}σ" for name, z in nominal_fit.device_shifts() if abs(z) > REFIT_BOUND
+    ]
+
+
 def _losers(fits: list[StepFit]) -> list[int]:
     """The candidates (indices into `fits`, the nominal first) whose reported ln L ended
     below the nominal's (`assess.reported_below`) though their objective did not: the two
@@ -139,7 +146,7 @@ def _losers(fits: list[StepFit]) -> list[int]:
     in the objective and not in the reported ln L at any scale, is what a nested fit
     trades, and counting that trade as evidence would credit an effect for easing a device
     far outside its prior (`settle_at_no_effect` reports them at the no-effect value)."""
-    if any(abs(z) > REFIT_BOUND for _, z in fits[0].device_shifts()):
+    if _past_bound(fits[0]):
         return []
     return [
         k for k, f in enumerate(fits) if k > 0
@@ -333,10 +340,7 @@ def settle_at_no_effect(
             settled[fit.effect] = fits[i][k].optimum_shortfall
         if not settled:
             continue
-        past = [
-            f"{name} {z:+.1f}σ" for name, z in fits[i][0].device_shifts()
-            if abs(z) > REFIT_BOUND
-        ]
+        past = _past_bound(fits[i][0])
         why = (
             f"the nominal's refit rests past its bound of ±{REFIT_BOUND:g}σ "
             f"({', '.join(past)}), held there by a steep penalty that the solver minimises "
