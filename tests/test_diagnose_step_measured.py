@@ -24,6 +24,7 @@ from accel_jax.diagnose.step.assess import (
     NESTED_ABSOLUTE,
     NESTED_LNL_SLACK,
     NESTED_RESTART_ABOVE,
+    below_beyond_round_off,
     log_likelihood_shortfall,
     nested_failed,
     nested_losers,
@@ -230,6 +231,11 @@ def test_a_nested_fit_whose_reported_log_likelihood_is_below_the_nominals_is_fla
     assert log_likelihood_shortfall(far, nominal) == pytest.approx(4909.7)
     assert not reported_below(slight, nominal) and reported_below(far, nominal)
     assert NESTED_LNL_SLACK < 4909.7 and NESTED_LNL_SLACK > 0.8
+    # Either is below beyond round-off (the slack decides the refits at σ̂, not whether
+    # the fit is reported at its no-effect value); a fit 1e-4 below is within it.
+    assert below_beyond_round_off(slight, nominal) and below_beyond_round_off(far, nominal)
+    level = _nested_fit(effect="torquer_lag", log_likelihood=8000.0 - 1e-4)
+    assert not below_beyond_round_off(level, nominal)
 
 
 def test_a_measured_inputs_level_errors_count_in_the_log_likelihood():
@@ -657,12 +663,13 @@ def test_a_fit_below_its_nominals_reported_likelihood_is_fitted_again_at_sigma_h
 
 
 def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
-    """`rescale.settle_at_no_effect`: a nested fit whose reported ln L still ends more than
-    `NESTED_LNL_SLACK` below the nominal's, its objective not, is replaced by its effect at
-    z = 0 (the nominal model exactly: the nominal fit's prediction, errors and ln L), judged
-    against the nominal fit it copies (the floor's for a fit with a `Baseline`), with its
-    optimum's shortfall kept; a solver failure and a fit within the slack stay as they
-    are; the record's note says why, naming the bound where the nominal rests past it."""
+    """`rescale.settle_at_no_effect`: a nested fit whose reported ln L still ends below the
+    nominal's beyond round-off (past `NESTED_LNL_SLACK` or within it), its objective not, is
+    replaced by its effect at z = 0 (the nominal model exactly: the nominal fit's
+    prediction, errors and ln L), judged against the nominal fit it copies (the floor's for
+    a fit with a `Baseline`), with its optimum's shortfall kept; a solver failure and a fit
+    within round-off stay as they are; the record's note says why, naming the bound where
+    the nominal rests past it, and the priors the ln L leaves out within the slack."""
     from accel_jax.diagnose.step import rescale
     from accel_jax.diagnose.step.state import StepFit
 
@@ -703,7 +710,8 @@ def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
     fits = [
         # Record 0: the lag 30 below (its objective 90 < 100): settled; the stop, judged
         # against the floor's nominal, 50 below it: settled from that fit; the other lag
-        # failed in the solver (objective 300 > 100): flagged, kept; one 1 below: kept.
+        # failed in the solver (objective 300 > 100): flagged, kept; one 1 below, within
+        # the slack: settled too.
         [fit("nominal", 100.0, 50.0, at=1.0),
          fit("torquer_lag", 90.0, 20.0, at=2.0, model=lag),
          fit("stop_saturation", 150.0, 10.0, at=3.0, model=stop,
@@ -716,8 +724,13 @@ def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
         # Record 2: outside the model family (no effect fitted): untouched.
         [fit("nominal", 100.0, 50.0, at=1.0),
          fit("torquer_lag", 90.0, 10.0, at=2.0, model=lag)],
+        # Record 3: a lag 0.4 below (within the slack, beyond round-off): settled; a stop
+        # 5e-4 below (within `NESTED_ABSOLUTE`, round-off): kept.
+        [fit("nominal", 100.0, 50.0, at=1.0),
+         fit("torquer_lag", 99.0, 49.6, at=2.0, model=lag),
+         fit("stop_saturation", 99.0, 50.0 - 5e-4, at=3.0, model=stop)],
     ]
-    records = [Record(), Record(), Record(domain_problems=("too fast",))]
+    records = [Record(), Record(), Record(domain_problems=("too fast",)), Record()]
     old = [list(f) for f in fits]
     rescale.settle_at_no_effect(fits, records, {0: (None, floor_nominal)}, base=None)
 
@@ -736,8 +749,9 @@ def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
         assert settled.k == 1 and settled.model is not None
         assert not reported_below(settled, fits[0][0])
     assert (settled_lag.effect, settled_stop.effect) == ("torquer_lag", "stop_saturation")
-    assert fits[0][0] is old[0][0] and fits[0][3] is old[0][3] and fits[0][4] is old[0][4]
+    assert fits[0][0] is old[0][0] and fits[0][3] is old[0][3]
     assert fits[0][3].optimum_shortfall is None
+    assert fits[0][4].optimum_shortfall == 1.0 and fits[0][4].log_likelihood == 50.0
     assert fits[1][1].optimum_shortfall == 40.0
     assert fits[2] == old[2] and records[2].notes == ()
     (note,) = records[0].notes
@@ -747,6 +761,13 @@ def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
     (note,) = records[1].notes
     assert "up to 40 below" in note and "the refits at σ̂" not in note
     assert f"rests past its bound of ±{REFIT_BOUND:g}σ (moment_of_inertia +6.5σ)" in note
+    assert fits[3][1].optimum_shortfall == pytest.approx(0.4) and fits[3][2] is old[3][2]
+    assert not below_beyond_round_off(fits[3][1], fits[3][0])
+    assert not below_beyond_round_off(fits[3][2], fits[3][0])
+    (note,) = records[3].notes
+    assert note.startswith(f"torquer_lag {rescale.NO_EFFECT_NOTE}") and "up to 0.4 below" in note
+    assert "the change times' and the effect's own priors" in note
+    assert "the refits at σ̂" not in note and "bound" not in note
 
 
 @pytest.mark.slow

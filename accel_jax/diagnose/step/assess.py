@@ -273,7 +273,8 @@ explains its record to the floor: docs/models.md §5.) Where the nominal's refit
 `model.REFIT_BOUND`, the bound's penalty (in the objective, not in this ln L) is traded too,
 and a fit below there is no solver failure. A fit below is fitted again at the σ̂ of the
 nominal fit it is judged against, and judged against the nominal's refit there
-(`rescale.retry_at_residual_scale`); one still below is reported at its no-effect value,
+(`rescale.retry_at_residual_scale`); one still below, and one below by less than this
+slack but beyond round-off (`below_beyond_round_off`), is reported at its no-effect value,
 the nominal model exactly (`rescale.settle_at_no_effect`; its ranking entry's
 `at_no_effect`)."""
 
@@ -288,6 +289,17 @@ def reported_below(fit: StepFit, nominal_fit: StepFit) -> bool:
     """Whether a nested fit's reported ln L ended below the nominal's by more than
     `NESTED_LNL_SLACK`."""
     return log_likelihood_shortfall(fit, nominal_fit) > NESTED_LNL_SLACK
+
+
+def below_beyond_round_off(fit: StepFit, nominal_fit: StepFit) -> bool:
+    """Whether a nested fit's reported ln L ended below the nominal's beyond round-off: by
+    more than `NESTED_TOLERANCE` × the nominal's |ln L| and at least `NESTED_ABSOLUTE`, the
+    thresholds the objective is judged by (`nested_failed`). Such a fit is reported at its
+    no-effect value (`rescale.settle_at_no_effect`), whatever the shortfall."""
+    reference = abs(baseline(fit, nominal_fit).log_likelihood)
+    return log_likelihood_shortfall(fit, nominal_fit) > max(
+        NESTED_TOLERANCE * reference, NESTED_ABSOLUTE
+    )
 
 
 def nested_losers(fits: list[StepFit], absolute: float = NESTED_ABSOLUTE) -> list[str]:

@@ -2,7 +2,8 @@
 its noise floor has them fitted again at the nominal fit's σ̂ (`reweight_far_records`, with
 `to_floor` and `put_back_at_sigma_hat` around the later fits, made at the floor); a nested
 fit whose reported ln L ended below its nominal's is fitted again where the two likelihoods
-agree (`retry_at_residual_scale`); one still below is reported at its no-effect value
+agree (`retry_at_residual_scale`); one still below beyond round-off, and one below by less
+than the slack that triggers the refits, is reported at its no-effect value
 (`settle_at_no_effect`).
 
 The solver maximises a penalised likelihood with the noise fixed at σ_ref (`StepFit.objective`);
@@ -36,7 +37,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .assess import at_no_effect, log_likelihood_shortfall, nested_failed, reported_below
+from .assess import (
+    NESTED_LNL_SLACK,
+    at_no_effect,
+    below_beyond_round_off,
+    log_likelihood_shortfall,
+    nested_failed,
+    reported_below,
+)
 from .batch import fit_grouped
 from .fit import fit_linear
 from .model import REFIT_BOUND
@@ -311,9 +319,10 @@ NO_EFFECT_NOTE = "reported at the no-effect value, where each is the nominal mod
 def settle_at_no_effect(
     fits: list[list[StepFit]], records: list[StepRecord], floor: dict, base
 ) -> None:
-    """Replace each nested fit whose reported ln L still ends more than
-    `assess.NESTED_LNL_SLACK` below the nominal's after `retry_at_residual_scale`, and whose
-    objective does not (a solver failure stays flagged, `assess.nested_failed`), by its
+    """Replace each nested fit whose reported ln L still ends below the nominal's beyond
+    round-off after `retry_at_residual_scale` (`assess.below_beyond_round_off`: within
+    `assess.NESTED_LNL_SLACK` no refit is tried), and whose objective does not (a solver
+    failure stays flagged, `assess.nested_failed`), by its
     effect at the no-effect value (`assess.at_no_effect`): the nominal model exactly, and a
     point of the nested model, whose maximised ln L is therefore at least the nominal's. The
     solver's optimum maximised the penalised objective, not this ln L; where the nominal's
@@ -333,7 +342,9 @@ def settle_at_no_effect(
             continue
         settled = {}
         for k, fit in enumerate(fits[i]):
-            if k == 0 or not reported_below(fit, fits[i][0]) or nested_failed(fit, fits[i][0]):
+            if k == 0 or nested_failed(fit, fits[i][0]):
+                continue
+            if not below_beyond_round_off(fit, fits[i][0]):
                 continue
             nominal_fit = floor[i][1] if fit.baseline is not None else fits[i][0]
             fits[i][k] = at_no_effect(nominal_fit, fit, rec, base)
@@ -341,15 +352,24 @@ def settle_at_no_effect(
         if not settled:
             continue
         past = _past_bound(fits[i][0])
-        why = (
-            f"the nominal's refit rests past its bound of ±{REFIT_BOUND:g}σ "
-            f"({', '.join(past)}), held there by a steep penalty that the solver minimises "
-            "and the reported ln L leaves out, and each fit eased it at the cost of ln L; "
-            "the device is far outside its prior"
-            if past else
-            "the solver weighs the residual against the priors otherwise than the ln L the "
-            "evidence compares, and the refits at σ̂ did not close it"
-        )
+        if past:
+            why = (
+                f"the nominal's refit rests past its bound of ±{REFIT_BOUND:g}σ "
+                f"({', '.join(past)}), held there by a steep penalty that the solver "
+                "minimises and the reported ln L leaves out, and each fit eased it at the cost "
+                "of ln L; the device is far outside its prior"
+            )
+        elif max(settled.values()) > NESTED_LNL_SLACK:
+            why = (
+                "the solver weighs the residual against the priors otherwise than the ln L "
+                "the evidence compares, and the refits at σ̂ did not close it"
+            )
+        else:
+            why = (
+                "the solver's objective also holds the change times' and the effect's own "
+                "priors, which the reported ln L leaves out, and each fit traded a little ln L "
+                "for them"
+            )
         records[i] = records[i].with_note(
             f"{', '.join(settled)} {NO_EFFECT_NOTE} (evidence −k ln n): the solver's optimum "
             f"of each had ended up to {max(settled.values()):.4g} below the nominal's "
