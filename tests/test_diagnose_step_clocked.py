@@ -176,9 +176,59 @@ def test_mapped_timing_parameters_keep_a_gradient_beyond_their_limit():
         timing_mean=jnp.array([-0.5, 0.0]),
         timing_sigma=jnp.array([1.0, 4.0]),
         timing_limit=jnp.array([4.0, 8.0]),
+        timing_sigma_late=None,
     )
     shift, prior = timing_terms(jnp.array([-0.5, 1.0]), ctx)
     assert jnp.allclose(prior, jnp.array([0.0, 0.25]))
     assert abs(float(shift[1]) - (-0.5 + 8 * np.tanh(1 / 8))) < 1e-12
     beyond = jax.jacfwd(lambda p: timing_terms(p, ctx)[0])(jnp.array([6.0, 12.0]))
     assert np.all(np.asarray(beyond)[ctx.timing_map > 0] > 0.01)
+
+
+def test_a_measured_channels_delay_is_held_on_its_late_side_by_its_prior():
+    """A measured input channel only adds delay (its column shows a change late): its delay
+    parameter's prior is `DELAY_PRIOR_SIGMA` wide where it moves the changes earlier and
+    `DELAY_LATE_SIGMA` where it moves them later, so that the nominal fit cannot take up a
+    lag in the loop as a late output for little; a prior, not a limit, so the gradient
+    stays; the changes' own shifts keep their symmetric prior, and the limits are as
+    before."""
+    from types import SimpleNamespace
+
+    import jax
+    import jax.numpy as jnp
+
+    from accel_jax.diagnose.step.fit import timing_terms
+    from accel_jax.diagnose.step.model import (
+        DELAY_LATE_SIGMA,
+        DELAY_LIMIT,
+        DELAY_PRIOR_SIGMA,
+        TIMING_LIMIT,
+    )
+
+    ctx = SimpleNamespace(
+        timing_map=jnp.array([[1.0, 1.0], [0.0, 1.0]]),
+        timing_offset=jnp.zeros(2),
+        timing_mean=jnp.array([-0.5, 0.0]),
+        timing_sigma=jnp.array([1.0, DELAY_PRIOR_SIGMA]),
+        timing_limit=jnp.array([TIMING_LIMIT, DELAY_LIMIT]),
+        timing_sigma_late=jnp.array([1.0, DELAY_LATE_SIGMA]),
+    )
+    for p in (3.0, -3.0):
+        shift, prior = timing_terms(jnp.array([0.5, p]), ctx)
+        assert float(shift[1]) == pytest.approx(DELAY_LIMIT * np.tanh(p / DELAY_LIMIT))
+        sigma = DELAY_LATE_SIGMA if p > 0 else DELAY_PRIOR_SIGMA
+        assert np.allclose(np.asarray(prior), [1.0, p / sigma])  # the change's own: 1σ
+
+    def penalty(p):
+        return 0.5 * jnp.sum(timing_terms(jnp.array([-0.5, p]), ctx)[1] ** 2)
+
+    # Continuous, with its gradient, through the mean; steep on the late side only.
+    assert float(jax.grad(penalty)(0.0)) == 0.0
+    assert float(penalty(1e-9)) == pytest.approx(0.0, abs=1e-12)
+    assert float(jax.grad(penalty)(2.0)) == pytest.approx(2.0 / DELAY_LATE_SIGMA**2)
+    assert float(jax.grad(penalty)(-2.0)) == pytest.approx(-2.0 / DELAY_PRIOR_SIGMA**2)
+    # Without `timing_sigma_late` (an exact column's clock), one σ on both sides.
+    ctx.timing_sigma_late = None
+    assert np.allclose(
+        np.asarray(timing_terms(jnp.array([0.5, 3.0]), ctx)[1]), [1.0, 3.0 / DELAY_PRIOR_SIGMA]
+    )

@@ -669,7 +669,8 @@ def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
     prediction, errors and ln L), judged against the nominal fit it copies (the floor's for
     a fit with a `Baseline`), with its optimum's shortfall kept; a solver failure and a fit
     within round-off stay as they are; the record's note says why, naming the bound where
-    the nominal rests past it, and the priors the ln L leaves out within the slack."""
+    the nominal rests past it, and the scales and prior the ln L weighs otherwise within
+    the slack."""
     from accel_jax.diagnose.step import rescale
     from accel_jax.diagnose.step.state import StepFit
 
@@ -729,10 +730,18 @@ def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
         [fit("nominal", 100.0, 50.0, at=1.0),
          fit("torquer_lag", 99.0, 49.6, at=2.0, model=lag),
          fit("stop_saturation", 99.0, 50.0 - 5e-4, at=3.0, model=stop)],
+        # Record 4: a lag refitted at σ̂ (`retry_at_residual_scale`), judged against the
+        # nominal's refit there, 0.5 below it: settled from that refit (the record is not
+        # one of `floor`'s).
+        [fit("nominal", 100.0, 50.0, at=1.0),
+         fit("torquer_lag", 79.0, 69.5, at=2.0, model=lag,
+             baseline=Baseline.of(at_sigma_hat := fit("nominal", 80.0, 70.0, at=6.0)))],
     ]
-    records = [Record(), Record(), Record(domain_problems=("too fast",)), Record()]
+    records = [Record(), Record(), Record(domain_problems=("too fast",)), Record(), Record()]
     old = [list(f) for f in fits]
-    rescale.settle_at_no_effect(fits, records, {0: (None, floor_nominal)}, base=None)
+    rescale.settle_at_no_effect(
+        fits, records, {0: (None, floor_nominal)}, base=None, judged={(4, 1): at_sigma_hat}
+    )
 
     settled_lag, settled_stop = fits[0][1], fits[0][2]
     for settled, nominal_fit, shortfall in (
@@ -766,8 +775,12 @@ def test_a_fit_still_below_its_nominal_is_reported_at_its_no_effect_value():
     assert not below_beyond_round_off(fits[3][2], fits[3][0])
     (note,) = records[3].notes
     assert note.startswith(f"torquer_lag {rescale.NO_EFFECT_NOTE}") and "up to 0.4 below" in note
-    assert "the change times' and the effect's own priors" in note
+    assert "the effect's own prior" in note
     assert "the refits at σ̂" not in note and "bound" not in note
+    settled = fits[4][1]
+    assert settled.optimum_shortfall == pytest.approx(0.5)
+    assert settled.log_likelihood == 70.0 and settled.baseline == Baseline.of(at_sigma_hat)
+    assert np.all(settled.prediction == at_sigma_hat.prediction)
 
 
 @pytest.mark.slow

@@ -59,6 +59,26 @@ def test_levels_are_errors_in_variables_only_where_the_output_is_not_dithered():
         assert plain.ctx.level_sigma is None and not plain.notes, changes_
 
 
+def test_only_a_measured_channels_delay_is_held_on_its_late_side():
+    """`record.prepare`: a measured input's common delay has the prior σ
+    `model.DELAY_LATE_SIGMA` on its late side and `DELAY_PRIOR_SIGMA` on the other; the
+    changes' own shifts keep one σ, and an exact column has no late-side σ at all."""
+    from accel_jax import StepData
+    from accel_jax.diagnose.step.model import DELAY_LATE_SIGMA, DELAY_PRIOR_SIGMA, TIMING_PRIOR
+
+    _, data = _clean(3)
+    exact = record.prepare(data, NOMINAL, step_effects())
+    assert exact.ctx.timing_map is None and exact.ctx.timing_sigma_late is None
+    column, _ = step_truth.measure_input(
+        np.asarray(data.u_test), 1.0 / float(data.t[1] - data.t[0]), np.random.default_rng(7)
+    )
+    rec = record.prepare(StepData(data.t, column, data.u_out), NOMINAL, step_effects())
+    late, sigma = np.asarray(rec.ctx.timing_sigma_late), np.asarray(rec.ctx.timing_sigma)
+    changes = rec.change_index.size
+    assert late[-1] == DELAY_LATE_SIGMA and sigma[-1] == DELAY_PRIOR_SIGMA
+    assert np.all(late[:changes] == TIMING_PRIOR[1]) and np.all(sigma[:changes] == TIMING_PRIOR[1])
+
+
 @pytest.mark.slow
 def test_a_clean_record_quantised_coarsely_is_none_not_coloured_noise():
     # Before the levels were errors in variables this record read `colored_noise`: the

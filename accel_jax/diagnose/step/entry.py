@@ -200,11 +200,11 @@ def diagnose_step(
     # likelihoods part where σ̂ lies far from σ_ref; fitted again at σ̂ (`rescale`).
     stages = [(fit_linear, linear), (fit_moment, loop_noise), (fit_nonlinear, clamp),
               (fit_contact, contact)]
-    retry_at_residual_scale(
+    judged = retry_at_residual_scale(
         fits, records, effects, [(fn, c) for fn, c in stages if c], nominal, floor
     )
     # What is still below: the nested model at its no-effect value, the nominal exactly.
-    settle_at_no_effect(fits, records, floor, nominal.params)
+    settle_at_no_effect(fits, records, floor, nominal.params, judged)
     results = []
     for rec, record_fits in zip(records, fits, strict=True):
         fitted = {f.effect for f in record_fits}

@@ -146,6 +146,7 @@ def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
         timing_mean=None,
         timing_sigma=None,
         timing_limit=None,
+        timing_sigma_late=None,
         level_map=None,
     )
 

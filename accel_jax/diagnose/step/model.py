@@ -50,6 +50,20 @@ common shift of every change (an ADC's group delay, an anti-alias filter); clipp
 
 DELAY_LIMIT = 8.0
 
+DELAY_LATE_SIGMA = 0.5
+"""Prior σ [samples] of a measured input channel's delay on its late side (the changes
+placed later than its column shows them; `DELAY_PRIOR_SIGMA` on the other). The channel's
+filters and converter come after the drive, so its column shows a change late, never
+early: the fitted delay moves the changes earlier, and later by about the sampling phase
+at most (`nuisance.LATE_OUTPUT_SIGMA`, which judges the output's lateness, is the same
+scale). An output later than that is a lag the model lacks (a torquer lag, an output
+filter). With the symmetric σ alone, the delay took up lags of 5–9 µs at 0.5–2 MHz in the
+nominal fit at a cost of about 1 in ln L (the output 3.5–9.5 samples late), the lag fits
+gained too little to be significant, and the measured twins of eight lag records of the
+measured-input harness read `unexplained` where their exact-input twins tie the two lags
+(`cannot_tell`). A prior, not a tighter limit: limited smoothly to one sample, a stop fit's
+delay ran out to 107 in its first steps, where the limit has no gradient, and stayed."""
+
 KNOWN_DELAY_SIGMA = 0.5
 """Prior σ [samples] of a measured input channel's delay about the delay the user gives
 (`StepData.input_delay`): known to about the sampling phase."""
@@ -84,9 +98,10 @@ class StepContext(eqx.Module):
     prior means are `timing_mean` (P,) (σ 1); `level_map` (J + 1, L) [V] gives each level's
     error from L level-group errors (one per distinct level of the input: a DAC puts out the
     same value each time), standard normal; `timing_sigma`, `timing_limit` (P,) the timing
-    parameters' prior σ and clip [samples]. A measured input of few changes has one shift
-    per change and the input channel's delay, common to all (the map [I | 1]). None (the
-    default): one timing and one level parameter per change, as above.
+    parameters' prior σ and clip [samples], `timing_sigma_late` (P,) the prior σ on the late
+    side (a parameter above its mean; None: `timing_sigma`). A measured input of few
+    changes has one shift per change and the input channel's delay, common to all (the map
+    [I | 1]). None (the default): one timing and one level parameter per change, as above.
     """
 
     dt: jax.Array
@@ -115,6 +130,7 @@ class StepContext(eqx.Module):
     timing_mean: jax.Array | None = None
     timing_sigma: jax.Array | None = None
     timing_limit: jax.Array | None = None
+    timing_sigma_late: jax.Array | None = None
     level_map: jax.Array | None = None
 
 
@@ -129,7 +145,8 @@ def timing_terms(timing, ctx):
     """(each change's shift [samples], the timing parameters' prior residuals) from the
     timing parameters `timing`. Each change's own shift is clipped to ±`TIMING_LIMIT`
     samples; the parameters of a `timing_map` are limited smoothly to ±`timing_limit`
-    (L tanh(p/L)), the map's offsets then added as they are."""
+    (L tanh(p/L)), the map's offsets then added as they are, and their prior residuals
+    taken with `timing_sigma_late` above their means where it is given."""
     if ctx.timing_map is None:
         clipped = jnp.clip(timing, -TIMING_LIMIT, TIMING_LIMIT)
         return clipped, (timing - TIMING_PRIOR[0]) / TIMING_PRIOR[1]
@@ -138,7 +155,10 @@ def timing_terms(timing, ctx):
     # at +4 and every level strained).
     limited = ctx.timing_limit * jnp.tanh(timing / ctx.timing_limit)
     shift = ctx.timing_offset + ctx.timing_map @ limited
-    return shift, (timing - ctx.timing_mean) / ctx.timing_sigma
+    sigma = ctx.timing_sigma
+    if ctx.timing_sigma_late is not None:
+        sigma = jnp.where(timing > ctx.timing_mean, ctx.timing_sigma_late, sigma)
+    return shift, (timing - ctx.timing_mean) / sigma
 
 
 def refitted_device(base: ServoParams, z, prior_sigma) -> ServoParams:

@@ -19,6 +19,7 @@ from .. import openworld
 from .domain import check_domain
 from .inputs import UNCLOCKED_CHANGES, clock_grid, level_groups, read_inputs
 from .model import (
+    DELAY_LATE_SIGMA,
     DELAY_LIMIT,
     DELAY_PRIOR_SIGMA,
     GAIN_SIGMA,
@@ -374,6 +375,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
     early = np.zeros(j_padded)
     early[: index.size] = 0.0 if known_samples is None else known_samples
     timing_map = timing_offset = timing_mean = timing_sigma = timing_limit = None
+    timing_sigma_late = None
     timing_late = np.full(j_padded, TIMING_PRIOR[0])
     measured = level_sigma is not None
     delay = (DELAY_PRIOR_SIGMA, DELAY_LIMIT) if measured else (TIMING_PRIOR[1], TIMING_LIMIT)
@@ -385,6 +387,8 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         timing_mean = np.array([TIMING_PRIOR[0], 0.0])
         timing_sigma = np.array([delay[0], TIMING_PRIOR[1]])
         timing_limit = np.array([delay[1], TIMING_LIMIT])
+        if measured:  # the channel's delay: the changes later by about the phase at most
+            timing_sigma_late = np.array([DELAY_LATE_SIGMA, TIMING_PRIOR[1]])
         timing_late = timing_mean.copy()
         held_out_change = np.zeros(2)
     elif measured:  # one shift per change and the input channel's delay, common to all
@@ -394,6 +398,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         timing_mean = np.append(np.full(j_padded, TIMING_PRIOR[0]), 0.0)
         timing_sigma = np.append(np.full(j_padded, TIMING_PRIOR[1]), delay[0])
         timing_limit = np.append(np.full(j_padded, TIMING_LIMIT), delay[1])
+        timing_sigma_late = np.append(np.full(j_padded, TIMING_PRIOR[1]), DELAY_LATE_SIGMA)
         timing_late = timing_mean.copy()
         held_out_change = np.append(held_out_change, 0.0)
     elif known is not None:  # one shift per change, about the known delay
@@ -435,6 +440,7 @@ def prepare(data: StepData, nominal: NominalDevice, effects) -> StepRecord:
         timing_mean=None if timing_mean is None else jnp.asarray(timing_mean),
         timing_sigma=None if timing_sigma is None else jnp.asarray(timing_sigma),
         timing_limit=None if timing_limit is None else jnp.asarray(timing_limit),
+        timing_sigma_late=None if timing_sigma_late is None else jnp.asarray(timing_sigma_late),
         level_map=None if level_map is None else jnp.asarray(level_map),
     )
     common = np.zeros(W.FIXED + timing_late.size + n_levels)

@@ -16,7 +16,7 @@ trades a measured input's levels or the device's prior for a little residual gai
 objective and loses in ln L. With σ_ref = σ̂ the two agree to first order: for a fit whose
 objective (residual sum RSS over 2σ̂², plus penalty P) ends at or below the nominal's,
 ΔlnL ≥ n/2 (r − 1 − ln r) ≥ 0, r the ratio of the two RSS, when σ̂² = RSS_nominal / n (the
-reported ln L also leaves out the change times' and the effect's own priors, so not exactly).
+reported ln L also leaves out the effect's own prior, so not exactly).
 The nominal's own refit at σ̂ moves (its σ̂ grows as it trades residual for its priors), so
 a fit still below is fitted again at the new σ̂ (`RESCALE_ROUNDS`), towards σ_ref = σ̂.
 
@@ -178,7 +178,7 @@ def retry_at_residual_scale(
     stages: list[tuple[object, list[int]]],
     nominal,
     floor: dict,
-) -> None:
+) -> dict[tuple[int, int], StepFit]:
     """Fit each candidate of `_losers` again with σ_ref the residual RMS σ̂ of the nominal
     fit it is judged against (`assess.baseline`: the record's nominal fit, or on a record
     of `floor` — `reweight_far_records` — the nominal's fit at the floor for the later
@@ -188,7 +188,9 @@ def retry_at_residual_scale(
     below its objective). A fit still below is fitted again at the σ̂ of that refit, up to
     `RESCALE_ROUNDS` rounds. The record's note says what was refitted. `stages`: (compiled
     fit, its candidates — 1-based indices into `effects`, 0 the nominal) in the order of a
-    record's fits, the linear stage first. `fits` and `records` updated in place."""
+    record's fits, the linear stage first. `fits` and `records` updated in place. Returns
+    {(record, candidate): the nominal's refit each refit taken is judged against}, for
+    `settle_at_no_effect`."""
     # {(record, judged at the floor): (the nominal fit judged against, the losers)}: a
     # record's two kinds are fitted in turn (one record's fits are one batch row).
     pending: dict[tuple[int, bool], tuple[StepFit, list[int]]] = {}
@@ -202,6 +204,7 @@ def retry_at_residual_scale(
             pending.setdefault((i, at_floor), (base, []))[1].append(k)
             before.setdefault(i, {})[k] = log_likelihood_shortfall(fits[i][k], fits[i][0])
     kept: dict[int, dict[int, float]] = {}  # {record: {candidate: the scale it was taken at}}
+    judged: dict[tuple[int, int], StepFit] = {}
     for _ in range(RESCALE_ROUNDS):
         for at_floor in (False, True):
             wanted = {i: v for (i, f), v in pending.items() if f == at_floor}
@@ -213,6 +216,7 @@ def retry_at_residual_scale(
                 del pending[(i, at_floor)]
                 for k, scale in took.items():
                     kept.setdefault(i, {})[k] = scale
+                    judged[(i, k)] = nominal_at
                 still = [k for k in wanted[i][1] if reported_below(fits[i][k], fits[i][0])]
                 if still and took:
                     pending[(i, at_floor)] = (nominal_at, still)
@@ -227,6 +231,7 @@ def retry_at_residual_scale(
             "below that nominal's, the solver weighing the residual against the priors "
             "otherwise than the likelihood the evidence compares"
         )
+    return judged
 
 
 def _refit_at_scale(fits, records, effects, stages, nominal, wanted):
@@ -317,7 +322,11 @@ NO_EFFECT_NOTE = "reported at the no-effect value, where each is the nominal mod
 
 
 def settle_at_no_effect(
-    fits: list[list[StepFit]], records: list[StepRecord], floor: dict, base
+    fits: list[list[StepFit]],
+    records: list[StepRecord],
+    floor: dict,
+    base,
+    judged: dict[tuple[int, int], StepFit] | None = None,
 ) -> None:
     """Replace each nested fit whose reported ln L still ends below the nominal's beyond
     round-off after `retry_at_residual_scale` (`assess.below_beyond_round_off`: within
@@ -335,8 +344,10 @@ def settle_at_no_effect(
     flagged records at ae77032, 38 fits so reported, 37 past the bound). Its evidence is then
     −k ln n, its ranking entry says so (`at_no_effect`), and the record's note says why.
     `floor` as in `retry_at_residual_scale` (a fit judged against the nominal's fit at the
-    floor takes that fit's values); `base` the nominal device (`ServoParams`). `fits` and
-    `records` updated in place."""
+    floor takes that fit's values), `judged` what it returns (a fit it refitted takes the
+    values of the nominal's refit it is judged against); `base` the nominal device
+    (`ServoParams`). `fits` and `records` updated in place."""
+    judged = judged or {}
     for i, rec in enumerate(records):
         if rec.domain_problems:
             continue
@@ -346,7 +357,9 @@ def settle_at_no_effect(
                 continue
             if not below_beyond_round_off(fit, fits[i][0]):
                 continue
-            nominal_fit = floor[i][1] if fit.baseline is not None else fits[i][0]
+            nominal_fit = judged.get((i, k))
+            if nominal_fit is None:
+                nominal_fit = floor[i][1] if fit.baseline is not None else fits[i][0]
             fits[i][k] = at_no_effect(nominal_fit, fit, rec, base)
             settled[fit.effect] = fits[i][k].optimum_shortfall
         if not settled:
@@ -366,8 +379,9 @@ def settle_at_no_effect(
             )
         else:
             why = (
-                "the solver's objective also holds the change times' and the effect's own "
-                "priors, which the reported ln L leaves out, and each fit traded a little ln L "
+                "the solver weighs the residual against the priors at the noise floor, the "
+                "reported ln L at the residual's estimated variance, and it holds the "
+                "effect's own prior, which the ln L leaves out: each fit traded a little ln L "
                 "for them"
             )
         records[i] = records[i].with_note(
