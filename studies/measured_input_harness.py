@@ -14,7 +14,9 @@ validation's).
 
 Scored: the measured twin's verdict against the clean twin's (agreement, over all records
 and per class: the stop models named as one family, `verdict_family`; `agree_exact` the
-same name; a refused twin disagrees), refusals of a measured input, the fits the diagnosis
+same name; a refused twin disagrees; beside it `compatible`, the twins that do not contradict
+each other: the same answer, or one twin naming one effect of the other's lag tie),
+refusals of a measured input, the fits the diagnosis
 flagged `fit_failed` and, apart, those that ended below the nominal model's penalised
 likelihood on the solver's objective (counted over every ranking), `none` on a record
 whose truth has an effect (false assurance; the held-on-stop class included; on the class
@@ -378,6 +380,22 @@ def channel_ambiguity(channel: dict | None) -> float:
     return own + COLUMN_PHASE + LATENESS_PASSED
 
 
+def resolves(clean: dict, measured: dict) -> bool:
+    """Whether one twin names one effect of the other's lag tie (`cannot_tell`): a finer
+    answer, not a contradiction (stop models as one family)."""
+
+    def named(row):
+        if row.get("verdict") == "cannot_tell":
+            return {family(name) for name in row.get("tied", [])}
+        return {family(row.get("verdict"))}
+
+    for tie, one in ((clean, measured), (measured, clean)):
+        if tie.get("verdict") == "cannot_tell" and one.get("verdict") != "cannot_tell":
+            if named(one) < named(tie):
+                return True
+    return False
+
+
 def score(
     truths: list[dict], rows: dict, signal=effect_signal, channels=None, contacts=stop_contacts
 ) -> dict:
@@ -398,7 +416,8 @@ def score(
         clean, measured = rows[f"clean/{i:04d}"], rows[f"measured/{i:04d}"]
         entry = per_class.setdefault(
             truth["effect"],
-            {"records": 0, "agree": 0, "agree_exact": 0, "refused": 0, "none_clean": 0,
+            {"records": 0, "agree": 0, "agree_exact": 0, "compatible": 0, "refused": 0,
+             "none_clean": 0,
              "none_measured": 0, "nuisance_trips": 0, "nuisance_trips_measured": 0,
              "verdicts": []},
         )
@@ -428,6 +447,7 @@ def score(
                 map(family, clean.get("tied", []))
             ) == sorted(map(family, measured["tied"]))
             entry["agree"] += int(same)
+            entry["compatible"] += int(same or resolves(clean, measured))
             entry["agree_exact"] += int(
                 clean.get("verdict") == measured["verdict"]
                 and sorted(clean.get("tied", [])) == sorted(measured["tied"])
@@ -465,12 +485,22 @@ def score(
     )
     by_class = {c: e["agree"] / e["records"] for c, e in per_class.items() if e["records"]}
     lowest = min(by_class, key=lambda c: (by_class[c], c)) if by_class else None
+    compatible = {c: e["compatible"] / e["records"] for c, e in per_class.items() if e["records"]}
     return {
         "per_class": per_class,
         "agreement": agree / max(total, 1),
         # The criterion read per effect as well as over all records: each class's share.
         "agreement_by_class": by_class,
         "agreement_lowest_class": None if lowest is None else [lowest, by_class[lowest]],
+        # Beside it, not instead of it: the twins that do not contradict each other — the
+        # same answer, or one twin's lag tie (`cannot_tell`) and the other naming one of
+        # the tied effects (`resolves`). The two twins do not carry the same information: a
+        # measured input's column fixes the drive's timing (a late-side delay prior), an
+        # exact input's delay is free on both sides, so either twin may separate the lags
+        # where the other ties them. A different name, a `none` against `unexplained`, or a
+        # refusal is a contradiction.
+        "compatible": sum(e["compatible"] for e in per_class.values()) / max(total, 1),
+        "compatible_by_class": compatible,
         "records": total,
         "refused_measured": sum(e["refused"] for e in per_class.values()),
         "nested_fit_failures": failed_fits,
@@ -724,7 +754,8 @@ def main(argv=None) -> int:
     for name, e in s["per_class"].items():
         print(
             f"{name:22s} agree {e['agree']}/{e['records']} "
-            f"({e['agree'] / max(e['records'], 1):.2f}) refused {e['refused']} "
+            f"({e['agree'] / max(e['records'], 1):.2f}) compatible {e['compatible']} "
+            f"refused {e['refused']} "
             f"none clean/measured {e['none_clean']}/{e['none_measured']} "
             f"nuisance trips clean/measured {e['nuisance_trips']}/{e['nuisance_trips_measured']}"
         )

@@ -352,3 +352,29 @@ def test_prbs_twins_name_the_stop_family_as_the_step_record_does():
             "prbs_measured/0000": _row("unexplained")}
     out = harness.score_prbs(truths, rows, [0], 7, _acts)
     assert (out["agree_clean"], out["agree_measured"]) == (1, 0)
+
+
+def test_a_twin_that_names_one_effect_of_the_others_lag_tie_is_compatible_not_agreeing():
+    """`compatible` beside the agreement: one twin's tie and the other naming one of its
+    effects (either way round) is a finer answer; a different name, `none` against
+    `unexplained`, or a tie of other effects is a contradiction."""
+
+    def tie(*names):
+        return {**_row("cannot_tell"), "tied": list(names)}
+
+    truths = [{"effect": "output_filter", "lag_s": 4e-5, "rate": 5e5}] * 6
+    rows = {
+        "clean/0000": tie("output_filter", "torquer_lag"), "measured/0000": _row("output_filter"),
+        "clean/0001": _row("torquer_lag"), "measured/0001": tie("torquer_lag", "output_filter"),
+        "clean/0002": _row("torquer_lag"), "measured/0002": _row("output_filter"),
+        "clean/0003": _row("unexplained"), "measured/0003": _row("unexplained"),
+        "clean/0004": tie("output_filter", "torquer_lag"), "measured/0004": _row("unexplained"),
+        "clean/0005": tie("stop_saturation", "torquer_lag"),
+        "measured/0005": tie("output_filter", "torquer_lag"),
+    }
+    s = harness.score(truths, rows, _acts)
+    entry = s["per_class"]["output_filter"]
+    assert (entry["agree"], entry["compatible"]) == (1, 3)
+    assert s["compatible"] == pytest.approx(3 / 6) and s["agreement"] == pytest.approx(1 / 6)
+    assert s["compatible_by_class"] == {"output_filter": pytest.approx(0.5)}
+    assert not harness.resolves(_row("none"), _row("unexplained"))
