@@ -85,9 +85,16 @@ def row(result):
         "input_delay_samples": test.get("input_delay_samples"),
         "hidden_lag_samples": test.get("hidden_lag_samples"),
         "notes": list(result.notes),
+        "discovery": None if result.discovery is None else {
+            "rating": result.discovery.rating,
+            "best": None if result.discovery.best is None else list(result.discovery.best.terms),
+        },
     }
 
-for folder in map(pathlib.Path, sys.argv[2:]):
+# `--discover` first: each record diagnosed as `accel-jax diagnose` does by default (the
+# missing term looked for, a noise verdict weighed against it: `question.weigh_discovery`).
+discover = sys.argv[2:3] == ["--discover"]
+for folder in map(pathlib.Path, sys.argv[2 + discover:]):
     files = sorted(folder.glob("*.csv"))
     data, names = [], []
     for f in files:
@@ -96,13 +103,14 @@ for folder in map(pathlib.Path, sys.argv[2:]):
         except DataError as error:
             out[f"{folder.name}/{f.stem}"] = {"refused": str(error)}
     try:
-        results = diagnose_many(data, nominal, recommend=False)
+        results = diagnose_many(data, nominal, recommend=False, discover=discover)
         for name, result in zip(names, results):
             out[f"{folder.name}/{name}"] = row(result)
     except DataError:
         for name, d in zip(names, data):
             try:
-                out[f"{folder.name}/{name}"] = row(diagnose_many([d], nominal, recommend=False)[0])
+                (result,) = diagnose_many([d], nominal, recommend=False, discover=discover)
+                out[f"{folder.name}/{name}"] = row(result)
             except DataError as error:
                 out[f"{folder.name}/{name}"] = {"refused": str(error)}
 pathlib.Path(sys.argv[1]).write_text(json.dumps(out, default=float))
@@ -263,9 +271,10 @@ def score_prbs(
     return out
 
 
-def diagnose_blind(folders: list[Path]) -> dict:
-    """The diagnosis of every CSV in `folders`, in a fresh process that sees only them."""
-    return run_blind(_BLIND, *map(str, folders))
+def diagnose_blind(folders: list[Path], discover: bool = False) -> dict:
+    """The diagnosis of every CSV in `folders`, in a fresh process that sees only them;
+    `discover`: with the discovery, as `accel-jax diagnose` runs by default."""
+    return run_blind(_BLIND, *(["--discover"] if discover else []), *map(str, folders))
 
 
 
@@ -582,7 +591,7 @@ def merge(results: list[dict], signal=effect_signal) -> dict:
     if picked:
         raise ValueError(f"a --records run (records {picked[0][:5]}…) is not a shard of the draw")
     first = results[0]["assumptions"]
-    keys = ("truth", "per_class", "classes", "seed", "prbs", "shard_count", "commit")
+    keys = ("truth", "per_class", "classes", "seed", "prbs", "shard_count", "commit", "discover")
     for other in results[1:]:
         differ = [k for k in keys if other["assumptions"].get(k) != first.get(k)]
         if differ:
@@ -704,6 +713,11 @@ def main(argv=None) -> int:
         help="join shards' result.json files (one draw) into --out/result.json and score them",
     )
     parser.add_argument(
+        "--discover", action="store_true",
+        help="diagnose as `accel-jax diagnose` does by default: the missing term looked for "
+        "on an unexplained record and a noise verdict weighed against it (minutes a record)",
+    )
+    parser.add_argument(
         "--compact", action="store_true",
         help="write the result without the diagnoses' notes and the channels' per-change "
         "draws (the form kept under benchmarks/results)",
@@ -788,7 +802,7 @@ def run(args) -> dict:
         if picked:
             write_prbs_twins(truths, picked, folder, args.seed)
             folders += [folder / "prbs_clean", folder / "prbs_measured"]
-        rows = diagnose_blind(folders)
+        rows = diagnose_blind(folders, discover=getattr(args, "discover", False))
     by_index = {str(i): c for i, c in zip(indices, channels, strict=True)}
     return {
         "assumptions": {
@@ -806,6 +820,7 @@ def run(args) -> dict:
             "shard_count": args.shard[1],
             "commit": _commit(),
             "precision": "float64",
+            "discover": getattr(args, "discover", False),
         },
         "score": score(truths, rows, channels=by_index),
         "prbs": score_prbs(truths, rows, picked, args.seed) if picked else None,

@@ -378,3 +378,30 @@ def test_a_twin_that_names_one_effect_of_the_others_lag_tie_is_compatible_not_ag
     assert s["compatible"] == pytest.approx(3 / 6) and s["agreement"] == pytest.approx(1 / 6)
     assert s["compatible_by_class"] == {"output_filter": pytest.approx(0.5)}
     assert not harness.resolves(_row("none"), _row("unexplained"))
+
+
+def test_discover_diagnoses_as_the_command_does_and_is_part_of_the_draw(tmp_path, monkeypatch):
+    """`--discover` reaches the blind child (its first argument: the records diagnosed with
+    `discover=True`, as `accel-jax diagnose` by default), is stated in the assumptions, and
+    shards diagnosed with and without it are not merged."""
+    # The child itself, on a folder with no records: it takes the option and writes no row.
+    (tmp_path / "empty").mkdir()
+    assert harness.diagnose_blind([tmp_path / "empty"], discover=True) == {}
+    calls = []
+
+    def child(code, *args):
+        calls.append(args)
+        assert "discover=discover" in code
+        return {f"{twin}/0000": _row("none") for twin in ("clean", "measured")}
+
+    monkeypatch.setattr(harness, "run_blind", child)
+    out = tmp_path / "o"
+    assert harness.main(["--per-class", "1", "--records", "0", "--discover", "--out", str(out)]) == 0
+    assert calls[0][0] == "--discover" and all(a != "--discover" for a in calls[0][1:])
+    result = json.loads((out / "result.json").read_text())
+    assert result["assumptions"]["discover"] is True
+    plain = _shard_result((0, 2), {})
+    other = _shard_result((1, 2), {})
+    other["assumptions"]["discover"] = True
+    with pytest.raises(ValueError, match="differ in discover"):
+        harness.merge([plain, other], _acts)
