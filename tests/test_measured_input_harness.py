@@ -396,7 +396,8 @@ def test_discover_diagnoses_as_the_command_does_and_is_part_of_the_draw(tmp_path
 
     monkeypatch.setattr(harness, "run_blind", child)
     out = tmp_path / "o"
-    assert harness.main(["--per-class", "1", "--records", "0", "--discover", "--out", str(out)]) == 0
+    options = ["--per-class", "1", "--records", "0", "--discover", "--out", str(out)]
+    assert harness.main(options) == 0
     assert calls[0][0] == "--discover" and all(a != "--discover" for a in calls[0][1:])
     result = json.loads((out / "result.json").read_text())
     assert result["assumptions"]["discover"] is True
