@@ -730,6 +730,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.records and args.shard != (0, 1):
         parser.error("--records and --shard: give one or the other")
+    if args.discover and (args.rescore or args.merge):
+        parser.error("--discover diagnoses; --rescore and --merge only score rows already made")
     if args.rescore:
         try:
             result = rescore(json.loads(args.rescore.read_text()))

@@ -380,7 +380,9 @@ def test_a_twin_that_names_one_effect_of_the_others_lag_tie_is_compatible_not_ag
     assert not harness.resolves(_row("none"), _row("unexplained"))
 
 
-def test_discover_diagnoses_as_the_command_does_and_is_part_of_the_draw(tmp_path, monkeypatch):
+def test_discover_diagnoses_as_the_command_does_and_is_part_of_the_draw(
+    tmp_path, monkeypatch, capsys
+):
     """`--discover` reaches the blind child (its first argument: the records diagnosed with
     `discover=True`, as `accel-jax diagnose` by default), is stated in the assumptions, and
     shards diagnosed with and without it are not merged."""
@@ -401,6 +403,9 @@ def test_discover_diagnoses_as_the_command_does_and_is_part_of_the_draw(tmp_path
     assert calls[0][0] == "--discover" and all(a != "--discover" for a in calls[0][1:])
     result = json.loads((out / "result.json").read_text())
     assert result["assumptions"]["discover"] is True
+    with pytest.raises(SystemExit):
+        harness.main(["--discover", "--rescore", str(out / "result.json")])
+    assert "only score rows already made" in capsys.readouterr().err
     plain = _shard_result((0, 2), {})
     other = _shard_result((1, 2), {})
     other["assumptions"]["discover"] = True
