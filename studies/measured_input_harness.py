@@ -240,7 +240,7 @@ def score_prbs(
            "verdicts": []}
     for i in picked:
         step = rows[f"clean/{i:04d}"]
-        key = (family(step.get("verdict")), sorted(map(family, step.get("tied", []))))
+        key = answer(step)
         pair = []
         touched = None  # the PRBS world's stop contacts, simulated once for both twins
         for name in ("prbs_clean", "prbs_measured"):
@@ -249,7 +249,7 @@ def score_prbs(
                 out["refused"] += 1
                 pair.append("refused")
                 continue
-            same = (family(row["verdict"]), sorted(map(family, row["tied"]))) == key
+            same = answer(row) == key
             if row["verdict"] == "none" and truths[i]["effect"] == step_truth.ON_STOP_EFFECT:
                 if touched is None:
                     touched = contacts(prbs_world(truths, i, seed)[0])
@@ -389,14 +389,19 @@ def channel_ambiguity(channel: dict | None) -> float:
     return own + COLUMN_PHASE + LATENESS_PASSED
 
 
+def answer(row: dict) -> tuple:
+    """A diagnosis row's answer as the scores compare two of them: its verdict and its tied
+    effects, the stop models as one family (`verdict_family`)."""
+    return family(row.get("verdict")), sorted(map(family, row.get("tied", [])))
+
+
 def resolves(clean: dict, measured: dict) -> bool:
     """Whether one twin names one effect of the other's lag tie (`cannot_tell`): a finer
     answer, not a contradiction (stop models as one family)."""
 
     def named(row):
-        if row.get("verdict") == "cannot_tell":
-            return {family(name) for name in row.get("tied", [])}
-        return {family(row.get("verdict"))}
+        verdict, tied = answer(row)
+        return set(tied) if row.get("verdict") == "cannot_tell" else {verdict}
 
     for tie, one in ((clean, measured), (measured, clean)):
         if tie.get("verdict") == "cannot_tell" and one.get("verdict") != "cannot_tell":
@@ -452,9 +457,7 @@ def score(
             entry["refused"] += 1
             entry["verdicts"].append([clean.get("verdict"), "refused"])
         else:
-            same = family(clean.get("verdict")) == family(measured["verdict"]) and sorted(
-                map(family, clean.get("tied", []))
-            ) == sorted(map(family, measured["tied"]))
+            same = answer(clean) == answer(measured)
             entry["agree"] += int(same)
             entry["compatible"] += int(same or resolves(clean, measured))
             entry["agree_exact"] += int(

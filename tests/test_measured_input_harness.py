@@ -144,9 +144,9 @@ def test_a_none_on_a_stop_the_record_never_reaches_is_not_false_assurance():
 def test_a_none_within_the_lag_the_diagnosis_cannot_rule_out_is_counted_apart(tmp_path):
     """Record 263 of the 100-per-class draw: an output filter of 2.57 samples read `none` on
     its measured twin, whose input channel was 1.83 samples late (delay and anti-alias lag);
-    the diagnosis said a loop lag up to 9.13 samples hides in the fitted delay. The same `none` on a lag beyond what it
-    states is false assurance; rows from before the diagnosis stated it get the bound from
-    their fitted delay."""
+    the diagnosis said a loop lag up to 9.13 samples hides in the fitted delay. The same
+    `none` on a lag beyond what it states is false assurance; rows from before the diagnosis
+    stated it get the bound from their fitted delay."""
     filter_263 = {"effect": "output_filter", "lag_s": 5.135e-6, "rate": 5e5}
     longer = {**filter_263, "lag_s": 2e-5}  # 10 samples
     rows = {"clean/0000": _row("unexplained"), "measured/0000": _row("none", hidden=9.13),
