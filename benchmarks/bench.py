@@ -20,6 +20,10 @@ prints a Markdown table for docs/performance.md.
 6. Step records diagnosed together (`diagnose_many`): one at a time against a vmapped batch.
 7. A static noise record as a user analyses it: `accel-jax noise` on 1.3e5 samples at 200 Hz
    (white, Gauss–Markov and a warm-up), cold and warm, in a new process.
+8. What discovery costs: `accel-jax diagnose` of step records that no library effect
+   explains (the independent simulator's pickoff nonlinearity and periodic disturbance),
+   cold, with discovery (the default) against `--no-discover`, each a new process with an
+   empty compilation cache, against the ×2 target of GitHub issue 45.
 """
 
 from __future__ import annotations
@@ -810,6 +814,73 @@ def bench_noise_cli(quick: bool):
     }
 
 
+DISCOVERY_RATIO_TARGET = 2.0
+"""Cold `diagnose` of an unexplained step record with discovery over without (issue 45)."""
+
+DISCOVERY_WORLDS = ("pickoff_nonlinearity", "periodic_disturbance")
+"""The independent simulator's out-of-library classes whose cause is in the term library."""
+
+
+def bench_discover(quick: bool):
+    """Wall time of a cold `accel-jax diagnose` (a new process, an empty compilation cache)
+    of step records that no library effect explains, with discovery (the command's default)
+    and with `--no-discover`, one after the other, and their ratio. The records are drawn by
+    the independent simulator (studies/step_truth.py, seed 2045: its own conventions, 0.5–2
+    MHz, 12 ms); the nominal device is the reference with ideal lags, as the blind
+    validation gives it. A ratio counts only where discovery ran (a record read
+    `unexplained`, or a noise verdict it weighs: `question.weigh_discovery`)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+    import step_truth
+
+    cli = [sys.executable, "-m", "accel_jax.cli"]
+    worlds = DISCOVERY_WORLDS[:1] if quick else DISCOVERY_WORLDS
+    out = {
+        "work": "one step record drawn by the independent simulator per class, cold, "
+        "with discovery and with --no-discover (one run each)",
+        "target_ratio": DISCOVERY_RATIO_TARGET,
+        "records": {},
+    }
+    rng = np.random.default_rng(2045)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        params = folder / "nominal.toml"  # the reference device with ideal lags
+        params.write_text("torquer_time_constant = 0.0\nfilter_time_constant = 0.0\n")
+        for effect in worlds:
+            truth = step_truth.draw_truth(rng, effect)
+            t, u, y, _ = step_truth.make(truth, rng)
+            record = folder / f"{effect}.csv"
+            aj.write_csv(record, aj.StepData(t, u, y))
+            row = {"rate_Hz": truth["rate"], "samples": int(len(t))}
+            for name, option in (("without", "--no-discover"), ("with", "--discover")):
+                answer = folder / f"{effect}_{name}.json"
+                command = ["diagnose", str(record), "--params", str(params), option]
+                row[f"{name}_s"] = _cli_seconds(
+                    [*cli, *command, "--json", str(answer)], folder / f"cache_{effect}_{name}"
+                )
+                document = json.loads(answer.read_text())
+                row[f"verdict_{name}"] = document["verdict"]
+                discovery = document.get("discovery") or {}
+                if name == "with":
+                    row["discovery_rating"] = discovery.get("rating")
+                    row["discovered"] = (discovery.get("best") or {}).get("terms")
+            row["ratio"] = row["with_s"] / row["without_s"]
+            row["discovery_ran"] = bool(row["discovery_rating"])
+            row["within_target"] = row["discovery_ran"] and row["ratio"] <= DISCOVERY_RATIO_TARGET
+            out["records"][effect] = row
+    return out
+
+
+def _discover_line(row) -> str:
+    return "\n".join(
+        f"accel-jax diagnose, {effect} ({r['samples']:,} samples at {r['rate_Hz'] / 1e6:g} MHz), "
+        f"cold: {r['without_s']:.1f} s without discovery ({r['verdict_without']}), "
+        f"{r['with_s']:.1f} s with ({r['verdict_with']}; ×{r['ratio']:.2f}; discovery "
+        f"{r['discovery_rating']}: {r['discovered']}); ≤ ×{row['target_ratio']:g}: "
+        f"{'met' if r['within_target'] else 'missed'}"
+        for effect, r in row["records"].items()
+    )
+
+
 def _noise_line(row) -> str:
     return (
         f"{row['work']}: cold {row['cold_s']:.1f} s, warm {row['warm_s']:.1f} s "
@@ -986,6 +1057,11 @@ def main(argv=None):
         action="store_true",
         help="run section 7 (a static noise record from the command line) alone",
     )
+    parser.add_argument(
+        "--only-discover",
+        action="store_true",
+        help="run section 8 (what discovery costs a cold diagnose) alone",
+    )
     parser.add_argument("--mc-rate", type=int, help=argparse.SUPPRESS)  # the all-core child
     args = parser.parse_args(argv)
     if args.mc_rate:
@@ -1006,6 +1082,9 @@ def main(argv=None):
         ),
         "only_noise": ("noise", bench_noise_cli, {"record": 7}, "noise.json", _noise_line),
         "only_cli": ("cli", bench_cli, {"record": 0}, "cli.json", _cli_table),
+        "only_discover": (
+            "discover", bench_discover, {"draws": 2045}, "discover.json", _discover_line
+        ),
     }
     for flag, (key, section, seeds, name, summary) in alone.items():
         if not getattr(args, flag):
@@ -1035,6 +1114,8 @@ def main(argv=None):
     result["diagnose_batch"] = bench_diagnose_batch(args.quick)
     print("7. a static noise record from the command line, cold and warm…", flush=True)
     result["noise"] = bench_noise_cli(args.quick)
+    print("8. what discovery costs a cold diagnose…", flush=True)
+    result["discover"] = bench_discover(args.quick)
     mc = result["monte_carlo_identification"]
     flops = mc["xla_cost_per_trajectory"]["flops"]
     traffic = mc["xla_cost_per_trajectory"]["bytes_accessed"]
@@ -1089,9 +1170,14 @@ def main(argv=None):
             if " " not in name
         },
         "cold_noise_le_20_s": result["noise"]["cold_within_target"],
+        "discovery_cold_le_2x": all(
+            row["within_target"] for row in result["discover"]["records"].values()
+        ),
     }
     result["wall_s"] = time.perf_counter() - started
-    result["provenance"] = provenance(seeds={"draws": [0, 1, 2, 3, 4, 5, 6]}, precision="float64")
+    result["provenance"] = provenance(
+        seeds={"draws": [0, 1, 2, 3, 4, 5, 6], "discover": 2045}, precision="float64"
+    )
     out = Path(args.out)
     write_json_atomic(out / "result.json", result)
     print()
@@ -1100,6 +1186,7 @@ def main(argv=None):
     print(_cli_table(result["cli"]))
     print(_diagnose_line(result["diagnose_batch"]))
     print(_noise_line(result["noise"]))
+    print(_discover_line(result["discover"]))
     print(f"\nprofile of (1), µs per trajectory (vmapped, N = {mc['profile_batch']}):")
     for name, value in mc["profile_us_per_trajectory"].items():
         print(f"  {name:70s} {value:8.1f}")
