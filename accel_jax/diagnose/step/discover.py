@@ -118,18 +118,32 @@ def tuned_offset(sinusoid_columns, normal, train, sigma):
         columns_at = sinusoid_columns(offset)
         x = np.concatenate([x_free, columns_at[train] / sigma], axis=1)
         pen = np.concatenate([pen_j, np.zeros((pen_j.shape[0], columns_at.shape[1]))], axis=1)
-        gram, rhs = x.T @ x + pen.T @ pen, x.T @ r_train + pen.T @ pen_r
-        scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-        try:
-            theta = np.linalg.solve(gram / scale[:, None] / scale[None, :], rhs / scale)
-        except np.linalg.LinAlgError:
+        gram, rhs = _scaled(x.T @ x + pen.T @ pen, x.T @ r_train + pen.T @ pen_r)
+        value, _ = _explained(gram, rhs, list(range(rhs.size)))
+        if value is None:
             continue
-        value = float((rhs / scale) @ theta)
         if best is None or value > best[0]:
             best = (value, float(offset), columns_at)
     if best is None:  # singular at every offset: the peak as it was
         return 0.0, sinusoid_columns(0.0)
     return best[1], best[2]
+
+
+def _scaled(gram, rhs, with_scale=False):
+    """Normal equations scaled to a unit diagonal (and the scale, `with_scale`)."""
+    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+    scaled = gram / scale[:, None] / scale[None, :], rhs / scale
+    return (*scaled, scale) if with_scale else scaled
+
+
+def _explained(gram, rhs, keep):
+    """The χ² that the columns `keep` of scaled normal equations remove, and their solution
+    (scaled); (None, None) where those equations are singular."""
+    try:
+        theta = np.linalg.solve(gram[np.ix_(keep, keep)], rhs[keep])
+    except np.linalg.LinAlgError:
+        return None, None
+    return float(rhs[keep] @ theta), theta
 
 
 def _subsets():
@@ -148,18 +162,17 @@ def _select(seg_gram, seg_rhs, pen_gram, pen_rhs, weights, n_free, n_train):
     equations summed over the training segments with `weights`, plus the priors'), best
     first: (extended BIC relative to the nominal fit, subset, Δχ², coefficients); and the
     nominal parameters' own linearised Δχ² (`base`)."""
-    gram = np.tensordot(weights, seg_gram, 1) + pen_gram
-    rhs = np.tensordot(weights, seg_rhs, 1) + pen_rhs
-    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-    gram, rhs = gram / scale[:, None] / scale[None, :], rhs / scale
+    gram, rhs, scale = _scaled(
+        np.tensordot(weights, seg_gram, 1) + pen_gram,
+        np.tensordot(weights, seg_rhs, 1) + pen_rhs,
+        with_scale=True,
+    )
 
     def gain(cols):
-        keep = list(range(n_free)) + [n_free + c for c in cols]
-        try:
-            theta = np.linalg.solve(gram[np.ix_(keep, keep)], rhs[keep])
-        except np.linalg.LinAlgError:
+        value, theta = _explained(gram, rhs, list(range(n_free)) + [n_free + c for c in cols])
+        if value is None:
             return None, None
-        return float(rhs[keep] @ theta), theta[n_free:] / scale[[n_free + c for c in cols]]
+        return value, theta[n_free:] / scale[[n_free + c for c in cols]]
 
     base, _ = gain([])
     if base is None:  # the nominal fit's own problem is singular: nothing to score against
