@@ -118,7 +118,7 @@ def tuned_offset(sinusoid_columns, normal, train, sigma):
         columns_at = sinusoid_columns(offset)
         x = np.concatenate([x_free, columns_at[train] / sigma], axis=1)
         pen = np.concatenate([pen_j, np.zeros((pen_j.shape[0], columns_at.shape[1]))], axis=1)
-        gram, rhs = _scaled(x.T @ x + pen.T @ pen, x.T @ r_train + pen.T @ pen_r)
+        gram, rhs, _ = _scaled(x.T @ x + pen.T @ pen, x.T @ r_train + pen.T @ pen_r)
         value, _ = _explained(gram, rhs, list(range(rhs.size)))
         if value is None:
             continue
@@ -129,11 +129,10 @@ def tuned_offset(sinusoid_columns, normal, train, sigma):
     return best[1], best[2]
 
 
-def _scaled(gram, rhs, with_scale=False):
-    """Normal equations scaled to a unit diagonal (and the scale, `with_scale`)."""
+def _scaled(gram, rhs):
+    """Normal equations scaled to a unit diagonal, and the scale."""
     scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-    scaled = gram / scale[:, None] / scale[None, :], rhs / scale
-    return (*scaled, scale) if with_scale else scaled
+    return gram / scale[:, None] / scale[None, :], rhs / scale, scale
 
 
 def _explained(gram, rhs, keep):
@@ -165,12 +164,11 @@ def _select(seg_gram, seg_rhs, pen_gram, pen_rhs, weights, n_free, n_train):
     gram, rhs, scale = _scaled(
         np.tensordot(weights, seg_gram, 1) + pen_gram,
         np.tensordot(weights, seg_rhs, 1) + pen_rhs,
-        with_scale=True,
     )
 
     def gain(cols):
         value, theta = _explained(gram, rhs, list(range(n_free)) + [n_free + c for c in cols])
-        if value is None:
+        if theta is None:
             return None, None
         return value, theta[n_free:] / scale[[n_free + c for c in cols]]
 
