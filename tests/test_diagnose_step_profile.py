@@ -63,6 +63,85 @@ def test_a_flat_profile_is_not_called_found_and_bad_input_is_refused():
         interval(lambda v: v**2, 0.0, float("nan"))
 
 
+def test_a_cliff_is_bisected_not_crawled_to():
+    # Quadratic (σ = 1) up to a cliff at 0.6, where the model leaves the data (a loop that
+    # runs away): Δχ² never reaches the level within 10 %, so the side is not found, but
+    # its end lies at the cliff. The secant through the near probe (0.1, 0.01) and the
+    # cliff (1.0, 1e6) would move 1/1000 of the way a refit and end near 0.1.
+    def delta(v):
+        return v**2 if abs(v) < 0.6 else 1e6
+
+    found = interval(delta, 0.0, 1.0)
+    assert not found.found
+    assert 0.55 <= found.upper <= 0.7 and -0.7 <= found.lower <= -0.55
+    # A steep profile that is no cliff keeps the secant: (x + x³)², found as before.
+    skewed = interval(lambda x: (x + x**3) ** 2, 0.0, 5.0)
+    assert skewed.found and skewed.upper == pytest.approx(0.6823, rel=0.05)
+
+
+def test_profile_refits_are_capped_in_evaluations():
+    from accel_jax.diagnose.step import profile
+
+    calls = []
+
+    class Fit:
+        cost, status, x = 0.0, 1, np.zeros(3)
+
+    def solve(fun, jac, x0, args, **options):
+        calls.append(options)
+        return Fit()
+
+    def residuals(params, args):
+        return np.zeros(2)
+
+    # A flat profile (every refit's cost 0): each side spends its refits, every one capped.
+    profile.column_intervals(
+        solve, residuals, None, np.zeros(3), (np.eye(2), np.ones(2), 0.0), 1, 2, [1.0, 1.0], 1.0
+    )
+    assert calls and all(c["max_evaluations"] == profile.MAX_EVALUATIONS for c in calls)
+
+
+def test_each_profile_refit_continues_from_the_nearest_converged_one_on_its_side():
+    # A coefficient c (estimate 0.5, the optimum's other parameter 0) held at v: the
+    # other parameter's profile optimum is 10 (v − 0.5), Δχ² = ((v − 0.5)/0.2)². The fake
+    # solver records where each refit starts; each refit must start from the converged
+    # refit of the nearest value held so far on the same side of the estimate whose Δχ² is
+    # below CLIFF² times the level (else from the optimum), never from a refit on the
+    # other side, from one that failed, or from one far beyond the level (a false minimum
+    # converges too).
+    from accel_jax.diagnose.step import profile
+
+    starts = []
+
+    class Fit:
+        def __init__(self, x, cost, status):
+            self.x, self.cost, self.status = x, cost, status
+
+    def solve(fun, jac, x0, args, **options):
+        v = float(np.asarray(args[3])[0])
+        starts.append((v, float(x0[0])))
+        fails = v > 0.5 + 0.25  # far above: no convergence (status 0), a large cost
+        return Fit(np.array([10 * (v - 0.5), 0.0]), 0.5 * ((v - 0.5) / 0.2) ** 2, 0 if fails else 2)
+
+    def residuals(params, args):
+        return np.zeros(1)
+
+    params = np.array([0.0, 0.5])  # the other parameter, then the coefficient
+    found = profile.column_intervals(
+        solve, residuals, None, params, (np.eye(1), np.ones(1), 0.0), 1, 1, [1.0], 1.0
+    )[0]
+    assert found.lower == pytest.approx(0.3, rel=0.06)
+    converged = []  # (value held, its refit's other parameter)
+    for v, x0 in starts:
+        side = [(at, x) for at, x in converged if (at > 0.5) == (v > 0.5)]
+        expected = min(side, key=lambda item: abs(item[0] - v))[1] if side else 0.0
+        if side and abs(0.5 - v) < min(abs(at - v) for at, _ in side):
+            expected = 0.0  # the optimum is nearer
+        assert x0 == pytest.approx(expected), (v, x0, starts)
+        if not v > 0.75 and ((v - 0.5) / 0.2) ** 2 < profile.CLIFF**2:  # converged, near
+            converged.append((v, 10 * (v - 0.5)))
+
+
 def test_a_failed_refit_gives_a_finite_end_not_called_found():
     # Beyond 2σ above the estimate the refit fails (NaN): that side is not found, and its
     # end stays finite (the last bracket), never NaN in the report.

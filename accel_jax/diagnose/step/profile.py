@@ -16,6 +16,25 @@ form as the linearised σ is). Near the optimum √Δχ² grows linearly in |v �
 is found by the secant method on √Δχ² − √level, started from a probe at a small fraction
 of the linearised σ (which may be far too wide or too narrow), in a handful of refits per
 side.
+
+Each refit starts from the converged refit of the nearest value held so far on its side
+(continuation), not from the optimum. From the optimum, MINPACK can stop in a false minimum
+far above the profile. On the independent simulator's pickoff record of the discovery
+benchmark (seed 2045), one coefficient of a two-term subset, held 0.318 σ_lin below its
+estimate: from the optimum the refit ended (converged by MINPACK's test) at Δχ² = 8.8e5
+after 43 evaluations; continued from the refit at 0.2 σ_lin it reached Δχ² = 0.12 in 6
+evaluations. The secant then met those false minima as a cliff and crawled towards the near
+probe (about 1/400 of the way a refit), so the side ended 0.1 σ_lin from ĉ, many times
+narrower than the profile. Such a cliff may also be real (a term held where the loop runs
+away): a far probe whose √Δχ² exceeds `CLIFF` times the straight line's prediction through
+the optimum and the near probe makes the next probe bisect the bracket, not take the
+secant. A refit stops after `MAX_EVALUATIONS` (one from the optimum had run MINPACK's 200,
+31 s of the record's 179 s discovery, to Δχ² = 8e6); a capped refit's Δχ² is an upper
+bound. Only converged refits whose Δχ² is below `CLIFF`² times the level are continued
+from: a false minimum is MINPACK-converged too, and one continued from led the next
+refits astray; a refit just beyond the level (Δχ² = 1.38 at −0.97 σ_lin) is a good start
+for the secant's next probe (0.97 at −0.83 σ_lin, where from the near probe's refit a
+false minimum at 5e6 was reached).
 """
 
 from __future__ import annotations
@@ -35,6 +54,14 @@ MAX_REFITS = 4
 
 TOLERANCE = 0.1
 """A side is found when Δχ² is within this fraction of the level."""
+
+CLIFF = 3.0
+"""A far probe whose √Δχ² is above this many times the straight line's (through the
+optimum and the near probe) is a cliff: the bracket is bisected, not cut by the secant."""
+
+MAX_EVALUATIONS = 60
+"""MINPACK's residual evaluations per profile refit at most (the discovery's refits keep
+`minpack.MAX_EVALUATIONS`)."""
 
 FTOL = 1e-6
 """The profile refits' relative tolerance on the sum of squares (MINPACK's `ftol`; the
@@ -106,7 +133,11 @@ def interval(
                 x = min(target / slope, 10 * x) if slope > 0 else 10 * x
             else:
                 (x0, y0), (x1, y1) = near, far
-                x = x0 + (target - y0) * (x1 - x0) / (y1 - y0)
+                line = y0 / x0 * x1 if x0 > 0 else 0.0  # the far probe's √Δχ² on a line
+                if line > 0 and y1 > CLIFF * line:
+                    x = 0.5 * (x0 + x1)
+                else:
+                    x = x0 + (target - y0) * (x1 - x0) / (y1 - y0)
         else:
             found = False
         ends.append(estimate + side * x)
@@ -121,16 +152,20 @@ def column_intervals(
 ):
     """`interval` of each of a refitted subset's `n_cols` coefficients.
 
-    **Arguments:** `solve(fun, jac, x0, args, ftol=)` (`minpack.solve`); `residuals_at(params,
-    (pick, used, tone, fixed))` and its Jacobian: the discovery's whitened training
-    residuals, priors and pins, with the coefficients entering as `c @ pick + fixed`;
+    **Arguments:** `solve(fun, jac, x0, args, ftol=, max_evaluations=)` (`minpack.solve`);
+    `residuals_at(params, (pick, used, tone, fixed))` and its Jacobian: the discovery's
+    whitened training residuals, priors and pins, with the coefficients entering as
+    `c @ pick + fixed`;
     `params` the subset's optimum (`n_free` device and nuisance entries, then the
     coefficients); `args` its `(pick, used, tone)`; `sigmas` the linearised σ; `level`
     the Δχ² bound; `ftol` the refits' tolerance (`FTOL`).
 
     A coefficient is held at v by taking its row out of `pick` (its entry pinned at 0,
     where the pin costs nothing) and adding v times that row to `fixed`; every other
-    parameter is refitted from the optimum.
+    parameter is refitted, from the converged refit of the nearest value held so far on
+    the same side of the estimate whose Δχ² is below `CLIFF`² times `level` (the optimum
+    itself first): continuation along the profile, without which a refit can stop in a
+    false minimum far above it (module docstring).
     """
     pick, used, tone = (np.asarray(a, dtype=np.float64) for a in args)
     params = np.asarray(params, dtype=np.float64)
@@ -141,14 +176,25 @@ def column_intervals(
     for i in range(n_cols):
         held_pick, held_used = pick.copy(), used.copy()
         held_pick[i], held_used[i] = 0.0, 0.0
+        estimate = float(params[n_free + i])
         start = params.copy()
         start[n_free + i] = 0.0
+        solved = [(estimate, start)]  # (value held, its converged refit), the optimum first
 
-        def delta(v, i=i, held_pick=held_pick, held_used=held_used, start=start):
+        def delta(v, held_pick=held_pick, held_used=held_used, solved=solved, i=i):
+            c = solved[0][0]  # the estimate
+            side = [(at, x) for at, x in solved if at == c or (at > c) == (v > c)]
+            x0 = min(side, key=lambda item: abs(item[0] - v))[1]
             held = _args(held_pick, held_used, tone, v * pick[i])
-            return 2.0 * float(solve(residuals_at, jacobian_at, start, held, ftol=ftol).cost) - cost
+            refit = solve(
+                residuals_at, jacobian_at, x0, held, ftol=ftol, max_evaluations=MAX_EVALUATIONS
+            )
+            value = 2.0 * float(refit.cost) - cost
+            if refit.status > 0 and value < CLIFF**2 * level:  # no false minimum
+                solved.append((v, np.asarray(refit.x, dtype=np.float64)))
+            return value
 
-        out.append(interval(delta, float(params[n_free + i]), float(sigmas[i]), level))
+        out.append(interval(delta, estimate, float(sigmas[i]), level))
     return out
 
 
