@@ -128,3 +128,18 @@ def test_the_diagnosis_writes_the_block_and_the_old_access_warns():
         assert found.best is not None and found.best.terms == ("pickoff_square", "pickoff_cube")
         with pytest.raises(dataclasses.FrozenInstanceError):
             found.rating = "tentative"  # type: ignore[misc]
+
+
+def test_a_sigma_whose_profile_interval_was_not_found_is_said_so():
+    from accel_jax.diagnose.discovery_text import discovery_lines
+
+    found, _ = _discoveries()
+    square, cube = found.best.columns
+    cube = dataclasses.replace(cube, profile_found=False, sigma_linearised=0.009)
+    square = dataclasses.replace(square, profile_found=True, sigma_linearised=0.08)
+    best = dataclasses.replace(found.best, columns=(square, cube))
+    first = discovery_lines(dataclasses.replace(found, best=best))[0]
+    assert first.count("profile interval not found") == 1
+    assert "-0.04 ± 0.001 (profile interval not found: σ uncertain)" in first
+    # A linearised σ alone (no profile run: profile_found None) is not flagged.
+    assert "not found" not in discovery_lines(found)[0]

@@ -44,9 +44,12 @@ def discovery_lines(discovery: Discovery | VibrationDiscovery | None) -> list[st
         return ["discovered (hypothesis): nothing found in the term library"] + reached
 
     def term_text(d: DiscoveryCandidate) -> str:
+        # A σ whose profile interval was not found on both sides (`profile`: a refit
+        # failed, or the sides' refits ran out) is not the interval's: said beside it.
         parts = [
             f"{col.term} at the {col.place} ({col.formula}), "
             f"c = {col.coefficient:.3g} ± {col.sigma:.2g}"
+            + (" (profile interval not found: σ uncertain)" if col.profile_found is False else "")
             for col in d.columns
         ]
         return " + ".join(parts)
