@@ -181,8 +181,7 @@ def column_intervals(
         start[n_free + i] = 0.0
         solved = [(estimate, start)]  # (value held, its converged refit), the optimum first
 
-        def delta(v, held_pick=held_pick, held_used=held_used, solved=solved, i=i):
-            c = solved[0][0]  # the estimate
+        def delta(v, held_pick=held_pick, held_used=held_used, solved=solved, i=i, c=estimate):
             side = [(at, x) for at, x in solved if at == c or (at > c) == (v > c)]
             x0 = min(side, key=lambda item: abs(item[0] - v))[1]
             held = _args(held_pick, held_used, tone, v * pick[i])
