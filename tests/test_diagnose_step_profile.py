@@ -154,17 +154,19 @@ def test_a_failed_refit_gives_a_finite_end_not_called_found():
     assert found.lower == pytest.approx(-1.0, rel=0.06)
 
 
-def test_profile_refits_at_their_tolerance_give_the_tight_refits_intervals():
+def test_profile_refits_at_their_tolerance_give_the_tight_refits_intervals(monkeypatch):
     # MINPACK's refits stopped at `profile.FTOL` against the same refits run to 1e-12, on a
     # nonlinear fit (two exponentials sharing a rate, refitted with each coefficient held):
     # from a cold start the refit's χ² is within FTOL·χ² of the minimum, and so each
     # interval end within FTOL·χ²·σ/2 of the tight one's (Δχ² ≈ 2(x − end)/σ there);
-    # `profile`'s claim, checked with a factor 2 to spare.
+    # `profile`'s claim, checked with a factor 2 to spare. The sides searched on threads
+    # (several CPUs) give the same intervals, to the bit, as one after the other (one CPU).
     from functools import partial
 
     import jax
     import jax.numpy as jnp
 
+    from accel_jax import _runtime
     from accel_jax.diagnose.step import profile
     from accel_jax.diagnose.step.minpack import solve
 
@@ -198,6 +200,9 @@ def test_profile_refits_at_their_tolerance_give_the_tight_refits_intervals():
                       params=fit.x, args=(pick, used, 0.0), n_free=2, n_cols=2,
                       sigmas=sigmas, level=1.0)  # fmt: skip
         loose, tight = run(solve), run(solve, ftol=1e-12)
+        for cpus in (1, 3):
+            monkeypatch.setattr(_runtime, "usable_cpus", lambda cpus=cpus: list(range(cpus)))
+            assert run(solve) == loose
     for a, b in zip(loose, tight, strict=True):
         assert a.found and b.found
         bound = profile.FTOL * chi2 * b.sigma  # twice FTOL·χ²·σ/2

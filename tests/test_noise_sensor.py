@@ -178,13 +178,13 @@ def test_fits_on_threads_give_the_same_selection(monkeypatch):
     """The forward, backward and exchange steps fit their candidates on threads where the
     process has several cores (`_evaluate_many`); one core gives the same selection, to the
     bit (the same XLA calls, in another order)."""
-    from accel_jax._noise import sensor_model
+    from accel_jax import _runtime
 
     truth = {"white": 2e-3, "gauss_markov": (1e-3, 0.3), "lines": [(3.1, 1e-3)], "level": 0.5}
     x = noise_truth.record(np.random.default_rng(21), 6000, 0.01, truth)
     found = {}
     for cores in (1, 2):
-        monkeypatch.setattr(sensor_model, "usable_cpus", lambda cores=cores: list(range(cores)))
+        monkeypatch.setattr(_runtime, "usable_cpus", lambda cores=cores: list(range(cores)))
         found[cores] = aj.noise.select_sensor_noise(x, 0.01)
     assert found[1].verdict == found[2].verdict and "gauss_markov" in found[1].effects
     assert found[1].steps == found[2].steps

@@ -219,3 +219,49 @@ def test_single_record_commands_compile_with_the_fast_flags(command):
     )
     flags = out.stdout.rsplit("FLAGS", 1)[1].split()
     assert ("--xla_cpu_use_fusion_emitters=false" in flags) == (command != "report"), flags
+
+
+def test_thread_map_keeps_order_x64_and_the_first_error(monkeypatch):
+    """`thread_map`: the results in the items' order, each worker under the caller's x64
+    setting (thread-local in JAX), the same results on one CPU (no threads) as on several,
+    and an exception raised in a worker raised to the caller."""
+    import threading
+    import time
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from accel_jax import _runtime
+
+    @jax.jit
+    def f(x):
+        return jnp.cumsum(x * x) / 3.0
+
+    def work(i):
+        time.sleep(0.01 * (5 - i))  # later items finish first
+        return threading.get_ident(), np.asarray(f(jnp.arange(i + 3.0)))
+
+    found = {}
+    for cpus in (1, 4):
+        monkeypatch.setattr(_runtime, "usable_cpus", lambda cpus=cpus: list(range(cpus)))
+        with jax.enable_x64(True):
+            found[cpus] = _runtime.thread_map(work, range(5))
+    assert len({ident for ident, _ in found[1]}) == 1  # one CPU: all in the caller
+    assert len({ident for ident, _ in found[4]}) > 1
+    for (_, one), (_, many) in zip(found[1], found[4], strict=True):
+        assert one.dtype == many.dtype == np.float64
+        assert np.array_equal(one, many)
+    assert [r.size for _, r in found[4]] == [3, 4, 5, 6, 7]
+    with jax.enable_x64(False):
+        assert _runtime.thread_map(lambda i: f(jnp.arange(3.0)).dtype, range(2)) == [
+            jnp.float32
+        ] * 2
+
+    def fails(i):
+        if i == 2:
+            raise ValueError("item 2")
+        return i
+
+    with pytest.raises(ValueError, match="item 2"):
+        _runtime.thread_map(fails, range(4))

@@ -56,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._data import NominalDevice
+from ..._runtime import thread_map
 from ..._simulate.sequence import equilibrium
 from .. import openworld
 from ..discovery_result import DiscoveredColumn, Discovery, DiscoveryCandidate, DiscoveryScales
@@ -114,8 +115,10 @@ def tuned_offset(sinusoid_columns, normal, train, sigma):
     priors' Jacobian, the priors' residual), as `_select` reads them."""
     x_free, r_train, pen_j, pen_r = normal
     best = None
-    for offset in SINUSOID_OFFSETS:
-        columns_at = sinusoid_columns(offset)
+    # (the offsets' screens are independent: side by side on the process's cores)
+    for offset, columns_at in zip(
+        SINUSOID_OFFSETS, thread_map(sinusoid_columns, SINUSOID_OFFSETS), strict=True
+    ):
         x = np.concatenate([x_free, columns_at[train] / sigma], axis=1)
         pen = np.concatenate([pen_j, np.zeros((pen_j.shape[0], columns_at.shape[1]))], axis=1)
         gram, rhs, _ = _scaled(x.T @ x + pen.T @ pen, x.T @ r_train + pen.T @ pen_r)
@@ -329,7 +332,10 @@ def discover(
             if (i,) not in wanted and (i,) in singles:
                 wanted.add((i,))
                 chosen.append(next(r for r in ranked if r[1] == (i,)))
-    for ebic, subset, _, coef in chosen:
+    def confirm(item):
+        """The full refit of one chosen subset: its candidate entry, its fit
+        (params, pick, n_cols, tuned, args) and its Gauss–Newton model at the optimum."""
+        ebic, subset, _, coef = item
         cols = columns(subset)
         pick = np.zeros((MAX_COLUMNS, N_COEFFICIENTS))
         pick[np.arange(len(cols)), cols] = 1.0
@@ -409,11 +415,19 @@ def discover(
                 float((omega + float(resolution) * params[-1]) / (2 * np.pi)) if tone > 0 else None
             ),
         )
-        confirmed.append(entry)
-        fitted[entry.terms] = (params, pick, len(cols), tuned, (pick, used, tone))
-        local[subset] = LocalModel.at_optimum(
-            np.asarray(r), jac, segment_rows, n, entry.criterion + delta
+        return (
+            entry,
+            (params, pick, len(cols), tuned, (pick, used, tone)),
+            LocalModel.at_optimum(np.asarray(r), jac, segment_rows, n, entry.criterion + delta),
         )
+
+    # The subsets' refits are independent: side by side on the process's cores.
+    for (_, subset, _, _), (entry, fit_terms, model) in zip(
+        chosen, thread_map(confirm, chosen), strict=True
+    ):
+        confirmed.append(entry)
+        fitted[entry.terms] = fit_terms
+        local[subset] = model
     # 4. Stability: the selection repeated on block-bootstrap resamples of the training
     # segments, every subset scored on the linearised problem except the refitted ones,
     # each scored by a Gauss–Newton step from its own optimum (the linearisation at c = 0

@@ -46,6 +46,8 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
+from ..._runtime import thread_map
+
 PROBE = 0.1
 """The first probe's distance from ĉ, in linearised σ."""
 
@@ -103,47 +105,58 @@ def interval(
     refit gives a non-finite Δχ² (its end: the bracket beyond the level, else the farthest
     probe below it or the first probe; never NaN).
     """
+    return _joined([
+        _side(delta_chi2, estimate, sigma_linearised, level, side) for side in (-1.0, 1.0)
+    ])
+
+
+def _side(delta_chi2, estimate, sigma_linearised, level, side) -> tuple[float, int, bool]:
+    """One side (`side` −1 or +1) of `interval`: its end, its refits, whether found."""
     if not (sigma_linearised > 0 and math.isfinite(sigma_linearised)):
         raise ValueError(f"the linearised σ must be positive and finite, not {sigma_linearised}")
     target = math.sqrt(level)
-    ends, refits, found = [], 0, True
-    for side in (-1.0, 1.0):
-        # (distance, √Δχ²) pairs: the optimum itself is (0, 0).
-        near, far = (0.0, 0.0), None
-        x = PROBE * sigma_linearised
-        value = 0.0
-        for _ in range(MAX_REFITS):
-            delta = delta_chi2(estimate + side * x)
-            refits += 1
-            if not math.isfinite(delta):  # a failed refit: this side is not found
-                x = far[0] if far is not None else max(near[0], PROBE * sigma_linearised)
-                found = False
-                break
-            value = math.sqrt(max(delta, 0.0))
-            if abs(value**2 / level - 1.0) <= TOLERANCE:
-                break
-            if value < target:
-                near = (x, value)
-            else:
-                far = (x, value)
-            if far is None:
-                # Not bracketed yet: extrapolate the line through the optimum and the
-                # nearest probe (at most ×10 per step, so a flat start cannot jump away).
-                slope = (near[1] - 0.0) / near[0] if near[0] > 0 else 0.0
-                x = min(target / slope, 10 * x) if slope > 0 else 10 * x
-            else:
-                (x0, y0), (x1, y1) = near, far
-                line = y0 / x0 * x1 if x0 > 0 else 0.0  # the far probe's √Δχ² on a line
-                if line > 0 and y1 > CLIFF * line:
-                    x = 0.5 * (x0 + x1)
-                else:
-                    x = x0 + (target - y0) * (x1 - x0) / (y1 - y0)
-        else:
+    # (distance, √Δχ²) pairs: the optimum itself is (0, 0).
+    near, far = (0.0, 0.0), None
+    x = PROBE * sigma_linearised
+    value = 0.0
+    refits, found = 0, True
+    for _ in range(MAX_REFITS):
+        delta = delta_chi2(estimate + side * x)
+        refits += 1
+        if not math.isfinite(delta):  # a failed refit: this side is not found
+            x = far[0] if far is not None else max(near[0], PROBE * sigma_linearised)
             found = False
-        ends.append(estimate + side * x)
-    lower, upper = ends
+            break
+        value = math.sqrt(max(delta, 0.0))
+        if abs(value**2 / level - 1.0) <= TOLERANCE:
+            break
+        if value < target:
+            near = (x, value)
+        else:
+            far = (x, value)
+        if far is None:
+            # Not bracketed yet: extrapolate the line through the optimum and the
+            # nearest probe (at most ×10 per step, so a flat start cannot jump away).
+            slope = (near[1] - 0.0) / near[0] if near[0] > 0 else 0.0
+            x = min(target / slope, 10 * x) if slope > 0 else 10 * x
+        else:
+            (x0, y0), (x1, y1) = near, far
+            line = y0 / x0 * x1 if x0 > 0 else 0.0  # the far probe's √Δχ² on a line
+            if line > 0 and y1 > CLIFF * line:
+                x = 0.5 * (x0 + x1)
+            else:
+                x = x0 + (target - y0) * (x1 - x0) / (y1 - y0)
+    else:
+        found = False
+    return estimate + side * x, refits, found
+
+
+def _joined(sides) -> ProfileInterval:
+    """The `ProfileInterval` of a lower and an upper `_side`."""
+    (lower, low_refits, low_found), (upper, up_refits, up_found) = sides
     return ProfileInterval(
-        lower=lower, upper=upper, sigma=0.5 * (upper - lower), refits=refits, found=found
+        lower=lower, upper=upper, sigma=0.5 * (upper - lower),
+        refits=low_refits + up_refits, found=low_found and up_found,
     )
 
 
@@ -165,15 +178,18 @@ def column_intervals(
     parameter is refitted, from the converged refit of the nearest value held so far on
     the same side of the estimate whose Δχ² is below `CLIFF`² times `level` (the optimum
     itself first): continuation along the profile, without which a refit can stop in a
-    false minimum far above it (module docstring).
+    false minimum far above it (module docstring). The two sides of every coefficient are
+    independent searches, run side by side on the process's cores (`thread_map`; the same
+    intervals as one after the other).
     """
     pick, used, tone = (np.asarray(a, dtype=np.float64) for a in args)
     params = np.asarray(params, dtype=np.float64)
     fixed0 = np.zeros(pick.shape[1])
     optimum = np.asarray(residuals_at(jnp.asarray(params), _args(pick, used, tone, fixed0)))
     cost = float(optimum @ optimum)
-    out = []
-    for i in range(n_cols):
+
+    def side_of(task):
+        i, side = task
         held_pick, held_used = pick.copy(), used.copy()
         held_pick[i], held_used[i] = 0.0, 0.0
         estimate = float(params[n_free + i])
@@ -181,9 +197,8 @@ def column_intervals(
         start[n_free + i] = 0.0
         solved = [(estimate, start)]  # (value held, its converged refit), the optimum first
 
-        def delta(v, held_pick=held_pick, held_used=held_used, solved=solved, i=i, c=estimate):
-            side = [(at, x) for at, x in solved if at == c or (at > c) == (v > c)]
-            x0 = min(side, key=lambda item: abs(item[0] - v))[1]
+        def delta(v):
+            x0 = min(solved, key=lambda item: abs(item[0] - v))[1]
             held = _args(held_pick, held_used, tone, v * pick[i])
             refit = solve(
                 residuals_at, jacobian_at, x0, held, ftol=ftol, max_evaluations=MAX_EVALUATIONS
@@ -193,8 +208,12 @@ def column_intervals(
                 solved.append((v, np.asarray(refit.x, dtype=np.float64)))
             return value
 
-        out.append(interval(delta, estimate, float(sigmas[i]), level))
-    return out
+        return _side(delta, estimate, float(sigmas[i]), level, side)
+
+    # Each side of each coefficient continues only from its own refits: the sides are
+    # independent, and run side by side on the process's cores.
+    sides = thread_map(side_of, [(i, side) for i in range(n_cols) for side in (-1.0, 1.0)])
+    return [_joined(sides[2 * i : 2 * i + 2]) for i in range(n_cols)]
 
 
 def _args(pick, used, tone, fixed):
