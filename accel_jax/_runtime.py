@@ -252,6 +252,44 @@ def thread_map(fn, items) -> list:
         return list(pool.map(one, items))
 
 
+def spare_cpu() -> bool:
+    """Whether this process has a CPU that nothing else is using now: at least two usable
+    CPUs (`usable_cpus`) and, where the OS reports it, a one-minute load average (this
+    process's own work included) below their count minus a half. For work that only saves
+    time on an idle CPU (compiling a later stage's program ahead, which may not be needed);
+    it changes no result."""
+    cpus = len(usable_cpus())
+    if cpus < 2:
+        return False
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # not on every OS
+        return True
+    return load < cpus - 0.5
+
+
+def in_background(*calls):
+    """Each of `calls` (functions of no arguments) run in turn on one background thread,
+    under the caller's x64 setting: their `concurrent.futures.Future`s, in order. The
+    thread ends after the last call."""
+    import jax
+    from concurrent.futures import ThreadPoolExecutor
+
+    x64 = bool(jax.config.read("jax_enable_x64"))
+
+    def under_x64(call):
+        def run():
+            with jax.enable_x64(x64):
+                return call()
+
+        return run
+
+    pool = ThreadPoolExecutor(1)
+    futures = [pool.submit(under_x64(call)) for call in calls]
+    pool.shutdown(wait=False)
+    return futures
+
+
 CACHE_ENV = "ACCEL_JAX_CACHE_DIR"
 """Where `enable_compilation_cache` keeps compiled programs; `off` (or `0`) disables it."""
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -76,6 +77,85 @@ def _batch_size(args, in_axes) -> int:
     return sizes.pop()
 
 
+class _Plan:
+    """How `sweep` cuts its arguments: validated `in_axes`, the chunk (a multiple of the
+    device count), the batch padded to whole chunks by repeating its last element, each
+    chunk's pieces placed on the devices."""
+
+    def __init__(self, args, in_axes, devices, chunk_size):
+        in_axes = tuple(0 for _ in args) if in_axes is None else tuple(in_axes)
+        if len(in_axes) != len(args):
+            raise ValueError(f"sweep: {len(args)} arguments but {len(in_axes)} in_axes entries.")
+        if any(axis not in (0, None) for axis in in_axes):
+            raise ValueError(f"sweep: in_axes entries must be 0 or None, got {in_axes}.")
+        if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
+            raise ValueError(f"sweep: chunk_size must be a positive int, got {chunk_size!r}.")
+        size = _batch_size(args, in_axes)
+        devices = list(jax.devices() if devices is None else devices)
+        n_dev = len(devices)
+        if chunk_size is None:
+            chunk_size = -(-size // _PROGRESS_CHUNKS) if progress_enabled() else size
+        chunk = -(-min(chunk_size, size) // n_dev) * n_dev
+        self.in_axes, self.size, self.chunk = in_axes, size, chunk
+        self.n_chunks = -(-size // chunk)
+        self.padded = padded = self.n_chunks * chunk
+        mesh = Mesh(np.asarray(devices), ("batch",))
+        self._sharded = NamedSharding(mesh, PartitionSpec("batch"))
+        self._n_dev = n_dev
+        # Array leaves enter strongly typed: a batch built from Python numbers carries JAX's
+        # weak-type flag on some leaves and not on others, and each pattern is a new
+        # signature of the compiled function (the scale-factor study compiled one kernel up
+        # to 9 times). Values and dtypes are unchanged.
+        args = tuple(_strong(arg) for arg in args)
+
+        def pad(leaf):
+            if padded == size:
+                return leaf
+            return jnp.concatenate([leaf, jnp.repeat(leaf[-1:], padded - size, axis=0)], axis=0)
+
+        self._args = []
+        for arg, axis in zip(args, in_axes, strict=True):
+            if axis is None:
+                self._args.append(arg)
+            else:
+                dynamic, static = eqx.partition(arg, eqx.is_array)
+                self._args.append(eqx.combine(jax.tree_util.tree_map(pad, dynamic), static))
+
+    def pieces(self, start: int) -> list:
+        """The arguments of the chunk that starts at element `start`."""
+
+        def place(leaf):
+            return jax.device_put(leaf, self._sharded) if self._n_dev > 1 else leaf
+
+        def split(arg, axis):
+            if axis is None:
+                return arg
+            dynamic, static = eqx.partition(arg, eqx.is_array)
+            piece = jax.tree_util.tree_map(
+                lambda x: place(x[start : start + self.chunk]), dynamic
+            )
+            return eqx.combine(piece, static)
+
+        return [split(a, ax) for a, ax in zip(self._args, self.in_axes, strict=True)]
+
+
+def compile_ahead(
+    fn: Callable,
+    *args,
+    in_axes: Sequence[int | None] | None = None,
+    devices: Sequence[jax.Device] | None = None,  # pyright: ignore[reportInvalidTypeForm]  # alias
+    chunk_size: int | None = None,
+) -> None:
+    """Compile the program that `sweep(fn, *args, in_axes=…, devices=…, chunk_size=…)`
+    runs, without running it: a later `sweep` with arguments of the same shapes, dtypes and
+    static parts (any values) calls the compiled program at once. For a caller that knows
+    a later stage's shapes early and has a CPU to spare (a background thread: XLA compiles
+    one program on one core). The arguments are read for their shapes only."""
+    plan = _Plan(args, in_axes, devices, chunk_size)
+    program: Any = _compiled(fn, plan.in_axes, plan.chunk == 1)  # an `eqx.filter_jit`
+    program.lower(*plan.pieces(0)).compile()
+
+
 def sweep(
     fn: Callable,
     *args,
@@ -104,57 +184,13 @@ def sweep(
     the chunking. The batch is padded to a multiple of the device count (and of the chunk)
     by repeating its last element, and the padding is dropped from the output.
     """
-    in_axes = tuple(0 for _ in args) if in_axes is None else tuple(in_axes)
-    if len(in_axes) != len(args):
-        raise ValueError(f"sweep: {len(args)} arguments but {len(in_axes)} in_axes entries.")
-    if any(axis not in (0, None) for axis in in_axes):
-        raise ValueError(f"sweep: in_axes entries must be 0 or None, got {in_axes}.")
-    if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
-        raise ValueError(f"sweep: chunk_size must be a positive int, got {chunk_size!r}.")
-    size = _batch_size(args, in_axes)
-    devices = list(jax.devices() if devices is None else devices)
-    n_dev = len(devices)
-    if chunk_size is None:
-        chunk_size = -(-size // _PROGRESS_CHUNKS) if progress_enabled() else size
-    chunk = -(-min(chunk_size, size) // n_dev) * n_dev
-    n_chunks = -(-size // chunk)
-    padded = n_chunks * chunk
-    mesh = Mesh(np.asarray(devices), ("batch",))
-    sharded = NamedSharding(mesh, PartitionSpec("batch"))
-    # Array leaves enter strongly typed: a batch built from Python numbers carries JAX's
-    # weak-type flag on some leaves and not on others, and each pattern is a new signature
-    # of the compiled function (the scale-factor study compiled one kernel up to 9 times).
-    # Values and dtypes are unchanged.
-    args = tuple(_strong(arg) for arg in args)
-
-    def pad(leaf):
-        if padded == size:
-            return leaf
-        return jnp.concatenate([leaf, jnp.repeat(leaf[-1:], padded - size, axis=0)], axis=0)
-
-    def place(leaf):
-        return jax.device_put(leaf, sharded) if n_dev > 1 else leaf
-
-    def split(arg, axis, start):
-        if axis is None:
-            return arg
-        dynamic, static = eqx.partition(arg, eqx.is_array)
-        piece = jax.tree_util.tree_map(lambda x: place(x[start : start + chunk]), dynamic)
-        return eqx.combine(piece, static)
-
-    padded_args = []
-    for arg, axis in zip(args, in_axes, strict=True):
-        if axis is None:
-            padded_args.append(arg)
-        else:
-            dynamic, static = eqx.partition(arg, eqx.is_array)
-            padded_args.append(eqx.combine(jax.tree_util.tree_map(pad, dynamic), static))
-    compiled = _compiled(fn, in_axes, chunk == 1)
+    plan = _Plan(args, in_axes, devices, chunk_size)
+    padded, chunk, n_chunks, size = plan.padded, plan.chunk, plan.n_chunks, plan.size
+    compiled = _compiled(fn, plan.in_axes, chunk == 1)
     outs = []
     with bar(padded, desc, unit="el") as progress:
         for start in range(0, padded, chunk):
-            pieces = [split(a, ax, start) for a, ax in zip(padded_args, in_axes, strict=True)]
-            out = compiled(*pieces)
+            out = compiled(*plan.pieces(start))
             if n_chunks > 1:
                 jax.block_until_ready(out)
             outs.append(out)

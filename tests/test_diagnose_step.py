@@ -682,3 +682,45 @@ def test_evidence_slack_in_the_likelihoods_units():
     assert evidence_slack(far, prep, n) == pytest.approx(2 * decrement / 500**2, rel=1e-3)
     whole = SimpleNamespace(innovation_variance=sigma**2, decrement=n)  # removes it all
     assert evidence_slack(whole, prep, n) == float("inf")
+
+
+def test_the_stops_programs_compiled_ahead_on_a_spare_cpu_change_nothing(monkeypatch, caplog):
+    # With a CPU to spare, the clamp's and the compliant stops' programs are compiled on a
+    # background thread while the linear and loop-noise fits run (`_compile_stops_ahead`);
+    # the stop stages then compile nothing themselves, and the diagnosis is the one made
+    # with no CPU to spare, to the bit. A record that nothing explains (a pickoff
+    # nonlinearity) reaches both stages; its shape (five levels) is this test's own, so no
+    # other test has compiled its programs.
+    import logging
+    import threading
+
+    import jax
+
+    from accel_jax._data import NominalDevice
+    from accel_jax.diagnose.step import entry
+
+    data = _record(3, levels=(0.0, 1.0, -1.0, 0.5, 0.0), **CASES["pickoff_nonlinearity"])
+    found, compiled = {}, {}
+    for spare in (True, False):
+        monkeypatch.setattr(entry, "spare_cpu", lambda spare=spare: spare)
+        caplog.clear()
+        with jax.log_compiles(True), caplog.at_level(logging.DEBUG, logger="jax"):
+            with jax.enable_x64(True):
+                found[spare] = aj.diagnose.diagnose_step(
+                    [data], NominalDevice.reference(), recommend=False
+                )[0]
+        compiled[spare] = [
+            (r.thread == threading.get_ident(), r.getMessage()) for r in caplog.records
+            if "Finished XLA compilation of jit(wrapped)" in r.getMessage()
+        ]
+    assert found[True].verdict == "unexplained"
+    names = {e["effect"] for e in found[True].ranking}
+    assert {"stop_saturation", "stop_contact"} <= names
+    # The linear and loop-noise fits' programs in the caller's thread, the stops' two in
+    # the background, none twice.
+    assert [main for main, _ in compiled[True]].count(True) == 2
+    assert [main for main, _ in compiled[True]].count(False) == 2
+    assert compiled[False] == []  # every program compiled already, by the first diagnosis
+    first, second = found[True].to_dict(), found[False].to_dict()
+    first.pop("provenance", None), second.pop("provenance", None)
+    assert first == second

@@ -177,11 +177,13 @@ def test_import_layers():
             wrong.append(f"{unit or 'accel_jax'} imports {other or 'accel_jax'} {names}")
     assert wrong == []
     # Process settings stay with the entry points (and the package's import-time hook);
-    # the library may read the CPUs it may run on (`usable_cpus`) and spread independent
-    # calls over them (`thread_map`), which change nothing.
+    # the library may read the CPUs it may run on (`usable_cpus`, `spare_cpu`) and spread
+    # independent calls over them (`thread_map`, `in_background`), which change nothing.
     for unit, targets in graph.items():
         for settings in ("_runtime", "_placement"):
-            names = set(targets.get(settings, ())) - {"usable_cpus", "thread_map"}
+            names = set(targets.get(settings, ())) - {
+                "usable_cpus", "spare_cpu", "thread_map", "in_background"
+            }
             if names and rank[unit] not in (0, rank["cli"]):
                 wrong.append(f"{unit} imports {settings} {sorted(names)}")
     assert wrong == []

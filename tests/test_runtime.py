@@ -265,3 +265,36 @@ def test_thread_map_keeps_order_x64_and_the_first_error(monkeypatch):
 
     with pytest.raises(ValueError, match="item 2"):
         _runtime.thread_map(fails, range(4))
+
+
+def test_spare_cpu_and_background_calls(monkeypatch):
+    """`spare_cpu`: two CPUs or more and a load below their count minus a half (this
+    process's own work counts); `in_background`: the calls in turn on one other thread,
+    under the caller's x64 setting, their futures in order."""
+    import threading
+
+    import jax
+    import jax.numpy as jnp
+
+    from accel_jax import _runtime
+
+    for cpus, load, spare in ((1, 0.0, False), (2, 0.9, True), (2, 1.6, False), (4, 3.0, True)):
+        monkeypatch.setattr(_runtime, "usable_cpus", lambda cpus=cpus: list(range(cpus)))
+        monkeypatch.setattr(_runtime.os, "getloadavg", lambda load=load: (load, load, load))
+        assert _runtime.spare_cpu() is spare, (cpus, load)
+    order = []
+
+    def call(i):
+        def run():
+            order.append(i)
+            return threading.get_ident(), jnp.arange(2.0).dtype
+
+        return run
+
+    with jax.enable_x64(True):
+        futures = _runtime.in_background(*(call(i) for i in range(3)))
+    results = [f.result(timeout=60) for f in futures]
+    assert order == [0, 1, 2]
+    assert len({ident for ident, _ in results}) == 1
+    assert results[0][0] != threading.get_ident()
+    assert all(dtype == jnp.float64 for _, dtype in results)

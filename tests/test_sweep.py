@@ -152,3 +152,48 @@ def test_even_chunk_size_splits_into_fewest_equal_chunks():
         assert chunks * chunk - size < chunks  # less than one padded element per chunk
     with pytest.raises(ValueError, match="must be positive"):
         even_chunk_size(0, 16)
+
+
+def _compiled_here(caplog, run):
+    """`run()`'s result and the XLA compilations of the kernel it logged (not the small
+    programs of the slicing and joining around it)."""
+    import logging
+
+    caplog.clear()
+    with jax.log_compiles(True), caplog.at_level(logging.DEBUG, logger="jax"):
+        out = run()
+    messages = [r.getMessage() for r in caplog.records]
+    return out, [
+        m for m in messages
+        if "Finished XLA compilation" in m and ("_ahead_kernel" in m or "wrapped" in m)
+    ]
+
+
+def _ahead_kernel(params, gain):
+    return aj.damping_ratio(params) * gain + aj.scale_factor(params)
+
+
+@pytest.mark.parametrize("size", [1, 6])
+def test_compile_ahead_leaves_the_sweep_nothing_to_compile(caplog, size):
+    # `compile_ahead` compiles the program a sweep of the same shapes runs (a batch of one
+    # runs unbatched: another program), from arguments read for their shapes only; the
+    # sweep then compiles nothing and gives the values of one that compiled its own.
+    from accel_jax._sweep import compile_ahead
+
+    mus = jnp.linspace(1e-5, 2e-4, size)
+    batch = eqx.filter_vmap(lambda mu: aj.ServoParams.reference(damping=mu))(mus)
+    zeros = jax.tree_util.tree_map(jnp.zeros_like, batch)
+    compile_ahead(_ahead_kernel, zeros, jnp.asarray(2.0), in_axes=(0, None), chunk_size=3)
+    out, compiled = _compiled_here(
+        caplog, lambda: aj.sweep(_ahead_kernel, batch, jnp.asarray(2.0), in_axes=(0, None),
+                                 chunk_size=3)
+    )  # fmt: skip
+    assert compiled == []
+    ref = eqx.filter_jit(eqx.filter_vmap(_ahead_kernel, in_axes=(0, None)))(batch, 2.0)
+    np.testing.assert_array_equal(out, ref)
+    # Another shape is compiled by the sweep itself, as without `compile_ahead`.
+    _, compiled = _compiled_here(
+        caplog, lambda: aj.sweep(_ahead_kernel, batch, jnp.asarray(2.0), in_axes=(0, None),
+                                 chunk_size=2 if size > 1 else 1, desc="other")
+    )  # fmt: skip
+    assert (compiled != []) == (size > 1)

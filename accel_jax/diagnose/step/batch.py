@@ -7,32 +7,47 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..._sweep import even_chunk_size, sweep
+from ..._sweep import compile_ahead, even_chunk_size, sweep
 from .assess import fit_entries
 from .fit import BATCH_CHUNK
 from .record import prior_sigma_of, stack_on_host
 from .state import RecordShape, StepFit, StepRecord
 
 
+def _arguments(nominal, records: list[StepRecord], starts: list[np.ndarray], candidates):
+    """The stage's `sweep` arguments, `in_axes` and chunk size for `records` (one shape)."""
+    args = (
+        nominal.params,
+        jnp.asarray(prior_sigma_of(nominal)),
+        stack_on_host([rec.ctx for rec in records]),
+        stack_on_host([rec.u_out for rec in records]),
+        jnp.asarray(np.stack(starts)),
+        jnp.asarray(candidates),
+    )
+    return args, (None, None, 0, 0, 0, None), even_chunk_size(len(records), BATCH_CHUNK)
+
+
 def _run(fn, nominal, records: list[StepRecord], starts: list[np.ndarray], candidates, desc):
     """Fit `candidates` of `records` (one shape) from `starts` (one array of starts per
     record), batched."""
-    ctx = stack_on_host([rec.ctx for rec in records])
-    u_out = stack_on_host([rec.u_out for rec in records])
-    guesses = jnp.asarray(np.stack(starts))
-    outputs = sweep(
-        fn,
-        nominal.params,
-        jnp.asarray(prior_sigma_of(nominal)),
-        ctx,
-        u_out,
-        guesses,
-        jnp.asarray(candidates),
-        in_axes=(None, None, 0, 0, 0, None),
-        chunk_size=even_chunk_size(len(records), BATCH_CHUNK),
-        desc=desc,
-    )
+    args, in_axes, chunk = _arguments(nominal, records, starts, candidates)
+    outputs = sweep(fn, *args, in_axes=in_axes, chunk_size=chunk, desc=desc)
     return [np.asarray(o) for o in outputs]
+
+
+def compile_grouped(fn, nominal, records: list[StepRecord], shapes: dict[int, tuple], candidates):
+    """Compile, without running, the programs `fit_grouped` will run for the records
+    `shapes` names ({record index: the shape of its starts}): `_sweep.compile_ahead` of
+    each record shape's batch (the starts as zeros: only their shape matters)."""
+    groups: dict[tuple, list[int]] = {}
+    for i, shape in shapes.items():
+        groups.setdefault((records[i].shape, tuple(shape)), []).append(i)
+    for (_, shape), members in groups.items():
+        starts = [np.zeros(shape) for _ in members]
+        args, in_axes, chunk = _arguments(
+            nominal, [records[i] for i in members], starts, candidates
+        )
+        compile_ahead(fn, *args, in_axes=in_axes, chunk_size=chunk)
 
 
 def fit_grouped(
