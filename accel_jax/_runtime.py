@@ -254,18 +254,32 @@ def thread_map(fn, items) -> list:
 
 def spare_cpu() -> bool:
     """Whether this process has a CPU that nothing else is using now: at least two usable
-    CPUs (`usable_cpus`) and, where the OS reports it, a one-minute load average (this
-    process's own work included) below their count minus a half. For work that only saves
-    time on an idle CPU (compiling a later stage's program ahead, which may not be needed);
-    it changes no result."""
+    CPUs (`usable_cpus`) and fewer runnable threads on the machine, the caller's included,
+    than their count (Linux: `/proc/loadavg`'s running count, read at once; elsewhere the
+    one-minute load average below the count minus a half). For work that only saves time
+    on an idle CPU (compiling a later stage's program ahead, which may not be needed); it
+    changes no result."""
     cpus = len(usable_cpus())
     if cpus < 2:
         return False
+    running = _running_threads()
+    if running is not None:
+        return running < cpus
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):  # not on every OS
         return True
     return load < cpus - 0.5
+
+
+def _running_threads() -> int | None:
+    """The machine's runnable threads now (`/proc/loadavg`'s fourth field, before the
+    slash), or None where there is no such file."""
+    try:
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def in_background(*calls):

@@ -268,8 +268,9 @@ def test_thread_map_keeps_order_x64_and_the_first_error(monkeypatch):
 
 
 def test_spare_cpu_and_background_calls(monkeypatch):
-    """`spare_cpu`: two CPUs or more and a load below their count minus a half (this
-    process's own work counts); `in_background`: the calls in turn on one other thread,
+    """`spare_cpu`: two CPUs or more and fewer runnable threads than CPUs (the caller's
+    counts), or without /proc/loadavg a load below their count minus a half;
+    `in_background`: the calls in turn on one other thread,
     under the caller's x64 setting, their futures in order."""
     import threading
 
@@ -278,6 +279,13 @@ def test_spare_cpu_and_background_calls(monkeypatch):
 
     from accel_jax import _runtime
 
+    assert isinstance(_runtime._running_threads(), int)  # this machine: Linux
+    for cpus, running, spare in ((1, 1, False), (2, 1, True), (2, 2, False), (4, 3, True)):
+        monkeypatch.setattr(_runtime, "usable_cpus", lambda cpus=cpus: list(range(cpus)))
+        monkeypatch.setattr(_runtime, "_running_threads", lambda running=running: running)
+        assert _runtime.spare_cpu() is spare, (cpus, running)
+    # Without /proc/loadavg, the one-minute load average.
+    monkeypatch.setattr(_runtime, "_running_threads", lambda: None)
     for cpus, load, spare in ((1, 0.0, False), (2, 0.9, True), (2, 1.6, False), (4, 3.0, True)):
         monkeypatch.setattr(_runtime, "usable_cpus", lambda cpus=cpus: list(range(cpus)))
         monkeypatch.setattr(_runtime.os, "getloadavg", lambda load=load: (load, load, load))
