@@ -118,9 +118,9 @@ def diagnose_step(
         records[i] = records[i].with_note(DOMAIN_NOTE)
     # Every record's linear fits (the nominal's alone outside the model family).
     fits: list[list[StepFit]] = [entries[i] for i in range(len(records))]
-    # The stops' programs compiled meanwhile on a spare CPU, for the records that no
-    # linear fit explains so far (`_compile_stops_ahead`).
-    ahead = _compile_stops_ahead(fits, records, nominal, nonlinear, clamp, contact)
+    # The later stages' programs compiled meanwhile on a spare CPU, for the records that no
+    # linear fit explains so far (`_compile_ahead`).
+    ahead = _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact)
     # Each from the best one's nuisances too, where one ended far below another.
     _restart_from_best(fits, records, effects, linear, nominal)
     # Nested fits never lose: an effect at z = 0 is the nominal model, so a linear
@@ -144,6 +144,7 @@ def diagnose_step(
     # Noise inside the loop, for the records that no deterministic linear model explains:
     # from its own starts (the nominal fit's device and nuisances), from the output noise's
     # fit (its two parameters have the same meaning) and from the nominal optimum.
+    _wait(ahead, "moment")
     _fit_loop_noise(fits, records, effects, loop_noise, nominal)
     # The stop candidate, for the records that no linear model explains.
     stop_starts = {}
@@ -168,7 +169,7 @@ def diagnose_step(
             )
             stop_starts[i] = np.concatenate([guesses, at_nominal], axis=1)
     rows = {i: nonlinear.index(i) for i in nonlinear}  # each one's row of the guesses
-    _wait(ahead[:1])
+    _wait(ahead, "clamp")
     entries = _fit_grouped(
         fit_nonlinear, nominal, records,
         {i: s[[rows[c] for c in clamp]] for i, s in stop_starts.items()}, clamp, effects,
@@ -197,7 +198,7 @@ def diagnose_step(
                 moved[..., W.EFFECT.start + 3] = z_damping
                 starts.append(moved)
         contact_starts[i] = np.concatenate(starts + [at_nominal], axis=1)
-    _wait(ahead)
+    _wait(ahead, "contact")
     entries = _fit_grouped(
         fit_contact, nominal, records, contact_starts, contact, effects,
         "diagnose step (compliant stops)",
@@ -271,27 +272,30 @@ def _stages(effects) -> tuple[list[int], list[int], list[int], list[int], list[i
     return linear, loop_noise, nonlinear, clamp, contact
 
 
-def _compile_stops_ahead(fits, records, nominal, nonlinear, clamp, contact) -> list:
-    """Where a CPU is spare (`_runtime.spare_cpu`), the stops' programs (`fit_nonlinear`,
-    then `fit_contact`) compiled on a background thread, for the records that no linear
-    fit explains after the first linear fits (the stop stage's own test), while the
-    restarts, the rescaled fits and the loop-noise fits run: their futures (none where
-    nothing is compiled ahead). The starts' shapes are the stages' (the contact's with the
-    clamp's fit among its starts, as on a record that the clamp does not explain). A stage
-    waits for its future and then finds its program compiled; where a shape differs it
-    compiles its own, as without this. A record that a later fit explains (or, for the
-    contact, the clamp) has had its program compiled for nothing, on the spare CPU. The
-    results do not change: the same programs, compiled earlier. (On a 6,000-sample record
-    the compliant stops' program compiles in about 20 s, the clamp's in 5.5 s.)"""
-    if not nonlinear or not spare_cpu():
-        return []
+def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact) -> dict:
+    """Where a CPU is spare (`_runtime.spare_cpu`), the later stages' programs compiled in
+    turn on a background thread — the loop noise's (`fit_moment`), the clamp's
+    (`fit_nonlinear`), the compliant contact's (`fit_contact`) — for the records that no
+    linear fit explains after the first linear fits (the later stages' own test), while
+    the restarts, the rescaled fits and the earlier stages run: {stage: its future}
+    (`moment`, `clamp`, `contact`; empty where nothing is compiled ahead). The starts'
+    shapes are the stages' (the contact's with the clamp's fit among its starts, as on a
+    record that the clamp does not explain). A stage waits for its future and then finds
+    its program compiled; where a shape differs it compiles its own, as without this. A
+    record that a later fit explains (or, for the contact, the clamp) has had its program
+    compiled for nothing, on the spare CPU. The results do not change: the same programs,
+    compiled earlier. (On a 6,000-sample record the contact's program compiles in about
+    20 s, the clamp's and the loop noise's in 5–6 s.)"""
+    if not (loop_noise or clamp or contact) or not spare_cpu():
+        return {}
+    moment = _loop_noise_starts(fits, records, effects, loop_noise) if loop_noise else {}
     needed = [
         i for i, rec in enumerate(records)
         if not rec.domain_problems
         and not any(explains_deterministically(f, rec) for f in fits[i])
     ]
     if not needed:
-        return []
+        return {}
 
     def shapes(n_candidates, extra):
         out = {}
@@ -300,20 +304,29 @@ def _compile_stops_ahead(fits, records, nominal, nonlinear, clamp, contact) -> l
             out[i] = (n_candidates, starts + extra + 1, size)  # + 1: the nominal optimum
         return out
 
-    calls = []
+    def compile_for(fn, starts, candidates):
+        return lambda: compile_grouped(fn, nominal, records, starts, candidates)
+
+    calls = {}
+    if moment:
+        calls["moment"] = compile_for(
+            fit_moment, {i: s.shape for i, s in moment.items()}, loop_noise
+        )
     if clamp:
-        stops = shapes(len(clamp), 0)
-        calls.append(lambda: compile_grouped(fit_nonlinear, nominal, records, stops, clamp))
+        calls["clamp"] = compile_for(fit_nonlinear, shapes(len(clamp), 0), clamp)
     if contact:
-        contacts = shapes(len(contact), len(CONTACT_GRID))
-        calls.append(lambda: compile_grouped(fit_contact, nominal, records, contacts, contact))
-    return in_background(*calls)
+        calls["contact"] = compile_for(
+            fit_contact, shapes(len(contact), len(CONTACT_GRID)), contact
+        )
+    return dict(zip(calls, in_background(*calls.values()), strict=True))
 
 
-def _wait(futures) -> None:
-    """Wait for `futures` (of `_compile_stops_ahead`); a compile that failed there fails
-    again, with its message, where the stage compiles its own program."""
-    concurrent.futures.wait(futures)
+def _wait(ahead: dict, stage: str) -> None:
+    """Wait for the compile of `stage` that `_compile_ahead` started, if any (the ones
+    before it run first, on the same thread); a compile that failed there fails again,
+    with its message, where the stage compiles its own program."""
+    if stage in ahead:
+        concurrent.futures.wait([ahead[stage]])
 
 
 def _fit_loop_noise(fits, records: list[StepRecord], effects, loop_noise, nominal) -> None:
@@ -321,6 +334,18 @@ def _fit_loop_noise(fits, records: list[StepRecord], effects, loop_noise, nomina
     deterministic linear model explains; their fits are appended to `fits` in place."""
     if not loop_noise:
         return
+    entries = _fit_grouped(
+        fit_moment, nominal, records, _loop_noise_starts(fits, records, effects, loop_noise),
+        loop_noise, effects, "diagnose step (noise inside the loop)",
+    )
+    for i, record_fits in entries.items():
+        fits[i] = fits[i] + record_fits
+
+
+def _loop_noise_starts(fits, records: list[StepRecord], effects, loop_noise) -> dict:
+    """{record index: the loop-noise candidates' starts} of the records that no
+    deterministic linear model explains: their own, the nominal optimum, and the output
+    noise's fit (its two parameters have the same meaning)."""
     chosen = [effects[i - 1] for i in loop_noise]
     starts = {}
     for i, rec in enumerate(records):
@@ -337,12 +362,7 @@ def _fit_loop_noise(fits, records: list[StepRecord], effects, loop_noise, nomina
             np.stack(extra)[None], (own.shape[0], len(extra), own.shape[2])
         )
         starts[i] = np.concatenate([own, extra_rows], axis=1)
-    entries = _fit_grouped(
-        fit_moment, nominal, records, starts, loop_noise, effects,
-        "diagnose step (noise inside the loop)",
-    )
-    for i, record_fits in entries.items():
-        fits[i] = fits[i] + record_fits
+    return starts
 
 
 NESTED_RESTARTS = 2
