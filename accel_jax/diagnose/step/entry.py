@@ -273,19 +273,19 @@ def _stages(effects) -> tuple[list[int], list[int], list[int], list[int], list[i
 
 
 def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact) -> dict:
-    """Where a CPU is spare (`_runtime.spare_cpu`), the later stages' programs compiled in
-    turn on a background thread — the loop noise's (`fit_moment`), the clamp's
-    (`fit_nonlinear`), the compliant contact's (`fit_contact`) — for the records that no
-    linear fit explains after the first linear fits (the later stages' own test), while
-    the restarts, the rescaled fits and the earlier stages run: {stage: its future}
-    (`moment`, `clamp`, `contact`; empty where nothing is compiled ahead). The starts'
-    shapes are the stages' (the contact's with the clamp's fit among its starts, as on a
-    record that the clamp does not explain). A stage waits for its future and then finds
-    its program compiled; where a shape differs it compiles its own, as without this. A
-    record that a later fit explains (or, for the contact, the clamp) has had its program
-    compiled for nothing, on the spare CPU. The results do not change: the same programs,
-    compiled earlier. (On a 6,000-sample record the contact's program compiles in about
-    20 s, the clamp's and the loop noise's in 5–6 s.)"""
+    """Where a CPU is spare (`_runtime.spare_cpu`), the later stages' programs compiled on
+    background threads — the loop noise's (`fit_moment`) and then the clamp's
+    (`fit_nonlinear`) on one, the compliant contact's (`fit_contact`) on another — for the
+    records that no linear fit explains after the first linear fits (the later stages'
+    own test), while the restarts, the rescaled fits and the earlier stages run:
+    {stage: its future} (`moment`, `clamp`, `contact`; empty where nothing is compiled
+    ahead). The starts' shapes are the stages' (the contact's with the clamp's fit among
+    its starts, as on a record that the clamp does not explain). A stage waits for its
+    future and then finds its program compiled; where a shape differs it compiles its
+    own, as without this. A record that a later fit explains (or, for the contact, the
+    clamp) has had its program compiled for nothing, on the spare CPU. The results do not
+    change: the same programs, compiled earlier. (On a 6,000-sample record the contact's
+    program compiles in about 20 s, the clamp's and the loop noise's in 5–6 s.)"""
     if not (loop_noise or clamp or contact) or not spare_cpu():
         return {}
     moment = _loop_noise_starts(fits, records, effects, loop_noise) if loop_noise else {}
@@ -318,13 +318,19 @@ def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact) 
         calls["contact"] = compile_for(
             fit_contact, shapes(len(contact), len(CONTACT_GRID)), contact
         )
-    return dict(zip(calls, in_background(*calls.values()), strict=True))
+    # Two threads: the contact's program, the longest, beside the two others in turn (the
+    # caller's own thread mostly waits for them).
+    first = [stage for stage in calls if stage != "contact"]
+    futures = dict(zip(first, in_background(*(calls[stage] for stage in first)), strict=True))
+    if "contact" in calls:
+        futures["contact"] = in_background(calls["contact"])[0]
+    return futures
 
 
 def _wait(ahead: dict, stage: str) -> None:
-    """Wait for the compile of `stage` that `_compile_ahead` started, if any (the ones
-    before it run first, on the same thread); a compile that failed there fails again,
-    with its message, where the stage compiles its own program."""
+    """Wait for the compile of `stage` that `_compile_ahead` started, if any; a compile
+    that failed there fails again, with its message, where the stage compiles its own
+    program."""
     if stage in ahead:
         concurrent.futures.wait([ahead[stage]])
 
