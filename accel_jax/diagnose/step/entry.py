@@ -120,7 +120,7 @@ def diagnose_step(
     fits: list[list[StepFit]] = [entries[i] for i in range(len(records))]
     # The later stages' programs compiled meanwhile on a spare CPU, for the records that no
     # linear fit explains so far (`_compile_ahead`).
-    ahead = _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact)
+    ahead = _compile_ahead(fits, records, nominal, effects, loop_noise, clamp)
     # Each from the best one's nuisances too, where one ended far below another.
     _restart_from_best(fits, records, effects, linear, nominal)
     # Nested fits never lose: an effect at z = 0 is the nominal model, so a linear
@@ -198,7 +198,6 @@ def diagnose_step(
                 moved[..., W.EFFECT.start + 3] = z_damping
                 starts.append(moved)
         contact_starts[i] = np.concatenate(starts + [at_nominal], axis=1)
-    _wait(ahead, "contact")
     entries = _fit_grouped(
         fit_contact, nominal, records, contact_starts, contact, effects,
         "diagnose step (compliant stops)",
@@ -272,21 +271,21 @@ def _stages(effects) -> tuple[list[int], list[int], list[int], list[int], list[i
     return linear, loop_noise, nonlinear, clamp, contact
 
 
-def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact) -> dict:
-    """Where a CPU is spare (`_runtime.spare_cpu`), the later stages' programs compiled on
-    background threads — the loop noise's (`fit_moment`) and then the clamp's
-    (`fit_nonlinear`) on one, the compliant contact's (`fit_contact`) on another — for the
-    records that no linear fit explains after the first linear fits (the later stages'
-    own test), while the restarts, the rescaled fits and the earlier stages run:
-    {stage: its future} (`moment`, `clamp`, `contact`; empty where nothing is compiled
-    ahead). The starts' shapes are the stages' (the contact's with the clamp's fit among
-    its starts, as on a record that the clamp does not explain). A stage waits for its
-    future and then finds its program compiled; where a shape differs it compiles its
-    own, as without this. A record that a later fit explains (or, for the contact, the
-    clamp) has had its program compiled for nothing, on the spare CPU. The results do not
-    change: the same programs, compiled earlier. (On a 6,000-sample record the contact's
-    program compiles in about 20 s, the clamp's and the loop noise's in 5–6 s.)"""
-    if not (loop_noise or clamp or contact) or not spare_cpu():
+def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp) -> dict:
+    """Where a CPU is spare (`_runtime.spare_cpu`), the loop noise's program (`fit_moment`)
+    and then the clamp's (`fit_nonlinear`) compiled on a background thread, for the
+    records that no linear fit explains after the first linear fits (both stages' own
+    test), while the restarts, the rescaled fits and the loop-noise stage run: {stage: its
+    future} (`moment`, `clamp`; empty where nothing is compiled ahead). The starts' shapes
+    are the stages'. A stage waits for its future and then finds its program compiled;
+    where a shape differs it compiles its own, as without this. A record that a restart
+    or a rescaled fit explains has had them compiled for nothing, on the spare CPU. The
+    results do not change: the same programs, compiled earlier (5–6 s each on a
+    6,000-sample record). The compliant contact's program (about 20 s) is not compiled
+    ahead: it is needed only where the clamp does not explain the record, and compiled
+    beside the clamp's fits it made a record that the clamp explains 14 s slower (77.2
+    against 63.6 s, one run each)."""
+    if not (loop_noise or clamp) or not spare_cpu():
         return {}
     moment = _loop_noise_starts(fits, records, effects, loop_noise) if loop_noise else {}
     needed = [
@@ -297,12 +296,9 @@ def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact) 
     if not needed:
         return {}
 
-    def shapes(n_candidates, extra):
-        out = {}
-        for i in needed:
-            _, starts, size = records[i].guesses_nonlinear.shape
-            out[i] = (n_candidates, starts + extra + 1, size)  # + 1: the nominal optimum
-        return out
+    def clamp_shape(i):
+        _, starts, size = records[i].guesses_nonlinear.shape
+        return (len(clamp), starts + 1, size)  # + 1: the nominal optimum
 
     def compile_for(fn, starts, candidates):
         return lambda: compile_grouped(fn, nominal, records, starts, candidates)
@@ -313,18 +309,10 @@ def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp, contact) 
             fit_moment, {i: s.shape for i, s in moment.items()}, loop_noise
         )
     if clamp:
-        calls["clamp"] = compile_for(fit_nonlinear, shapes(len(clamp), 0), clamp)
-    if contact:
-        calls["contact"] = compile_for(
-            fit_contact, shapes(len(contact), len(CONTACT_GRID)), contact
+        calls["clamp"] = compile_for(
+            fit_nonlinear, {i: clamp_shape(i) for i in needed}, clamp
         )
-    # Two threads: the contact's program, the longest, beside the two others in turn (the
-    # caller's own thread mostly waits for them).
-    first = [stage for stage in calls if stage != "contact"]
-    futures = dict(zip(first, in_background(*(calls[stage] for stage in first)), strict=True))
-    if "contact" in calls:
-        futures["contact"] = in_background(calls["contact"])[0]
-    return futures
+    return dict(zip(calls, in_background(*calls.values()), strict=True))
 
 
 def _wait(ahead: dict, stage: str) -> None:
