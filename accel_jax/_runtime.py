@@ -239,17 +239,24 @@ def thread_map(fn, items) -> list:
     workers = min(len(items), len(usable_cpus()))
     if workers < 2:
         return [fn(item) for item in items]
-    import jax
     from concurrent.futures import ThreadPoolExecutor
 
-    x64 = bool(jax.config.read("jax_enable_x64"))  # the caller's, thread-local setting included
-
-    def one(item):
-        with jax.enable_x64(x64):
-            return fn(item)
-
     with ThreadPoolExecutor(workers) as pool:
-        return list(pool.map(one, items))
+        return list(pool.map(_under_callers_x64(fn), items))
+
+
+def _under_callers_x64(fn):
+    """`fn`, to be called on another thread, under the x64 setting of the thread that
+    wraps it (`jax.enable_x64` is thread-local: a new thread would see the global one)."""
+    import jax
+
+    x64 = bool(jax.config.read("jax_enable_x64"))
+
+    def under(*args):
+        with jax.enable_x64(x64):
+            return fn(*args)
+
+    return under
 
 
 def spare_cpu() -> bool:
@@ -286,20 +293,10 @@ def in_background(*calls):
     """Each of `calls` (functions of no arguments) run in turn on one background thread,
     under the caller's x64 setting: their `concurrent.futures.Future`s, in order. The
     thread ends after the last call."""
-    import jax
     from concurrent.futures import ThreadPoolExecutor
 
-    x64 = bool(jax.config.read("jax_enable_x64"))
-
-    def under_x64(call):
-        def run():
-            with jax.enable_x64(x64):
-                return call()
-
-        return run
-
     pool = ThreadPoolExecutor(1)
-    futures = [pool.submit(under_x64(call)) for call in calls]
+    futures = [pool.submit(_under_callers_x64(call)) for call in calls]
     pool.shutdown(wait=False)
     return futures
 
