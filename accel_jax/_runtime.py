@@ -227,6 +227,27 @@ def usable_cpus() -> list[int]:
     return list(range(os.cpu_count() or 1))
 
 
+REPORT_CPUS_ENV = "ACCEL_JAX_REPORT_CPUS"
+"""The CPUs of the whole report (comma-separated), set by the report for its study processes
+before it pins each to its share (`report._run.worker_cpus`)."""
+
+
+def report_cpus() -> list[int]:
+    """The CPUs of the run this process belongs to: those the report had before it pinned
+    each study to its share of them (`REPORT_CPUS_ENV`), else this process's own
+    (`usable_cpus`). For a study's run-bound child processes, which may still be running
+    when the other studies have finished and left their CPUs idle."""
+    text = os.environ.get(REPORT_CPUS_ENV, "").strip()
+    if text:
+        try:
+            cpus = sorted({int(c) for c in text.split(",")})
+        except ValueError:
+            cpus = []
+        if cpus and all(c >= 0 for c in cpus):
+            return cpus
+    return usable_cpus()
+
+
 def thread_map(fn, items) -> list:
     """`[fn(item) for item in items]`, the calls spread over as many threads as the process
     has CPUs (`usable_cpus`; one thread, in the caller, for a pinned job or a single item).

@@ -57,6 +57,51 @@ out = {}
 """
 
 
+def run_blind_side_by_side(code: str, groups: list[list[str]], cpus: list[int]) -> list[dict]:
+    """`run_blind(code, *group)` for every group at once, each in its own fresh process
+    allowed on every CPU of `cpus` (the operating system balances them); the JSON each
+    writes, in `groups`' order. A failure in one stops the others and raises
+    `subprocess.CalledProcessError`."""
+    import os
+
+    root = Path(__file__).resolve().parent.parent
+    with tempfile.TemporaryDirectory() as tmp:
+        outs = [Path(tmp) / f"rows_{i}.json" for i in range(len(groups))]
+        # A child inherits the calling thread's CPU mask: set for the spawns, then restored
+        # (not a `preexec_fn`, which would fork this multithreaded process).
+        pinned = hasattr(os, "sched_setaffinity")
+        before = os.sched_getaffinity(0) if pinned else None
+        procs = []
+        try:
+            if pinned:
+                try:
+                    os.sched_setaffinity(0, cpus)
+                except OSError:  # not permitted: the children keep this process's CPUs
+                    pass
+            for out, group in zip(outs, groups, strict=True):
+                command = [sys.executable, "-c", code, str(out), *group]
+                procs.append(subprocess.Popen(command, cwd=root))
+        finally:
+            if pinned:
+                os.sched_setaffinity(0, before)
+        failed = None
+        try:
+            for proc in procs:
+                if proc.wait() != 0 and failed is None:
+                    failed = proc
+                    for other in procs:
+                        if other.poll() is None:
+                            other.kill()
+        finally:
+            for proc in procs:  # no child outlives this call
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+        if failed is not None:
+            raise subprocess.CalledProcessError(failed.returncode, failed.args)
+        return [json.loads(out.read_text()) for out in outs]
+
+
 def run_blind(code: str, *args: str) -> dict:
     """Run `code` (a harness's diagnosing script) in a fresh Python process, in the
     repository root, as `python -c code OUT *args`, and return the JSON it writes to OUT.

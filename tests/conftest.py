@@ -229,6 +229,8 @@ def _run_study_scripts(root: Path, names, jobs: int = 2) -> dict:
 
     studies_dir = Path(__file__).resolve().parent.parent / "studies"
     env = _user_environment()
+    # As the report's workers have it: the CPUs of the whole run, before the pinning.
+    env["ACCEL_JAX_REPORT_CPUS"] = ",".join(map(str, usable_cpus()))
     status, running, queue = {}, {}, list(names)
     free = list(range(1, jobs + 1))
     while queue or running:

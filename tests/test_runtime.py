@@ -267,6 +267,30 @@ def test_thread_map_keeps_order_x64_and_the_first_error(monkeypatch):
         _runtime.thread_map(fails, range(4))
 
 
+def test_report_cpus_are_the_reports_before_its_pinning(monkeypatch):
+    """`report_cpus`: the CPUs the report set for its studies (`ACCEL_JAX_REPORT_CPUS`,
+    comma-separated), else the process's own; a malformed value is ignored. A report worker
+    (`_init_worker`) sets it to the CPUs it had before pinning itself to its share."""
+    from accel_jax import _runtime
+    from accel_jax.report import _run
+
+    monkeypatch.setattr(_runtime, "usable_cpus", lambda: [3])
+    monkeypatch.delenv(_runtime.REPORT_CPUS_ENV, raising=False)
+    assert _runtime.report_cpus() == [3]
+    for text, cpus in (("0,1", [0, 1]), (" 2, 0,2 ", [0, 2]), ("x", [3]), ("-1", [3]), ("", [3])):
+        monkeypatch.setenv(_runtime.REPORT_CPUS_ENV, text)
+        assert _runtime.report_cpus() == cpus, text
+    monkeypatch.delenv(_runtime.REPORT_CPUS_ENV)
+    pinned = []
+    monkeypatch.setattr(_run, "usable_cpus", lambda: [0, 1])
+    monkeypatch.setattr(_run.os, "sched_setaffinity", lambda pid, cpus: pinned.append(cpus))
+    monkeypatch.setattr(_run, "apply_device", lambda **options: None)
+    monkeypatch.setattr(_run.jax.config, "update", lambda *args: None)
+    monkeypatch.setattr("tqdm.auto.tqdm.set_lock", lambda lock: None)
+    _run._init_worker(True, None, 2, 2)
+    assert pinned == [[1]] and os.environ[_runtime.REPORT_CPUS_ENV] == "0,1"
+
+
 def test_spare_cpu_and_background_calls(monkeypatch):
     """`spare_cpu`: two CPUs or more and fewer runnable threads than CPUs (the caller's
     counts), or without /proc/loadavg a load below their count minus a half;

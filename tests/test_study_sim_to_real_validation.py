@@ -94,6 +94,54 @@ def test_blind_diagnosis_finds_relative_folders_from_any_working_folder(tmp_path
     assert answers["noise"][0]["verdict"] == "none"
 
 
+@pytest.mark.slow
+def test_the_blind_diagnosis_side_by_side_gives_the_one_process_verdicts(tmp_path):
+    # The report's longest part: its folders in one process per CPU, side by side
+    # (`diagnose_blind` with two CPUs), and in one process: the same answers, field for
+    # field (a folder is one `diagnose_many` call in either). One record of each class of
+    # the two cheap kinds.
+    module = _load("sim_to_real_validation")
+    rng = np.random.default_rng(1)
+    folders = []
+    for kind in ("vibration", "noise"):
+        truths = module._kind_truths(kind, rng, {c: 1 for c in module.CLASSES[kind]})
+        records, _ = module._generate(kind, truths, 7)
+        folder = tmp_path / kind
+        folder.mkdir()
+        for i, record in enumerate(records):
+            aj.write_csv(folder / f"{kind}_{i:04d}.csv", record)
+        folders.append(folder)
+    assert len(module.folder_groups(folders, 2)) == 2
+    apart = module.diagnose_blind(folders, cpus=[0, 1])
+    together = module.diagnose_blind(folders, cpus=[0])
+    assert set(apart.pop("_seconds")) == set(together.pop("_seconds")) == {"vibration", "noise"}
+    assert apart == together
+    assert [len(apart[k]) for k in ("vibration", "noise")] == [
+        len(module.CLASSES[k]) for k in ("vibration", "noise")
+    ]
+
+
+def test_folder_groups_balance_the_expected_seconds(tmp_path):
+    module = _load("sim_to_real_validation")
+    counts = {"step": 20, "step_independent": 10, "vibration": 30, "noise": 40}
+    folders = []
+    for kind, n in counts.items():
+        (tmp_path / kind).mkdir()
+        for i in range(n):
+            (tmp_path / kind / f"{i}.csv").write_text("")
+        folders.append(tmp_path / kind)
+    cost = {k: n * module.SECONDS_PER_RECORD[k] for k, n in counts.items()}
+    groups = module.folder_groups(folders, 2)
+    # Every folder once, whole, in the given order within its group; the two groups'
+    # costs no further apart than the largest folder's.
+    assert sorted(f.name for g in groups for f in g) == sorted(counts)
+    assert all(g == sorted(g, key=folders.index) for g in groups)
+    totals = [sum(cost[f.name] for f in g) for g in groups]
+    assert abs(totals[0] - totals[1]) <= max(cost.values())
+    assert module.folder_groups(folders, 1) == [folders]
+    assert len(module.folder_groups(folders[:1], 4)) == 1
+
+
 def test_score_gives_every_verdict_a_column_in_every_row(tmp_path):
     # A verdict outside the scored classes (stop_contact, the compliant member of the stop
     # family) must have a column in every row of the confusion matrix, and the open-world

@@ -34,7 +34,7 @@ import numpy as np
 from .._io import _atomic_write_bytes
 from .._placement import apply_device
 from .._progress import bar, show_progress
-from .._runtime import usable_cpus
+from .._runtime import REPORT_CPUS_ENV, usable_cpus
 from ._html import REPORT_MARKER, build_report
 
 MARKER = ".accel_jax_run.json"
@@ -239,7 +239,10 @@ def _init_worker(x64: bool, lock, slot: int, jobs: int = 1) -> None:
     """A study process: the parent's float64 setting and device choice (inherited through
     `ACCEL_JAX_DEVICE`), the shared terminal lock for the bars, and its share of the CPUs
     (`worker_cpus`; set before JAX starts its backend, whose thread pool follows it)."""
-    share = worker_cpus(slot, jobs, usable_cpus())
+    cpus = usable_cpus()
+    share = worker_cpus(slot, jobs, cpus)
+    # The report's CPUs, for the study's child processes (`_runtime.report_cpus`).
+    os.environ.setdefault(REPORT_CPUS_ENV, ",".join(map(str, cpus)))
     if share is not None and hasattr(os, "sched_setaffinity"):
         try:
             os.sched_setaffinity(0, share)
