@@ -63,6 +63,7 @@ def run_blind_side_by_side(code: str, groups: list[list[str]], cpus: list[int]) 
     writes, in `groups`' order. A failure in one stops the others and raises
     `subprocess.CalledProcessError`."""
     import os
+    import time
 
     root = Path(__file__).resolve().parent.parent
     with tempfile.TemporaryDirectory() as tmp:
@@ -86,12 +87,11 @@ def run_blind_side_by_side(code: str, groups: list[list[str]], cpus: list[int]) 
                 os.sched_setaffinity(0, before)
         failed = None
         try:
-            for proc in procs:
-                if proc.wait() != 0 and failed is None:
-                    failed = proc
-                    for other in procs:
-                        if other.poll() is None:
-                            other.kill()
+            # Polled, not waited for in turn: a child that fails stops the others at once.
+            while failed is None and any(proc.poll() is None for proc in procs):
+                failed = next((p for p in procs if p.poll() not in (None, 0)), None)
+                time.sleep(0.2)
+            failed = failed or next((p for p in procs if p.returncode != 0), None)
         finally:
             for proc in procs:  # no child outlives this call
                 if proc.poll() is None:

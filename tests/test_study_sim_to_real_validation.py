@@ -121,6 +121,30 @@ def test_the_blind_diagnosis_side_by_side_gives_the_one_process_verdicts(tmp_pat
     ]
 
 
+def test_a_failing_side_by_side_process_stops_the_others(tmp_path):
+    # One child exits with an error while the other would sleep for a minute: the error is
+    # raised at once and no child outlives the call.
+    import subprocess
+    import sys
+    import time
+
+    sys.path.insert(0, str(ROOT / "studies"))
+    from shards import run_blind_side_by_side
+
+    code = (
+        "import pathlib, sys, time\n"
+        "if sys.argv[2] == 'bad': sys.exit(3)\n"
+        "time.sleep(60); pathlib.Path(sys.argv[1]).write_text('{}')\n"
+    )
+    started = time.monotonic()
+    with pytest.raises(subprocess.CalledProcessError) as raised:
+        run_blind_side_by_side(code, [["good"], ["bad"]], [0])
+    assert raised.value.returncode == 3
+    assert time.monotonic() - started < 30
+    ok = "import json, pathlib, sys\npathlib.Path(sys.argv[1]).write_text(json.dumps(sys.argv[2:]))"
+    assert run_blind_side_by_side(ok, [["a", "b"], ["c"]], [0]) == [["a", "b"], ["c"]]
+
+
 def test_folder_groups_balance_the_expected_seconds(tmp_path):
     module = _load("sim_to_real_validation")
     counts = {"step": 20, "step_independent": 10, "vibration": 30, "noise": 40}
