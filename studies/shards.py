@@ -57,11 +57,13 @@ out = {}
 """
 
 
-def run_blind_side_by_side(code: str, groups: list[list[str]], cpus: list[int]) -> list[dict]:
+def run_blind_side_by_side(
+    code: str, groups: list[list[str]], cpus: list[int] | None = None
+) -> list[dict]:
     """`run_blind(code, *group)` for every group at once, each in its own fresh process
-    allowed on every CPU of `cpus` (the operating system balances them); the JSON each
-    writes, in `groups`' order. A failure in one stops the others and raises
-    `subprocess.CalledProcessError`."""
+    allowed on every CPU of `cpus` (the operating system balances them; `None`: this
+    process's CPUs); the JSON each writes, in `groups`' order. A failure in one stops the
+    others and raises `subprocess.CalledProcessError`."""
     import os
     import time
 
@@ -70,7 +72,7 @@ def run_blind_side_by_side(code: str, groups: list[list[str]], cpus: list[int]) 
         outs = [Path(tmp) / f"rows_{i}.json" for i in range(len(groups))]
         # A child inherits the calling thread's CPU mask: set for the spawns, then restored
         # (not a `preexec_fn`, which would fork this multithreaded process).
-        pinned = hasattr(os, "sched_setaffinity")
+        pinned = cpus is not None and hasattr(os, "sched_setaffinity")
         before = os.sched_getaffinity(0) if pinned else None
         procs = []
         try:
@@ -107,11 +109,4 @@ def run_blind(code: str, *args: str) -> dict:
     repository root, as `python -c code OUT *args`, and return the JSON it writes to OUT.
     The child sees only what `args` name (the records' files), never the truth; a failure
     in it raises `subprocess.CalledProcessError`."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "rows.json"
-        subprocess.run(
-            [sys.executable, "-c", code, str(out), *args],
-            check=True,
-            cwd=Path(__file__).resolve().parent.parent,
-        )
-        return json.loads(out.read_text())
+    return run_blind_side_by_side(code, [list(args)])[0]

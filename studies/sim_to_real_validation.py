@@ -63,12 +63,7 @@ from accel_jax.report import (  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import step_truth  # noqa: E402  (the independent truth simulator, beside this study)
-from shards import (  # noqa: E402
-    parse_shard,
-    run_blind,
-    run_blind_side_by_side,
-    shard_indices,
-)
+from shards import parse_shard, run_blind_side_by_side, shard_indices  # noqa: E402
 from verdict_family import family  # noqa: E402
 
 STUDY = "sim_to_real_validation"
@@ -612,11 +607,10 @@ def diagnose_blind(folders: list[Path], cpus: list[int] | None = None) -> dict[s
     groups = [
         [str(Path(f).resolve()) for f in group] for group in folder_groups(folders, len(cpus))
     ]
-    if len(groups) == 1:
-        return run_blind(_DIAGNOSE_CODE, *groups[0])
     answer: dict = {}
     seconds: dict = {}
-    for part in run_blind_side_by_side(_DIAGNOSE_CODE, groups, cpus):
+    # (One group: the child keeps this process's CPUs, as `run_blind`'s does.)
+    for part in run_blind_side_by_side(_DIAGNOSE_CODE, groups, cpus if len(groups) > 1 else None):
         seconds.update(part.pop("_seconds", {}))
         answer.update(part)
     answer["_seconds"] = seconds
