@@ -322,6 +322,25 @@ def in_background(*calls):
     return futures
 
 
+def beside(*calls):
+    """Each of `calls` (functions of no arguments) started beside the caller's next work:
+    in turn on one background thread where this process has two CPUs or more
+    (`usable_cpus`, `in_background`), else here, in turn, at once (an error raised here,
+    as the call itself would). Their `Future`s, in order: `result()` gives a call's value
+    or raises its error. For independent work whose results do not depend on where it
+    runs: the same calls, the same results."""
+    from concurrent.futures import Future
+
+    if len(usable_cpus()) >= 2:
+        return in_background(*calls)
+    futures = []
+    for call in calls:
+        future: Future = Future()
+        future.set_result(call())
+        futures.append(future)
+    return futures
+
+
 CACHE_ENV = "ACCEL_JAX_CACHE_DIR"
 """Where `enable_compilation_cache` keeps compiled programs; `off` (or `0`) disables it."""
 

@@ -320,3 +320,19 @@ def test_bad_input_raises_value_error():
         dt = arguments.pop("sample_interval")
         with pytest.raises(ValueError, match=match):
             aj.noise.fit_allan_terms(record, dt, **arguments)
+
+
+def test_the_batched_adev_is_each_rows_allan_deviation():
+    """`_batched_avar` maps `allan_deviation`'s kernel over the rows (`lax.map`): each row's
+    σ̂² is that row's `allan_deviation`², whatever its neighbours (three different records,
+    and a batch of one)."""
+    n = 4096
+    sizes = tuple(octave_cluster_sizes(n))
+    rows = at._simulate({"N": 1e-3, "B": 1e-3, "K": 1e-4}, n, DT, np.random.default_rng(8), 3)
+    rows[1] *= 40.0  # neighbours of very different size
+    batched = at._batched_avar(rows, DT, sizes)
+    assert batched.shape == (3, len(sizes))
+    for row, avar in zip(rows, batched, strict=True):
+        _, dev = aj.noise.allan_deviation(row, DT, sizes)
+        np.testing.assert_allclose(avar, np.asarray(dev) ** 2, rtol=1e-12)
+        np.testing.assert_allclose(at._batched_avar(row[None], DT, sizes)[0], avar, rtol=1e-12)

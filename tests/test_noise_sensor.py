@@ -191,6 +191,28 @@ def test_fits_on_threads_give_the_same_selection(monkeypatch):
     assert repr(found[1].parameters) == repr(found[2].parameters)
 
 
+def test_the_static_analysis_beside_the_selection_is_the_one_in_sequence(monkeypatch):
+    """`analyse_static_record` on two CPUs runs the ADEV and the IEEE terms on a background
+    thread beside the selection, and each transient test beside its step's fits (forward
+    and backward); on one CPU all run in turn: the same analysis, to the bit. A bad record
+    gets the ADEV's message either way, as in sequence."""
+    from accel_jax import _runtime
+    from accel_jax._noise.analysis import analyse_static_record
+
+    truth = {"white": 1e-3, "transient": (3e-3, 0.6), "level": 0.4}
+    x = noise_truth.record(np.random.default_rng(40), 6000, 0.01, truth)
+    found = {}
+    for cores in (1, 2):
+        monkeypatch.setattr(_runtime, "usable_cpus", lambda cores=cores: list(range(cores)))
+        found[cores] = analyse_static_record(x, 0.01, n_bootstrap=50).to_dict()
+        assert "startup_transient" in found[cores]["effects"]["effects"]
+        bad = x.copy()
+        bad[5] = np.nan
+        with pytest.raises(ValueError, match="^allan_deviation_intervals: sample 5"):
+            analyse_static_record(bad, 0.01, n_bootstrap=50)
+    assert repr(found[1]) == repr(found[2])
+
+
 def test_startup_transient_judged_in_the_time_domain_and_checked_backward():
     """A warm-up at the start (τ = 60 samples; 3 σ_w alone, 6 σ_w under a random walk,
     where the exact expected 2 ln Λ is ~100: the walk hides the level the transient
@@ -316,6 +338,38 @@ def test_block_means_autocovariance_is_the_time_domain_sum():
         blocks = sensor_model._differenced_autocovariance(model, 1e-12, size, m)
         np.testing.assert_allclose(blocks, expected, rtol=1e-7, atol=1e-9 * expected[0])
         assert blocks[0] > 0 and abs(blocks[1]) > 1e-3 * blocks[0]  # not a white sequence
+
+
+def test_the_spectrum_in_chunks_is_the_spectrum_at_once():
+    """`_differenced_autocovariance` evaluates f_y `SPECTRUM_CHUNK` frequencies at a time,
+    the last chunk padded: the same values, to the bit, as one evaluation of the whole
+    grid, for a grid of one chunk, of several with a padded end, and of less than one."""
+    from accel_jax._noise import sensor_model, spectral
+
+    dt = 0.01
+    truth = {"white": 1e-3, "gauss_markov": (2e-3, 0.4), "random_walk": 1e-7}
+    x = noise_truth.record(np.random.default_rng(5), 6000, dt, truth)
+    rec = sensor_model._Record(x, dt)
+    model = sensor_model._evaluate(rec, 1e-12, ("gauss_markov", "random_walk"), (), None)
+    mask = jnp.asarray(spectral._mask(model.names))
+    seen = []
+
+    def at_once(z, mask_, omega, floor):
+        seen.append(omega.size)
+        return spectral.compiled_spectrum(z, mask_, omega, floor)
+
+    for size, m in ((4096, 1), (1000, 13), (100, 1)):
+        folded, _ = sensor_model._aliasing(size, m)
+        whole = np.asarray(spectral.compiled_spectrum(jnp.asarray(model.z), mask, folded, 1e-12))
+        got = sensor_model._in_chunks(
+            lambda omega: spectral.compiled_spectrum(jnp.asarray(model.z), mask, omega, 1e-12),
+            folded,
+        )
+        assert got.shape == whole.shape and np.array_equal(got, whole), (size, m)
+        seen.clear()
+        sensor_model._differenced_autocovariance(model, 1e-12, size, m, spectrum=at_once)
+        assert set(seen) == {sensor_model.SPECTRUM_CHUNK}  # one compiled shape
+        assert len(seen) == -(-folded.size // sensor_model.SPECTRUM_CHUNK)
 
 
 def test_backward_check_removes_an_effect_the_data_do_not_hold():

@@ -178,11 +178,12 @@ def test_import_layers():
     assert wrong == []
     # Process settings stay with the entry points (and the package's import-time hook);
     # the library may read the CPUs it may run on (`usable_cpus`, `spare_cpu`) and spread
-    # independent calls over them (`thread_map`, `in_background`), which change nothing.
+    # independent calls over them (`thread_map`, `in_background`, `beside`), which change
+    # nothing.
     for unit, targets in graph.items():
         for settings in ("_runtime", "_placement"):
             names = set(targets.get(settings, ())) - {
-                "usable_cpus", "spare_cpu", "thread_map", "in_background"
+                "usable_cpus", "spare_cpu", "thread_map", "in_background", "beside"
             }
             if names and rank[unit] not in (0, rank["cli"]):
                 wrong.append(f"{unit} imports {settings} {sorted(names)}")

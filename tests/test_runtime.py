@@ -330,3 +330,40 @@ def test_spare_cpu_and_background_calls(monkeypatch):
     assert len({ident for ident, _ in results}) == 1
     assert results[0][0] != threading.get_ident()
     assert all(dtype == jnp.float64 for _, dtype in results)
+
+
+def test_beside_runs_on_another_thread_or_here(monkeypatch):
+    """`beside`: on two CPUs or more the calls run in turn on one other thread (their
+    futures in order, an error kept in its future); on one CPU they run here, in turn, at
+    once, and an error is raised here, as the call itself would raise it."""
+    import threading
+
+    from accel_jax import _runtime
+
+    def call(i, order):
+        def run():
+            order.append(i)
+            if i == 1:
+                raise ValueError("call 1")
+            return threading.get_ident()
+
+        return run
+
+    monkeypatch.setattr(_runtime, "usable_cpus", lambda: [0, 1])
+    order = []
+    futures = _runtime.beside(*(call(i, order) for i in (0, 1, 2)))
+    assert futures[0].result(timeout=60) != threading.get_ident()
+    with pytest.raises(ValueError, match="call 1"):
+        futures[1].result(timeout=60)
+    assert futures[2].result(timeout=60) == futures[0].result()
+    assert order == [0, 1, 2]
+
+    monkeypatch.setattr(_runtime, "usable_cpus", lambda: [0])
+    order = []
+    futures = _runtime.beside(call(0, order), call(2, order))
+    assert order == [0, 2]  # run before `beside` returned
+    assert [f.result(timeout=0) for f in futures] == [threading.get_ident()] * 2
+    order = []
+    with pytest.raises(ValueError, match="call 1"):
+        _runtime.beside(call(0, order), call(1, order), call(2, order))
+    assert order == [0, 1]  # the call after the failed one is not run

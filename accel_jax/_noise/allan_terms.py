@@ -282,14 +282,19 @@ def _simulate(coefficients, n, dt, rng, batch):
 
 
 def _batched_avar(records, dt, sizes):
-    """σ̂²(τ) of each row of `records`: `allan_deviation`'s jitted kernel, vmapped."""
+    """σ̂²(τ) of each row of `records`: `allan_deviation`'s jitted kernel, mapped over the
+    rows (`lax.map`). Vmapped, the same kernel took twice as long (a batch of 15 records of
+    1.3e5 samples, 13 octaves: 0.16 s against 0.08 s on one core of the 2-core CPU, three
+    medians of 5) with the same values to round-off (the bootstrap's interval ends of the
+    1.3e5-sample benchmark record moved by at most 7e-14 relative): the rows' cumulative
+    sums and reductions run one record at a time, in cache."""
     with jax.enable_x64(True):
         return np.asarray(_avar_rows(records, dt, tuple(sizes)), np.float64)
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2))
 def _avar_rows(records, dt, sizes):
-    return jax.vmap(lambda x: _allan_deviation(x, dt, sizes)[1] ** 2)(records)
+    return jax.lax.map(lambda x: _allan_deviation(x, dt, sizes)[1] ** 2, records)
 
 
 def _order_statistic(n_bootstrap, confidence):

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from .._deprecated import LegacyItems
+from .._runtime import beside
 from .allan_intervals import AllanDeviation, allan_deviation_intervals
 from .allan_terms import AllanTerms, fit_allan_terms, minimum_samples
 from .export import AccelNoiseTerms
@@ -108,11 +109,7 @@ def analyse_static_record(
             f"a record of {x.size} samples is too short for the noise analysis: the Allan "
             f"deviation's five IEEE terms need at least {least} samples."
         )
-    adev = allan_deviation_intervals(x, sample_interval)
-    terms = fit_allan_terms(
-        x, sample_interval, confidence=confidence, n_bootstrap=n_bootstrap, seed=seed
-    )
-    selection = select_sensor_noise(x, sample_interval)
+    adev, terms, selection = _three_parts(x, sample_interval, confidence, n_bootstrap, seed)
     mapping = {}
     for name in ("N", "K", "B", "Q"):
         entry = terms.terms.get(name)
@@ -131,6 +128,35 @@ def analyse_static_record(
     return StaticRecordAnalysis(
         allan=adev, terms=terms, selection=selection, export_terms=export_terms
     )
+
+
+def _three_parts(x, sample_interval, confidence, n_bootstrap, seed):
+    """The ADEV with its intervals, the IEEE terms and the selection of `x`: three
+    independent computations. Where the process has two CPUs or more, the first two
+    (NumPy and short XLA calls: the terms' bootstrap simulates 199 records and takes their
+    ADEVs) run on a background thread while the selection runs here (`_runtime.beside`):
+    the selection's compilations and its single-threaded stretches leave a CPU idle. The
+    same calls, so the same results; an error is raised as in sequence (the ADEV's, then
+    the terms', then the selection's). With the transient tests beside the fits
+    (`_noise/sensor`), `accel-jax noise` of the benchmark's 1.3e5-sample record on the
+    2-core CPU, medians of 3: cold 26.4 → 23.7 s (docs/performance.md)."""
+
+    def adev():
+        return allan_deviation_intervals(x, sample_interval)
+
+    def terms():
+        return fit_allan_terms(
+            x, sample_interval, confidence=confidence, n_bootstrap=n_bootstrap, seed=seed
+        )
+
+    futures = beside(adev, terms)  # (on one CPU, run here: an error is raised here)
+    try:
+        selection = select_sensor_noise(x, sample_interval)
+    except Exception:
+        for future in futures:
+            future.result()  # the earlier steps' error first, as in sequence
+        raise
+    return futures[0].result(), futures[1].result(), selection
 
 
 def analysis_to_json(analysis: StaticRecordAnalysis | dict) -> dict:

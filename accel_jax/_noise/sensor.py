@@ -44,11 +44,13 @@ length (`accel_jax._noise.spectral`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
 import numpy as np
 
+from .._runtime import beside
 from . import spectral
 from .held_out import HeldOutCheck
 from .record import _sample_interval, _validate_record
@@ -305,11 +307,15 @@ def _select(
             labels.append("sinusoid")
             specs.append((model.names, (*model.lines, line), model.transient, model))
             counts.append(PARAMETER_COUNT["sinusoid"])
+        tested = None  # the transient test, run beside the fits: (its record, its future)
+        if model.transient is None:
+            start = rec.residual(model.lines, None)[: rec.split]
+            tested = (start, *beside(functools.partial(_transient_test, start, dt, model, floor)))
         trials = list(zip(labels, counts, _evaluate_many(rec, floor, specs), strict=True))
         scored = [(_evidence(m, model, k, log_j), name, m) for name, k, m in trials]
-        if model.transient is None:
-            r = rec.residual(model.lines, None)
-            found = _transient_test(r[: rec.split], dt, model, floor)
+        if tested is not None:
+            start, future = tested
+            found = future.result()
             transient = found["transient"]
             score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
             score = score if math.isfinite(score) else -math.inf
@@ -320,7 +326,7 @@ def _select(
                 # Tested again against that refit: the current model's noise took in
                 # the transient's power (a white variance inflated by it makes the
                 # transient look small beside a slow Gauss–Markov fitted to it).
-                found = _transient_test(r[: rec.split], dt, refit, floor)
+                found = _transient_test(start, dt, refit, floor)
                 transient = found["transient"]
                 score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
                 refit = _evaluate(rec, floor, model.names, model.lines, transient, refit)

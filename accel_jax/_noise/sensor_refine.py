@@ -15,10 +15,12 @@ process beside it, once the selection is done.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
 
+from .._runtime import beside
 from . import chain_filters, spectral
 from .sensor_model import (
     HELD_OUT_Z,
@@ -54,14 +56,17 @@ def _backward(rec, floor, model: _Model, log_j: float, evidence: float):
             parent = dataclasses.replace(model, names=names)
             specs.append((names, model.lines, model.transient, parent))
             counts.append(sum(PARAMETER_COUNT[n] for n in gone if n in model.names))
+        tested = None  # the transient test, run beside the fits
+        if model.transient is not None:
+            start = rec.residual(model.lines, None)[: rec.split]
+            (tested,) = beside(functools.partial(_transient_test, start, rec.dt, model, floor))
         reduced_fits = _evaluate_many(rec, floor, specs)
         for name, k, reduced in zip(model.names, counts, reduced_fits, strict=True):
             score = _evidence(model, reduced, k, log_j)
             if weakest is None or score < weakest[0]:
                 weakest = (score, name, reduced)
-        if model.transient is not None:
-            r = rec.residual(model.lines, None)
-            found = _transient_test(r[: rec.split], rec.dt, model, floor)
+        if tested is not None:
+            found = tested.result()
             score = found["evidence"] - PARAMETER_COUNT["startup_transient"] * log_j
             if weakest is None or score < weakest[0]:
                 reduced = _evaluate(rec, floor, model.names, model.lines, None, model)
