@@ -213,6 +213,38 @@ def test_the_static_analysis_beside_the_selection_is_the_one_in_sequence(monkeyp
     assert repr(found[1]) == repr(found[2])
 
 
+def test_an_interrupted_or_failed_selection_stops_the_bootstrap_beside_it(monkeypatch):
+    """Where the selection beside the IEEE terms' bootstrap is interrupted (Ctrl-C) or
+    fails, the bootstrap stops before its next batch (`allan_terms.Stopped`): the process
+    does not wait for the rest of it. A failed selection's own error is the one raised."""
+    import time
+
+    from accel_jax import _runtime
+    from accel_jax._noise import allan_terms, analysis
+
+    monkeypatch.setattr(_runtime, "usable_cpus", lambda: [0, 1])
+    started = []
+
+    def spying(*calls):
+        started.extend(_runtime.beside(*calls))
+        return started
+
+    monkeypatch.setattr(analysis, "beside", spying)
+    x = np.random.default_rng(3).normal(size=40_000) * 1e-3  # 4 batches of 50 records
+    for error in (KeyboardInterrupt, RuntimeError):
+
+        def selection(*args, error=error):
+            time.sleep(0.3)
+            raise error("the selection")
+
+        monkeypatch.setattr(analysis, "select_sensor_noise", selection)
+        started.clear()
+        with pytest.raises(error, match="the selection"):
+            analysis.analyse_static_record(x, 0.01)
+        assert started[0].result(timeout=60) is not None  # the ADEV, done
+        assert isinstance(started[1].exception(timeout=60), allan_terms.Stopped)
+
+
 def test_startup_transient_judged_in_the_time_domain_and_checked_backward():
     """A warm-up at the start (τ = 60 samples; 3 σ_w alone, 6 σ_w under a random walk,
     where the exact expected 2 ln Λ is ~100: the walk hides the level the transient

@@ -347,6 +347,18 @@ def fit_allan_terms(
     than len(terms) + 2 octave τ's), a non-positive Δ, an unknown or repeated term or the
     ramp alone, a confidence outside (0, 1) or too few bootstrap records.
     """
+    return _fit_allan_terms(record, sample_interval, confidence, n_bootstrap, seed, terms, None)
+
+
+class Stopped(Exception):
+    """Raised by `_fit_allan_terms` when its `stop` event is set between bootstrap batches."""
+
+
+def _fit_allan_terms(record, sample_interval, confidence, n_bootstrap, seed, terms, stop):
+    """`fit_allan_terms`; `stop`: None, or a `threading.Event` checked before each batch of
+    the bootstrap (`Stopped` raised once it is set), so that a caller that runs this on a
+    background thread can end it within a batch (~0.3 s on 1.3e5 samples) when the user
+    interrupts the work beside it."""
     name = "fit_allan_terms"
     with jax.enable_x64(True):  # float64 whatever the caller's setting (restored after)
         x = np.asarray(_validate_record(name, record), np.float64)
@@ -399,6 +411,8 @@ def fit_allan_terms(
     batch = max(1, min(n_bootstrap, _CHUNK_SAMPLES // (2 * n)))
     pivots = []
     while len(pivots) < n_bootstrap:
+        if stop is not None and stop.is_set():
+            raise Stopped("fit_allan_terms: stopped by the caller")
         size = min(batch, n_bootstrap - len(pivots))
         records = _simulate(fitted, n, dt, rng, size)
         if size < batch:  # one compiled shape: pad the last batch with zero records

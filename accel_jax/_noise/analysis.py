@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 
 import numpy as np
 
 from .._deprecated import LegacyItems
 from .._runtime import beside
 from .allan_intervals import AllanDeviation, allan_deviation_intervals
-from .allan_terms import AllanTerms, fit_allan_terms, minimum_samples
+from .allan_terms import TERM_NAMES, AllanTerms, Stopped, _fit_allan_terms, minimum_samples
 from .export import AccelNoiseTerms
 from .sensor import SensorNoiseSelection, select_sensor_noise
 
@@ -137,24 +138,34 @@ def _three_parts(x, sample_interval, confidence, n_bootstrap, seed):
     ADEVs) run on a background thread while the selection runs here (`_runtime.beside`):
     the selection's compilations and its single-threaded stretches leave a CPU idle. The
     same calls, so the same results; an error is raised as in sequence (the ADEV's, then
-    the terms', then the selection's). With the transient tests beside the fits
-    (`_noise/sensor`), `accel-jax noise` of the benchmark's 1.3e5-sample record on the
-    2-core CPU, medians of 3: cold 26.4 → 23.7 s (docs/performance.md)."""
+    the terms', then the selection's). Where the selection fails or is interrupted
+    (Ctrl-C), the bootstrap is stopped before its next batch, so the process does not wait
+    for it. With the transient tests beside the fits (`_noise/sensor`), `accel-jax noise`
+    of the benchmark's 1.3e5-sample record on the 2-core CPU, medians of 3: cold 26.4 →
+    23.7 s (docs/performance.md)."""
+    stop = threading.Event()
 
     def adev():
         return allan_deviation_intervals(x, sample_interval)
 
     def terms():
-        return fit_allan_terms(
-            x, sample_interval, confidence=confidence, n_bootstrap=n_bootstrap, seed=seed
+        return _fit_allan_terms(
+            x, sample_interval, confidence, n_bootstrap, seed, TERM_NAMES, stop
         )
 
     futures = beside(adev, terms)  # (on one CPU, run here: an error is raised here)
     try:
         selection = select_sensor_noise(x, sample_interval)
     except Exception:
+        stop.set()
         for future in futures:
-            future.result()  # the earlier steps' error first, as in sequence
+            try:
+                future.result()  # the earlier steps' error first, as in sequence
+            except Stopped:
+                pass
+        raise
+    except BaseException:  # an interrupt: the bootstrap ends before its next batch
+        stop.set()
         raise
     return futures[0].result(), futures[1].result(), selection
 
