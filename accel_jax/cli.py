@@ -87,7 +87,8 @@ def _studies_dir() -> Path:
 @click.version_option(package_name="accel_jax")
 @click.pass_context
 def main(ctx):
-    from ._runtime import apply_fast_compile, enable_compilation_cache, quiet_xla_logs
+    from ._cache import enable_compilation_cache
+    from ._runtime import apply_fast_compile, quiet_xla_logs
 
     # The XLA:CPU deadlock workaround was applied by `import accel_jax` (see _runtime.py).
     quiet_xla_logs()  # no XLA log lines on the user's terminal (unless they ask)
@@ -116,7 +117,8 @@ def main(ctx):
 @device_option(latency_bound=False)
 @_report("--params", "params_file")
 def report(out_dir, quick, force, no_progress, jobs, compile_cache, device, params_file):
-    from ._runtime import apply_fast_compile, enable_compilation_cache
+    from ._cache import enable_compilation_cache
+    from ._runtime import apply_fast_compile
 
     if quick:
         # Before anything starts JAX's backend: the quick report is compile-bound (most of

@@ -78,7 +78,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import time
 import accel_jax as aj
-from accel_jax._runtime import bound_compiled_programs
+from accel_jax._cache import bound_compiled_programs
 out, folder = Path(sys.argv[1]), Path(sys.argv[2])
 rows = {}
 files = sorted(folder.glob("*.npz"))

@@ -45,7 +45,7 @@ def blind_prelude(nominal_lags: dict) -> str:
 import json, pathlib, sys
 import accel_jax
 from accel_jax._placement import apply_device
-from accel_jax._runtime import enable_compilation_cache
+from accel_jax._cache import enable_compilation_cache
 apply_device(latency_bound=True)
 enable_compilation_cache()
 import jax

@@ -528,7 +528,7 @@ import json, sys, pathlib, signal, time
 signal.signal(signal.SIGINT, lambda *_: sys.exit(130))  # Ctrl-C: quiet exit, no traceback
 import accel_jax  # applies the XLA:CPU deadlock workaround (accel_jax._runtime)
 from accel_jax._placement import apply_device
-from accel_jax._runtime import enable_compilation_cache
+from accel_jax._cache import enable_compilation_cache
 apply_device(latency_bound=True)  # one record at a time: the CPU, as `accel-jax diagnose`
 enable_compilation_cache()  # $ACCEL_JAX_CACHE_DIR as the parent process had it
 import jax

@@ -44,7 +44,7 @@ EFFECTS = step_truth.SET_EFFECTS
 _CHILD = """
 import json, sys, pathlib
 import accel_jax
-from accel_jax._runtime import bound_compiled_programs, enable_compilation_cache
+from accel_jax._cache import bound_compiled_programs, enable_compilation_cache
 enable_compilation_cache()  # the three passes share compiled programs
 import jax
 jax.config.update("jax_enable_x64", True)

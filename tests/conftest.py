@@ -35,7 +35,7 @@ if "ACCEL_JAX_CACHE_DIR" not in os.environ:
 
     _folder = None
     if os.environ.get("ACCEL_JAX_TEST_CACHE", "").strip().lower() == "keep":
-        from accel_jax._runtime import cache_home  # noqa: E402
+        from accel_jax._cache import cache_home  # noqa: E402
 
         _folder = cache_home() / "test-xla"
         try:
@@ -55,7 +55,7 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from accel_jax._runtime import enable_compilation_cache  # noqa: E402
+from accel_jax._cache import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()  # this process's own calls too, not only the CLI's
 
@@ -68,7 +68,7 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-from accel_jax._runtime import bound_compiled_programs  # noqa: E402
+from accel_jax._cache import bound_compiled_programs  # noqa: E402
 
 
 _TESTS = Path(__file__).resolve().parent

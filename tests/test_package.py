@@ -70,17 +70,17 @@ def test_write_json_atomic_keeps_old_file_on_failure(tmp_path):
 def test_studies_and_notebooks_use_only_the_public_api():
     # STYLE.md: studies and notebooks import `accel_jax` (and its subpackages such as
     # `accel_jax.diagnose`, `accel_jax.report`), never the private modules `accel_jax._*` —
-    # except the process-level runtime module, which the entry points (CLI, study scripts,
-    # tests, benchmarks) use by design (docs/architecture.md).
+    # except the process-level modules (`_runtime`, `_cache`, `_placement`), which the entry
+    # points (CLI, study scripts, tests, benchmarks) use by design (docs/architecture.md).
     import pathlib
     import re
 
     root = pathlib.Path(__file__).resolve().parent.parent
     scripts = sorted((root / "studies").glob("*.py")) + sorted((root / "notebooks").glob("*.py"))
     assert scripts
-    private = re.compile(r"^\s*(from|import)\s+accel_jax\._(?!runtime\b|placement\b)", re.MULTILINE)
+    private = re.compile(r"^\s*(from|import)\s+accel_jax\._(?!runtime\b|cache\b|placement\b)", re.M)
     offenders = [p.name for p in scripts if private.search(p.read_text())]
-    runtime = re.compile(r"^\s*(from|import)\s+accel_jax\._(runtime|placement)\b", re.MULTILINE)
+    runtime = re.compile(r"^\s*(from|import)\s+accel_jax\._(runtime|cache|placement)\b", re.M)
     assert not [
         p.name for p in sorted((root / "notebooks").glob("*.py")) if runtime.search(p.read_text())
     ]
@@ -92,8 +92,8 @@ def test_studies_and_notebooks_use_only_the_public_api():
 # freely, within the estimation layer only as listed.
 _LAYERS = {
     "foundations": (
-        "_params", "_checks", "_data", "_format", "_io", "_progress", "_runtime", "_placement",
-        "_deprecated", "_solvers",
+        "_params", "_checks", "_data", "_format", "_io", "_progress", "_runtime", "_cache",
+        "_placement", "_deprecated", "_solvers",
     ),
     "models": ("_servo", "_static", "_pendulum"),
     "simulation": ("_simulate",),
@@ -181,7 +181,7 @@ def test_import_layers():
     # independent calls over them (`thread_map`, `in_background`, `beside`), which change
     # nothing.
     for unit, targets in graph.items():
-        for settings in ("_runtime", "_placement"):
+        for settings in ("_runtime", "_cache", "_placement"):
             names = set(targets.get(settings, ())) - {
                 "usable_cpus", "spare_cpu", "thread_map", "in_background", "beside"
             }

@@ -9,16 +9,16 @@ import sys
 
 import pytest
 
+from accel_jax._cache import compilation_cache_dir
 from accel_jax._runtime import (
     CPU_SCHEDULER_FLAG,
     FAST_COMPILE_FLAGS,
     OPT_OUT_ENV,
-    compilation_cache_dir,
 )
 
 _PROGRAM = """
 import sys
-from accel_jax._runtime import enable_compilation_cache
+from accel_jax._cache import enable_compilation_cache
 folder = enable_compilation_cache(sys.argv[1] if len(sys.argv) > 1 else None)
 import jax, jax.numpy as jnp
 f = jax.jit(lambda x: jnp.sin(x) @ jnp.cos(x).T + jnp.linalg.inv(x @ x.T + 3.0 * jnp.eye(8)))

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import accel_jax as aj
-from accel_jax import _runtime
+from accel_jax import _cache, _runtime
 from accel_jax._placement import DeviceError, plan_placement
 from accel_jax._runtime import (
     CPU_SCHEDULER_FLAG,
@@ -37,7 +37,7 @@ def fresh_decisions(monkeypatch, tmp_path):
     skipped-option record restored afterwards."""
     monkeypatch.setattr(_runtime, "_decided", {})
     monkeypatch.setenv(_runtime._SKIPPED_ENV, "{}")
-    monkeypatch.delenv(_runtime.CACHE_ENV, raising=False)
+    monkeypatch.delenv(_cache.CACHE_ENV, raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     return tmp_path / "accel_jax" / "xla_options.json"
 
@@ -88,7 +88,7 @@ def test_an_option_that_cannot_be_checked_is_skipped_and_not_cached(fresh_decisi
 
 
 def test_caches_off_decide_in_each_process(fresh_decisions, monkeypatch):
-    monkeypatch.setenv(_runtime.CACHE_ENV, "off")
+    monkeypatch.setenv(_cache.CACHE_ENV, "off")
     monkeypatch.setattr(_runtime, "XLA_OPTIONS_SEEN_ACCEPTED", {})
     calls = []
     monkeypatch.setattr(_runtime, "_probe_xla_flags", lambda flags: calls.append(flags) or False)

@@ -107,7 +107,8 @@ def study_main(
     `OUT/error.log`) and exit status 1.
     """
     from .._placement import DEVICE_CHOICES, DeviceError, apply_device
-    from .._runtime import apply_fast_compile, enable_compilation_cache, quiet_xla_logs
+    from .._cache import enable_compilation_cache
+    from .._runtime import apply_fast_compile, quiet_xla_logs
     from ._run import ERROR_LOG, ReportError, _record_failure, cache_key, one_line, run_study
 
     script = Path(study_file).resolve()
