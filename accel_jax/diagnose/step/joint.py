@@ -138,17 +138,15 @@ def _pad_context(ctx, n_padded: int, j_padded: int, max_block: int):
         test=pad(ctx.test, n_padded),
         max_block=max_block,
         # The joint fit takes a measured input's levels as read (no errors in variables).
-        level_sigma=None,
-        held_out_level=None,
-        drift_step=None,
-        timing_map=None,
-        timing_offset=None,
-        timing_mean=None,
-        timing_sigma=None,
-        timing_limit=None,
-        timing_sigma_late=None,
-        level_map=None,
+        **dict.fromkeys(_MEASURED_INPUT_FIELDS, None),
     )
+
+
+# The context's fields of a measured input's errors in variables: none in the joint fit.
+_MEASURED_INPUT_FIELDS = (
+    "level_sigma", "held_out_level", "drift_step", "level_map", "timing_map",
+    "timing_offset", "timing_mean", "timing_sigma", "timing_limit", "timing_sigma_late",
+)
 
 
 class SetLayout(eqx.Module):
