@@ -242,21 +242,22 @@ def contact_record(
             def part_step(i, x):
                 here = change & (i == part[j])
                 after = change & (i > part[j])
+
                 # The part whole, or, where the change falls in it, the part before the
-                # change; then, there, the jump and the part after it. (One copy of
-                # `advance` for the first piece, whichever it is: a smaller program.)
-                first = jax.tree.map(
-                    lambda v, whole: jnp.where(here, v[j], whole), before_maps, part_maps
-                )
-                span = jnp.where(here, h - rest[j], h)
-                x = advance(x, drive_old + jnp.where(after, drive_step, 0.0), span, first)
+                # change and then the jump and the part after it: one `advance` in the
+                # program for every piece (a smaller program to compile).
+                def piece(k, x):
+                    second = k == 1
+                    maps = jax.tree.map(
+                        lambda b, a, whole: jnp.where(second, a[j], jnp.where(here, b[j], whole)),
+                        before_maps, after_maps, part_maps,
+                    )
+                    span = jnp.where(second, rest[j], jnp.where(here, h - rest[j], h))
+                    drive = drive_old + jnp.where(second | after, drive_step, 0.0)
+                    x = jnp.where(second, x.at[4].add(jump_k), x)
+                    return advance(x, drive, span, maps)
 
-                def second_piece(x):
-                    second = jax.tree.map(lambda v: v[j], after_maps)
-                    x = x.at[4].add(jump_k)
-                    return advance(x, drive_old + drive_step, rest[j], second)
-
-                return jax.lax.cond(here, second_piece, lambda x: x, x)
+                return jax.lax.fori_loop(0, 1 + here.astype(jnp.int32), piece, x)
 
             return jax.lax.fori_loop(0, substeps, part_step, x)
 

@@ -281,7 +281,7 @@ def _compile_ahead(fits, records, nominal, effects, loop_noise, clamp) -> dict:
     where a shape differs it compiles its own, as without this. A record that a restart
     or a rescaled fit explains has had them compiled for nothing, on the spare CPU. The
     results do not change: the same programs, compiled earlier (5–6 s each on a
-    6,000-sample record). The compliant contact's program (11 s since 6b8bda1, ~20 s when
+    6,000-sample record). The compliant contact's program (10 s since 6b8bda1, ~20 s when
     this was measured) is not compiled ahead: it is needed only where the clamp does not
     explain the record, and compiled beside the clamp's fits it made a record that the
     clamp explains 14 s slower (77.2 against 63.6 s, one run each)."""
