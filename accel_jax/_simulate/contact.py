@@ -248,10 +248,10 @@ def contact_record(
                 # program for every piece (a smaller program to compile).
                 def piece(k, x):
                     second = k == 1
-                    maps = jax.tree.map(
-                        lambda b, a, whole: jnp.where(second, a[j], jnp.where(here, b[j], whole)),
-                        before_maps, after_maps, part_maps,
-                    )
+                    def pick(early, late, whole):  # this piece's map of one kind
+                        return jnp.where(second, late[j], jnp.where(here, early[j], whole))
+
+                    maps = jax.tree.map(pick, before_maps, after_maps, part_maps)
                     span = jnp.where(second, rest[j], jnp.where(here, h - rest[j], h))
                     drive = drive_old + jnp.where(second | after, drive_step, 0.0)
                     x = jnp.where(second, x.at[4].add(jump_k), x)
