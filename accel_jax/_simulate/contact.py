@@ -54,7 +54,7 @@ from .._params import ServoParams
 from .._servo import loop_stiffness, time_constant
 from .matrix import expm_minus_identity
 from .sequence import N_STATES, SequenceInputs, _change_split, _moment_jumps, _taylor_flow
-from .sequence import whole_blocks
+from .sequence import not_tried, whole_blocks
 from .sequence import initial_state, loop_system
 
 SUBSTEPS = 8
@@ -248,6 +248,7 @@ def contact_record(
                 # program for every piece (a smaller program to compile).
                 def piece(k, x):
                     second = k == 1
+
                     def pick(early, late, whole):  # this piece's map of one kind
                         return jnp.where(second, late[j], jnp.where(here, early[j], whole))
 
@@ -303,9 +304,6 @@ def contact_record(
 
             stop = jnp.where(side > 0, stop_high, stop_low)
             return try_held(x, index * m, in_contact, stop)
-
-        def not_tried(x):
-            return jnp.zeros((), bool), x, jnp.zeros((), x.dtype)
 
         def not_free(x):  # a block that starts in a contact may stay in it throughout
             # (The sample loop once in the program, after both tries: it is its largest

@@ -287,6 +287,11 @@ samples, one stop, its Jacobian in three parameters, `max_block` 32), m = 1 ran 
 that way, m = 4 2× faster, m = 20 3× faster."""
 
 
+def not_tried(x):
+    """A block try's answer where it was not made: (taken, x_end, total) = (False, x, 0)."""
+    return jnp.zeros((), bool), x, jnp.zeros((), x.dtype)
+
+
 def whole_blocks(
     transition,
     forcing,
@@ -337,9 +342,6 @@ def whole_blocks(
             quiet = ~jnp.any(active & (interval >= first) & (interval < first + m))
             total = jnp.sum(jnp.where(k_index < m, states @ c, 0.0))
             return free & quiet, states[m], total
-
-        def not_tried(x):
-            return jnp.zeros((), bool), x, jnp.zeros((), x.dtype)
 
         # (m ≤ max_block: a traced m beyond the powers made goes sample by sample.)
         return jax.lax.cond((m >= WHOLE_BLOCK_MIN) & (m <= max_block), attempt, not_tried, x)
