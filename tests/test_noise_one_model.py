@@ -25,6 +25,7 @@ import dataclasses
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -208,6 +209,34 @@ def test_spectral_whittle_spectrum_is_the_models(names):
             after_variance = after.sigma**2
         path = spectral.spectrum(jnp.asarray(z), jnp.asarray(mask), OMEGA, floor)
         _close(path, _model_difference_spectrum(noise, low_pass, floor + after_variance))
+
+
+def test_a_component_the_mask_leaves_off_is_not_evaluated():
+    """A slot the mask leaves off enters neither the Whittle likelihood's value nor its
+    gradient, even where its parameters would overflow: the component is not evaluated
+    (`spectral._if_on`; a `jnp.where` over an evaluated inf gave a NaN gradient). Under
+    `vmap` over masks, the spectrum of each mask is the one computed alone."""
+    rng = np.random.default_rng(11)
+    z = _spectral_draw(rng)
+    overflowing = z.copy()
+    overflowing[[1, 3, 7, 10]] = 800.0  # e^800 = inf: every coloured component's variance
+    walk = np.cumsum(rng.standard_normal(4_000)) * 0.01
+    gram = spectral.periodogram(walk + rng.standard_normal(4_000))
+    floor = jnp.asarray(1e-6)
+    for names in [(), ("random_walk",), ("bandlimit", "filter_floor")]:
+        mask = jnp.asarray(spectral._mask(names))
+        value, gradient = jax.value_and_grad(spectral.whittle)(
+            jnp.asarray(overflowing), mask, gram, floor
+        )
+        reference = spectral.whittle(jnp.asarray(z), mask, gram, floor)
+        assert np.isfinite(float(value)) and np.all(np.isfinite(np.asarray(gradient)))
+        _close(value, reference)
+        off = ~np.asarray(spectral._free(mask))
+        assert np.all(np.asarray(gradient)[off] == 0.0)
+    masks = jnp.asarray([spectral._mask(s) for s in STRUCTURES])
+    together = jax.vmap(lambda m: spectral.spectrum(jnp.asarray(z), m, OMEGA, 0.01))(masks)
+    for mask, row in zip(masks, together, strict=True):
+        _close(row, spectral.spectrum(jnp.asarray(z), mask, OMEGA, 0.01))
 
 
 # --------------------------------------------------------------------------------------

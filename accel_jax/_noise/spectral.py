@@ -199,26 +199,54 @@ def _parts(z, mask, omega, floor):
     """(stationary part λ(H·coloured + p), random-walk part H·qΔ) of f_y at |ω| ≤ π, each
     component's spectrum and the low-pass's gain from `models` (the one definition);
     `omega` ω or its `Frequencies`; p = `floor` + the fitted p_f where `filter_floor` is
-    on."""
+    on. A component the mask leaves off is not evaluated (`_if_on`)."""
     on = mask > 0
     floor = floor + jnp.where(on[9], jnp.exp(z[9]), 0.0)
     omega = _frequencies(omega)
-    gm = GaussMarkov.discrete_spectrum(omega, jnp.exp(z[1]), jnp.exp(-jnp.exp(-z[2])))
-    theta = jnp.exp(z[5])
-    rho_e = jnp.exp(-(jnp.exp(z[4]) + theta / MAX_QUALITY))
-    ec = ExponentialCosine.discrete_spectrum(omega, jnp.exp(z[3]), rho_e, theta)
-    flicker = Flicker.discrete_spectrum(omega, jnp.exp(z[7]))
-    corner = jax.nn.sigmoid(z[8]) * (math.pi / 2)  # π f_b Δ ∈ (0, π/2)
-    code = jnp.where(on[8], mask[8], 2.0)  # (off: a finite gain and gradient, unused)
-    gain = jnp.where(on[8], chain_filters.low_pass_gain(omega, corner, code), 1.0)
+    zero, one = jnp.zeros_like(omega.omega), jnp.ones_like(omega.omega)
+
+    def gauss_markov():
+        return GaussMarkov.discrete_spectrum(omega, jnp.exp(z[1]), jnp.exp(-jnp.exp(-z[2])))
+
+    def exp_cosine():
+        theta = jnp.exp(z[5])
+        rho_e = jnp.exp(-(jnp.exp(z[4]) + theta / MAX_QUALITY))
+        return ExponentialCosine.discrete_spectrum(omega, jnp.exp(z[3]), rho_e, theta)
+
+    def flicker():
+        return Flicker.discrete_spectrum(omega, jnp.exp(z[7]))
+
+    def high_frequency_noise():
+        rise = jax.nn.sigmoid(z[11]) * (math.pi / 2)  # π f_h Δ ∈ (0, π/2)
+        return HighFrequencyNoise.discrete_spectrum(omega, jnp.exp(z[10]), rise)
+
+    def low_pass():
+        corner = jax.nn.sigmoid(z[8]) * (math.pi / 2)  # π f_b Δ ∈ (0, π/2)
+        # (off, evaluated only under a vmapped mask: a finite gain and gradient, unused)
+        code = jnp.where(on[8], mask[8], 2.0)
+        return chain_filters.low_pass_gain(omega, corner, code)
+
     coloured = WhiteNoise.discrete_spectrum(omega, jnp.exp(z[0]))
-    coloured = coloured + jnp.where(on[1], gm, 0.0) + jnp.where(on[3], ec, 0.0)
-    coloured = coloured + jnp.where(on[7], flicker, 0.0)
-    rise = jax.nn.sigmoid(z[11]) * (math.pi / 2)  # π f_h Δ ∈ (0, π/2)
-    high = HighFrequencyNoise.discrete_spectrum(omega, jnp.exp(z[10]), rise)
-    coloured = coloured + jnp.where(on[10], high, 0.0)
+    coloured = coloured + _if_on(on[1], gauss_markov, zero) + _if_on(on[3], exp_cosine, zero)
+    coloured = coloured + _if_on(on[7], flicker, zero)
+    coloured = coloured + _if_on(on[10], high_frequency_noise, zero)
+    gain = _if_on(on[8], low_pass, one)
     walk = jnp.where(on[6], RandomWalk.discrete_difference_spectrum(omega, jnp.exp(z[6])), 0.0)
     return difference_parts(omega, coloured, walk, gain, floor)
+
+
+def _if_on(on, spectrum, off):
+    """`spectrum()` where the (traced) slot `on` is switched on, else `off`: a `lax.cond`,
+    so that a fit's value and gradient skip the components its structure leaves out (the
+    mask is an argument of one compiled fit for every structure). With `jnp.where` every
+    component's spectrum and its gradient were computed on every frequency and then
+    discarded: on the correction's grid of 16,385 frequencies that gradient cost more than
+    its Fourier transforms. Measured on the 2-core CPU, one core, the Whittle
+    log-likelihood's value and gradient on section 7's 130,000-sample record (1,880 bands,
+    a grid of 32,768): 1.64–1.68 → 1.25–1.43 ms for structures of one or two components
+    (1.65 → 1.61 ms with three), equal to 1e-12 relative in value. Under `vmap` with a
+    batched mask, a select of both, as before."""
+    return jax.lax.cond(on, spectrum, lambda: off)
 
 
 def component_models(z, mask, sample_interval):
