@@ -1,8 +1,9 @@
 """Solvers that end a fit early: optimistix's solvers, wrapped, ended as at their step
 limit (`RESULTS.nonlinear_max_steps_reached`) once the accepted point's cost has stopped
-falling, or (`MinimumEnding`) as converged once the accepted point passes the caller's own
-convergence test; a fit that never meets the wrapper's test takes exactly the steps and
-values it took before (the inner solver's state is untouched).
+falling or a traced step limit is reached, or (`MinimumEnding`) as converged once the
+accepted point passes the caller's own convergence test; a fit that never meets the
+wrapper's test takes exactly the steps and values it took before (the inner solver's state
+is untouched).
 
 - `StallEnding`: a Gauss–Newton-type least-squares solver (Levenberg–Marquardt), for the
   step diagnosis's fits whose steps are dear (a stop's or a compliant contact's
@@ -22,6 +23,9 @@ values it took before (the inner solver's state is untouched).
   records, the linear candidates' kept starts took a median of 19.5 Levenberg–Marquardt
   steps (1,772 in all) without it, 5 (1,013) with it; a fit that never passes the test
   still runs to its limit.
+- `StepLimited`: a least-squares solver ended as at its step limit after a traced number
+  of steps, so that fits of different limits share one compiled program (the joint step
+  fit's nominal, limited to 30 steps, and its lags, to 60: `diagnose.step.joint`).
 """
 
 from __future__ import annotations
@@ -215,3 +219,40 @@ def _ended(done, result, costs, relative, absolute):
 
 def _leaves(tree) -> list:
     return jax.tree_util.tree_leaves(tree)
+
+
+class StepLimited(optx.AbstractLeastSquaresSolver):
+    """`inner` (a least-squares solver), ended as at its step limit
+    (`RESULTS.nonlinear_max_steps_reached`) after `limit` steps, a traced integer: fits of
+    different step limits then share one compiled program, run under the largest limit as
+    optimistix's static `max_steps` (which must be a Python integer). A fit ended here
+    takes exactly the steps and values it would take under `max_steps=limit`, and reports
+    the same result and step count."""
+
+    inner: optx.AbstractLeastSquaresSolver
+    rtol: float
+    atol: float
+    norm: Callable
+    limit: Int[Array, ""]
+
+    def __init__(self, inner, limit):
+        self.inner, self.limit = inner, jnp.asarray(limit)
+        self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm  # the inner's
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return _CountedState(inner, jnp.array(0))
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
+        return y, _CountedState(inner, state.steps + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
+        spent = ~done & (state.steps >= self.limit)
+        return done | spent, optx.RESULTS.where(
+            spent, optx.RESULTS.nonlinear_max_steps_reached, result
+        )
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)

@@ -206,9 +206,22 @@ def test_expected_evidence_agrees_with_a_monte_carlo_of_2lnb():
     assert abs(draws.mean() - expected) < 3 * se + 0.05 * expected, (draws.mean(), se, expected)
 
 
-def test_a_single_small_step_tie_carries_the_experiment_that_breaks_it():
+def test_a_single_small_step_tie_carries_the_experiment_that_breaks_it(monkeypatch):
     small = _record(11, SMALL, device={"T_dm": 3e-5})
+    shapes = []  # each design's set, as the refit sees it
+    fit_set = sd.fit_set
+
+    def recorded(prepared, *args, **kwargs):
+        layout = prepared.layout
+        shapes.append((layout.n_padded, layout.j_padded, prepared.ctx.max_block, layout.stops))
+        return fit_set(prepared, *args, **kwargs)
+
+    monkeypatch.setattr(sd, "fit_set", recorded)
     result = sjv.diagnose_step_set([small], NOMINAL)
+    # Every design's set padded to the menu's largest shapes (the designs at 4× the rate
+    # take larger blocks): one compiled refit for the designs off the stops, one on them.
+    assert len(shapes) == 8 and len({s[:3] for s in shapes}) == 1, shapes
+    assert len(set(shapes)) == 2, shapes
     assert result.verdict == "cannot_tell"
     menu = {e["description"]: e["expected_2lnB"] for e in result.next_experiment}
     assert len(menu) == 4
@@ -221,6 +234,37 @@ def test_a_single_small_step_tie_carries_the_experiment_that_breaks_it():
     assert len(small_steps) == 2 and max(small_steps) < 5
     assert "to separate torquer_lag from output_filter" in result.reason
     assert "next experiment:" in result.summary()
+
+
+def test_the_designs_sets_are_padded_to_one_shape(monkeypatch):
+    """On a 1 MHz record the menu's design at 4× the rate takes blocks of 39 samples
+    (the largest block m padded to 64, the others' to 32): `next_experiments` pads every
+    design's set to the menu's largest shapes, so that one compiled refit serves them
+    (a program per shape before)."""
+    import jax
+
+    import accel_jax as aj
+
+    n, rate = 5000, 1e6
+    t = np.arange(n) / rate
+    u_test = (np.arange(n) >= 200).astype(float)
+    device = aj.ServoParams.reference(torquer_time_constant=3e-5)
+    y = np.asarray(aj.simulate_linear(device, t, u_test, key=jax.random.key(0)))
+    y = y + 1e-4 * np.random.default_rng(0).standard_normal(n)
+    prepared = sj.prepare_set([StepData(t, u_test, y)], NOMINAL)
+    asked = []
+    monkeypatch.setattr(sd, "expected_evidence", lambda *args: asked.append(args) or 0.0)
+    sd.next_experiments(prepared, NOMINAL, None, ("torquer_lag", "output_filter"))
+    menu = [a[5] for a in asked[::2]]
+    shapes = [sd._design_shape(design, NOMINAL) for design in menu]
+    assert len(set(shapes)) > 1  # (unpadded, the designs would need programs of their own)
+    at_least = tuple(max(c) for c in zip(*shapes, strict=True))
+    assert all(a[6] == at_least for a in asked) and len(asked) == 2 * len(menu)
+    for design in menu:
+        probe = sj.prepare_set([sd._with_output(design.record, NOMINAL)], NOMINAL)
+        combined = sj.stack(prepared.preps + probe.preps, prepared.stop_voltage, False, at_least)
+        layout = combined.layout
+        assert (layout.n_padded, layout.j_padded, combined.ctx.max_block) == at_least
 
 
 def test_acceleration_column_is_read_and_checked():

@@ -106,3 +106,44 @@ def test_a_fit_ends_once_it_would_count_as_converged():
         # From the minimum itself it ends at once: the first step's linearisation.
         _, again_result, again_steps = _fit_steps(MinimumEnding(plain, _at_minimum), full, scale)
         assert again_result == optx.RESULTS.successful and int(again_steps) <= 1
+
+
+def test_a_traced_step_limit_is_the_static_one():
+    # `StepLimited` (the joint fit's nominal and lags in one compiled program): a fit under
+    # a traced limit k, run with a larger static `max_steps`, takes exactly the steps and
+    # values of `max_steps=k`, and reports the same result and step count; one program
+    # serves every limit.
+    from accel_jax._solvers import StepLimited
+
+    with jax.enable_x64(True):
+        plain = optx.LevenbergMarquardt(
+            rtol=1e-14, atol=1e-14, linear_solver=lx.Normal(lx.Cholesky())
+        )
+        w0 = jnp.array([1.0, 0.5, 2.0])
+
+        @jax.jit
+        def limited(limit):
+            solution = optx.least_squares(
+                dense_jacobian(_residuals), StepLimited(plain, limit), w0, args=30.0,
+                max_steps=200, throw=False,
+            )
+            return solution.value, solution.result, solution.stats["num_steps"]
+
+        def static(limit):
+            @jax.jit
+            def fit(w):
+                solution = optx.least_squares(
+                    dense_jacobian(_residuals), plain, w, args=30.0, max_steps=limit,
+                    throw=False,
+                )
+                return solution.value, solution.result, solution.stats["num_steps"]
+
+            return fit(w0)
+
+        _, _, converged_at = static(200)
+        for limit in (0, 1, 3, int(converged_at) - 1, int(converged_at), 150):
+            value, result, steps = limited(jnp.asarray(limit))
+            expected, expected_result, expected_steps = static(limit)
+            np.testing.assert_array_equal(value, expected)
+            assert result == expected_result and int(steps) == int(expected_steps), limit
+        assert limited._cache_size() == 1

@@ -163,6 +163,13 @@ def _simulate_design(
     return StepData(t=record.t, u_test=record.u_test, u_out=y, a_in=record.a_in)
 
 
+def _design_shape(design: ExperimentDesign, nominal) -> tuple[int, int, int]:
+    """The padded shapes (blocks, changes, largest block m) of a design's record
+    (`record.prepare`'s `RecordShape`)."""
+    shape = prepare_set([_with_output(design.record, nominal)], nominal).preps[0].shape
+    return shape.n_padded, shape.j_padded, shape.max_block
+
+
 def _with_output(record: StepData, nominal) -> StepData:
     """A design record with a placeholder response (its linear settled levels plus a
     ramp, so that `prepare` finds a non-constant output)."""
@@ -180,13 +187,15 @@ def expected_evidence(
     truth: str,
     rival: str,
     design: ExperimentDesign | Mapping,
+    at_least: tuple[int, int, int] = (0, 0, 0),
 ) -> float:
     """Expected 2 ln B of `truth` over `rival` once `design` is added to the set: the fitted
     `truth` simulated noise-free on every record (the set's and the design's), `rival`
     refitted to all of them; its misfit Σ r²/σ² (σ each record's floor; the design's its
     `noise_V` per sample over √(samples per block)). Both models have the same number of
     parameters, so no penalty enters. (`design`: an `ExperimentDesign`, or the dict of its
-    fields that `experiment_menu` returned before.)"""
+    fields that `experiment_menu` returned before; `at_least` the set's least padded shapes,
+    `joint.stack`.)"""
     if not isinstance(design, ExperimentDesign):
         design = ExperimentDesign.from_mapping(design)
     truth_fit = fits[truth]
@@ -198,7 +207,7 @@ def expected_evidence(
         preps.append(dataclasses.replace(p, u_out=u_out))
     added = new.preps[0]
     added = dataclasses.replace(added, sigma=design.noise_V / math.sqrt(added.block))
-    combined = stack(preps + [added], prepared.stop_voltage, prepared.layout.lag_states)
+    combined = stack(preps + [added], prepared.stop_voltage, prepared.layout.lag_states, at_least)
     start = _transfer_start(fits[rival].x, prepared, combined)
     fit = fit_set(combined, nominal, candidates=[rival], starts={rival: start})[rival]
     chi2 = 0.0
@@ -214,10 +223,16 @@ def next_experiments(prepared: PreparedSet, nominal, fits, tied) -> list[dict]:
     (the smaller of the two directions)."""
     rate = 1.0 / prepared.preps[0].dt_sample
     noise = max(p.floor.sigma_per_sample for p in prepared.preps)
+    menu = experiment_menu(nominal, rate, noise)
+    # Every design's set padded to the menu's largest shapes: one compiled fit for the
+    # designs off the stops and one for those on them, where each new record length or
+    # block (a design at 4× the rate) compiled its own (3.6 s each on the 2-core CPU).
+    shapes = [_design_shape(design, nominal) for design in menu]
+    at_least = tuple(max(column) for column in zip(*shapes, strict=True))
     out = []
-    for design in experiment_menu(nominal, rate, noise):
-        one = expected_evidence(prepared, nominal, fits, tied[0], tied[1], design)
-        two = expected_evidence(prepared, nominal, fits, tied[1], tied[0], design)
+    for design in menu:
+        one = expected_evidence(prepared, nominal, fits, tied[0], tied[1], design, at_least)
+        two = expected_evidence(prepared, nominal, fits, tied[1], tied[0], design, at_least)
         record = design.record
         out.append(
             {

@@ -52,6 +52,7 @@ import optimistix as optx
 
 from ..._data import DataError, NominalDevice, StepData
 from ..._simulate.sequence import SequenceInputs, linear_record, stop_record
+from ..._solvers import StepLimited
 from .. import openworld
 from .effects import OutputFilter, TorquerLag
 from .fit import (
@@ -273,14 +274,16 @@ def _misfit(prediction, x, candidate, ctx_stack, layout, data, weight):
 
 @eqx.filter_jit
 def _fit(
-    starts, candidates, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight, max_steps
+    starts, candidates, limits, base, prior_sigma, ctx_stack, layout, stop_voltage, data, weight
 ):
-    """Levenberg–Marquardt fits (optimistix), one per (start, candidate) pair."""
-    solver = optx.LevenbergMarquardt(
+    """Levenberg–Marquardt fits (optimistix), one per (start, candidate, step limit) triple.
+    The step limits are traced (`StepLimited`, at most `MAX_STEPS`): the nominal fit and
+    the lags' share one compiled program, where a static limit compiled one for each."""
+    lm = optx.LevenbergMarquardt(
         rtol=TOLERANCE, atol=TOLERANCE, linear_solver=lx.Normal(lx.Cholesky())
     )
 
-    def one(x0, candidate):
+    def one(x0, candidate, limit):
         # (The set's prediction a jit of its own: the solver's residuals, their Jacobian and
         # the final prediction trace it once, as `fit._fit_record` does its model.)
         @jax.jit
@@ -293,7 +296,7 @@ def _fit(
         # The Jacobian as a matrix (`dense_jacobian`): one copy of the simulation in the
         # solver's program instead of its linearisation, materialisation and transpose.
         solution = optx.least_squares(
-            dense_jacobian(fn), solver, x0, max_steps=max_steps, throw=False
+            dense_jacobian(fn), StepLimited(lm, limit), x0, max_steps=MAX_STEPS, throw=False
         )
         x = solution.value
         prediction = predicted(x)
@@ -311,7 +314,7 @@ def _fit(
 
     # One fit after another (`lax.map`, not `vmap`): a record with stops then takes the
     # contact branch of `stop_record` only at the steps that reach a stop.
-    return jax.lax.map(lambda pair: one(*pair), (starts, candidates))
+    return jax.lax.map(lambda row: one(*row), (starts, candidates, limits))
 
 
 def nominal_stop_voltage(params) -> float:
@@ -360,12 +363,19 @@ def prepare_set(datasets: list[StepData], nominal: NominalDevice) -> PreparedSet
     return stack(preps, v_stop)
 
 
-def stack(preps: list[StepRecord], stop_voltage: float, lag_states: bool = False) -> PreparedSet:
+def stack(
+    preps: list[StepRecord],
+    stop_voltage: float,
+    lag_states: bool = False,
+    at_least: tuple[int, int, int] = (0, 0, 0),
+) -> PreparedSet:
     """Prepared records (`prepare`'s, with `on_stops` set) as one padded, stacked set;
-    `lag_states` whether each record's initial lag states are free (`SetLayout`)."""
-    n_padded = max(p.shape.n_padded for p in preps)
-    j_padded = max(p.shape.j_padded for p in preps)
-    max_block = max(p.shape.max_block for p in preps)
+    `lag_states` whether each record's initial lag states are free (`SetLayout`);
+    `at_least` (blocks, changes, largest block m) the least padded shapes: sets of several
+    shapes padded to the largest share one compiled fit (`design.next_experiments`)."""
+    n_padded = max(at_least[0], *(p.shape.n_padded for p in preps))
+    j_padded = max(at_least[1], *(p.shape.j_padded for p in preps))
+    max_block = max(at_least[2], *(p.shape.max_block for p in preps))
     ctxs = [_pad_context(p.ctx, n_padded, j_padded, max_block) for p in preps]
     ctxs = [
         dataclasses.replace(c, sigma_ref=np.asarray(p.sigma, np.float64))
@@ -430,18 +440,22 @@ def fit_set(
         jnp.asarray(prepared.weight),
     )
     if starts is not None:
-        ids = jnp.asarray([CANDIDATES.index(c) for c in names], jnp.int32)
-        x = jnp.asarray(np.stack([np.asarray(starts[c]) for c in names]))
-        out = _fit(x, ids, *args, MAX_STEPS)
+        ids = [CANDIDATES.index(c) for c in names]
+        x = np.stack([np.asarray(starts[c]) for c in names])
+        out = _fit_rows(x, ids, [MAX_STEPS] * len(names), args)
         return {c: _best(out, [i]) for i, c in enumerate(names)}
     x0 = _start(prepared) if start is None else np.asarray(start)
     fits: dict[str, JointFit] = {}
+    lags = [c for c in names if c != "nominal"]
+    rows = len(lags) * len(LAG_STARTS)  # the lags' batch: the nominal's is padded to it
     if "nominal" in names:
-        starts = np.stack([x0])
-        out = _fit(jnp.asarray(starts), jnp.zeros(1, jnp.int32), *args, NOMINAL_MAX_STEPS)
+        # (the padding rows: the same start, no steps; their fits are not read)
+        pad = max(rows - 1, 0)
+        out = _fit_rows(
+            np.stack([x0] * (1 + pad)), [0] * (1 + pad), [NOMINAL_MAX_STEPS] + [0] * pad, args
+        )
         nominal_fit = fits["nominal"] = _best(out, [0])
         x0 = np.asarray(nominal_fit.x)
-    lags = [c for c in names if c != "nominal"]
     if lags:
         starts, ids, owners = [], [], []
         for name in lags:
@@ -451,10 +465,20 @@ def fit_set(
                 starts.append(x)
                 ids.append(CANDIDATES.index(name))
                 owners.append(name)
-        out = _fit(jnp.asarray(np.stack(starts)), jnp.asarray(ids, jnp.int32), *args, MAX_STEPS)
+        out = _fit_rows(np.stack(starts), ids, [MAX_STEPS] * rows, args)
         for name in lags:
             fits[name] = _best(out, [i for i, o in enumerate(owners) if o == name])
     return fits
+
+
+def _fit_rows(starts, ids, limits, args):
+    """`_fit` of the rows (start, candidate id, step limit)."""
+    return _fit(
+        jnp.asarray(starts),
+        jnp.asarray(ids, jnp.int32),
+        jnp.asarray(limits, jnp.int32),
+        *args,
+    )
 
 
 def _best(out, rows) -> JointFit:
