@@ -21,6 +21,7 @@ import numpy as np
 from ..._data import NominalDevice, StepData
 from ..._deprecated import LegacyItems
 from ..._io import field_dict
+from ..._runtime import thread_map
 from ..._servo import closed_loop_test_gain
 from ..._simulate.sequence import accel_moment
 from .joint import (
@@ -35,7 +36,7 @@ from .joint import (
     stack,
 )
 from .record import prior_sigma_of
-from .state import JointFit
+from .state import JointFit, StepRecord
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -163,11 +164,10 @@ def _simulate_design(
     return StepData(t=record.t, u_test=record.u_test, u_out=y, a_in=record.a_in)
 
 
-def _design_shape(design: ExperimentDesign, nominal) -> tuple[int, int, int]:
-    """The padded shapes (blocks, changes, largest block m) of a design's record
-    (`record.prepare`'s `RecordShape`)."""
-    shape = prepare_set([_with_output(design.record, nominal)], nominal).preps[0].shape
-    return shape.n_padded, shape.j_padded, shape.max_block
+def _design_probe(design: ExperimentDesign, nominal) -> StepRecord:
+    """A design's record as `prepare_set` prepares it (its padded shapes, `shape`, and
+    whether it reaches the stops, `on_stops`), with a placeholder response."""
+    return prepare_set([_with_output(design.record, nominal)], nominal).preps[0]
 
 
 def _with_output(record: StepData, nominal) -> StepData:
@@ -227,12 +227,29 @@ def next_experiments(prepared: PreparedSet, nominal, fits, tied) -> list[dict]:
     # Every design's set padded to the menu's largest shapes: one compiled fit for the
     # designs off the stops and one for those on them, where each new record length or
     # block (a design at 4× the rate) compiled its own (3.6 s each on the 2-core CPU).
-    shapes = [_design_shape(design, nominal) for design in menu]
+    probes = [_design_probe(design, nominal) for design in menu]
+    shapes = [(p.shape.n_padded, p.shape.j_padded, p.shape.max_block) for p in probes]
     at_least = tuple(max(column) for column in zip(*shapes, strict=True))
+    calls = [(design, pair) for design in menu for pair in (tied, tied[::-1])]
+
+    def evidence(call):
+        design, (truth, rival) = call
+        return expected_evidence(prepared, nominal, fits, truth, rival, design, at_least)
+
+    # The refits on as many threads as there are CPUs (`thread_map`; each is one XLA call,
+    # the same calls and results in any order): first one call of each program (on the
+    # stops and off them), compiled side by side, then the rest, which find them compiled.
+    program = {id(d): p.on_stops for d, p in zip(menu, probes, strict=True)}
+    first = {}
+    for i, (design, _) in enumerate(calls):
+        first.setdefault(program[id(design)], i)
+    order = sorted(first.values())
+    values = dict(zip(order, thread_map(evidence, [calls[i] for i in order]), strict=True))
+    rest = [i for i in range(len(calls)) if i not in values]
+    values.update(zip(rest, thread_map(evidence, [calls[i] for i in rest]), strict=True))
     out = []
-    for design in menu:
-        one = expected_evidence(prepared, nominal, fits, tied[0], tied[1], design, at_least)
-        two = expected_evidence(prepared, nominal, fits, tied[1], tied[0], design, at_least)
+    for k, design in enumerate(menu):
+        one, two = values[2 * k], values[2 * k + 1]
         record = design.record
         out.append(
             {
