@@ -11,6 +11,7 @@ Float64 throughout (x64 must be enabled).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 
@@ -21,7 +22,7 @@ import numpy as np
 from ..._data import NominalDevice, StepData
 from ..._deprecated import LegacyItems
 from ..._io import field_dict
-from ..._runtime import thread_map
+from ..._runtime import in_background, thread_map, usable_cpus
 from ..._servo import closed_loop_test_gain
 from ..._simulate.sequence import accel_moment
 from .joint import (
@@ -30,6 +31,7 @@ from .joint import (
     PreparedSet,
     _record_prediction_compiled,
     _transfer_start,
+    compile_fit,
     fit_set,
     nominal_stop_voltage,
     prepare_set,
@@ -218,18 +220,55 @@ def expected_evidence(
     return chi2
 
 
-def next_experiments(prepared: PreparedSet, nominal, fits, tied) -> list[dict]:
-    """The menu's experiments ranked by the expected 2 ln B that separates the tied pair
-    (the smaller of the two directions)."""
+def _menu(prepared: PreparedSet, nominal):
+    """The experiment menu for the set, each design's probe (`_design_probe`) and the
+    menu's largest shapes (blocks, changes, largest block m): every design's set is padded
+    to them, so that one compiled refit serves the designs off the stops and one those on
+    them, where each new record length or block (a design at 4× the rate) compiled its own
+    (3.6 s each on the 2-core CPU)."""
     rate = 1.0 / prepared.preps[0].dt_sample
     noise = max(p.floor.sigma_per_sample for p in prepared.preps)
     menu = experiment_menu(nominal, rate, noise)
-    # Every design's set padded to the menu's largest shapes: one compiled fit for the
-    # designs off the stops and one for those on them, where each new record length or
-    # block (a design at 4× the rate) compiled its own (3.6 s each on the 2-core CPU).
     probes = [_design_probe(design, nominal) for design in menu]
     shapes = [(p.shape.n_padded, p.shape.j_padded, p.shape.max_block) for p in probes]
     at_least = tuple(max(column) for column in zip(*shapes, strict=True))
+    return menu, probes, at_least
+
+
+def compile_refits(prepared: PreparedSet, nominal) -> list:
+    """Where the process has two CPUs or more, the designs' refit programs (one on the
+    stops, one off them) compiled on threads of their own (`joint.compile_fit` on each
+    design's set with its placeholder output, shaped as `next_experiments` will shape it),
+    and the designs' simulations on a third (one per record shape), while the caller fits
+    the set itself; their `Future`s, which `next_experiments` waits for. The same programs,
+    compiled earlier: the same results."""
+    if len(usable_cpus()) < 2:
+        return []
+    menu, probes, at_least = _menu(prepared, nominal)
+    lag_states = prepared.layout.lag_states
+    futures = []
+    for on_stops in sorted({p.on_stops for p in probes}):
+        probe = next(p for p in probes if p.on_stops == on_stops)
+        combined = stack(prepared.preps + [probe], prepared.stop_voltage, lag_states, at_least)
+        futures += in_background(functools.partial(compile_fit, combined, nominal))
+    shapes = {}  # a design of each simulation program (its record's shapes, on the stops)
+    for design, p in zip(menu, probes, strict=True):
+        shapes.setdefault((p.shape, p.on_stops), design)
+    # (a fit's shared values are all a simulation reads of it)
+    placeholder = JointFit(np.zeros(N_SHARED), 0.0, np.zeros((0, 0)), np.zeros(0), False, [])
+    simulations = [
+        functools.partial(_simulate_design, placeholder, prepared, nominal, "nominal", design)
+        for design in shapes.values()
+    ]
+    return futures + in_background(*simulations)
+
+
+def next_experiments(prepared: PreparedSet, nominal, fits, tied, ahead=()) -> list[dict]:
+    """The menu's experiments ranked by the expected 2 ln B that separates the tied pair
+    (the smaller of the two directions); `ahead` the futures of `compile_refits`."""
+    menu, probes, at_least = _menu(prepared, nominal)
+    for future in ahead:
+        future.result()
     calls = [(design, pair) for design in menu for pair in (tied, tied[::-1])]
 
     def evidence(call):
@@ -237,16 +276,23 @@ def next_experiments(prepared: PreparedSet, nominal, fits, tied) -> list[dict]:
         return expected_evidence(prepared, nominal, fits, truth, rival, design, at_least)
 
     # The refits on as many threads as there are CPUs (`thread_map`; each is one XLA call,
-    # the same calls and results in any order): first one call of each program (on the
-    # stops and off them), compiled side by side, then the rest, which find them compiled.
-    program = {id(d): p.on_stops for d, p in zip(menu, probes, strict=True)}
-    first = {}
-    for i, (design, _) in enumerate(calls):
-        first.setdefault(program[id(design)], i)
-    order = sorted(first.values())
-    values = dict(zip(order, thread_map(evidence, [calls[i] for i in order]), strict=True))
-    rest = [i for i in range(len(calls)) if i not in values]
-    values.update(zip(rest, thread_map(evidence, [calls[i] for i in rest]), strict=True))
+    # the same calls and results in any order). With the programs compiled ahead
+    # (`ahead`), all at once, the refits on the stops (the slow ones: their sample-by-sample
+    # simulation) first; else first one call of each program (on the stops and off them),
+    # compiled side by side, then the rest, which find them compiled (two threads asking
+    # for one program not yet compiled would both compile it).
+    on_stops = {id(d): p.on_stops for d, p in zip(menu, probes, strict=True)}
+    if ahead:
+        batches = [sorted(range(len(calls)), key=lambda i: not on_stops[id(calls[i][0])])]
+    else:
+        first = {}
+        for i, (design, _) in enumerate(calls):
+            first.setdefault(on_stops[id(design)], i)
+        order = sorted(first.values())
+        batches = [order, [i for i in range(len(calls)) if i not in order]]
+    values = {}
+    for batch in batches:
+        values.update(zip(batch, thread_map(evidence, [calls[i] for i in batch]), strict=True))
     out = []
     for k, design in enumerate(menu):
         one, two = values[2 * k], values[2 * k + 1]

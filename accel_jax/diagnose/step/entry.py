@@ -524,12 +524,13 @@ def _restart_from_nominal(
 
 def _recommend(result: DiagnosisResult, data: StepData, nominal: NominalDevice) -> None:
     """Attach the next experiment to a lag tie (the record alone, fitted as a set of one)."""
-    from .design import next_experiments
+    from .design import compile_refits, next_experiments
     from .joint import fit_set, prepare_set
 
     prepared = prepare_set([data], nominal)
+    ahead = compile_refits(prepared, nominal)  # the designs' programs, beside the set's fit
     fits = fit_set(prepared, nominal)
-    result.next_experiment = next_experiments(prepared, nominal, fits, list(result.tied))
+    result.next_experiment = next_experiments(prepared, nominal, fits, list(result.tied), ahead)
     if result.next_experiment:
         best = result.next_experiment[0]
         result.reason += (

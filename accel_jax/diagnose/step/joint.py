@@ -471,6 +471,23 @@ def fit_set(
     return fits
 
 
+def compile_fit(prepared: PreparedSet, nominal: NominalDevice) -> None:
+    """Compile the set's refit program (`fit_set` with `starts`: one candidate, at most
+    `MAX_STEPS`) by a call that takes no step (a step limit of 0): the program is then in
+    JAX's cache for the set's shapes, whatever the data. For compiling ahead on another
+    thread (`design.compile_refits`)."""
+    args = (
+        nominal.params,
+        jnp.asarray(prior_sigma_of(nominal)),
+        prepared.ctx,
+        prepared.layout,
+        jnp.asarray(prepared.stop_voltage),
+        jnp.asarray(prepared.data),
+        jnp.asarray(prepared.weight),
+    )
+    jax.block_until_ready(_fit_rows(_start(prepared)[None], [0], [0], args))
+
+
 def _fit_rows(starts, ids, limits, args):
     """`_fit` of the rows (start, candidate id, step limit)."""
     return _fit(
