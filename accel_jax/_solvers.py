@@ -118,7 +118,25 @@ class _CountedState(eqx.Module):
         return self.inner.f_info
 
 
-class MinimumEnding(optx.AbstractLeastSquaresSolver):
+class _Counting(optx.AbstractLeastSquaresSolver):
+    """A wrapper of the least-squares solver `inner` that counts its steps (`_CountedState`)
+    and leaves its steps and results as they are; the subclass's `terminate` ends it."""
+
+    inner: eqx.AbstractVar[optx.AbstractLeastSquaresSolver]
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return _CountedState(inner, jnp.array(0))
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
+        return y, _CountedState(inner, state.steps + 1), aux
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
+
+
+class MinimumEnding(_Counting):
     """`inner` (a least-squares solver whose state holds `f_info`, the residuals and
     Jacobian at the accepted point: `optx.LevenbergMarquardt` or a `StallEnding` of it),
     ended as converged (`RESULTS.successful`) once `at_minimum(J, r)` holds at the accepted
@@ -136,23 +154,12 @@ class MinimumEnding(optx.AbstractLeastSquaresSolver):
         self.inner, self.at_minimum = inner, at_minimum
         self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm  # the inner's
 
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
-        return _CountedState(inner, jnp.array(0))
-
-    def step(self, fn, y, args, options, state, tags):
-        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
-        return y, _CountedState(inner, state.steps + 1), aux
-
     def terminate(self, fn, y, args, options, state, tags):
         done, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
         info = state.inner.f_info
         met = (state.steps > 0) & self.at_minimum(info.jac.as_matrix(), info.residual)
         result = optx.RESULTS.where(met & ~done, optx.RESULTS.successful, result)
         return done | met, result
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
 
 
 class StallEndingMinimiser(optx.AbstractMinimiser):
@@ -221,7 +228,7 @@ def _leaves(tree) -> list:
     return jax.tree_util.tree_leaves(tree)
 
 
-class StepLimited(optx.AbstractLeastSquaresSolver):
+class StepLimited(_Counting):
     """`inner` (a least-squares solver), ended as at its step limit
     (`RESULTS.nonlinear_max_steps_reached`) after `limit` steps, a traced integer: fits of
     different step limits then share one compiled program, run under the largest limit as
@@ -239,20 +246,9 @@ class StepLimited(optx.AbstractLeastSquaresSolver):
         self.inner, self.limit = inner, jnp.asarray(limit)
         self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm  # the inner's
 
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
-        return _CountedState(inner, jnp.array(0))
-
-    def step(self, fn, y, args, options, state, tags):
-        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
-        return y, _CountedState(inner, state.steps + 1), aux
-
     def terminate(self, fn, y, args, options, state, tags):
         done, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
         spent = ~done & (state.steps >= self.limit)
         return done | spent, optx.RESULTS.where(
             spent, optx.RESULTS.nonlinear_max_steps_reached, result
         )
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
