@@ -268,6 +268,16 @@ def test_the_designs_sets_are_padded_to_one_shape(monkeypatch):
         assert (layout.n_padded, layout.j_padded, combined.ctx.max_block) == at_least
 
 
+def test_a_refit_compiled_ahead_that_fails_changes_nothing():
+    """`compile_refits`' calls drop their errors (the real call raises where it happens):
+    a failed warm-up never fails a diagnosis that would not have failed."""
+
+    def fails():
+        raise ValueError("a design that cannot be prepared")
+
+    assert sd._quietly(fails)() is None
+
+
 def test_acceleration_column_is_read_and_checked():
     text = "t,u_test,u_out,a_in\n" + "\n".join(
         f"{i * 1e-6},0,{0.1 * (i > 150)},{0.5 * (i > 150)}" for i in range(300)

@@ -250,17 +250,32 @@ def compile_refits(prepared: PreparedSet, nominal) -> list:
     for on_stops in sorted({p.on_stops for p in probes}):
         probe = next(p for p in probes if p.on_stops == on_stops)
         combined = stack(prepared.preps + [probe], prepared.stop_voltage, lag_states, at_least)
-        futures += in_background(functools.partial(compile_fit, combined, nominal))
+        futures += in_background(_quietly(functools.partial(compile_fit, combined, nominal)))
     shapes = {}  # a design of each simulation program (its record's shapes, on the stops)
     for design, p in zip(menu, probes, strict=True):
         shapes.setdefault((p.shape, p.on_stops), design)
     # (a fit's shared values are all a simulation reads of it)
     placeholder = JointFit(np.zeros(N_SHARED), 0.0, np.zeros((0, 0)), np.zeros(0), False, [])
     simulations = [
-        functools.partial(_simulate_design, placeholder, prepared, nominal, "nominal", design)
-        for design in shapes.values()
+        _quietly(
+            functools.partial(_simulate_design, placeholder, prepared, nominal, "nominal", d)
+        )
+        for d in shapes.values()
     ]
     return futures + in_background(*simulations)
+
+
+def _quietly(call):
+    """`call`, its error dropped: a program compiled ahead that fails changes nothing (the
+    real call raises the same error where it happens)."""
+
+    def run():
+        try:
+            call()
+        except Exception:
+            pass
+
+    return run
 
 
 def next_experiments(prepared: PreparedSet, nominal, fits, tied, ahead=()) -> list[dict]:
