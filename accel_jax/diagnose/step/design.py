@@ -197,7 +197,7 @@ def expected_evidence(
     `noise_V` per sample over √(samples per block)). Both models have the same number of
     parameters, so no penalty enters. (`design`: an `ExperimentDesign`, or the dict of its
     fields that `experiment_menu` returned before; `at_least` the set's least padded shapes,
-    `joint.stack`.)"""
+    `joint_set.stack`.)"""
     if not isinstance(design, ExperimentDesign):
         design = ExperimentDesign.from_mapping(design)
     truth_fit = fits[truth]

@@ -72,7 +72,7 @@ class Shared:
 
 
 class Own:
-    """Each record's own part of a set's x (`joint.SetLayout.width` long, after the shared
+    """Each record's own part of a set's x (`joint_set.SetLayout.width` long, after the shared
     part): the external moment (`MOMENT`), the initial displacement and velocity (`DV`,
     `DW`), the output offset (`OFFSET`), the change times (`timing(j)`, j the set's change
     slots) and, in the second stage, the initial lag states (`lag_states(j)`,

@@ -165,7 +165,7 @@ class LevelGroups:
 @dataclasses.dataclass(frozen=True)
 class RecordShape:
     """What decides a record's compiled program: records of one shape are fitted as one
-    batch (`entry`), and a set is padded to its records' largest (`joint.stack`).
+    batch (`entry`), and a set is padded to its records' largest (`joint_set.stack`).
 
     **Fields:** `n_padded` blocks after padding (a multiple of `record.BLOCK_BUCKET`);
     `j_padded` change slots (a multiple of 4); `max_block` the largest block the program
@@ -223,7 +223,7 @@ class StepRecord:
         unknown.
     - `input_measured`: whether `u_test` was read as a measurement (`inputs.read_input`;
         with an acceleration column too, where its levels carry no fitted errors).
-    - `on_stops`: whether the joint fit simulates it with the stops (`joint.prepare_set`;
+    - `on_stops`: whether the joint fit simulates it with the stops (`joint_set.prepare_set`;
         False elsewhere).
     """
 
