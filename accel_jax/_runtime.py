@@ -263,8 +263,14 @@ def thread_map(fn, items) -> list:
         return [fn(item) for item in items]
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(workers) as pool:
+    pool = ThreadPoolExecutor(workers, thread_name_prefix=BACKGROUND_THREADS)
+    try:
         return list(pool.map(_under_callers_x64(fn), items))
+    finally:
+        # After an error or an interrupt (Ctrl-C) here, the calls not yet started are
+        # dropped (a `with` block would run every one of them first); those running end
+        # on their own (`background_running`).
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _under_callers_x64(fn):
@@ -317,10 +323,26 @@ def in_background(*calls):
     thread ends after the last call."""
     from concurrent.futures import ThreadPoolExecutor
 
-    pool = ThreadPoolExecutor(1)
+    pool = ThreadPoolExecutor(1, thread_name_prefix=BACKGROUND_THREADS)
     futures = [pool.submit(_under_callers_x64(call)) for call in calls]
     pool.shutdown(wait=False)
     return futures
+
+
+BACKGROUND_THREADS = "accel_jax-background"
+"""The name prefix of the threads of `thread_map` and `in_background`."""
+
+
+def background_running() -> bool:
+    """Whether a thread of `thread_map` or `in_background` is still running a call (a
+    program compiled ahead for a later stage, a refit): at the end of a command that
+    finished normally none is, since it waited for every result it needed."""
+    import threading
+
+    return any(
+        thread.name.startswith(BACKGROUND_THREADS) and thread.is_alive()
+        for thread in threading.enumerate()
+    )
 
 
 def beside(*calls):

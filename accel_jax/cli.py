@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import functools
+import os
 import sys
 from pathlib import Path
 
@@ -395,5 +396,30 @@ def noise(file: Path, json_out, plot_out, export_format, confidence, out_dir, fo
     write(paths["plot_out"], plot, "plot")
 
 
+def run() -> None:
+    """The `accel-jax` command (the console script, `python -m accel_jax.cli`): `main`, and
+    where it ends while work it started on other threads still runs — an interrupted
+    (Ctrl-C) or failed command during a diagnosis, with programs being compiled ahead for
+    its later stages — the process exits at once with the command's status instead of
+    waiting for that work (XLA cannot cancel a compilation: on the 2-core CPU a lag tie
+    interrupted mid-way took 7–11 s to exit). Outputs are written whole or not at all
+    before this point (`_io.write_json_atomic`), so nothing is cut short."""
+    from ._runtime import background_running
+
+    try:
+        main()
+    except SystemExit as done:
+        if not background_running():
+            raise
+        code = done.code
+        if not isinstance(code, int):
+            if code is not None:
+                print(code, file=sys.stderr)
+            code = 0 if code is None else 1
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run()

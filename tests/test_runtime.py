@@ -267,6 +267,67 @@ def test_thread_map_keeps_order_x64_and_the_first_error(monkeypatch):
         _runtime.thread_map(fails, range(4))
 
 
+def test_thread_map_drops_the_calls_not_started_after_an_error(monkeypatch):
+    """After the first error (or an interrupt) the caller gets it at once: the calls not
+    yet started are dropped, not run first (a `with` block ran every one of them), and the
+    threads still running a call are seen by `background_running` until it ends."""
+    import threading
+
+    from accel_jax import _runtime
+
+    monkeypatch.setattr(_runtime, "usable_cpus", lambda: [0, 1])
+    started, release = [], threading.Event()
+
+    def work(i):
+        started.append(i)
+        if i == 0:
+            raise ValueError("item 0")
+        release.wait(30)  # the running call: ends when the test releases it
+        return i
+
+    with pytest.raises(ValueError, match="item 0"):
+        _runtime.thread_map(work, range(20))
+    assert _runtime.background_running()  # item 1 (and at most one more) still running
+    release.set()
+    for thread in threading.enumerate():
+        if thread.name.startswith(_runtime.BACKGROUND_THREADS):
+            thread.join(30)
+    assert not _runtime.background_running()
+    assert len(started) <= 3, started  # not the 20: the rest were dropped
+
+
+_EXIT_PROGRAM = """
+import sys, time
+from accel_jax import _runtime, cli
+_runtime.in_background(lambda: time.sleep(120))  # e.g. a later stage compiled ahead
+sys.argv = ["accel-jax", *sys.argv[1:]]
+cli.run()
+"""
+
+
+@pytest.mark.parametrize(
+    ("args", "status"), [(["diagnose", "no_such_record.csv"], 1), (["--version"], 0)]
+)
+def test_the_command_exits_with_its_status_without_waiting_for_background_work(
+    tmp_path, args, status
+):
+    """`accel-jax` (`cli.run`) ending while a call it started in the background still runs
+    (an interrupted or failed diagnosis) exits at once with the command's status, not after
+    that call (the 120 s here; a compilation ahead took up to 11 s after a Ctrl-C)."""
+    out = subprocess.run(
+        [sys.executable, "-c", _EXIT_PROGRAM, *args],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "ACCEL_JAX_CACHE_DIR": "off"},
+        timeout=60,  # waiting for the background call would exceed it
+    )
+    assert out.returncode == status, out.stderr
+    if status:
+        assert "no_such_record.csv" in out.stderr and "Traceback" not in out.stderr
+    else:
+        assert "version" in out.stdout
+
 def test_report_cpus_are_the_reports_before_its_pinning(monkeypatch):
     """`report_cpus`: the CPUs the report set for its studies (`ACCEL_JAX_REPORT_CPUS`,
     comma-separated), else the process's own; a malformed value is ignored. A report worker
