@@ -265,12 +265,15 @@ def thread_map(fn, items) -> list:
 
     pool = ThreadPoolExecutor(workers, thread_name_prefix=BACKGROUND_THREADS)
     try:
-        return list(pool.map(_under_callers_x64(fn), items))
-    finally:
+        results = list(pool.map(_under_callers_x64(fn), items))
+    except BaseException:
         # After an error or an interrupt (Ctrl-C) here, the calls not yet started are
         # dropped (a `with` block would run every one of them first); those running end
         # on their own (`background_running`).
         pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)  # every call has returned: its threads end at once
+    return results
 
 
 def _under_callers_x64(fn):
