@@ -71,12 +71,18 @@ frequencies of a differenced record keep their information (the untapered end ef
 2σ²/m swamps λσ² below j ≈ √m/4), for about a tenth of the samples' weight."""
 
 
+def _autocorrelation(taper: np.ndarray) -> np.ndarray:
+    """c(h), h = 0 … m−1: the taper's autocorrelation normalised to c(0) = 1."""
+    m = taper.size
+    full = np.fft.irfft(np.abs(np.fft.rfft(taper, 2 * m)) ** 2, 2 * m)[:m]
+    return full / full[0]
+
+
 def _lag_weight(taper: np.ndarray, size: int) -> np.ndarray:
     """1 − c(h) on a circular grid of `size` lags, c the taper's normalised autocorrelation
     (lags beyond size/2 dropped)."""
     m = taper.size
-    full = np.fft.irfft(np.abs(np.fft.rfft(taper, 2 * m)) ** 2, 2 * m)[:m]
-    c = full / full[0]
+    c = _autocorrelation(taper)
     half = size // 2
     lags = np.arange(size)
     lags = np.minimum(lags, size - lags)
@@ -100,8 +106,7 @@ def _grid(m: int, taper: np.ndarray) -> int:
     full = 1 << (2 * m - 1).bit_length()
     if m <= 1 << 14:
         return full
-    c = np.fft.irfft(np.abs(np.fft.rfft(taper, 2 * m)) ** 2, 2 * m)[:m]
-    c = c / c[0]
+    c = _autocorrelation(taper)
     size = 1 << 13
     while size < min(full, MID_GRID) and 1 - c[size // 2] > 0.01:
         size *= 2
