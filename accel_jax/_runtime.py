@@ -249,6 +249,10 @@ def report_cpus() -> list[int]:
     return usable_cpus()
 
 
+BACKGROUND_THREADS = "accel_jax-background"
+"""The name prefix of the threads of `thread_map` and `in_background`."""
+
+
 def thread_map(fn, items) -> list:
     """`[fn(item) for item in items]`, the calls spread over as many threads as the process
     has CPUs (`usable_cpus`; one thread, in the caller, for a pinned job or a single item).
@@ -330,10 +334,6 @@ def in_background(*calls):
     futures = [pool.submit(_under_callers_x64(call)) for call in calls]
     pool.shutdown(wait=False)
     return futures
-
-
-BACKGROUND_THREADS = "accel_jax-background"
-"""The name prefix of the threads of `thread_map` and `in_background`."""
 
 
 def background_running() -> bool:

@@ -328,6 +328,7 @@ def test_the_command_exits_with_its_status_without_waiting_for_background_work(
     else:
         assert "version" in out.stdout
 
+
 def test_report_cpus_are_the_reports_before_its_pinning(monkeypatch):
     """`report_cpus`: the CPUs the report set for its studies (`ACCEL_JAX_REPORT_CPUS`,
     comma-separated), else the process's own; a malformed value is ignored. A report worker
