@@ -194,6 +194,17 @@ class OnlineRun(eqx.Module):
     structure_statistic: Array
 
 
+def _matmul(a, b):
+    """a @ b of two small matrices as a sum of outer products of a's columns and b's rows:
+    elementwise work that XLA:CPU fuses into vectorised loops over a vmapped batch (logs,
+    filters), where a batched `dot` or a multiply-and-reduce of 6 × 6 matrices runs several
+    times slower per step (docs/performance.md)."""
+    out = a[:, 0, None] * b[None, 0, :]
+    for j in range(1, a.shape[1]):
+        out = out + a[:, j, None] * b[None, j, :]
+    return out
+
+
 def _limit(new, current, span, settings: OnlineIdentification):
     """The guards on one retune: σ and α move by at most `max_change`, 1/α is capped at
     span / `min_correlation_times` (or the retune refused); returns (model, ok)."""
@@ -345,7 +356,6 @@ def identify_in_flight(
         if p0.shape != (6, 6):
             raise ValueError(f"identify_in_flight: initial_covariance must be 6 × 6, got {p0.shape}.")
     r = jnp.asarray(velocity_noise, float) ** 2
-    eye = jnp.eye(6)
     fade = 1.0 - 1.0 / settings.fading_window
 
     def model_of(accel, gyro):
@@ -370,15 +380,17 @@ def identify_in_flight(
         s = cov[0, 0] + r
         gain = cov[:, 0] / s
         mean = mean + gain * innovation
-        ikh = eye - jnp.outer(gain, eye[0])
-        cov = _symmetrise(ikh @ cov @ ikh.T + r * jnp.outer(gain, gain))
+        # Joseph's form (I − K H) P (I − K H)ᵀ + K r Kᵀ with H = e₀ᵀ, as two rank-one
+        # updates (the products with I − K H touch one row and one column).
+        left = cov - jnp.outer(gain, cov[0])
+        cov = _symmetrise(left - jnp.outer(left[:, 0], gain) + r * jnp.outer(gain, gain))
         log_lik = -0.5 * (log_2pi + jnp.log(s) + innovation**2 / s)
-        new_mean = transition @ mean
-        new_cov = _symmetrise(transition @ cov @ transition.T + process)
+        new_mean = _matmul(transition, mean[:, None])[:, 0]
+        new_cov = _symmetrise(_matmul(_matmul(transition, cov), transition.T) + process)
         return new_mean, new_cov, (mean, cov, innovation, s, gain, log_lik)
 
-    def inner(carry, z_k, transitions, processes):
-        means, covs, q, k = carry
+    def step(carry, z_k, transitions, processes):
+        means, covs, q, k, log_lik_sum, _ = carry
         if settings.adaptation == "sage_husa":
             processes = processes.at[0].set(q)
         means, covs, (mean, cov, innovation, s, gain, log_lik) = jax.vmap(
@@ -388,16 +400,19 @@ def identify_in_flight(
             d = (1 - fade) / (1 - fade ** (k + 1))
             q = (1 - d) * q + d * innovation[0] ** 2 * jnp.outer(gain[0], gain[0])
             # The filter predicted with the previous Q; the next step uses the new one.
-        out = (
-            mean[0, :2],
-            cov[0, :2, :2],
-            innovation[0],
-            s[0],
-            mean[:, jnp.array([2, 4])],
-            jnp.stack([cov[:, 2:4, 2:4], cov[:, 4:6, 4:6]], axis=1),
-            log_lik,
+        # The filtered sensor blocks of every filter (the loop reads them at the last step
+        # of each decimation interval), and one packed row of the main filter's outputs.
+        blocks = jnp.stack([cov[:, 2:4, 2:4], cov[:, 4:6, 4:6]], axis=1)
+        sensors = (mean[:, jnp.array([2, 4])], blocks)
+        row = jnp.concatenate([mean[0, :2], cov[0, :2, :2].ravel(), innovation[:1], s[:1]])
+        return (means, covs, q, k + 1, log_lik_sum + log_lik, sensors), row
+
+    def interval(carry, z_interval, transitions, processes):
+        """`dec` filter steps; the filtered sensor blocks at the last of them."""
+        carry, rows = jax.lax.scan(
+            lambda c, zk: step(c, zk, transitions, processes), carry, z_interval
         )
-        return (means, covs, q, k + 1), out
+        return carry, (rows, carry[5])
 
     def sensor(models, i):
         return jax.tree.map(lambda v: v[i], models)
@@ -415,14 +430,17 @@ def identify_in_flight(
         discrete = [model_of(*pair) for pair in pairs]
         transitions = jnp.stack([m.transition for m in discrete])
         processes = jnp.stack([m.process_covariance for m in discrete])
-        z_block = jax.lax.dynamic_slice_in_dim(z, b * block, block)
-        (means, covs, q, k), out = jax.lax.scan(
-            lambda c, zk: inner(c, zk, transitions, processes), (means, covs, q, k), z_block
+        z_block = jax.lax.dynamic_slice_in_dim(z, b * block, block).reshape(per_block, dec)
+        sensors0 = (jnp.zeros((n_filters, 2)), jnp.zeros((n_filters, 2, 2, 2)))
+        (means, covs, q, k, log_lik_sum, _), (rows, (sensor_mean, sensor_cov)) = jax.lax.scan(
+            lambda c, zi: interval(c, zi, transitions, processes),
+            (means, covs, q, k, jnp.zeros(n_filters), sensors0),
+            z_block,
         )
-        kin_mean, kin_cov, innovation, s, sensor_mean, sensor_cov, log_lik = out
+        rows = rows.reshape(block, rows.shape[-1])
         at = size + b * per_block
-        x_buf = jax.lax.dynamic_update_slice_in_dim(x_buf, sensor_mean[dec - 1 :: dec], at, 0)
-        p_buf = jax.lax.dynamic_update_slice_in_dim(p_buf, sensor_cov[dec - 1 :: dec], at, 0)
+        x_buf = jax.lax.dynamic_update_slice_in_dim(x_buf, sensor_mean, at, 0)
+        p_buf = jax.lax.dynamic_update_slice_in_dim(p_buf, sensor_cov, at, 0)
         params, other = (
             jnp.stack([m.sigma, m.decay_rate, m.angular_frequency], axis=-1)
             for m in (models, alternatives)
@@ -433,7 +451,7 @@ def identify_in_flight(
             end = size + (b + 1) * per_block
             count = jnp.minimum((b + 1) * per_block, size).astype(float)
             if test:
-                block_ll = jnp.sum(log_lik, axis=0)  # (4,), by filter
+                block_ll = log_lik_sum  # (4,), by filter
                 is_ec = models.angular_frequency > 0
                 # By combination: combination c was run by filter c XOR is_ec.
                 code = jnp.sum(jnp.where(is_ec, jnp.array([1, 2]), 0))
@@ -495,7 +513,7 @@ def identify_in_flight(
             retuned = jnp.stack(oks)
             valid = valid | jnp.stack(alt_ok)
         return (means, covs, q, k, models, alternatives, valid, x_buf, p_buf, l_buf, v_buf), (
-            (kin_mean, kin_cov, innovation, s),
+            rows,
             (params, other),
             retuned,
             statistic,
@@ -532,7 +550,9 @@ def identify_in_flight(
     final, (steps, (params, other), retuned, statistic) = jax.lax.scan(
         outer, carry, jnp.arange(n_blocks)
     )
-    kin_mean, kin_cov, innovation, s = (v.reshape((-1,) + v.shape[2:]) for v in steps)
+    steps = steps.reshape(-1, steps.shape[-1])
+    kin_mean, kin_cov = steps[:, :2], steps[:, 2:6].reshape(-1, 2, 2)
+    innovation, s = steps[:, 6], steps[:, 7]
     return OnlineRun(
         kinematic_means=kin_mean,
         kinematic_covariances=kin_cov,

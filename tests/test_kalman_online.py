@@ -84,6 +84,22 @@ def test_fixed_models_reproduce_kalman_filter_on_the_five_state_channel():
     np.testing.assert_allclose(
         run.kinematic_means[:, 1], reference.filtered_means[:, 1], rtol=1e-6, atol=1e-12
     )
+    # The series the loop identifies from: the filtered sensor errors at the last step of
+    # each decimation interval (steps 9, 19, ...), and their blocks' covariances (the
+    # six-state channel's a₂ is the decoupled copy: its block's first entry is a's).
+    picked = slice(9, None, 10)
+    np.testing.assert_allclose(
+        run.sensor_estimates,
+        reference.filtered_means[picked][:, jnp.array([2, 3])],
+        rtol=1e-6,
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(
+        run.sensor_covariances[:, 0, 0, 0], reference.filtered_covariances[picked, 2, 2], rtol=1e-7
+    )
+    np.testing.assert_allclose(
+        run.sensor_covariances[:, 1], reference.filtered_covariances[picked, 3:5, 3:5], rtol=1e-7
+    )
     assert not bool(jnp.any(run.retuned))
 
 
