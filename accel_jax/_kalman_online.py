@@ -82,7 +82,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._checks import require_float64
-from ._kalman import EARTH_RADIUS, _symmetrise
+from ._kalman import EARTH_RADIUS, _matmul, _symmetrise
 from ._kalman_sensor import (
     SensorErrorModel,
     _window_autocovariance,
@@ -192,17 +192,6 @@ class OnlineRun(eqx.Module):
     alternative_models: Array
     retuned: Array
     structure_statistic: Array
-
-
-def _matmul(a, b):
-    """a @ b of two small matrices as a sum of outer products of a's columns and b's rows:
-    elementwise work that XLA:CPU fuses into vectorised loops over a vmapped batch (logs,
-    filters), where a batched `dot` or a multiply-and-reduce of 6 × 6 matrices runs several
-    times slower per step (docs/performance.md)."""
-    out = a[:, 0, None] * b[None, 0, :]
-    for j in range(1, a.shape[1]):
-        out = out + a[:, j, None] * b[None, j, :]
-    return out
 
 
 def _limit(new, current, span, settings: OnlineIdentification):
