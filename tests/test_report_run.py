@@ -557,3 +557,33 @@ def test_a_study_script_that_raises_is_one_line_exit_1_and_a_log(tmp_path):
     assert "Traceback" in (out / ERROR_LOG).read_text()
     marker = json.loads((out / MARKER).read_text())
     assert marker["complete"] is False and marker["failed"].startswith("ModuleNotFoundError")
+
+
+def test_figures_keep_a_figures_own_layout_without_a_warning(tmp_path):
+    """A figure made with a constrained layout (the identification figure) is saved with it,
+    silently; one without a layout engine gets the tight layout."""
+    import warnings
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from accel_jax.report._study import Figures
+
+    figures = Figures(tmp_path)
+    constrained = plt.figure(layout="constrained")
+    constrained.add_subplot().plot([0, 1])
+    plain = plt.figure()
+    plain.add_subplot().plot([0, 1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        figures.save(constrained, "constrained.png", "a constrained figure")
+        figures.save(plain, "plain.png", "a plain figure")
+    assert type(constrained.get_layout_engine()).__name__ == "ConstrainedLayoutEngine"
+    # tight_layout moved the plain figure's axes off matplotlib's default placement.
+    default = plt.figure().add_subplot().get_position().bounds
+    assert plain.axes[0].get_position().bounds != pytest.approx(default)
+    assert [e["file"] for e in figures.entries] == ["constrained.png", "plain.png"]
+    assert (tmp_path / "constrained.png").stat().st_size > 0
+    plt.close("all")

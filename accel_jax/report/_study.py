@@ -50,7 +50,8 @@ def study_run(*, compile_bound_when_quick: bool = False):
 
 class Figures:
     """A study's figures, in the order the report shows them: each saved whole as a PNG
-    beside `result.json` (tight layout, closed after) with its caption.
+    beside `result.json` (tight layout unless the figure has its own layout engine, closed
+    after) with its caption.
 
         figures = Figures(out_dir)
         figures.save(fig, "sweep.png", "δK_a versus ξ (…)")
@@ -66,7 +67,10 @@ class Figures:
 
         from .._io import save_figure_atomic
 
-        figure.tight_layout()
+        if figure.get_layout_engine() is None:
+            # A figure made with its own layout (constrained: the identification figure)
+            # keeps it; tight_layout would replace it, with a warning on the terminal.
+            figure.tight_layout()
         save_figure_atomic(figure, self.out_dir / file)
         plt.close(figure)
         entry = {"file": file, "caption": caption}
