@@ -65,12 +65,10 @@ def _numpy_filter(F, Q, H, R, z, m0, P0):
     return np.array(means), np.array(covs), loglik
 
 
-def test_filter_matches_numpy_loop_on_short_ins_case():
-    model = CHANNEL.discretise(1.0)
-    p0 = ins_initial_covariance(CHANNEL)
-    _, z = simulate_linear_gaussian(model, jnp.zeros(4), p0, 60, key=jax.random.key(0))
-    out = jax.jit(kalman_filter)(model, z, jnp.zeros(4), p0)
-    means, covs, loglik = _numpy_filter(
+def _assert_matches_numpy_loop(model, z, p0, means, covs, log_likelihoods):
+    """The filter's output for `model` against `_numpy_filter`'s, in units of the prior's
+    standard deviations."""
+    ref_means, ref_covs, ref_loglik = _numpy_filter(
         model.transition,
         model.process_covariance,
         model.observation,
@@ -80,13 +78,21 @@ def test_filter_matches_numpy_loop_on_short_ins_case():
         p0,
     )
     scale = np.sqrt(np.diag(np.asarray(p0)))
-    np.testing.assert_allclose(np.asarray(out.filtered_means) / scale, means / scale, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(means) / scale, ref_means / scale, atol=1e-9)
     np.testing.assert_allclose(
-        np.asarray(out.filtered_covariances) / np.outer(scale, scale),
-        covs / np.outer(scale, scale),
-        atol=1e-9,
+        np.asarray(covs) / np.outer(scale, scale), ref_covs / np.outer(scale, scale), atol=1e-9
     )
-    assert float(out.log_likelihood) == pytest.approx(loglik, rel=1e-10)
+    assert float(jnp.sum(log_likelihoods)) == pytest.approx(ref_loglik, rel=1e-10)
+
+
+def test_filter_matches_numpy_loop_on_short_ins_case():
+    model = CHANNEL.discretise(1.0)
+    p0 = ins_initial_covariance(CHANNEL)
+    _, z = simulate_linear_gaussian(model, jnp.zeros(4), p0, 60, key=jax.random.key(0))
+    out = jax.jit(kalman_filter)(model, z, jnp.zeros(4), p0)
+    _assert_matches_numpy_loop(
+        model, z, p0, out.filtered_means, out.filtered_covariances, out.log_likelihoods
+    )
 
 
 def test_filter_vmapped_over_models_matches_numpy_loop_per_model():
@@ -99,26 +105,15 @@ def test_filter_vmapped_over_models_matches_numpy_loop_per_model():
     batch = jax.tree.map(lambda *leaves: jnp.stack(leaves), *models)
     run = jax.jit(jax.vmap(kalman_filter, in_axes=(0, None, None, None)))
     out = run(batch, z, jnp.zeros(4), p0)
-    scale = np.sqrt(np.diag(np.asarray(p0)))
     for i, model in enumerate(models):
-        means, covs, loglik = _numpy_filter(
-            model.transition,
-            model.process_covariance,
-            model.observation,
-            model.observation_covariance,
+        _assert_matches_numpy_loop(
+            model,
             z,
-            np.zeros(4),
             p0,
+            out.filtered_means[i],
+            out.filtered_covariances[i],
+            out.log_likelihoods[i],
         )
-        np.testing.assert_allclose(
-            np.asarray(out.filtered_means[i]) / scale, means / scale, atol=1e-9
-        )
-        np.testing.assert_allclose(
-            np.asarray(out.filtered_covariances[i]) / np.outer(scale, scale),
-            covs / np.outer(scale, scale),
-            atol=1e-9,
-        )
-        assert float(jnp.sum(out.log_likelihoods[i])) == pytest.approx(loglik, rel=1e-10)
 
 
 def test_consistent_filter_and_mistuned_filter_diverges():
