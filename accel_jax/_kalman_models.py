@@ -17,11 +17,10 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array
 
-from ._kalman import (
+from ._kalman import LinearGaussianModel, Scalar
+from ._kalman_ins import (
     _INS_UNITS,
     EARTH_RADIUS,
-    LinearGaussianModel,
-    Scalar,
     _check_interval,
     _discretise,
     _gauss_markov,
@@ -29,7 +28,7 @@ from ._kalman import (
     _positive,
     _scale_check,
 )
-from ._kalman import scale_noise_coefficients as _scale_ins_channel
+from ._kalman_ins import scale_noise_coefficients as _scale_ins_channel
 from ._params import _as_float
 from ._static import STANDARD_GRAVITY
 

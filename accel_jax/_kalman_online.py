@@ -82,7 +82,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._checks import require_float64
-from ._kalman import EARTH_RADIUS, _matmul, _symmetrise
+from ._kalman import _matmul, _symmetrise
+from ._kalman_ins import EARTH_RADIUS
 from ._kalman_sensor import (
     SensorErrorModel,
     _window_autocovariance,

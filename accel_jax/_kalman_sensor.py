@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._kalman import EARTH_RADIUS, LinearGaussianModel, Scalar, _discretise, _generator
+from ._kalman import LinearGaussianModel, Scalar
+from ._kalman_ins import EARTH_RADIUS, _discretise, _generator
 from ._noise.paper import fit_exp_cosine_paper, fit_gauss_markov_paper
 from ._noise.record import NoiseFitResult
 from ._params import _as_float, _concrete

@@ -8,14 +8,14 @@ single-channel INS test bed on which a wrong sensor-noise model makes the filter
 """
 
 # The public names of this namespace (the modules that define them are private).
-from ._kalman import EARTH_RADIUS as EARTH_RADIUS
-from ._kalman import ConsistencyTrial as ConsistencyTrial
+from ._kalman_ins import EARTH_RADIUS as EARTH_RADIUS
+from ._kalman_ins import ConsistencyTrial as ConsistencyTrial
 from ._kalman import FilterOutput as FilterOutput
-from ._kalman import INSChannel as INSChannel
+from ._kalman_ins import INSChannel as INSChannel
 from ._kalman import LinearGaussianModel as LinearGaussianModel
 from ._kalman import SmootherOutput as SmootherOutput
-from ._kalman import ins_consistency_trial as ins_consistency_trial
-from ._kalman import ins_initial_covariance as ins_initial_covariance
+from ._kalman_ins import ins_consistency_trial as ins_consistency_trial
+from ._kalman_ins import ins_initial_covariance as ins_initial_covariance
 from ._kalman import kalman_filter as kalman_filter
 from ._kalman import normalised_estimation_error_squared as normalised_estimation_error_squared
 from ._kalman import normalised_innovation_squared as normalised_innovation_squared

@@ -9,14 +9,16 @@ import pytest
 import scipy.linalg
 
 from accel_jax._kalman import (
-    INSChannel,
     LinearGaussianModel,
-    ins_consistency_trial,
-    ins_initial_covariance,
     kalman_filter,
     normalised_estimation_error_squared,
-    scale_noise_coefficients,
     simulate_linear_gaussian,
+)
+from accel_jax._kalman_ins import (
+    INSChannel,
+    ins_consistency_trial,
+    ins_initial_covariance,
+    scale_noise_coefficients,
 )
 
 CHANNEL = INSChannel(

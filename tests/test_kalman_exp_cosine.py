@@ -13,13 +13,8 @@ import pytest
 import scipy.linalg
 import scipy.stats
 
-from accel_jax._kalman import (
-    INSChannel,
-    ins_consistency_trial,
-    ins_initial_covariance,
-    kalman_filter,
-    simulate_linear_gaussian,
-)
+from accel_jax._kalman import kalman_filter, simulate_linear_gaussian
+from accel_jax._kalman_ins import INSChannel, ins_consistency_trial, ins_initial_covariance
 from accel_jax._kalman_models import INSNoiseChannel
 from accel_jax.noise import ExponentialCosine, GaussMarkov, WhiteNoise
 
