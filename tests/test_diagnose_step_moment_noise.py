@@ -166,3 +166,69 @@ def test_the_effect_is_the_nominal_model_at_zero():
     assert float(ratio) == 0.0 and float(phi) == 0.0
     ratio, phi = effect.moment_noise(jnp.array([-2.0, 1.0]), None)
     assert float(ratio) == 0.0  # a negative size is none
+
+
+def _one_pass(error, params, dt, m, ratio, phi_block, observed):
+    """`moment_kalman` as one pass of the package's `kalman_filter` over the errors (what
+    it computed before its covariances and its means were split into two passes)."""
+    from accel_jax._kalman import LinearGaussianModel, kalman_filter
+
+    power, total, p0, _, _ = moment_noise_model(params, dt, m, 8, ratio, phi_block)
+    lead = power[:, :5]
+    model = LinearGaussianModel(
+        transition=jnp.zeros((6, 6)).at[:, :5].set(lead),
+        process_covariance=total,
+        observation=jnp.zeros((1, 6)).at[0, 5].set(1.0),
+        observation_covariance=jnp.reshape(1.0 / m, (1, 1)),
+    )
+    prior = lead @ p0 @ lead.T + total
+    seen = None if observed is None else observed > 0
+    out = kalman_filter(model, error, jnp.zeros(6), prior, observed=seen)
+    return out.innovations[:, 0], out.innovation_covariances[:, 0, 0]
+
+
+@pytest.mark.parametrize("gaps", [False, True])
+def test_two_passes_are_the_one_pass_filter_with_its_derivatives(gaps):
+    """`moment_kalman` runs the filter's covariances and its means as two passes and gives
+    the covariance pass a derivative of its own (taken only in the model's parameters that
+    move): the same innovations and variances to the bit as the one-pass filter, and the
+    same forward Jacobian and gradient in parameters of every kind — the device's, the
+    moment's, the errors' (which the covariances do not see) — to round-off."""
+    import equinox as eqx
+
+    params = _params(LAGS[1])
+    dt, m, n = float(time_constant(params)) / 20, 4, 60
+    rng = np.random.default_rng(5)
+    e0 = jnp.asarray(rng.standard_normal(n))
+    observed = jnp.asarray(rng.uniform(size=n) > 0.25, float) if gaps else None
+
+    def args(w):
+        device = eqx.tree_at(
+            lambda p: p.moment_of_inertia, params, params.moment_of_inertia * jnp.exp(w[0])
+        )
+        error = e0 * (1 + w[2]) + w[3] * jnp.linspace(0, 1, n)
+        return error, device, dt, m, 25.0 * jnp.exp(w[1]), 0.8 + 0.1 * w[4], observed
+
+    def split(w):
+        error, device, dt_, m_, ratio, phi, seen = args(w)
+        return moment_kalman(error, device, dt_, m_, 8, ratio, phi, seen)
+
+    def whole(w):
+        return _one_pass(*args(w))
+
+    w = jnp.array([0.2, -0.3, 0.05, 0.4, 0.1, 0.0, 0.0])  # the last two move nothing
+    for mine, theirs in zip(jax.jit(split)(w), jax.jit(whole)(w), strict=True):
+        assert np.array_equal(np.asarray(mine), np.asarray(theirs))
+    for mine, theirs in zip(
+        jax.jit(jax.jacfwd(split))(w), jax.jit(jax.jacfwd(whole))(w), strict=True
+    ):
+        assert float(jnp.max(jnp.abs(mine - theirs))) <= 1e-12 * float(jnp.max(jnp.abs(theirs)))
+        assert float(jnp.max(jnp.abs(theirs[..., 2:5]))) > 0  # each kind of parameter moves it
+    loss = [lambda w, f=f: jnp.sum(f(w)[0] ** 2 / f(w)[1]) for f in (split, whole)]
+    mine, theirs = (jax.grad(f)(w) for f in loss)
+    assert float(jnp.max(jnp.abs(mine - theirs))) <= 1e-12 * float(jnp.max(jnp.abs(theirs)))
+    # Differentiated in the errors alone, the covariance pass has no moving parameter.
+    error, device, *_ = args(w)
+    jac = jax.jacfwd(lambda e: moment_kalman(e, device, dt, m, 8, 25.0, 0.8, observed)[0])(error)
+    ref = jax.jacfwd(lambda e: _one_pass(e, device, dt, m, 25.0, 0.8, observed)[0])(error)
+    assert float(jnp.max(jnp.abs(jac - ref))) <= 1e-12 * float(jnp.max(jnp.abs(ref)))

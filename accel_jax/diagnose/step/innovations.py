@@ -8,11 +8,13 @@ through each block (`moment_noise_terms`)."""
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
-from ..._kalman import LinearGaussianModel, kalman_filter
+from ..._kalman import LinearGaussianModel, _matmul, kalman_filter
 from ..._servo import time_constant
 from ..._simulate.matrix import expm_minus_identity
 from ..._simulate.sequence import loop_system
@@ -174,9 +176,34 @@ def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block, observ
     ξ_k = [x at the end of block k; s_k, block k's loop part], ξ_{k+1} = [Gᵐ]₍:,:5₎ ξ_k[:5] +
     w_k (w ~ N(0, Σ)), observed as s_k + the white part's mean (variance 1/m); its prior is
     the stationary joint of the first block (P through one block, plus Σ). `observed`
-    (n,), optional: 0 where a block is a gap (predicted across, not used)."""
-    power, total, p0, _, _ = moment_noise_model(params, dt, m, max_block, ratio, phi_block)
+    (n,), optional: 0 where a block is a gap (predicted across, not used).
+
+    Computed in two passes with the filter's own arithmetic (the same values to the bit):
+    the covariances, gains K_k and S_k, which depend on the model alone (`_moment_gains`),
+    then the state means over the record's errors with those gains. The first pass is
+    differentiated only in the directions its few model parameters move (`_moment_gains`'s
+    derivative), not in every direction of a fit's parameter vector."""
     dtype = error.dtype
+    n = error.shape[0]
+    seen = jnp.ones(n, bool) if observed is None else observed > 0
+    lead, gains, s = _moment_gains(max_block, n, dtype, params, dt, m, ratio, phi_block, seen)
+    transition = jnp.zeros((6, 6), dtype).at[:, :5].set(lead)
+
+    def step(mean, inputs):
+        e_k, seen_k, gain = inputs
+        predicted = mean[5]
+        innovation = jnp.where(seen_k | jnp.isfinite(e_k), e_k, predicted) - predicted
+        mean_post = mean + jnp.where(seen_k, gain, 0.0) * innovation
+        return _matmul(transition, mean_post[:, None])[:, 0], innovation
+
+    _, a = jax.lax.scan(step, jnp.zeros(6, dtype), (error, seen, gains))
+    return a, s
+
+
+def _moment_gains_of(max_block: int, n: int, dtype, params, dt, m, ratio, phi_block, seen):
+    """([Gᵐ]₍:,:5₎, the gains K_k (n, 6), S_k (n,)) of `moment_kalman`'s filter: the
+    package's `kalman_filter` run on zeros (its covariances do not depend on the data)."""
+    power, total, p0, _, _ = moment_noise_model(params, dt, m, max_block, ratio, phi_block)
     lead = power[:, :5].astype(dtype)
     transition = jnp.zeros((6, 6), dtype).at[:, :5].set(lead)
     model = LinearGaussianModel(
@@ -186,6 +213,51 @@ def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block, observ
         observation_covariance=jnp.reshape(1.0 / m, (1, 1)).astype(dtype),
     )
     prior = lead @ p0.astype(dtype) @ lead.T + total.astype(dtype)
-    seen = None if observed is None else observed > 0
-    out = kalman_filter(model, error, jnp.zeros(6, dtype), prior, observed=seen)
-    return out.innovations[:, 0], out.innovation_covariances[:, 0, 0]
+    out = kalman_filter(model, jnp.zeros(n, dtype), jnp.zeros(6, dtype), prior, observed=seen)
+    s = out.innovation_covariances[:, 0, 0]
+    # The filter's gain H P⁻ᵀ / S with H the last state's row: P⁻'s last row over S.
+    return lead, out.predicted_covariances[:, 5, :] / s[:, None], s
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def _moment_gains(max_block: int, n: int, dtype, params, dt, m, ratio, phi_block, seen):
+    """`_moment_gains_of`, with a derivative that differentiates the filter's covariance
+    pass once per model parameter that moves (a handful: the device's refit z, the moment's
+    ratio and φ), then applies that Jacobian to any number of directions. A fit's forward
+    Jacobian (`fit.dense_jacobian`) pushes every direction of w (20 or more) through it;
+    directions in which nothing here moves cost nothing."""
+    return _moment_gains_of(max_block, n, dtype, params, dt, m, ratio, phi_block, seen)
+
+
+def _moment_gains_jvp(max_block, n, dtype, primals, tangents):
+    # (`symbolic_zeros`: an argument that does not depend on what is differentiated has a
+    # `SymbolicZero` tangent, so the inner Jacobian is taken only in the others.)
+    leaves, tree = jax.tree.flatten(primals)
+    moved = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
+    live = [
+        i for i, (t, v) in enumerate(zip(moved, leaves, strict=True))
+        if not isinstance(t, SymbolicZero) and jnp.issubdtype(jnp.result_type(v), jnp.inexact)
+    ]
+
+    def of(*values):
+        full = list(leaves)
+        for i, v in zip(live, values, strict=True):
+            full[i] = v
+        return _moment_gains_of(max_block, n, dtype, *jax.tree.unflatten(tree, full))
+
+    if not live:
+        out = of()
+        return out, jax.tree.map(jnp.zeros_like, out)
+    out, jacobians = jax.jacfwd(lambda *v: (of(*v),) * 2, argnums=tuple(range(len(live))),
+                                has_aux=True)(*(leaves[i] for i in live))[::-1]
+    directions = [jnp.asarray(moved[i], leaves[i].dtype) for i in live]
+
+    def apply(jac):
+        return sum(
+            jnp.tensordot(j, d, axes=jnp.ndim(d)) for j, d in zip(jac, directions, strict=True)
+        )
+
+    return out, tuple(apply(jac) for jac in jacobians)
+
+
+_moment_gains.defjvp(_moment_gains_jvp, symbolic_zeros=True)
