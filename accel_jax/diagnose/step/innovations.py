@@ -2,8 +2,8 @@
 white + Gauss–Markov output noise (`effects.ColoredNoise`; white alone at φ = θ = 0) as an
 ARMA(1,1) recursion evaluated by a blocked first-order filter (`innovation_terms`), and
 white output noise + a Gauss–Markov moment inside the loop (`effects.MomentNoise`) by the
-package's Kalman filter (`accel_jax._kalman.kalman_filter`) on the loop's states carried
-through each block (`moment_noise_terms`)."""
+Kalman filter on the loop's states carried through each block (`moment_noise_terms`; the
+package's `accel_jax._kalman.kalman_filter` to round-off, in two passes)."""
 
 from __future__ import annotations
 
@@ -178,11 +178,12 @@ def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block, observ
     the stationary joint of the first block (P through one block, plus Σ). `observed`
     (n,), optional: 0 where a block is a gap (predicted across, not used).
 
-    Computed in two passes with the filter's own arithmetic (the same values to the bit):
-    the covariances, gains K_k and S_k, which depend on the model alone (`_moment_gains`),
-    then the state means over the record's errors with those gains. The first pass is
-    differentiated only in the directions its few model parameters move (`_moment_gains`'s
-    derivative), not in every direction of a fit's parameter vector."""
+    Computed in two passes: the covariances, gains K_k and S_k, which depend on the model
+    alone (`_moment_gains`: the filter's covariance recursion written for an observation of
+    one state), then the state means over the record's errors with those gains; the
+    one-pass `kalman_filter`'s values to round-off (tests/test_diagnose_step_moment_noise.py).
+    The first pass is differentiated only in the directions its few model parameters move
+    (`_moment_gains`'s derivative), not in every direction of a fit's parameter vector."""
     dtype = error.dtype
     n = error.shape[0]
     seen = jnp.ones(n, bool) if observed is None else observed > 0
@@ -201,22 +202,29 @@ def moment_kalman(error, params, dt, m, max_block: int, ratio, phi_block, observ
 
 
 def _moment_gains_of(max_block: int, n: int, dtype, params, dt, m, ratio, phi_block, seen):
-    """([Gᵐ]₍:,:5₎, the gains K_k (n, 6), S_k (n,)) of `moment_kalman`'s filter: the
-    package's `kalman_filter` run on zeros (its covariances do not depend on the data)."""
+    """([Gᵐ]₍:,:5₎, the gains K_k (n, 6), S_k (n,)) of `moment_kalman`'s filter: its
+    covariance recursion alone (the covariances do not depend on the data). The observation
+    reads the last state, so S_k = P⁻₅₅ + 1/m, K_k = P⁻₍:,5₎/S_k, and the update
+    (I − K eᵀ) P⁻ (I − K eᵀ)ᵀ + K Kᵀ/m (Joseph's form) is P⁻ − K P⁻₍5,:₎, as one
+    outer product; the prediction Gᵐ P Gᵐᵀ + Σ reads P's first five rows and columns only
+    (the last column of the transition is zero)."""
     power, total, p0, _, _ = moment_noise_model(params, dt, m, max_block, ratio, phi_block)
     lead = power[:, :5].astype(dtype)
-    transition = jnp.zeros((6, 6), dtype).at[:, :5].set(lead)
-    model = LinearGaussianModel(
-        transition=transition,
-        process_covariance=total.astype(dtype),
-        observation=jnp.zeros((1, 6), dtype).at[0, 5].set(1.0),
-        observation_covariance=jnp.reshape(1.0 / m, (1, 1)).astype(dtype),
-    )
-    prior = lead @ p0.astype(dtype) @ lead.T + total.astype(dtype)
-    out = kalman_filter(model, jnp.zeros(n, dtype), jnp.zeros(6, dtype), prior, observed=seen)
-    s = out.innovation_covariances[:, 0, 0]
-    # The filter's gain H P⁻ᵀ / S with H the last state's row: P⁻'s last row over S.
-    return lead, out.predicted_covariances[:, 5, :] / s[:, None], s
+    total = total.astype(dtype)
+    prior = lead @ p0.astype(dtype) @ lead.T + total
+    r = (1.0 / m).astype(dtype) if hasattr(1.0 / m, "astype") else jnp.asarray(1.0 / m, dtype)
+
+    def step(cov, seen_k):
+        row = cov[5]
+        s = row[5] + r
+        gain = row / s
+        post = jnp.where(seen_k, cov - gain[:, None] * row[None, :], cov)[:5, :5]
+        post = 0.5 * (post + post.T)
+        predicted = _matmul(_matmul(lead, post), lead.T) + total
+        return 0.5 * (predicted + predicted.T), (gain, s)
+
+    _, (gains, s) = jax.lax.scan(step, prior, seen)
+    return lead, gains, s
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
