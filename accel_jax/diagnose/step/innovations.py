@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from ..._kalman import LinearGaussianModel, _matmul, kalman_filter
+from ..._kalman import _matmul
 from ..._servo import time_constant
 from ..._simulate.matrix import expm_minus_identity
 from ..._simulate.sequence import loop_system
@@ -212,7 +212,7 @@ def _moment_gains_of(max_block: int, n: int, dtype, params, dt, m, ratio, phi_bl
     lead = power[:, :5].astype(dtype)
     total = total.astype(dtype)
     prior = lead @ p0.astype(dtype) @ lead.T + total
-    r = (1.0 / m).astype(dtype) if hasattr(1.0 / m, "astype") else jnp.asarray(1.0 / m, dtype)
+    r = jnp.asarray(1.0 / m, dtype)
 
     def step(cov, seen_k):
         row = cov[5]
